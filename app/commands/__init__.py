@@ -1,0 +1,1 @@
+"""Subcommands of the lenslesscam CLI (one module each)."""

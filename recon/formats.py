@@ -1,0 +1,166 @@
+"""Shared primitives for saved artifacts: atomic writes, format versions, provenance metadata.
+
+Every file the project writes goes through :func:`atomic_write` (write to a temporary file in
+the same folder, flush, fsync, then ``os.replace``), so a crash or a full disk leaves either the
+old file or the new one, never half of one. Every artifact carries ``format`` (what it is) and
+``format_version`` (how to read it) in its metadata, plus :func:`provenance`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import hashlib
+import json
+import os
+import platform
+import tempfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import IO, Any
+
+__all__ = [
+    "FORMAT_VERSION",
+    "FormatError",
+    "array_hash",
+    "atomic_open",
+    "atomic_write",
+    "atomic_write_bytes",
+    "atomic_write_json",
+    "file_hash",
+    "provenance",
+    "software_version",
+]
+
+#: Version of the on-disk formats written by this release (bumped on incompatible changes).
+FORMAT_VERSION = 1
+
+
+class FormatError(ValueError):
+    """A file exists but is not what it claims to be (corrupt, wrong format or version)."""
+
+
+def software_version() -> str:
+    """Version of the installed ``lenslesscam`` distribution (or 'unknown' from a bare tree)."""
+    try:
+        from importlib.metadata import version
+
+        return version("lenslesscam")
+    except Exception:  # not installed: running from a source tree
+        return "unknown"
+
+
+def provenance() -> dict[str, Any]:
+    """Metadata every artifact carries: software versions, host and UTC time."""
+    import numpy as np
+
+    versions: dict[str, str] = {
+        "lenslesscam": software_version(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+    }
+    import sys
+
+    if "torch" in sys.modules:  # never import torch just to write metadata
+        versions["torch"] = str(sys.modules["torch"].__version__)
+    return {
+        "versions": versions,
+        "host": platform.node(),
+        "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+    }
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[Any]]:
+    """Open a temporary file beside ``path``; on success it replaces ``path`` atomically.
+
+    On any exception the temporary file is removed and ``path`` is left untouched.
+    """
+    if "w" not in mode:
+        raise ValueError(f"atomic_open writes only, got mode {mode!r}")
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, mode) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write(path: str | os.PathLike[str], writer: Callable[[Path], None]) -> Path:
+    """Call ``writer(tmp_path)`` to produce the file, then move it to ``path`` atomically.
+
+    Use this for libraries that want a filename (tifffile, Pillow, numpy, torch.save).
+    The temporary name keeps the target's suffix so format detection by extension works.
+    """
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(
+        prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}", dir=target.parent
+    )
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        writer(tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+    return target
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically."""
+    with atomic_open(path, "wb") as fh:
+        fh.write(data)
+    return Path(path)
+
+
+def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
+    """Write ``obj`` as indented JSON atomically."""
+    text = json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n"
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def _json_default(o: Any) -> Any:
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    if hasattr(o, "value"):  # Enum
+        return o.value
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def array_hash(a: Any) -> str:
+    """SHA-256 (first 16 hex digits) of an array's dtype, shape and bytes."""
+    import numpy as np
+
+    arr = np.ascontiguousarray(a)
+    h = hashlib.sha256()
+    h.update(str(arr.dtype).encode())
+    h.update(str(arr.shape).encode())
+    h.update(arr.tobytes())
+    return h.hexdigest()[:16]
+
+
+def file_hash(path: str | os.PathLike[str]) -> str:
+    """SHA-256 (first 16 hex digits) of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()[:16]

@@ -1,0 +1,174 @@
+"""Forward models b = sum_k M_k . crop(h_k * v_k), built from the operators in ``operators``.
+
+=============  ==========================================  =================================
+kind           operator chain                               scene (C, K, Hs, Ws)
+=============  ==========================================  =================================
+``2d``         [Mask] @ SumK @ Crop @ Conv2D(h)            K = 1
+``video``      [Mask] @ SumK @ Mask(M_k) @ Crop @ Conv2D(h) K = time bins, M from the shutter
+``spectral``   [Mask] @ SumK @ Mask(F_k) @ Crop @ Conv2D(h) K = bands, F the filter cube
+``depth``      [Mask] @ Crop @ StackConvSum(h_k)           K = depth planes, one PSF each
+=============  ==========================================  =================================
+
+The optional leading Mask is the erasure / dead-pixel mask on the sensor (1 = measured).
+The sensor is the PSF's size (H, W); the scene field defaults to the sensor size and may be any
+other size (``field``), for example the full padded field (2H, 2W) to explain light from outside
+the sensor's view.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+import numpy as np
+import torch
+
+from recon.operators import Compose, Conv2D, Crop, LinearOperator, Mask, StackConvSum, SumK
+
+__all__ = ["ForwardModel", "ModelKind", "build_model"]
+
+
+class ModelKind(str, Enum):
+    """Which physical model a measurement follows."""
+
+    TWO_D = "2d"
+    VIDEO = "video"
+    SPECTRAL = "spectral"
+    DEPTH = "depth"
+
+
+@dataclass
+class ForwardModel:
+    """A forward model: the operator plus what it means."""
+
+    kind: ModelKind
+    op: LinearOperator
+    scene_shape: tuple[int, ...]
+    meas_shape: tuple[int, ...]
+    mask: torch.Tensor | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def k(self) -> int:
+        """Number of frames / bands / planes."""
+        return self.scene_shape[1]
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        """Forward model A x."""
+        return self.op.apply(x)
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        """Adjoint A^T y."""
+        return self.op.adjoint(y)
+
+
+def _tensor(a: Any, dtype: torch.dtype, device: torch.device | str) -> torch.Tensor:
+    if isinstance(a, torch.Tensor):
+        return a.to(dtype=dtype, device=device)
+    return torch.as_tensor(np.asarray(a)).to(dtype=dtype, device=device)
+
+
+def build_model(
+    kind: ModelKind | str,
+    psf: Any,
+    *,
+    channels: int | None = None,
+    mask: Any = None,
+    shutter: Any = None,
+    filters: Any = None,
+    field: Sequence[int] | None = None,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+) -> ForwardModel:
+    """Build a forward model.
+
+    Args:
+        kind: ``2d``, ``video``, ``spectral`` or ``depth``.
+        psf: (H, W) or (C, H, W) per channel; for ``depth`` the stack (K, H, W).
+        channels: colour channels C (default: from the PSF, else 1).
+        mask: sensor mask (H, W) or (C, H, W), 1 = measured, 0 = erased.
+        shutter: ``video`` only: M (K, H), the fraction of bin k each row integrates.
+        filters: ``spectral`` only: filter cube (K, H, W) transmissions.
+        field: scene field (Hs, Ws); default the sensor size.
+        dtype, device: torch dtype (float32 or float64) and device.
+    """
+    kind = ModelKind(kind)
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"operators run in float32 or float64, not {dtype}")
+    h = _tensor(psf, dtype, device)
+    if kind is ModelKind.DEPTH:
+        if h.ndim != 3:
+            raise ValueError(f"depth model needs a PSF stack (K, H, W), got {tuple(h.shape)}")
+        k = int(h.shape[0])
+        c = channels or 1
+        psf_c = h
+    else:
+        if h.ndim == 2:
+            c = channels or 1
+            psf_c = h
+        elif h.ndim == 3:
+            c = int(h.shape[0])
+            if channels not in (None, c):
+                raise ValueError(f"PSF has {c} channels but channels={channels}")
+            psf_c = h[:, None]  # (C, 1, H, W): one PSF per colour channel
+        else:
+            raise ValueError(f"PSF must be (H, W) or (C, H, W), got {tuple(h.shape)}")
+        k = 1
+    sensor = (int(h.shape[-2]), int(h.shape[-1]))
+    if min(sensor) < 1:
+        raise ValueError(f"PSF has an empty shape {tuple(h.shape)}")
+
+    m_k: torch.Tensor | None = None
+    if kind is ModelKind.VIDEO:
+        if shutter is None:
+            raise ValueError("video model needs a shutter function M (K, H)")
+        m = _tensor(shutter, dtype, device)
+        if m.ndim != 2 or m.shape[1] != sensor[0]:
+            raise ValueError(
+                f"shutter function must be (K, {sensor[0]}) for a sensor of {sensor[0]} rows, "
+                f"got {tuple(m.shape)}"
+            )
+        k = int(m.shape[0])
+        m_k = m[None, :, :, None]  # (1, K, H, 1)
+    elif kind is ModelKind.SPECTRAL:
+        if filters is None:
+            raise ValueError("spectral model needs a filter cube (K, H, W)")
+        f = _tensor(filters, dtype, device)
+        if f.ndim != 3 or tuple(f.shape[1:]) != sensor:
+            raise ValueError(
+                f"filter cube must be (K, {sensor[0]}, {sensor[1]}), got {tuple(f.shape)}"
+            )
+        k = int(f.shape[0])
+        m_k = f[None]
+    elif shutter is not None or filters is not None:
+        raise ValueError(f"{kind.value} model takes no shutter or filter cube")
+
+    hs, ws = (int(field[0]), int(field[1])) if field is not None else sensor
+    scene_shape = (c, k, hs, ws)
+    offset = (hs // 2, ws // 2)
+    ops: list[LinearOperator]
+    if kind is ModelKind.DEPTH:
+        conv_sum = StackConvSum(psf_c, scene_shape, dtype=dtype, device=device)
+        crop = Crop(conv_sum.out_shape, sensor, offset, dtype=dtype, device=device)
+        ops = [crop, conv_sum]
+    else:
+        conv = Conv2D(psf_c, scene_shape, dtype=dtype, device=device)
+        crop = Crop(conv.out_shape, sensor, offset, dtype=dtype, device=device)
+        ops = [crop, conv]
+        if m_k is not None:
+            ops.insert(0, Mask(m_k, crop.out_shape, dtype=dtype, device=device))
+        ops.insert(0, SumK(crop.out_shape, dtype=dtype, device=device))
+    meas_shape = (c, *sensor)
+    mask_t: torch.Tensor | None = None
+    if mask is not None:
+        mask_t = _tensor(mask, dtype, device)
+        if tuple(mask_t.shape[-2:]) != sensor:
+            raise ValueError(
+                f"mask of shape {tuple(mask_t.shape)} does not match the sensor {sensor}"
+            )
+        ops.insert(0, Mask(mask_t, meas_shape, dtype=dtype, device=device))
+    op = Compose(ops)
+    info = {"sensor": sensor, "field": (hs, ws), "pad": op.ops[-1].out_shape[-2:]}
+    return ForwardModel(kind, op, scene_shape, meas_shape, mask_t, info)

@@ -1,0 +1,356 @@
+"""Linear operators with exact adjoints, composable, in PyTorch (CPU or GPU, float32/float64).
+
+Layout: a scene is (C, K, H, W) (C independent colour channels, K frames / bands / depth
+planes), a measurement is (C, H, W). Every operator knows ``in_shape`` and ``out_shape`` and has
+``apply`` and ``adjoint``; ``A @ B`` composes (apply B first). The adjoints are exact: each is
+checked by a dot-product test and against autograd (tests/test_operators.py).
+
+Convolution follows DiffuserCam: the scene (Hs, Ws) and the PSF (H, W) are zero-padded to a fast
+FFT size P >= Hs + H - 1 (so the circular convolution on the padded grid is the linear one);
+:class:`Crop` then cuts the sensor window. The crop offset (Hs // 2, Ws // 2) puts the image of an
+on-axis point (a delta at the scene centre) exactly on the sensor: it reproduces the PSF.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+
+__all__ = [
+    "Compose",
+    "Conv2D",
+    "Crop",
+    "Identity",
+    "LinearOperator",
+    "Mask",
+    "StackConvSum",
+    "SumK",
+    "fast_fft_size",
+    "power_norm",
+]
+
+Shape = tuple[int, ...]
+
+
+def fast_fft_size(n: int) -> int:
+    """Smallest integer >= n whose prime factors are 2, 3 and 5 (fast for pocketfft/MKL/cuFFT)."""
+    if n < 1:
+        raise ValueError(f"FFT size must be >= 1, got {n}")
+    best = 1 << (n - 1).bit_length()  # power of two is always acceptable
+    p5 = 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            p = p35
+            while p < n:
+                p *= 2
+            best = min(best, p)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
+class LinearOperator:
+    """Base class: a linear map from ``in_shape`` to ``out_shape``.
+
+    Subclasses implement :meth:`apply` and :meth:`adjoint`. The operator norm is estimated by
+    power iteration on A^T A and cached on the instance.
+    """
+
+    in_shape: Shape
+    out_shape: Shape
+    dtype: torch.dtype
+    device: torch.device
+
+    def __init__(self, in_shape: Sequence[int], out_shape: Sequence[int],
+                 dtype: torch.dtype, device: torch.device | str = "cpu") -> None:
+        self.in_shape = tuple(int(s) for s in in_shape)
+        self.out_shape = tuple(int(s) for s in out_shape)
+        self.dtype = dtype
+        self.device = torch.device(device)
+        self._norm: float | None = None
+
+    # -- interface -----------------------------------------------------------------------------
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        """Forward map A x."""
+        raise NotImplementedError  # abstract
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        """Adjoint map A^T y."""
+        raise NotImplementedError  # abstract
+
+    # -- conveniences --------------------------------------------------------------------------
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        return self.apply(x)
+
+    def __matmul__(self, other: LinearOperator) -> Compose:
+        return Compose([self, other])
+
+    @property
+    def T(self) -> _Adjoint:  # noqa: N802 - mathematical notation
+        """The adjoint as an operator."""
+        return _Adjoint(self)
+
+    def zeros_in(self) -> torch.Tensor:
+        """A zero tensor of the input shape."""
+        return torch.zeros(self.in_shape, dtype=self.dtype, device=self.device)
+
+    def check_input(self, x: torch.Tensor, what: str = "input") -> None:
+        """Raise ValueError naming the operator if ``x`` has the wrong shape."""
+        if tuple(x.shape) != self.in_shape:
+            raise ValueError(
+                f"{type(self).__name__}: {what} has shape {tuple(x.shape)}, expected {self.in_shape}"
+            )
+
+    def norm(self, iters: int = 50, seed: int = 0, tol: float = 1e-6) -> float:
+        """Spectral norm ||A|| by power iteration on A^T A (cached per operator)."""
+        if self._norm is None:
+            self._norm = power_norm(self, iters=iters, seed=seed, tol=tol)
+        return self._norm
+
+    def lipschitz(self) -> float:
+        """Lipschitz constant of the gradient of 0.5||Ax - b||^2, with a 2% safety margin."""
+        return 1.02 * self.norm() ** 2
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.in_shape} -> {self.out_shape}, {self.dtype})"
+
+
+class _Adjoint(LinearOperator):
+    def __init__(self, op: LinearOperator) -> None:
+        super().__init__(op.out_shape, op.in_shape, op.dtype, op.device)
+        self.op = op
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        return self.op.adjoint(x)
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        return self.op.apply(y)
+
+
+class Compose(LinearOperator):
+    """Product of operators: ``Compose([A, B, C]).apply(x) == A(B(C(x)))``."""
+
+    def __init__(self, ops: Sequence[LinearOperator]) -> None:
+        flat: list[LinearOperator] = []
+        for op in ops:
+            flat.extend(op.ops if isinstance(op, Compose) else [op])
+        if not flat:
+            raise ValueError("Compose needs at least one operator")
+        for outer, inner in zip(flat[:-1], flat[1:], strict=True):
+            if outer.in_shape != inner.out_shape:
+                raise ValueError(
+                    f"cannot compose {outer!r} after {inner!r}: shapes {inner.out_shape} -> "
+                    f"{outer.in_shape} differ"
+                )
+        super().__init__(flat[-1].in_shape, flat[0].out_shape, flat[0].dtype, flat[0].device)
+        self.ops = flat
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        for op in reversed(self.ops):
+            x = op.apply(x)
+        return x
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        for op in self.ops:
+            y = op.adjoint(y)
+        return y
+
+    def __repr__(self) -> str:
+        return " @ ".join(repr(o) for o in self.ops)
+
+
+class Identity(LinearOperator):
+    """The identity on a shape."""
+
+    def __init__(self, shape: Sequence[int], dtype: torch.dtype = torch.float32,
+                 device: torch.device | str = "cpu") -> None:
+        super().__init__(shape, shape, dtype, device)
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        return x
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        return y
+
+
+def _as_tensor(a: Any, dtype: torch.dtype, device: torch.device | str) -> torch.Tensor:
+    if isinstance(a, torch.Tensor):
+        return a.to(dtype=dtype, device=device)
+    return torch.as_tensor(a).to(dtype=dtype, device=device)
+
+
+class Conv2D(LinearOperator):
+    """Linear 2D convolution of every (c, k) slice with a PSF, on the zero-padded FFT grid.
+
+    ``psf`` is (H, W) (one PSF for all slices), (K, H, W) (one PSF per k, a PSF stack; also
+    (C, K, H, W) per channel) or (C, 1, H, W) (one PSF per colour channel). The input
+    (C, K, Hs, Ws) is zero-padded to (Py, Px) = fast sizes >= (Hs + H - 1, Ws + W - 1); the output
+    is the full (C, K, Py, Px) grid (follow with :class:`Crop`).
+    """
+
+    def __init__(self, psf: Any, in_shape: Sequence[int], *,
+                 dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu",
+                 pad_shape: Sequence[int] | None = None) -> None:
+        if len(in_shape) != 4:
+            raise ValueError(f"Conv2D input must be (C, K, H, W), got {tuple(in_shape)}")
+        c, k, hs, ws = (int(s) for s in in_shape)
+        h = _as_tensor(psf, dtype, device)
+        if h.ndim == 2:
+            h = h[None, None]
+        elif h.ndim == 3:
+            h = h[None]
+        if h.ndim != 4:
+            raise ValueError(f"PSF must be (H, W), (K, H, W) or (C, K, H, W), got {tuple(h.shape)}")
+        if h.shape[0] not in (1, c) or h.shape[1] not in (1, k):
+            raise ValueError(
+                f"PSF of shape {tuple(h.shape)} does not match the scene (C={c}, K={k})"
+            )
+        if not torch.isfinite(h).all():
+            raise ValueError("PSF contains NaN or inf values")
+        if not bool((h != 0).any()):
+            raise ValueError("PSF is all zeros: nothing can be reconstructed")
+        self.psf_shape = (int(h.shape[-2]), int(h.shape[-1]))
+        if pad_shape is None:
+            pad = (fast_fft_size(hs + self.psf_shape[0] - 1),
+                   fast_fft_size(ws + self.psf_shape[1] - 1))
+        else:
+            pad = (int(pad_shape[0]), int(pad_shape[1]))
+            if pad[0] < hs + self.psf_shape[0] - 1 or pad[1] < ws + self.psf_shape[1] - 1:
+                raise ValueError(f"pad_shape {pad} too small for linear convolution")
+        self.pad = pad
+        super().__init__((c, k, hs, ws), (c, k, *pad), dtype, device)
+        self.hf = torch.fft.rfft2(h, s=pad)  # (1|C, 1|K, Py, Px//2+1)
+        self.hf_conj = self.hf.conj()
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        xf = torch.fft.rfft2(x, s=self.pad)
+        xf.mul_(self.hf)
+        return torch.fft.irfft2(xf, s=self.pad)
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        yf = torch.fft.rfft2(y)
+        yf.mul_(self.hf_conj)
+        out = torch.fft.irfft2(yf, s=self.pad)
+        return out[..., : self.in_shape[2], : self.in_shape[3]]
+
+
+class StackConvSum(LinearOperator):
+    """Per-plane convolution with a PSF stack followed by the sum over planes, in one pass.
+
+    Equivalent to ``SumK @ Conv2D(psf_stack)`` but sums in Fourier space, so it costs K forward
+    FFTs and one inverse (apply), one forward and K inverse (adjoint). Output (C, Py, Px).
+    """
+
+    def __init__(self, psf_stack: Any, in_shape: Sequence[int], *,
+                 dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> None:
+        self.conv = Conv2D(psf_stack, in_shape, dtype=dtype, device=device)
+        c = self.conv.in_shape[0]
+        super().__init__(self.conv.in_shape, (c, *self.conv.pad), dtype, device)
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        xf = torch.fft.rfft2(x, s=self.conv.pad)
+        xf.mul_(self.conv.hf)
+        return torch.fft.irfft2(xf.sum(dim=1), s=self.conv.pad)
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        yf = torch.fft.rfft2(y)[:, None]
+        out = torch.fft.irfft2(yf * self.conv.hf_conj, s=self.conv.pad)
+        return out[..., : self.in_shape[2], : self.in_shape[3]]
+
+
+class Crop(LinearOperator):
+    """Cut an (h, w) window at ``offset`` from the last two axes; the adjoint zero-pads."""
+
+    def __init__(self, in_shape: Sequence[int], size: Sequence[int], offset: Sequence[int], *,
+                 dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> None:
+        ins = tuple(int(s) for s in in_shape)
+        h, w = (int(s) for s in size)
+        oy, ox = (int(s) for s in offset)
+        if oy < 0 or ox < 0 or oy + h > ins[-2] or ox + w > ins[-1]:
+            raise ValueError(f"crop window {h}x{w} at ({oy}, {ox}) outside {ins[-2:]}")
+        super().__init__(ins, (*ins[:-2], h, w), dtype, device)
+        self.sl = (slice(oy, oy + h), slice(ox, ox + w))
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        return x[..., self.sl[0], self.sl[1]]
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        out = y.new_zeros(y.shape[:-2] + self.in_shape[-2:])
+        out[..., self.sl[0], self.sl[1]] = y
+        return out
+
+
+class Mask(LinearOperator):
+    """Pointwise multiplication by a fixed array broadcast to the shape (self-adjoint).
+
+    Serves for erasure masks (0/1 over the sensor), the rolling-shutter function (K, H, 1) and
+    spectral filter cubes (K, H, W).
+    """
+
+    def __init__(self, mask: Any, shape: Sequence[int], *,
+                 dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> None:
+        m = _as_tensor(mask, dtype, device)
+        shp = tuple(int(s) for s in shape)
+        try:
+            torch.broadcast_shapes(tuple(m.shape), shp)
+        except RuntimeError as exc:
+            raise ValueError(f"mask of shape {tuple(m.shape)} does not fit data {shp}") from exc
+        if torch.broadcast_shapes(tuple(m.shape), shp) != shp:
+            raise ValueError(f"mask of shape {tuple(m.shape)} would enlarge data {shp}")
+        if not torch.isfinite(m).all():
+            raise ValueError("mask contains NaN or inf values")
+        super().__init__(shp, shp, dtype, device)
+        self.mask = m
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.mask
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        return y * self.mask
+
+
+class SumK(LinearOperator):
+    """Sum over the k axis: (C, K, H, W) -> (C, H, W); the adjoint repeats along k."""
+
+    def __init__(self, in_shape: Sequence[int], *, dtype: torch.dtype = torch.float32,
+                 device: torch.device | str = "cpu") -> None:
+        ins = tuple(int(s) for s in in_shape)
+        if len(ins) != 4:
+            raise ValueError(f"SumK input must be (C, K, H, W), got {ins}")
+        super().__init__(ins, (ins[0], ins[2], ins[3]), dtype, device)
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        return x.sum(dim=1)
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        return y.unsqueeze(1).expand(self.in_shape).contiguous()
+
+
+def power_norm(op: LinearOperator, iters: int = 50, seed: int = 0, tol: float = 1e-6) -> float:
+    """Estimate ||A|| (largest singular value) by power iteration on A^T A.
+
+    Stops early when the estimate changes by less than ``tol`` (relative). The result is a lower
+    bound that converges from below; callers add a small margin (see ``lipschitz``).
+    """
+    gen = torch.Generator(device="cpu").manual_seed(seed)
+    x = torch.rand(op.in_shape, generator=gen, dtype=torch.float64).to(op.dtype).to(op.device)
+    x /= torch.linalg.vector_norm(x)
+    est = 0.0
+    with torch.no_grad():
+        for _ in range(iters):
+            y = op.adjoint(op.apply(x))
+            n = float(torch.linalg.vector_norm(y))
+            if not math.isfinite(n):
+                raise FloatingPointError(f"power iteration on {op!r} produced a non-finite value")
+            if n == 0.0:
+                return 0.0
+            x = y / n
+            if abs(n - est) <= tol * n:
+                est = n
+                break
+            est = n
+    return math.sqrt(est)

@@ -1,0 +1,147 @@
+"""Simulated measurements through the same forward models that the solvers invert.
+
+Order of effects: clean = A v; optionally scaled so its maximum is 1 (``normalise``); Poisson
+noise at ``photons`` expected photo-electrons for a value of 1; Gaussian noise of standard
+deviation ``noise`` (in units of the normalised measurement); saturation at ``saturation``;
+quantisation to ``bits`` over [0, saturation or 1]; then the erasures: exactly
+round(f * H * W) sensor pixels are set to 0 and marked 0 in the mask (shared by all channels).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from recon.models import ForwardModel, build_model
+
+__all__ = ["Simulation", "erasure_mask", "render_frames", "simulate"]
+
+
+def erasure_mask(shape: tuple[int, int], fraction: float, seed: int = 0) -> np.ndarray:
+    """A (H, W) float32 mask with exactly round(fraction * H * W) zeros (erased pixels)."""
+    if not 0.0 <= fraction <= 1.0:
+        raise ValueError(f"erasure fraction must be in [0, 1], got {fraction}")
+    h, w = shape
+    n = h * w
+    n_erased = round(fraction * n)
+    mask = np.ones(n, dtype=np.float32)
+    idx = np.random.default_rng(seed).permutation(n)[:n_erased]
+    mask[idx] = 0.0
+    return mask.reshape(h, w)
+
+
+@dataclass
+class Simulation:
+    """A simulated measurement and everything needed to score a reconstruction of it."""
+
+    meas: np.ndarray
+    mask: np.ndarray | None
+    clean: np.ndarray
+    truth: np.ndarray
+    scale: float
+    saturated: int
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+def simulate(
+    model: ForwardModel,
+    scene: Any,
+    *,
+    erasure: float = 0.0,
+    noise: float = 0.0,
+    photons: float | None = None,
+    bits: int | None = None,
+    saturation: float | None = None,
+    normalise: bool = True,
+    seed: int = 0,
+) -> Simulation:
+    """Simulate a measurement of ``scene`` (C, K, Hs, Ws) through ``model``.
+
+    The model must have no mask of its own (the erasure mask is drawn here); build the
+    reconstruction model with ``mask=sim.mask``.
+    """
+    if model.mask is not None:
+        raise ValueError("simulate() draws its own erasure mask: pass a model without a mask")
+    v = np.asarray(scene, dtype=np.float64)
+    if v.shape != model.scene_shape:
+        raise ValueError(f"scene has shape {v.shape}, the model expects {model.scene_shape}")
+    if not np.isfinite(v).all():
+        raise ValueError("scene contains NaN or inf values")
+    if noise < 0 or (photons is not None and photons <= 0):
+        raise ValueError("noise must be >= 0 and photons > 0")
+    with torch.no_grad():
+        clean = model.apply(torch.as_tensor(v, dtype=model.op.dtype)).double().numpy()
+    peak = float(clean.max())
+    scale = 1.0 / peak if (normalise and peak > 0) else 1.0
+    clean = clean * scale
+    rng = np.random.default_rng(seed)
+    meas = clean.copy()
+    if photons is not None:
+        meas = rng.poisson(np.clip(meas, 0, None) * photons) / photons
+    if noise > 0:
+        meas = meas + rng.normal(0.0, noise, size=meas.shape)
+    saturated = 0
+    if saturation is not None:
+        saturated = int((meas >= saturation).sum())
+        meas = np.minimum(meas, saturation)
+    if bits is not None:
+        top = saturation if saturation is not None else 1.0
+        levels = 2**bits - 1
+        meas = np.round(np.clip(meas, 0, top) / top * levels) / levels * top
+    mask = None
+    if erasure > 0:
+        mask = erasure_mask(model.meas_shape[-2:], erasure, seed=seed + 1)
+        meas = meas * mask
+    params = {"erasure": erasure, "noise": noise, "photons": photons, "bits": bits,
+              "saturation": saturation, "normalise": normalise, "seed": seed,
+              "model": model.kind.value}
+    return Simulation(meas.astype(np.float32), mask, clean.astype(np.float32),
+                      v.astype(np.float32), scale, saturated, params)
+
+
+def render_frames(psf: np.ndarray) -> Any:
+    """A renderer for the simulated camera: ``render(frames (K,Hs,Ws), shutter (K,H)) -> (H,W)``.
+
+    This is the function the app injects into ``drivers.SimulatedCamera``, so the simulator
+    renders through the same video forward model the solvers invert (cached per K).
+    """
+    psf64 = np.asarray(psf, dtype=np.float64)
+    cache: dict[tuple[int, int, int], Any] = {}
+
+    def render(frames: np.ndarray, shutter: np.ndarray) -> np.ndarray:
+        f = np.asarray(frames, dtype=np.float64)
+        key = (f.shape[0], f.shape[1], f.shape[2])
+        if key not in cache:
+            cache.clear()
+            cache[key] = build_model("video", psf64, shutter=np.ones((f.shape[0], psf64.shape[0])),
+                                     field=f.shape[1:], dtype=torch.float64)
+        model = cache[key]
+        conv, crop = model.op.ops[-1], model.op.ops[-2]
+        with torch.no_grad():
+            per_k = crop.apply(conv.apply(torch.as_tensor(f)[None]))[0]  # (K, H, W)
+            m = torch.as_tensor(np.asarray(shutter, dtype=np.float64))[:, :, None]
+            return (per_k * m).sum(dim=0).numpy()
+
+    return render
+
+
+def synthetic_psf(shape: tuple[int, int], n_points: int = 40, blur: float = 1.0,
+                  seed: int = 0) -> np.ndarray:
+    """A caustic-like pseudorandom PSF (sparse blurred points), unit sum, float32.
+
+    For tests and for the simulated camera when no measured PSF is given; real work uses a
+    measured PSF (see ``recon.samples``).
+    """
+    from scipy.ndimage import gaussian_filter
+
+    h, w = shape
+    rng = np.random.default_rng(seed)
+    img = np.zeros((h, w), dtype=np.float64)
+    ys = rng.integers(h // 8, h - h // 8, n_points)
+    xs = rng.integers(w // 8, w - w // 8, n_points)
+    np.add.at(img, (ys, xs), rng.uniform(0.5, 1.0, n_points))
+    img = gaussian_filter(img, blur) if blur > 0 else img
+    return (img / img.sum()).astype(np.float32)
