@@ -92,7 +92,7 @@ class Fista:
         max_iter: int = 200,
         tol: float = 1e-5,
         restart: bool = True,
-        prox_iters: int = 5,
+        prox_iters: int = 3,
         lipschitz: float | None = None,
     ) -> None:
         if tuple(b.shape) != op.out_shape:
@@ -166,7 +166,7 @@ class Fista:
         it = self.iteration + 1
         with torch.no_grad():
             grad = self.op.adjoint(self.Ay - self.b)
-            z = self.y - grad / self.L
+            z = torch.add(self.y, grad, alpha=-1.0 / self.L)
             x_new = self.prox(z, self.tau / self.L, self.prox_iters)
             ax_new = self.op.apply(x_new)
             f_new, data = self._objective(ax_new, x_new)
@@ -196,8 +196,8 @@ class Fista:
                 )
                 t_new = (1.0 + math.sqrt(1.0 + 4.0 * self.t * self.t)) / 2.0
                 beta = (self.t - 1.0) / t_new
-                self.y = x_new + beta * diff
-                self.Ay = ax_new + beta * (ax_new - self.Ax)
+                self.y = torch.add(x_new, diff, alpha=beta)
+                self.Ay = torch.add(ax_new, ax_new - self.Ax, alpha=beta)
                 self.x, self.Ax, self.t = x_new, ax_new, t_new
                 self.objective = f_new
                 f_report = f_new

@@ -1,0 +1,27 @@
+"""``lenslesscam bench fista|udn``: benchmarks that print a table."""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+#: benchmark name -> module with ``add_arguments(parser)`` and ``run(args) -> int``
+BENCHMARKS = {
+    "fista": "benchmarks.bench_fista",
+    "udn": "benchmarks.bench_udn",
+    "protocol": "benchmarks.sim_protocol",
+}
+
+
+def register(sub: Any) -> None:
+    """Add ``bench`` with one subcommand per benchmark module that is importable."""
+    p = sub.add_parser("bench", help="benchmarks (print tables)")
+    which = p.add_subparsers(dest="bench", metavar="BENCHMARK", required=True)
+    for name, module in BENCHMARKS.items():
+        try:
+            mod = importlib.import_module(module)
+        except ImportError:
+            continue
+        q = which.add_parser(name, help=(mod.__doc__ or "").strip().splitlines()[0])
+        mod.add_arguments(q)
+        q.set_defaults(func=mod.run)

@@ -1,0 +1,312 @@
+"""Image quality metrics for reconstructions (numpy and scipy only).
+
+Arrays of any shape whose last two axes are rows and columns: a scene ``(C, K, H, W)``, a
+measurement ``(C, H, W)`` or one image ``(H, W)``. Structural metrics (SSIM, MS-SSIM) are
+computed on each 2D slice and averaged over the slices. Everything is computed in float64.
+
+Conventions, stated once:
+
+- ``data_range`` (the ``L`` of PSNR and SSIM) defaults to ``ref.max() - ref.min()``, the
+  dynamic range of the *reference*, so that a method cannot change its own score by changing
+  its output range;
+- SSIM follows Wang et al. 2004: Gaussian window of 11x11 taps, sigma 1.5, ``K1 = 0.01``,
+  ``K2 = 0.03``, statistics over the "valid" part of the image (no padding), biased
+  (population) variances;
+- MS-SSIM follows Wang et al. 2003: 5 scales, weights (0.0448, 0.2856, 0.3001, 0.2363,
+  0.1333), 2x2 mean downsampling between scales; negative contrast-structure terms are clipped
+  at 0 (as TensorFlow does) so the fractional powers stay defined.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = [
+    "MS_SSIM_WEIGHTS",
+    "SSIM_K1",
+    "SSIM_K2",
+    "SSIM_SIGMA",
+    "SSIM_WIN",
+    "gain_fit",
+    "metrics_report",
+    "ms_ssim",
+    "ms_ssim_min_size",
+    "mse",
+    "per_frame",
+    "psnr",
+    "spectral_cosine_distance",
+    "ssim",
+]
+
+Array = npt.NDArray[Any]
+F64 = npt.NDArray[np.float64]
+
+SSIM_WIN = 11
+SSIM_SIGMA = 1.5
+SSIM_K1 = 0.01
+SSIM_K2 = 0.03
+MS_SSIM_WEIGHTS: tuple[float, ...] = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)
+
+
+def _check(ref: Array, est: Array, *, min_ndim: int = 1) -> tuple[F64, F64]:
+    r = np.asarray(ref)
+    e = np.asarray(est)
+    if r.shape != e.shape:
+        raise ValueError(f"shapes differ: ref {r.shape} vs est {e.shape}")
+    if r.ndim < min_ndim:
+        raise ValueError(f"need at least {min_ndim} axes, got shape {r.shape}")
+    if r.size == 0:
+        raise ValueError(f"empty arrays (shape {r.shape})")
+    for name, a in (("ref", r), ("est", e)):
+        if a.dtype.kind not in "biuf":
+            raise ValueError(f"{name} must be a real numeric array, got dtype {a.dtype}")
+        if a.dtype.kind == "f":
+            n_nan = int(np.count_nonzero(np.isnan(a)))
+            if n_nan:
+                raise ValueError(f"{name} contains {n_nan} NaN values")
+            n_inf = int(np.count_nonzero(np.isinf(a)))
+            if n_inf:
+                raise ValueError(f"{name} contains {n_inf} infinite values")
+    return r.astype(np.float64), e.astype(np.float64)
+
+
+def _data_range(r: F64, data_range: float | None) -> float:
+    if data_range is None:
+        L = float(r.max() - r.min())
+        if L <= 0:
+            raise ValueError(
+                "ref is constant, so its range (the default data_range, ref.max() - ref.min()) "
+                "is 0; pass data_range explicitly"
+            )
+        return L
+    L = float(data_range)
+    if not math.isfinite(L) or L <= 0:
+        raise ValueError(f"data_range must be positive and finite, got {data_range}")
+    return L
+
+
+def mse(ref: Array, est: Array) -> float:
+    """Mean squared error."""
+    r, e = _check(ref, est)
+    return float(np.mean((r - e) ** 2))
+
+
+def psnr(ref: Array, est: Array, data_range: float | None = None) -> float:
+    """Peak signal-to-noise ratio in dB: ``10 log10(L^2 / MSE)``; ``inf`` for equal arrays.
+
+    ``L = data_range``, by default ``ref.max() - ref.min()``.
+    """
+    r, e = _check(ref, est)
+    L = _data_range(r, data_range)
+    err = float(np.mean((r - e) ** 2))
+    if err == 0.0:
+        return math.inf
+    return 10.0 * math.log10(L * L / err)
+
+
+def _gauss_window() -> F64:
+    x = np.arange(SSIM_WIN, dtype=np.float64) - (SSIM_WIN - 1) / 2.0
+    g = np.exp(-(x**2) / (2.0 * SSIM_SIGMA**2))
+    return np.asarray(g / g.sum())
+
+
+def _filter_valid(a: F64, g: F64) -> F64:
+    """Separable correlation of the last two axes with ``g``, 'valid' part only."""
+    from scipy.ndimage import correlate1d
+
+    n = g.size
+    r = n // 2
+    out = correlate1d(a, g, axis=-1, mode="constant")
+    out = correlate1d(out, g, axis=-2, mode="constant")
+    h, w = a.shape[-2], a.shape[-1]
+    return np.asarray(out[..., r : h - (n - 1 - r), r : w - (n - 1 - r)])
+
+
+def _ssim_terms(r: F64, e: F64, L: float) -> tuple[F64, F64]:
+    """Per-slice mean luminance term and mean contrast-structure term (shape r.shape[:-2])."""
+    g = _gauss_window()
+    c1 = (SSIM_K1 * L) ** 2
+    c2 = (SSIM_K2 * L) ** 2
+    mu_r = _filter_valid(r, g)
+    mu_e = _filter_valid(e, g)
+    rr = _filter_valid(r * r, g) - mu_r * mu_r
+    ee = _filter_valid(e * e, g) - mu_e * mu_e
+    re = _filter_valid(r * e, g) - mu_r * mu_e
+    lum = (2.0 * mu_r * mu_e + c1) / (mu_r * mu_r + mu_e * mu_e + c1)
+    cs = (2.0 * re + c2) / (rr + ee + c2)
+    return np.asarray(lum * cs), np.asarray(cs)
+
+
+def _check_size(shape: tuple[int, ...], need: int, what: str) -> None:
+    h, w = shape[-2], shape[-1]
+    if h < need or w < need:
+        raise ValueError(f"{what}: image {h}x{w} is smaller than {need}x{need}")
+
+
+def ssim(ref: Array, est: Array, data_range: float | None = None) -> float:
+    """Structural similarity (Wang et al. 2004), mean over pixels and over 2D slices.
+
+    Gaussian window 11x11, sigma 1.5, K1 = 0.01, K2 = 0.03; ``data_range`` defaults to
+    ``ref.max() - ref.min()``. Symmetric in its arguments for a fixed ``data_range``.
+    """
+    r, e = _check(ref, est, min_ndim=2)
+    _check_size(r.shape, SSIM_WIN, f"SSIM needs the {SSIM_WIN}x{SSIM_WIN} window")
+    L = _data_range(r, data_range)
+    full, _ = _ssim_terms(r, e, L)
+    return float(full.mean(axis=(-2, -1)).mean())
+
+
+def ms_ssim_min_size(scales: int = len(MS_SSIM_WEIGHTS)) -> int:
+    """Smallest height/width for which :func:`ms_ssim` is defined (176 for 5 scales)."""
+    return int(SSIM_WIN * 2 ** (scales - 1))
+
+
+def _half(a: F64) -> F64:
+    h, w = a.shape[-2] // 2, a.shape[-1] // 2
+    b = a[..., : 2 * h, : 2 * w].reshape(*a.shape[:-2], h, 2, w, 2)
+    return np.asarray(b.mean(axis=(-3, -1)))
+
+
+def ms_ssim(ref: Array, est: Array, data_range: float | None = None) -> float:
+    """Multi-scale SSIM (Wang et al. 2003), 5 scales, averaged over 2D slices.
+
+    ``prod_j cs_j ** w_j`` over the first four scales times ``(l * cs) ** w_5`` at the
+    coarsest, with the standard weights; each slice is scored separately and the scores are
+    averaged. Raises ValueError when an image is smaller than :func:`ms_ssim_min_size` (176)
+    in height or width.
+    """
+    r, e = _check(ref, est, min_ndim=2)
+    n = len(MS_SSIM_WEIGHTS)
+    _check_size(
+        r.shape,
+        ms_ssim_min_size(n),
+        f"MS-SSIM needs {n} scales of the {SSIM_WIN}x{SSIM_WIN} window",
+    )
+    L = _data_range(r, data_range)
+    r2 = r.reshape(-1, r.shape[-2], r.shape[-1])
+    e2 = e.reshape(-1, e.shape[-2], e.shape[-1])
+    score = np.ones(r2.shape[0], dtype=np.float64)
+    for j, w in enumerate(MS_SSIM_WEIGHTS):
+        full, cs = _ssim_terms(r2, e2, L)
+        term = (full if j == n - 1 else cs).mean(axis=(-2, -1))
+        score *= np.maximum(term, 0.0) ** w
+        if j < n - 1:
+            r2, e2 = _half(r2), _half(e2)
+    return float(score.mean())
+
+
+def gain_fit(ref: Array, est: Array) -> tuple[Array, float]:
+    """Least-squares gain: ``g = <ref, est> / <est, est>``; returns ``(g * est, g)``.
+
+    The scale of a reconstruction is often arbitrary (a unit-sum PSF and a max-1 measurement
+    make the recovered scene about twice as bright as the truth), so scores are taken after
+    this fit when stated. An all-zero ``est`` gives ``g = 1``. The scaled estimate keeps
+    ``est``'s float dtype (float64 for integer input).
+    """
+    r, e = _check(ref, est)
+    den = float(np.vdot(e, e))
+    g = 1.0 if den == 0.0 else float(np.vdot(r, e)) / den
+    e_in = np.asarray(est)
+    dtype = e_in.dtype if e_in.dtype.kind == "f" else np.dtype(np.float64)
+    return np.asarray(e * g, dtype=dtype), g
+
+
+_gain = gain_fit  # ``metrics_report``'s ``gain_fit`` argument shadows the function
+_NAMED: dict[str, Callable[[Array, Array], float]] = {"mse": mse, "psnr": psnr, "ssim": ssim}
+
+
+def per_frame(ref: Array, est: Array, metric: str | Callable[[Array, Array], float]) -> list[float]:
+    """Score each frame ``k`` of ``(C, K, H, W)`` arrays: ``metric(ref[:, k], est[:, k])``.
+
+    ``metric`` is a callable or one of ``'mse'``, ``'psnr'``, ``'ssim'`` (each frame then uses
+    its own default ``data_range``; pass a ``functools.partial`` to fix one).
+    """
+    r, e = np.asarray(ref), np.asarray(est)
+    if r.shape != e.shape:
+        raise ValueError(f"shapes differ: ref {r.shape} vs est {e.shape}")
+    if r.ndim != 4:
+        raise ValueError(f"per_frame expects (C, K, H, W) arrays, got shape {r.shape}")
+    if isinstance(metric, str):
+        if metric not in _NAMED:
+            raise ValueError(f"unknown metric {metric!r}; choose from {', '.join(_NAMED)}")
+        fn = _NAMED[metric]
+    else:
+        fn = metric
+    return [float(fn(r[:, k], e[:, k])) for k in range(r.shape[1])]
+
+
+def spectral_cosine_distance(ref: Array, est: Array, axis: int | None = None) -> float:
+    """Mean over pixels of ``1 - cos(angle)`` between the spectra of ``ref`` and ``est``.
+
+    Spectra run along ``axis``: by default axis 1 of a ``(C, K, H, W)`` cube, axis 0 of a
+    ``(K, H, W)`` cube. Pixels where either spectrum is all zero have no angle and are left
+    out of the mean; ValueError if no pixel is left.
+    """
+    r, e = _check(ref, est, min_ndim=3)
+    if axis is None:
+        if r.ndim == 4:
+            axis = 1
+        elif r.ndim == 3:
+            axis = 0
+        else:
+            raise ValueError(f"give the spectral axis for an array of shape {r.shape}")
+    dot = np.sum(r * e, axis=axis)
+    nr = np.sqrt(np.sum(r * r, axis=axis))
+    ne = np.sqrt(np.sum(e * e, axis=axis))
+    ok = (nr > 0) & (ne > 0)
+    if not np.any(ok):
+        raise ValueError("spectral_cosine_distance: every pixel has an all-zero spectrum")
+    cos = np.clip(dot[ok] / (nr[ok] * ne[ok]), -1.0, 1.0)
+    return float(np.mean(1.0 - cos))
+
+
+def metrics_report(
+    ref: Array, est: Array, gain_fit: bool = False, data_range: float | None = None
+) -> dict[str, Any]:
+    """All standard scores of ``est`` against ``ref`` as a JSON-ready dict.
+
+    Keys: ``mse``, ``psnr``, ``ssim``, ``ms_ssim`` (``None`` with ``ms_ssim_note`` saying why
+    when the image is too small), ``gain`` (1.0 without a fit), ``gain_fit`` (whether ``est``
+    was scaled by the least-squares gain before scoring), ``data_range`` and
+    ``data_range_source``, ``shape``. ``psnr`` is ``inf`` for identical arrays.
+    """
+    r, e = _check(ref, est, min_ndim=2)
+    g = 1.0
+    if gain_fit:
+        e_scaled, g = _gain(r, e)
+        e = e_scaled
+    L = _data_range(r, data_range)
+    report: dict[str, Any] = {
+        "mse": mse(r, e),
+        "psnr": psnr(r, e, L),
+        "ssim": ssim(r, e, L) if min(r.shape[-2:]) >= SSIM_WIN else None,
+    }
+    if report["ssim"] is None:
+        report["ssim_note"] = (
+            f"not computed, image {r.shape[-2]}x{r.shape[-1]} smaller than the "
+            f"{SSIM_WIN}x{SSIM_WIN} window"
+        )
+    need = ms_ssim_min_size()
+    if min(r.shape[-2:]) >= need:
+        report["ms_ssim"] = ms_ssim(r, e, L)
+    else:
+        report["ms_ssim"] = None
+        report["ms_ssim_note"] = (
+            f"not computed, image {r.shape[-2]}x{r.shape[-1]} smaller than {need}x{need} "
+            f"({len(MS_SSIM_WEIGHTS)} scales)"
+        )
+    report.update(
+        {
+            "gain": g,
+            "gain_fit": bool(gain_fit),
+            "data_range": L,
+            "data_range_source": "given" if data_range is not None else "ref.max() - ref.min()",
+            "shape": list(r.shape),
+        }
+    )
+    return report
