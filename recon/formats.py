@@ -70,7 +70,6 @@ def provenance() -> dict[str, Any]:
     }
 
 
-@contextlib.contextmanager
 def _umask_mode() -> int:
     """Permissions a plain ``open()`` would give a new file (mkstemp makes them 0600)."""
     mask = os.umask(0)
@@ -78,6 +77,7 @@ def _umask_mode() -> int:
     return 0o666 & ~mask
 
 
+@contextlib.contextmanager
 def atomic_open(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[Any]]:
     """Open a temporary file beside ``path``; on success it replaces ``path`` atomically.
 
