@@ -56,7 +56,8 @@ def measure_case(case: dict[str, Any], threads: int, iters: int, prox_iters: int
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     psf = synthetic_psf((n, n), n_points=200, seed=0)
     if case["kind"] == "video":
-        timing = SensorTiming(rows=n, line_time_us=10.0, exposure_lines=n // 2, pattern="outside-in")
+        timing = SensorTiming(rows=n, line_time_us=10.0, exposure_lines=n // 2,
+                              pattern="outside-in")
         full = timing.shutter(bin_lines=1)
         shutter = bin_time(full, -(-full.shape[0] // k))[:k]
         model = build_model("video", psf, shutter=shutter)

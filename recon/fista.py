@@ -96,7 +96,9 @@ class Fista:
         lipschitz: float | None = None,
     ) -> None:
         if tuple(b.shape) != op.out_shape:
-            raise ValueError(f"measurement has shape {tuple(b.shape)}, the model expects {op.out_shape}")
+            raise ValueError(
+                f"measurement has shape {tuple(b.shape)}, the model expects {op.out_shape}"
+            )
         if not (math.isfinite(tau) and tau >= 0):
             raise ValueError(f"tau must be a finite number >= 0, got {tau}")
         if max_iter < 0:

@@ -92,7 +92,9 @@ def build_model(
         shutter: ``video`` only: M (K, H), the fraction of bin k each row integrates.
         filters: ``spectral`` only: filter cube (K, H, W) transmissions.
         field: scene field (Hs, Ws); default the sensor size.
-        dtype, device: torch dtype (float32 or float64) and device.
+        dtype: torch dtype, float32 or float64.
+        device: torch device.
+
     """
     kind = ModelKind(kind)
     if dtype not in (torch.float32, torch.float64):

@@ -13,9 +13,10 @@ on-axis point (a delta at the scene centre) exactly on the sensor: it reproduces
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -33,6 +34,18 @@ __all__ = [
 ]
 
 Shape = tuple[int, ...]
+
+
+def _rfft2(x: torch.Tensor, s: tuple[int, int] | None = None) -> torch.Tensor:
+    return cast(torch.Tensor, torch.fft.rfft2(x, s=s))
+
+
+def _irfft2(x: torch.Tensor, s: tuple[int, int]) -> torch.Tensor:
+    return cast(torch.Tensor, torch.fft.irfft2(x, s=s))
+
+
+def _broadcast(a: tuple[int, ...], b: tuple[int, ...]) -> tuple[int, ...]:
+    return tuple(cast(Any, torch.broadcast_shapes)(a, b))
 
 
 def fast_fft_size(n: int) -> int:
@@ -90,7 +103,7 @@ class LinearOperator:
         return Compose([self, other])
 
     @property
-    def T(self) -> _Adjoint:  # noqa: N802 - mathematical notation
+    def T(self) -> _Adjoint:
         """The adjoint as an operator."""
         return _Adjoint(self)
 
@@ -102,7 +115,8 @@ class LinearOperator:
         """Raise ValueError naming the operator if ``x`` has the wrong shape."""
         if tuple(x.shape) != self.in_shape:
             raise ValueError(
-                f"{type(self).__name__}: {what} has shape {tuple(x.shape)}, expected {self.in_shape}"
+                f"{type(self).__name__}: {what} has shape {tuple(x.shape)}, "
+                f"expected {self.in_shape}"
             )
 
     def norm(self, iters: int = 50, seed: int = 0, tol: float = 1e-6) -> float:
@@ -134,13 +148,15 @@ class _Adjoint(LinearOperator):
 class Compose(LinearOperator):
     """Product of operators: ``Compose([A, B, C]).apply(x) == A(B(C(x)))``."""
 
+    ops: list[LinearOperator]
+
     def __init__(self, ops: Sequence[LinearOperator]) -> None:
         flat: list[LinearOperator] = []
         for op in ops:
             flat.extend(op.ops if isinstance(op, Compose) else [op])
         if not flat:
             raise ValueError("Compose needs at least one operator")
-        for outer, inner in zip(flat[:-1], flat[1:], strict=True):
+        for outer, inner in itertools.pairwise(flat):
             if outer.in_shape != inner.out_shape:
                 raise ValueError(
                     f"cannot compose {outer!r} after {inner!r}: shapes {inner.out_shape} -> "
@@ -223,18 +239,18 @@ class Conv2D(LinearOperator):
                 raise ValueError(f"pad_shape {pad} too small for linear convolution")
         self.pad = pad
         super().__init__((c, k, hs, ws), (c, k, *pad), dtype, device)
-        self.hf = torch.fft.rfft2(h, s=pad)  # (1|C, 1|K, Py, Px//2+1)
+        self.hf = _rfft2(h, s=pad)  # (1|C, 1|K, Py, Px//2+1)
         self.hf_conj = self.hf.conj()
 
     def apply(self, x: torch.Tensor) -> torch.Tensor:
-        xf = torch.fft.rfft2(x, s=self.pad)
+        xf = _rfft2(x, s=self.pad)
         xf.mul_(self.hf)
-        return torch.fft.irfft2(xf, s=self.pad)
+        return _irfft2(xf, s=self.pad)
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
-        yf = torch.fft.rfft2(y)
+        yf = _rfft2(y)
         yf.mul_(self.hf_conj)
-        out = torch.fft.irfft2(yf, s=self.pad)
+        out = _irfft2(yf, s=self.pad)
         return out[..., : self.in_shape[2], : self.in_shape[3]]
 
 
@@ -252,13 +268,13 @@ class StackConvSum(LinearOperator):
         super().__init__(self.conv.in_shape, (c, *self.conv.pad), dtype, device)
 
     def apply(self, x: torch.Tensor) -> torch.Tensor:
-        xf = torch.fft.rfft2(x, s=self.conv.pad)
+        xf = _rfft2(x, s=self.conv.pad)
         xf.mul_(self.conv.hf)
-        return torch.fft.irfft2(xf.sum(dim=1), s=self.conv.pad)
+        return _irfft2(xf.sum(dim=1), s=self.conv.pad)
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
-        yf = torch.fft.rfft2(y)[:, None]
-        out = torch.fft.irfft2(yf * self.conv.hf_conj, s=self.conv.pad)
+        yf = _rfft2(y)[:, None]
+        out = _irfft2(yf * self.conv.hf_conj, s=self.conv.pad)
         return out[..., : self.in_shape[2], : self.in_shape[3]]
 
 
@@ -296,10 +312,10 @@ class Mask(LinearOperator):
         m = _as_tensor(mask, dtype, device)
         shp = tuple(int(s) for s in shape)
         try:
-            torch.broadcast_shapes(tuple(m.shape), shp)
+            _broadcast(tuple(m.shape), shp)
         except RuntimeError as exc:
             raise ValueError(f"mask of shape {tuple(m.shape)} does not fit data {shp}") from exc
-        if torch.broadcast_shapes(tuple(m.shape), shp) != shp:
+        if _broadcast(tuple(m.shape), shp) != shp:
             raise ValueError(f"mask of shape {tuple(m.shape)} would enlarge data {shp}")
         if not torch.isfinite(m).all():
             raise ValueError("mask contains NaN or inf values")

@@ -9,13 +9,15 @@ round(f * H * W) sensor pixels are set to 0 and marked 0 in the mask (shared by 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
 
-from recon.models import ForwardModel, build_model
+from recon.models import ForwardModel
+from recon.operators import Conv2D, Crop
 
 __all__ = ["Simulation", "erasure_mask", "render_frames", "simulate"]
 
@@ -93,7 +95,8 @@ def simulate(
         meas = np.round(np.clip(meas, 0, top) / top * levels) / levels * top
     mask = None
     if erasure > 0:
-        mask = erasure_mask(model.meas_shape[-2:], erasure, seed=seed + 1)
+        hw = (int(model.meas_shape[-2]), int(model.meas_shape[-1]))
+        mask = erasure_mask(hw, erasure, seed=seed + 1)
         meas = meas * mask
     params = {"erasure": erasure, "noise": noise, "photons": photons, "bits": bits,
               "saturation": saturation, "normalise": normalise, "seed": seed,
@@ -102,28 +105,37 @@ def simulate(
                       v.astype(np.float32), scale, saturated, params)
 
 
-def render_frames(psf: np.ndarray) -> Any:
+def render_frames(psf: np.ndarray) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
     """A renderer for the simulated camera: ``render(frames (K,Hs,Ws), shutter (K,H)) -> (H,W)``.
 
-    This is the function the app injects into ``drivers.SimulatedCamera``, so the simulator
-    renders through the same video forward model the solvers invert (cached per K).
+    This is the function the app injects into ``drivers.SimulatedCamera``: it computes
+    ``sum_k M_k . crop(h * v_k)`` with the same operators as the video forward model the solvers
+    invert (float64; the operators are cached per scene shape).
     """
     psf64 = np.asarray(psf, dtype=np.float64)
-    cache: dict[tuple[int, int, int], Any] = {}
+    if psf64.ndim != 2:
+        raise ValueError(f"render_frames needs a 2D PSF (H, W), got shape {psf64.shape}")
+    sensor = (int(psf64.shape[0]), int(psf64.shape[1]))
+    cache: dict[tuple[int, ...], tuple[Conv2D, Crop]] = {}
 
     def render(frames: np.ndarray, shutter: np.ndarray) -> np.ndarray:
         f = np.asarray(frames, dtype=np.float64)
-        key = (f.shape[0], f.shape[1], f.shape[2])
+        m = np.asarray(shutter, dtype=np.float64)
+        if f.ndim != 3 or m.shape != (f.shape[0], sensor[0]):
+            raise ValueError(f"render: frames {f.shape} and shutter {m.shape} do not fit a "
+                             f"sensor of {sensor[0]} rows")
+        key = tuple(f.shape)
         if key not in cache:
             cache.clear()
-            cache[key] = build_model("video", psf64, shutter=np.ones((f.shape[0], psf64.shape[0])),
-                                     field=f.shape[1:], dtype=torch.float64)
-        model = cache[key]
-        conv, crop = model.op.ops[-1], model.op.ops[-2]
+            conv = Conv2D(psf64, (1, *f.shape), dtype=torch.float64)
+            crop = Crop(conv.out_shape, sensor, (f.shape[1] // 2, f.shape[2] // 2),
+                        dtype=torch.float64)
+            cache[key] = (conv, crop)
+        conv, crop = cache[key]
         with torch.no_grad():
             per_k = crop.apply(conv.apply(torch.as_tensor(f)[None]))[0]  # (K, H, W)
-            m = torch.as_tensor(np.asarray(shutter, dtype=np.float64))[:, :, None]
-            return (per_k * m).sum(dim=0).numpy()
+            out = (per_k * torch.as_tensor(m)[:, :, None]).sum(dim=0)
+        return np.asarray(out.numpy())
 
     return render
 
@@ -144,4 +156,4 @@ def synthetic_psf(shape: tuple[int, int], n_points: int = 40, blur: float = 1.0,
     xs = rng.integers(w // 8, w - w // 8, n_points)
     np.add.at(img, (ys, xs), rng.uniform(0.5, 1.0, n_points))
     img = gaussian_filter(img, blur) if blur > 0 else img
-    return (img / img.sum()).astype(np.float32)
+    return np.asarray(img / img.sum(), dtype=np.float32)

@@ -45,7 +45,7 @@ def test_simulate_recon_metrics_round_trip(tmp_path, capsys):
 
 
 def test_demo_reconstructs_the_bundled_hand(tmp_path, capsys):
-    code, out, _ = _run(capsys, "demo", "--out", str(tmp_path), "--iters", "60")
+    code, _out, _ = _run(capsys, "demo", "--out", str(tmp_path), "--iters", "60")
     assert code == 0
     x, meta = read_reconstruction(tmp_path / "hand.tif")
     assert x.shape == (1, 1, 150, 200) and np.isfinite(x).all() and x.max() > 0
@@ -58,7 +58,8 @@ def test_video_and_depth_models_from_the_cli(tmp_path, capsys):
     from recon.simulate import synthetic_psf
 
     psf = synthetic_psf((24, 20), seed=1)
-    shutter = SensorTiming(rows=24, line_time_us=1, exposure_lines=6, pattern="outside-in").shutter(3)
+    timing = SensorTiming(rows=24, line_time_us=1, exposure_lines=6, pattern="outside-in")
+    shutter = timing.shutter(3)
     frames = np.random.default_rng(0).random((1, shutter.shape[0], 24, 20))
     meas = build_model("video", psf, shutter=shutter).apply(
         __import__("torch").as_tensor(frames, dtype=__import__("torch").float32)).numpy()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -19,7 +20,8 @@ def _scene(h, w, seed=0):
     s = np.zeros((h, w))
     for _ in range(4):
         y0, x0 = rng.integers(0, h - 4), rng.integers(0, w - 4)
-        s[y0 : y0 + rng.integers(3, h // 2), x0 : x0 + rng.integers(3, w // 2)] += rng.uniform(0.3, 1)
+        hh, ww = rng.integers(3, h // 2), rng.integers(3, w // 2)
+        s[y0 : y0 + hh, x0 : x0 + ww] += rng.uniform(0.3, 1)
     return s
 
 
@@ -53,7 +55,7 @@ def test_recovers_scene_and_objective_never_increases():
     sim = simulate(m, truth, noise=0.01, seed=3)
     solver = Fista(m.op, torch.as_tensor(sim.meas), tau=2e-4, max_iter=300, tol=0)
     objs = [s.objective for s in solver.steps()]
-    assert all(b <= a for a, b in zip(objs, objs[1:]))
+    assert all(b <= a for a, b in itertools.pairwise(objs))
     assert solver.x.dtype == torch.float32
     psnr = _psnr(truth[0, 0], solver.x.numpy()[0, 0])
     zero_fill = _psnr(truth[0, 0], np.full(truth.shape[-2:], truth.mean()))
@@ -80,7 +82,7 @@ def test_monotone_and_stable_on_masked_models(kind):
     solver = Fista(m.op, b, tau=1e-3, tv=TV(weight_k=0.5), max_iter=400, tol=0)
     objs = [s.objective for s in solver.steps()]
     assert all(math.isfinite(o) for o in objs)
-    assert all(b2 <= a for a, b2 in zip(objs, objs[1:]))
+    assert all(b2 <= a for a, b2 in itertools.pairwise(objs))
     assert objs[-1] < objs[0]
 
 
@@ -98,7 +100,9 @@ def test_cancel_and_generator_stop():
     m = build_model("2d", synthetic_psf((16, 16)))
     b = torch.rand(m.meas_shape)
     calls = []
-    res = Fista(m.op, b, max_iter=100, tol=0).run(callback=calls.append, cancel=lambda: len(calls) >= 3)
+    res = Fista(m.op, b, max_iter=100, tol=0).run(
+        callback=calls.append, cancel=lambda: len(calls) >= 3
+    )
     assert res.reason is StopReason.CANCELLED and res.iterations == 3
     gen = Fista(m.op, b, max_iter=100, tol=0)
     it = gen.steps()

@@ -21,7 +21,7 @@ def _chambolle_pock_prox(z, gamma, tv, nonneg, iters=20000):
     tau_, sigma = 1.0 / np.sqrt(lip), 1.0 / np.sqrt(lip)
     for _ in range(iters):
         g = tv.grad(xbar)
-        p = [pi + sigma * gi for pi, gi in zip(p, g)]
+        p = [pi + sigma * gi for pi, gi in zip(p, g, strict=False)]
         # prox of (gamma TV)^* = projection onto the gamma-ball
         scaled = [pi / gamma for pi in p]
         tv.project(scaled)
@@ -57,7 +57,7 @@ def test_fgp_matches_exact_prox(tv, shape, nonneg):
     # ||x - x*||^2 <= 2 gap (the objective is 1-strongly convex).
     p = prox._p
     gap = gamma * tv.value(fgp) - gamma * sum(
-        float((pi * gi).sum()) for pi, gi in zip(p, tv.grad(fgp))
+        float((pi * gi).sum()) for pi, gi in zip(p, tv.grad(fgp), strict=False)
     )
     assert -1e-12 <= gap < 1e-10
     # An independent solver (accelerated primal-dual, slower: about 1e-4 after 20000 steps).
@@ -106,7 +106,7 @@ def test_grad_adjoint():
     g = torch.Generator().manual_seed(3)
     x = torch.randn((2, 3, 5, 4), generator=g, dtype=torch.float64)
     p = [torch.randn((2, 3, 5, 4), generator=g, dtype=torch.float64) for _ in range(3)]
-    lhs = sum(float((a * b).sum()) for a, b in zip(tv.grad(x), p))
+    lhs = sum(float((a * b).sum()) for a, b in zip(tv.grad(x), p, strict=False))
     rhs = float((x * tv.grad_adj(p)).sum())
     assert abs(lhs - rhs) < 1e-10 * max(1.0, abs(lhs))
 

@@ -15,7 +15,8 @@ def register(sub: Any) -> None:
     p = sub.add_parser("simulate", help="simulate a measurement of a scene with a PSF")
     p.add_argument("--psf", required=True, help="PSF file ('sample:tutorial' for the bundled one)")
     p.add_argument("--scene", required=True,
-                   help="scene image, or sample:NAME for a bundled lensed scene (im408, im740, im65)")
+                   help="scene image, or sample:NAME for a bundled lensed scene "
+                   "(im408, im740, im65)")
     p.add_argument("--erasure", type=float, default=0.0, help="fraction of erased pixels")
     p.add_argument("--noise", type=float, default=0.0, help="Gaussian noise sigma (max = 1)")
     p.add_argument("--photons", type=float, default=None, help="Poisson: photons at max 1")
@@ -67,7 +68,13 @@ def run(args: argparse.Namespace) -> int:
     """Simulate and write meas.npy, mask.npy, truth.npy, psf.npy and simulation.json."""
     import numpy as np
 
-    from recon.formats import FORMAT_VERSION, array_hash, atomic_write, atomic_write_json, provenance
+    from recon.formats import (
+        FORMAT_VERSION,
+        array_hash,
+        atomic_write,
+        atomic_write_json,
+        provenance,
+    )
     from recon.models import build_model
     from recon.simulate import simulate
 
