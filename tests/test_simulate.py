@@ -30,7 +30,7 @@ def test_simulation_scales_adds_noise_and_flags_saturation():
     assert sat.saturated > 0 and sat.meas.max() <= 0.8 + 1e-6
     assert len(np.unique(sat.meas)) <= 256
     er = simulate(model, scene, erasure=0.5, seed=2)
-    assert np.all(er.meas[er.mask == 0] == 0)
+    assert np.all(er.meas[0][er.mask == 0] == 0)
     with pytest.raises(ValueError, match="shape"):
         simulate(model, scene[:, :, :3])
 
