@@ -1,0 +1,1094 @@
+"""Camera protocol, frames, errors and the shared streaming helper.
+
+A :class:`Camera` is any object with the members of the :class:`Camera` protocol; the
+backends in this package derive from :class:`CameraBase`, which implements the parts that do
+not depend on the hardware: the context manager, the feature-not-available defaults, frame
+metadata and the two streaming paths.
+
+Streaming has two paths that are never mixed:
+
+- **newest frame** (live view): :meth:`Camera.start_live`, then poll
+  :meth:`Camera.latest_frame` at the display rate. A background thread keeps only the newest
+  frame; every frame replaced before anybody took it counts as a drop.
+- **lossless** (acquisition): :meth:`Camera.start_acquisition`, then :meth:`Camera.pop_frame`
+  every frame. Frames wait in a bounded queue; when it is full the acquisition stops and
+  :class:`AcquisitionOverflow` is raised at the next pop (science data never silently loses a
+  frame).
+
+Starting one path while the other runs raises :class:`CameraError`; so does :meth:`Camera.snap`
+while either runs. :meth:`Camera.stop` ends whichever runs (and is a no-op when none does).
+
+Feature names (:class:`Feature`) are shared by :class:`Capabilities` and
+:class:`FeatureNotAvailable`, so a caller can ask first or try and catch.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from enum import Enum, StrEnum
+from types import TracebackType
+from typing import Any, Protocol, Self
+
+import numpy as np
+
+from drivers.timing import ReadoutPattern, SensorTiming, ShutterMode
+
+__all__ = [
+    "AcquisitionFinished",
+    "AcquisitionOverflow",
+    "Camera",
+    "CameraBase",
+    "CameraError",
+    "CameraTimeout",
+    "Capabilities",
+    "Feature",
+    "FeatureNotAvailable",
+    "Frame",
+    "FrameStreamer",
+    "Roi",
+    "StreamMode",
+    "StreamStats",
+    "TriggerMode",
+    "bit_depth_of",
+    "protocol_members",
+]
+
+_log = logging.getLogger(__name__)
+
+#: Frame metadata format name and version (bumped on incompatible changes).
+FRAME_FORMAT = "lenslesscam-frame"
+FRAME_FORMAT_VERSION = 1
+
+
+# --------------------------------------------------------------------------------------------
+# errors
+
+
+class CameraError(RuntimeError):
+    """A camera could not do what was asked (the message names the device)."""
+
+
+class CameraTimeout(CameraError, TimeoutError):
+    """No frame arrived within the timeout."""
+
+
+class FeatureNotAvailable(CameraError):
+    """The device has no such feature (or not in this mode).
+
+    ``feature`` is a :class:`Feature` value (or a device feature name), ``device`` describes
+    the camera.
+    """
+
+    def __init__(self, feature: str, device: str, detail: str = "") -> None:
+        self.feature = str(feature.value if isinstance(feature, Enum) else feature)
+        self.device = device
+        self.detail = detail
+        msg = f"{device}: feature '{self.feature}' is not available"
+        super().__init__(f"{msg} ({detail})" if detail else msg)
+
+
+class AcquisitionOverflow(CameraError):
+    """The lossless acquisition queue was full: the consumer did not keep up."""
+
+
+class AcquisitionFinished(CameraError):
+    """A finite acquisition delivered all its frames; there is nothing more to pop."""
+
+
+# --------------------------------------------------------------------------------------------
+# enums and small value types
+
+
+class Feature(StrEnum):
+    """Names of the optional camera features (see :meth:`Capabilities.supports`)."""
+
+    EXPOSURE = "exposure"
+    GAIN = "gain"
+    ROI = "roi"
+    BINNING = "binning"
+    PIXEL_FORMAT = "pixel_format"
+    SHUTTER_MODE = "shutter_mode"
+    READOUT_PATTERN = "readout_pattern"
+    LINE_TIME = "line_time"
+    TRIGGER_DELAY = "trigger_delay"
+    TRIGGER_SOFTWARE = "trigger_software"
+    FRAME_RATE = "frame_rate"
+
+
+class TriggerMode(StrEnum):
+    """How frames are started."""
+
+    FREE_RUN = "free-run"
+    SOFTWARE = "software"
+
+
+class StreamMode(StrEnum):
+    """Which streaming path runs."""
+
+    IDLE = "idle"
+    LIVE = "live"
+    ACQUISITION = "acquisition"
+
+
+_BIT_DEPTHS = {
+    "Mono8": 8,
+    "Mono10": 10,
+    "Mono12": 12,
+    "Mono14": 14,
+    "Mono16": 16,
+}
+
+
+def bit_depth_of(pixel_format: str) -> int:
+    """Bits per pixel of a mono pixel format name (``Mono8`` .. ``Mono16``)."""
+    try:
+        return _BIT_DEPTHS[pixel_format]
+    except KeyError:
+        raise ValueError(
+            f"unknown pixel format {pixel_format!r}; expected one of {sorted(_BIT_DEPTHS)}"
+        ) from None
+
+
+@dataclass(frozen=True)
+class Roi:
+    """Region of interest in *unbinned sensor pixels* (x = column, y = row of the corner)."""
+
+    x: int
+    y: int
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        for name in ("x", "y", "width", "height"):
+            v = getattr(self, name)
+            if int(v) != v:
+                raise ValueError(f"Roi.{name} must be an integer, got {v!r}")
+            object.__setattr__(self, name, int(v))
+        if self.x < 0 or self.y < 0 or self.width < 1 or self.height < 1:
+            raise ValueError(f"invalid ROI {self}")
+
+    def to_dict(self) -> dict[str, int]:
+        """Plain-JSON form."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Roi:
+        """Inverse of :meth:`to_dict`."""
+        return cls(int(d["x"]), int(d["y"]), int(d["width"]), int(d["height"]))
+
+
+@dataclass(frozen=True)
+class Capabilities:
+    """What a camera can do. ``features`` holds :class:`Feature` values it supports."""
+
+    backend: str
+    camera_id: str
+    model: str
+    sensor_width: int
+    sensor_height: int
+    features: frozenset[Feature]
+    pixel_formats: tuple[str, ...]
+    trigger_modes: tuple[TriggerMode, ...] = (TriggerMode.FREE_RUN,)
+    shutter_modes: tuple[ShutterMode, ...] = ()
+    readout_patterns: tuple[ReadoutPattern, ...] = ()
+    exposure_range_us: tuple[float, float] | None = None
+    gain_range: tuple[float, float] | None = None
+    frame_rate_range_hz: tuple[float, float] | None = None
+    binning_factors: tuple[int, ...] = (1,)
+    roi_min_size: tuple[int, int] = (1, 1)  # (width, height)
+    roi_step: tuple[int, int] = (1, 1)  # (width, height) increments
+
+    def supports(self, feature: Feature | str) -> bool:
+        """Whether ``feature`` is available."""
+        return Feature(feature) in self.features
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-JSON form."""
+        return {
+            "backend": self.backend,
+            "camera_id": self.camera_id,
+            "model": self.model,
+            "sensor_width": self.sensor_width,
+            "sensor_height": self.sensor_height,
+            "features": sorted(f.value for f in self.features),
+            "pixel_formats": list(self.pixel_formats),
+            "trigger_modes": [m.value for m in self.trigger_modes],
+            "shutter_modes": [m.value for m in self.shutter_modes],
+            "readout_patterns": [p.value for p in self.readout_patterns],
+            "exposure_range_us": _opt_list(self.exposure_range_us),
+            "gain_range": _opt_list(self.gain_range),
+            "frame_rate_range_hz": _opt_list(self.frame_rate_range_hz),
+            "binning_factors": list(self.binning_factors),
+            "roi_min_size": list(self.roi_min_size),
+            "roi_step": list(self.roi_step),
+        }
+
+
+def _opt_list(t: tuple[float, float] | None) -> list[float] | None:
+    return None if t is None else [float(t[0]), float(t[1])]
+
+
+# --------------------------------------------------------------------------------------------
+# frames
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One image and everything needed to interpret it later.
+
+    ``pixels`` is owned by the frame and read-only: an array that does not own its memory
+    (a view, a device buffer) is copied; an array that does is taken over (and made
+    read-only). Shape is ``(roi.height // binning, roi.width // binning)``.
+
+    ``timing`` describes the *full sensor* (all rows); the shutter function of this frame is
+    ``downsample_rows(shutter_function(timing, w)[:, roi.y : roi.y + roi.height], binning)``.
+    ``timestamp`` is host time (``time.time()``) when the frame reached the driver;
+    device timestamps, when there are any, go into ``extra``. ``exposure_us`` and ``gain``
+    are ``None`` when the device cannot report them.
+    """
+
+    pixels: np.ndarray
+    frame_id: int
+    timestamp: float
+    exposure_us: float | None
+    gain: float | None
+    roi: Roi
+    binning: int
+    pixel_format: str
+    bit_depth: int
+    timing: SensorTiming | None
+    backend: str
+    camera_id: str
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        arr = self.pixels
+        if not isinstance(arr, np.ndarray):
+            raise TypeError(f"Frame.pixels must be a numpy array, got {type(arr).__name__}")
+        if not (arr.flags.owndata and arr.flags.c_contiguous):
+            arr = np.array(arr, copy=True, order="C")
+        arr.flags.writeable = False
+        object.__setattr__(self, "pixels", arr)
+        object.__setattr__(self, "frame_id", int(self.frame_id))
+        object.__setattr__(self, "extra", dict(self.extra))
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """Shape of the pixel array."""
+        return tuple(self.pixels.shape)
+
+    def metadata(self) -> dict[str, Any]:
+        """Everything but the pixels, as plain JSON types (format-versioned)."""
+        return {
+            "format": FRAME_FORMAT,
+            "format_version": FRAME_FORMAT_VERSION,
+            "frame_id": self.frame_id,
+            "timestamp": float(self.timestamp),
+            "exposure_us": None if self.exposure_us is None else float(self.exposure_us),
+            "gain": None if self.gain is None else float(self.gain),
+            "roi": self.roi.to_dict(),
+            "binning": int(self.binning),
+            "pixel_format": self.pixel_format,
+            "bit_depth": int(self.bit_depth),
+            "dtype": str(self.pixels.dtype),
+            "shape": list(self.pixels.shape),
+            "timing": None if self.timing is None else self.timing.to_dict(),
+            "backend": self.backend,
+            "camera_id": self.camera_id,
+            "extra": _jsonable(self.extra),
+        }
+
+
+def _jsonable(obj: Any) -> Any:
+    """Convert numpy scalars/arrays, enums and tuples to plain JSON types."""
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, Enum):
+        return obj.value
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if obj is None or isinstance(obj, str | int | float | bool):
+        return obj
+    return str(obj)
+
+
+# --------------------------------------------------------------------------------------------
+# the protocol
+
+
+class Camera(Protocol):
+    """What every camera backend offers.
+
+    (Not ``runtime_checkable``: Python 3.11's ``isinstance`` would read every property, and a
+    missing feature raises. Check conformance with :func:`protocol_members` on the type.)
+
+    Units: exposure in microseconds, line time and trigger delay in microseconds, frame rate
+    in hertz; gain in the device's unit (dB for GenICam SFNC, a linear factor for the
+    simulated camera). A feature the device lacks raises :class:`FeatureNotAvailable` on both
+    get and set; :meth:`capabilities` says which exist.
+    """
+
+    @property
+    def backend(self) -> str:
+        """Backend name (``sim``, ``genicam``, ``v4l2``)."""
+        ...
+
+    @property
+    def camera_id(self) -> str:
+        """Identifier of this device within its backend."""
+        ...
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the device is open."""
+        ...
+
+    def open(self) -> None:
+        """Open the device (idempotent)."""
+        ...
+
+    def close(self) -> None:
+        """Stop streaming and release the device (idempotent)."""
+        ...
+
+    def __enter__(self) -> Self:
+        """Open and return self."""
+        ...
+
+    def __exit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        """Close."""
+        ...
+
+    def capabilities(self) -> Capabilities:
+        """Features, formats, ranges."""
+        ...
+
+    @property
+    def exposure_us(self) -> float:
+        """Exposure time in microseconds."""
+        ...
+
+    @exposure_us.setter
+    def exposure_us(self, value: float) -> None: ...
+
+    @property
+    def gain(self) -> float:
+        """Gain (device units)."""
+        ...
+
+    @gain.setter
+    def gain(self, value: float) -> None: ...
+
+    @property
+    def roi(self) -> Roi:
+        """Region of interest in unbinned sensor pixels."""
+        ...
+
+    @roi.setter
+    def roi(self, value: Roi) -> None: ...
+
+    @property
+    def binning(self) -> int:
+        """Symmetric binning factor."""
+        ...
+
+    @binning.setter
+    def binning(self, value: int) -> None: ...
+
+    @property
+    def pixel_format(self) -> str:
+        """Pixel format name (``Mono8`` .. ``Mono16``)."""
+        ...
+
+    @pixel_format.setter
+    def pixel_format(self, value: str) -> None: ...
+
+    @property
+    def bit_depth(self) -> int:
+        """Significant bits per pixel."""
+        ...
+
+    @property
+    def shutter_mode(self) -> ShutterMode:
+        """Global, rolling or dual rolling."""
+        ...
+
+    @shutter_mode.setter
+    def shutter_mode(self, value: ShutterMode) -> None: ...
+
+    @property
+    def readout_pattern(self) -> ReadoutPattern:
+        """Row order of the rolling shutter."""
+        ...
+
+    @readout_pattern.setter
+    def readout_pattern(self, value: ReadoutPattern) -> None: ...
+
+    @property
+    def line_time_us(self) -> float:
+        """Delay between the starts of successive rows, in microseconds."""
+        ...
+
+    @line_time_us.setter
+    def line_time_us(self, value: float) -> None: ...
+
+    @property
+    def trigger_delay_us(self) -> float:
+        """Delay from trigger to the first row's start, in microseconds."""
+        ...
+
+    @trigger_delay_us.setter
+    def trigger_delay_us(self, value: float) -> None: ...
+
+    @property
+    def trigger_mode(self) -> TriggerMode:
+        """Free-run or software trigger."""
+        ...
+
+    @trigger_mode.setter
+    def trigger_mode(self, value: TriggerMode) -> None: ...
+
+    @property
+    def frame_rate_hz(self) -> float:
+        """Frame rate of free-running acquisition."""
+        ...
+
+    @frame_rate_hz.setter
+    def frame_rate_hz(self, value: float) -> None: ...
+
+    @property
+    def timing(self) -> SensorTiming | None:
+        """Sensor timing of the next frame, or None when the device cannot say."""
+        ...
+
+    def snap(self, timeout_s: float = 5.0) -> Frame:
+        """Acquire one frame (raises :class:`CameraTimeout` after ``timeout_s``)."""
+        ...
+
+    def start_live(self, n_frames: int | None = None) -> None:
+        """Start the newest-frame path."""
+        ...
+
+    def latest_frame(self, timeout_s: float = 0.0) -> Frame | None:
+        """Newest frame not yet returned (waiting up to ``timeout_s``), else None."""
+        ...
+
+    def start_acquisition(self, n_frames: int | None = None, queue_size: int = 64) -> None:
+        """Start the lossless path (``n_frames`` None: until :meth:`stop`)."""
+        ...
+
+    def pop_frame(self, timeout_s: float = 5.0) -> Frame:
+        """Next frame of the lossless path, in order."""
+        ...
+
+    def stop(self) -> None:
+        """Stop whichever streaming path runs."""
+        ...
+
+    @property
+    def stream_mode(self) -> StreamMode:
+        """Which path runs now."""
+        ...
+
+    def stream_stats(self) -> StreamStats:
+        """Counters of the running (or the last) stream."""
+        ...
+
+
+def protocol_members(protocol: type) -> frozenset[str]:
+    """Public names (plus ``__enter__``/``__exit__``) a class must have to follow ``protocol``."""
+    names = {n for n in vars(protocol) if not n.startswith("_")}
+    return frozenset(names | {"__enter__", "__exit__"})
+
+
+# --------------------------------------------------------------------------------------------
+# streaming helper
+
+
+@dataclass(frozen=True)
+class StreamStats:
+    """Counters of one stream.
+
+    ``acquired`` frames came from the device; ``delivered`` reached the consumer;
+    ``dropped`` were replaced before anybody took them (newest-frame path only);
+    ``pending`` wait to be taken. ``acquired == delivered + dropped + pending``.
+    """
+
+    mode: StreamMode
+    running: bool
+    acquired: int = 0
+    delivered: int = 0
+    dropped: int = 0
+    pending: int = 0
+    max_pending: int = 0
+    queue_size: int = 0
+    error: str | None = None
+
+
+GrabFunction = Callable[[float], "Frame | None"]
+
+
+class FrameStreamer:
+    """A background thread that pulls frames from ``grab`` into one of the two sinks.
+
+    ``grab(poll_s)`` returns a frame, or None when none arrived within about ``poll_s``
+    (so the thread can notice a stop request). No frame for ``stall_timeout_s`` ends the
+    stream with :class:`CameraTimeout`. ``on_exit`` runs in the thread when it ends (the
+    backend stops the device there). Errors end the stream and are raised to the consumer
+    by :meth:`latest` / :meth:`pop` once the frames before them are taken
+    (:class:`AcquisitionOverflow` is raised at once).
+    """
+
+    def __init__(
+        self,
+        grab: GrabFunction,
+        *,
+        mode: StreamMode,
+        device: str,
+        n_frames: int | None = None,
+        queue_size: int = 64,
+        stall_timeout_s: float = 5.0,
+        poll_s: float = 0.05,
+        on_exit: Callable[[], None] | None = None,
+    ) -> None:
+        if mode is StreamMode.IDLE:
+            raise ValueError("a stream needs mode LIVE or ACQUISITION")
+        if n_frames is not None and (int(n_frames) != n_frames or n_frames < 1):
+            raise ValueError(f"n_frames must be a positive integer or None, got {n_frames!r}")
+        if int(queue_size) != queue_size or queue_size < 1:
+            raise ValueError(f"queue_size must be a positive integer, got {queue_size!r}")
+        self.mode = mode
+        self._grab = grab
+        self._device = device
+        self._n = None if n_frames is None else int(n_frames)
+        self._queue_size = 1 if mode is StreamMode.LIVE else int(queue_size)
+        self._stall = float(stall_timeout_s)
+        self._poll = float(poll_s)
+        self._on_exit = on_exit
+        self._cond = threading.Condition()
+        self._frames: collections.deque[Frame] = collections.deque()
+        self._stop_evt = threading.Event()
+        self._done = False
+        self._error: BaseException | None = None
+        self._acquired = 0
+        self._delivered = 0
+        self._dropped = 0
+        self._max_pending = 0
+        self._thread = threading.Thread(
+            target=self._run, name=f"stream-{mode.value}-{device}", daemon=True
+        )
+
+    # -- thread side ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Start the thread."""
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            last = time.monotonic()
+            while not self._stop_evt.is_set() and (self._n is None or self._acquired < self._n):
+                frame = self._grab(self._poll)
+                if frame is None:
+                    if time.monotonic() - last > self._stall:
+                        raise CameraTimeout(
+                            f"{self._device}: no frame for {self._stall:.3g} s while streaming"
+                        )
+                    continue
+                last = time.monotonic()
+                self._put(frame)
+        except BaseException as exc:  # stored and raised to the consumer
+            with self._cond:
+                self._error = exc
+        finally:
+            if self._on_exit is not None:
+                try:
+                    self._on_exit()
+                except Exception as exc:
+                    _log.error("%s: stopping the stream failed: %s", self._device, exc)
+                    with self._cond:
+                        if self._error is None:
+                            self._error = exc
+            with self._cond:
+                self._done = True
+                self._cond.notify_all()
+
+    def _put(self, frame: Frame) -> None:
+        with self._cond:
+            self._acquired += 1
+            if self.mode is StreamMode.LIVE:
+                if self._frames:
+                    self._frames.clear()
+                    self._dropped += 1
+                self._frames.append(frame)
+            else:
+                if len(self._frames) >= self._queue_size:
+                    self._acquired -= 1  # the frame that did not fit is not part of the data
+                    raise AcquisitionOverflow(
+                        f"{self._device}: acquisition queue of {self._queue_size} frames "
+                        f"overflowed after {self._acquired} frames (consumer too slow); "
+                        "acquisition stopped"
+                    )
+                self._frames.append(frame)
+            self._max_pending = max(self._max_pending, len(self._frames))
+            self._cond.notify_all()
+
+    # -- consumer side -------------------------------------------------------------------------
+
+    @property
+    def running(self) -> bool:
+        """Whether the thread still runs."""
+        with self._cond:
+            return not self._done
+
+    def stop(self, timeout_s: float = 15.0) -> None:
+        """Ask the thread to stop and wait for it."""
+        self._stop_evt.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                raise CameraError(f"{self._device}: streaming thread did not stop")
+
+    def latest(self, timeout_s: float = 0.0) -> Frame | None:
+        """Newest untaken frame, waiting up to ``timeout_s``; None if none came."""
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        with self._cond:
+            while True:
+                if self._frames:
+                    self._delivered += 1
+                    return self._frames.popleft()
+                if self._error is not None:
+                    raise self._error
+                remaining = deadline - time.monotonic()
+                if self._done or remaining <= 0:
+                    return None
+                self._cond.wait(remaining)
+
+    def pop(self, timeout_s: float = 5.0) -> Frame:
+        """Oldest queued frame, waiting up to ``timeout_s``."""
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        with self._cond:
+            while True:
+                if isinstance(self._error, AcquisitionOverflow):
+                    raise self._error
+                if self._frames:
+                    self._delivered += 1
+                    return self._frames.popleft()
+                if self._error is not None:
+                    raise self._error
+                if self._done:
+                    raise AcquisitionFinished(
+                        f"{self._device}: acquisition finished after {self._acquired} frames"
+                    )
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise CameraTimeout(
+                        f"{self._device}: no frame within {timeout_s:.3g} s "
+                        f"({self._acquired} acquired so far)"
+                    )
+                self._cond.wait(remaining)
+
+    def stats(self) -> StreamStats:
+        """Current counters."""
+        with self._cond:
+            return StreamStats(
+                mode=self.mode,
+                running=not self._done,
+                acquired=self._acquired,
+                delivered=self._delivered,
+                dropped=self._dropped,
+                pending=len(self._frames),
+                max_pending=self._max_pending,
+                queue_size=self._queue_size,
+                error=None
+                if self._error is None
+                else f"{type(self._error).__name__}: {self._error}",
+            )
+
+
+# --------------------------------------------------------------------------------------------
+# base class
+
+
+class CameraBase:
+    """Hardware-independent part of every backend.
+
+    Subclasses set ``backend``, implement ``_open``, ``_close``, ``_snap(timeout_s)``,
+    ``_stream_begin()``, ``_stream_grab(poll_s)``, ``_stream_end()`` and
+    :meth:`capabilities`, and override the feature properties they support (the defaults
+    raise :class:`FeatureNotAvailable`). Device access from the streaming thread and from
+    setters is serialised by ``self._lock``.
+    """
+
+    backend: str = "base"
+
+    #: Seconds without a frame after which a stream ends with :class:`CameraTimeout`.
+    stream_timeout_s: float = 5.0
+
+    def __init__(self, camera_id: str) -> None:
+        self._camera_id = camera_id
+        self._lock = threading.RLock()
+        self._is_open = False
+        self._streamer: FrameStreamer | None = None
+        self._last_stats = StreamStats(mode=StreamMode.IDLE, running=False)
+
+    # -- identity and lifetime -----------------------------------------------------------------
+
+    @property
+    def camera_id(self) -> str:
+        """Identifier of this device within its backend."""
+        return self._camera_id
+
+    def describe(self) -> str:
+        """Short device description used in error messages."""
+        return f"{self.backend} camera '{self._camera_id}'"
+
+    def __repr__(self) -> str:
+        state = "open" if self._is_open else "closed"
+        return f"<{type(self).__name__} {self._camera_id!r} {state}>"
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the device is open."""
+        return self._is_open
+
+    def open(self) -> None:
+        """Open the device (idempotent)."""
+        if self._is_open:
+            return
+        with self._lock:
+            self._open()
+            self._is_open = True
+
+    def close(self) -> None:
+        """Stop streaming and release the device (idempotent)."""
+        if not self._is_open:
+            return
+        try:
+            self.stop()
+        finally:
+            with self._lock:
+                try:
+                    self._close()
+                finally:
+                    self._is_open = False
+
+    def __enter__(self) -> Self:
+        self.open()
+        return self
+
+    def __exit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def _require_open(self) -> None:
+        if not self._is_open:
+            raise CameraError(f"{self.describe()} is not open")
+
+    def _require_idle(self, what: str) -> None:
+        if self._streamer is not None and self._streamer.running:
+            raise CameraError(
+                f"{self.describe()}: cannot {what} while the {self._streamer.mode.value} "
+                "stream runs; call stop() first"
+            )
+
+    def _unavailable(self, feature: Feature | str, detail: str = "") -> FeatureNotAvailable:
+        return FeatureNotAvailable(feature, self.describe(), detail)
+
+    # -- backend hooks -------------------------------------------------------------------------
+
+    def _open(self) -> None:
+        raise NotImplementedError
+
+    def _close(self) -> None:
+        raise NotImplementedError
+
+    def _snap(self, timeout_s: float) -> Frame:
+        raise NotImplementedError
+
+    def _stream_begin(self) -> None:
+        """Prepare the device for streaming (caller's thread; errors raise at start)."""
+
+    def _stream_grab(self, poll_s: float) -> Frame | None:
+        raise NotImplementedError
+
+    def _stream_end(self) -> None:
+        """Undo :meth:`_stream_begin` (runs in the streaming thread when it ends)."""
+
+    def capabilities(self) -> Capabilities:
+        """Features, formats, ranges."""
+        raise NotImplementedError
+
+    # -- features: defaults say "not available" ------------------------------------------------
+
+    @property
+    def exposure_us(self) -> float:
+        """Exposure time in microseconds."""
+        raise self._unavailable(Feature.EXPOSURE)
+
+    @exposure_us.setter
+    def exposure_us(self, value: float) -> None:
+        raise self._unavailable(Feature.EXPOSURE)
+
+    @property
+    def gain(self) -> float:
+        """Gain (device units)."""
+        raise self._unavailable(Feature.GAIN)
+
+    @gain.setter
+    def gain(self, value: float) -> None:
+        raise self._unavailable(Feature.GAIN)
+
+    @property
+    def roi(self) -> Roi:
+        """Region of interest in unbinned sensor pixels."""
+        raise self._unavailable(Feature.ROI)
+
+    @roi.setter
+    def roi(self, value: Roi) -> None:
+        raise self._unavailable(Feature.ROI)
+
+    @property
+    def binning(self) -> int:
+        """Symmetric binning factor (1 where the device cannot bin)."""
+        return 1
+
+    @binning.setter
+    def binning(self, value: int) -> None:
+        if value == 1:
+            return
+        raise self._unavailable(Feature.BINNING)
+
+    @property
+    def pixel_format(self) -> str:
+        """Pixel format name."""
+        raise self._unavailable(Feature.PIXEL_FORMAT)
+
+    @pixel_format.setter
+    def pixel_format(self, value: str) -> None:
+        raise self._unavailable(Feature.PIXEL_FORMAT)
+
+    @property
+    def bit_depth(self) -> int:
+        """Significant bits per pixel."""
+        return bit_depth_of(self.pixel_format)
+
+    @property
+    def shutter_mode(self) -> ShutterMode:
+        """Global, rolling or dual rolling."""
+        raise self._unavailable(Feature.SHUTTER_MODE)
+
+    @shutter_mode.setter
+    def shutter_mode(self, value: ShutterMode) -> None:
+        raise self._unavailable(Feature.SHUTTER_MODE)
+
+    @property
+    def readout_pattern(self) -> ReadoutPattern:
+        """Row order of the rolling shutter."""
+        raise self._unavailable(Feature.READOUT_PATTERN)
+
+    @readout_pattern.setter
+    def readout_pattern(self, value: ReadoutPattern) -> None:
+        raise self._unavailable(Feature.READOUT_PATTERN)
+
+    @property
+    def line_time_us(self) -> float:
+        """Row-to-row delay in microseconds."""
+        raise self._unavailable(Feature.LINE_TIME)
+
+    @line_time_us.setter
+    def line_time_us(self, value: float) -> None:
+        raise self._unavailable(Feature.LINE_TIME)
+
+    @property
+    def trigger_delay_us(self) -> float:
+        """Delay from trigger to first row start, in microseconds."""
+        raise self._unavailable(Feature.TRIGGER_DELAY)
+
+    @trigger_delay_us.setter
+    def trigger_delay_us(self, value: float) -> None:
+        raise self._unavailable(Feature.TRIGGER_DELAY)
+
+    @property
+    def trigger_mode(self) -> TriggerMode:
+        """Free-run unless the backend supports a software trigger."""
+        return TriggerMode.FREE_RUN
+
+    @trigger_mode.setter
+    def trigger_mode(self, value: TriggerMode) -> None:
+        if TriggerMode(value) is TriggerMode.FREE_RUN:
+            return
+        raise self._unavailable(Feature.TRIGGER_SOFTWARE)
+
+    @property
+    def frame_rate_hz(self) -> float:
+        """Free-run frame rate in hertz."""
+        raise self._unavailable(Feature.FRAME_RATE)
+
+    @frame_rate_hz.setter
+    def frame_rate_hz(self, value: float) -> None:
+        raise self._unavailable(Feature.FRAME_RATE)
+
+    @property
+    def timing(self) -> SensorTiming | None:
+        """Sensor timing when line time, pattern and exposure are all known, else None."""
+        try:
+            return SensorTiming.from_exposure_us(
+                rows=self.capabilities().sensor_height,
+                line_time_us=self.line_time_us,
+                exposure_us=self.exposure_us,
+                pattern=self.readout_pattern,
+                trigger_delay_us=self.trigger_delay_us,
+            )
+        except (FeatureNotAvailable, ValueError):
+            return None
+
+    def _optional(self, getter: Callable[[], Any]) -> Any:
+        try:
+            return getter()
+        except FeatureNotAvailable:
+            return None
+
+    # -- acquisition ---------------------------------------------------------------------------
+
+    def snap(self, timeout_s: float = 5.0) -> Frame:
+        """Acquire one frame (raises :class:`CameraTimeout` after ``timeout_s``)."""
+        self._require_open()
+        self._require_idle("snap")
+        if not (timeout_s > 0 and math.isfinite(timeout_s)):
+            raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
+        return self._snap(float(timeout_s))
+
+    @property
+    def stream_mode(self) -> StreamMode:
+        """Which path was started (kept after it ends by itself, until :meth:`stop`)."""
+        s = self._streamer
+        return s.mode if s is not None else StreamMode.IDLE
+
+    def _start_stream(self, mode: StreamMode, n_frames: int | None, queue_size: int) -> None:
+        self._require_open()
+        s = self._streamer
+        if s is not None:
+            if s.running:
+                other = s.mode.value
+                raise CameraError(
+                    f"{self.describe()}: cannot start the {mode.value} stream while the "
+                    f"{other} stream runs; call stop() first"
+                )
+            self._retire_streamer()
+        streamer = FrameStreamer(
+            self._stream_grab,
+            mode=mode,
+            device=self.describe(),
+            n_frames=n_frames,
+            queue_size=queue_size,
+            stall_timeout_s=self.stream_timeout_s,
+            on_exit=self._stream_end_locked,
+        )
+        with self._lock:
+            self._stream_begin()
+        self._streamer = streamer
+        streamer.start()
+
+    def _stream_end_locked(self) -> None:
+        with self._lock:
+            self._stream_end()
+
+    def _retire_streamer(self) -> None:
+        s = self._streamer
+        if s is None:
+            return
+        try:
+            s.stop()
+        finally:
+            self._last_stats = s.stats()
+            self._streamer = None
+
+    def start_live(self, n_frames: int | None = None) -> None:
+        """Start the newest-frame path (until :meth:`stop`, or ``n_frames`` frames)."""
+        self._start_stream(StreamMode.LIVE, n_frames, 1)
+
+    def latest_frame(self, timeout_s: float = 0.0) -> Frame | None:
+        """Newest frame not yet returned, waiting up to ``timeout_s``; None if none came."""
+        s = self._streamer
+        if s is None or s.mode is not StreamMode.LIVE:
+            raise CameraError(f"{self.describe()}: no live stream (call start_live())")
+        return s.latest(timeout_s)
+
+    def start_acquisition(self, n_frames: int | None = None, queue_size: int = 64) -> None:
+        """Start the lossless path: every frame is queued (at most ``queue_size``)."""
+        self._start_stream(StreamMode.ACQUISITION, n_frames, queue_size)
+
+    def pop_frame(self, timeout_s: float = 5.0) -> Frame:
+        """Next frame of the lossless path, in order.
+
+        Raises :class:`AcquisitionOverflow` if the queue overflowed,
+        :class:`AcquisitionFinished` when a finite acquisition is exhausted,
+        :class:`CameraTimeout` when nothing came within ``timeout_s``.
+        """
+        s = self._streamer
+        if s is None or s.mode is not StreamMode.ACQUISITION:
+            raise CameraError(f"{self.describe()}: no acquisition (call start_acquisition())")
+        return s.pop(timeout_s)
+
+    def stop(self) -> None:
+        """Stop whichever streaming path runs (no-op when idle)."""
+        self._retire_streamer()
+
+    def stream_stats(self) -> StreamStats:
+        """Counters of the running stream, or of the last one."""
+        s = self._streamer
+        return s.stats() if s is not None else self._last_stats
+
+    # -- frames --------------------------------------------------------------------------------
+
+    def _make_frame(
+        self,
+        pixels: np.ndarray,
+        frame_id: int,
+        *,
+        timestamp: float | None = None,
+        pixel_format: str | None = None,
+        extra: Mapping[str, Any] | None = None,
+    ) -> Frame:
+        """Wrap pixels with the current settings as metadata.
+
+        ``pixel_format`` overrides the setting (for the format the device really delivered).
+        """
+        roi = self._optional(lambda: self.roi)
+        if roi is None:
+            roi = Roi(0, 0, int(pixels.shape[1]), int(pixels.shape[0]))
+        pf = pixel_format or self._optional(lambda: self.pixel_format)
+        if pf is None:
+            pf = "Mono16" if pixels.dtype == np.uint16 else "Mono8"
+        return Frame(
+            pixels=pixels,
+            frame_id=frame_id,
+            timestamp=time.time() if timestamp is None else timestamp,
+            exposure_us=self._optional(lambda: self.exposure_us),
+            gain=self._optional(lambda: self.gain),
+            roi=roi,
+            binning=self.binning,
+            pixel_format=pf,
+            bit_depth=bit_depth_of(pf),
+            timing=self.timing,
+            backend=self.backend,
+            camera_id=self.camera_id,
+            extra=dict(extra or {}),
+        )

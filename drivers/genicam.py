@@ -1,0 +1,814 @@
+"""GenICam cameras through harvesters (GenTL producers, ``*.cti`` files).
+
+Producer discovery (:func:`find_producers`), in this order, duplicates dropped:
+
+1. paths given by the caller (files or folders),
+2. the folders in ``GENICAM_GENTL64_PATH`` (the GenTL standard variable),
+3. the folders or files in ``LENSLESSCAM_GENTL_PATH`` (this project's configured paths),
+4. the installed ``genicam`` package (which ships ``viky.cti``),
+5. ``$XDG_CACHE_HOME/lenslesscam/gentl`` (or ``~/.cache/...``) and its sub-folders (where the
+   tests keep ``TLSimu.cti``).
+
+Device index N (``genicam:N``) counts the devices of all producers in that order.
+
+Features are mapped to SFNC nodes where the device has them: ExposureTime, Gain, Width,
+Height, OffsetX/Y, BinningHorizontal/Vertical, PixelFormat, SensorShutterMode, TriggerDelay,
+AcquisitionFrameRate, TriggerMode/TriggerSoftware; a missing node raises
+:class:`~drivers.camera.FeatureNotAvailable` naming it. SFNC has no line time or readout
+order: declare them from the datasheet (``line_time_us=``, ``readout_pattern=``) to get
+frames with a :class:`~drivers.timing.SensorTiming`.
+
+Buffers are copied before they are re-queued, and every fetch has a timeout. With a software
+trigger the acquisition stays armed between snaps (starting and stopping a GenTL stream can
+be slow); it is disarmed before settings that need it (size, format) and on close.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import signal
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from drivers.camera import (
+    CameraBase,
+    CameraError,
+    CameraTimeout,
+    Capabilities,
+    Feature,
+    FeatureNotAvailable,
+    Frame,
+    Roi,
+    TriggerMode,
+    bit_depth_of,
+)
+from drivers.timing import ReadoutPattern, SensorTiming, ShutterMode
+
+__all__ = [
+    "GenICamCamera",
+    "GenICamDeviceInfo",
+    "find_producers",
+    "gentl_cache_dir",
+    "list_genicam_devices",
+]
+
+_log = logging.getLogger(__name__)
+
+_MONO_FORMATS = ("Mono8", "Mono10", "Mono12", "Mono14", "Mono16")
+_SHUTTER_FROM_SFNC = {
+    "Global": ShutterMode.GLOBAL,
+    "GlobalReset": ShutterMode.GLOBAL,
+    "Rolling": ShutterMode.ROLLING,
+}
+_SFNC_FROM_SHUTTER = {ShutterMode.GLOBAL: "Global", ShutterMode.ROLLING: "Rolling"}
+
+
+# --------------------------------------------------------------------------------------------
+# discovery
+
+
+def gentl_cache_dir() -> Path:
+    """Folder where this project keeps downloaded GenTL producers."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "lenslesscam" / "gentl"
+
+
+def _cti_in(path: Path, depth: int = 1) -> Iterator[Path]:
+    if path.is_file() and path.suffix == ".cti":
+        yield path
+    elif path.is_dir():
+        for p in sorted(path.iterdir()):
+            if p.is_file() and p.suffix == ".cti":
+                yield p
+            elif p.is_dir() and depth > 0:
+                yield from _cti_in(p, depth - 1)
+
+
+def find_producers(
+    extra: Iterable[str | os.PathLike[str]] = (),
+    *,
+    use_environment: bool = True,
+    include_cache: bool = True,
+    include_package: bool = True,
+) -> list[Path]:
+    """GenTL producer files (``*.cti``) found in the places listed in the module docstring."""
+    candidates: list[Path] = [Path(p) for p in extra]
+    if use_environment:
+        for var in ("GENICAM_GENTL64_PATH", "LENSLESSCAM_GENTL_PATH"):
+            candidates += [Path(p) for p in os.environ.get(var, "").split(os.pathsep) if p]
+    if include_package:
+        try:
+            import importlib.util
+
+            spec = importlib.util.find_spec("genicam")
+            if spec is not None and spec.origin:
+                candidates.append(Path(spec.origin).parent)
+        except (ImportError, ValueError):
+            pass
+    if include_cache:
+        candidates.append(gentl_cache_dir())
+    found: list[Path] = []
+    seen: set[Path] = set()
+    for c in candidates:
+        for cti in _cti_in(c):
+            key = cti.resolve()
+            if key not in seen:
+                seen.add(key)
+                found.append(cti)
+    return found
+
+
+@dataclass(frozen=True)
+class GenICamDeviceInfo:
+    """One device as enumerated by the producers (``index`` is N of ``genicam:N``)."""
+
+    index: int
+    producer: str
+    device_id: str
+    vendor: str
+    model: str
+    serial_number: str
+    display_name: str
+
+    @property
+    def spec(self) -> str:
+        """Camera spec for :func:`drivers.open_camera`."""
+        return f"genicam:{self.index}"
+
+
+@contextlib.contextmanager
+def _keep_sigint() -> Iterator[None]:
+    """Undo the SIGINT handler harvesters installs when created in the main thread."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _harvester(producers: Sequence[Path]) -> Any:
+    from harvesters.core import Harvester
+
+    with _keep_sigint():
+        h = Harvester()
+        try:
+            for p in producers:
+                h.add_file(str(p), check_existence=True)
+            h.update()
+        except Exception:
+            h.reset()
+            raise
+    return h
+
+
+def _device_producers(h: Any) -> list[str]:
+    """Producer file of each device of a harvester (``DeviceInfo.parent.parent`` = system)."""
+    names: list[str] = []
+    for info in h.device_info_list:
+        try:
+            names.append(str(info.parent.parent.path_name))
+        except Exception:
+            names.append("")
+    return names
+
+
+def _info_str(info: Any, attr: str) -> str:
+    try:
+        v = getattr(info, attr)
+    except Exception:
+        return ""
+    return "" if v is None else str(v)
+
+
+def list_genicam_devices(
+    producers: Sequence[str | os.PathLike[str]] | None = None,
+) -> list[GenICamDeviceInfo]:
+    """Devices of the given producers (default: :func:`find_producers`)."""
+    paths = find_producers() if producers is None else [Path(p) for p in producers]
+    if not paths:
+        return []
+    h = _harvester(paths)
+    try:
+        owners = _device_producers(h)
+        return [
+            GenICamDeviceInfo(
+                index=i,
+                producer=owners[i],
+                device_id=_info_str(d, "id_"),
+                vendor=_info_str(d, "vendor"),
+                model=_info_str(d, "model"),
+                serial_number=_info_str(d, "serial_number"),
+                display_name=_info_str(d, "display_name"),
+            )
+            for i, d in enumerate(h.device_info_list)
+        ]
+    finally:
+        h.reset()
+
+
+# --------------------------------------------------------------------------------------------
+# the camera
+
+
+class GenICamCamera(CameraBase):
+    """A GenICam device through a GenTL producer.
+
+    ``index`` counts devices over ``producers`` (default: :func:`find_producers`; or give
+    one ``producer``). ``line_time_us`` and ``readout_pattern`` declare the sensor timing
+    from the datasheet (SFNC has no node for them).
+    """
+
+    backend = "genicam"
+
+    def __init__(
+        self,
+        index: int = 0,
+        *,
+        producer: str | os.PathLike[str] | None = None,
+        producers: Sequence[str | os.PathLike[str]] | None = None,
+        line_time_us: float | None = None,
+        readout_pattern: ReadoutPattern | str | None = None,
+        num_buffers: int = 8,
+        poll_s: float = 0.05,
+    ) -> None:
+        if producer is not None and producers is not None:
+            raise ValueError("give producer or producers, not both")
+        if int(index) != index or index < 0:
+            raise ValueError(f"device index must be an integer >= 0, got {index!r}")
+        super().__init__(f"genicam:{index}")
+        if producer is not None:
+            self._producers = [Path(producer)]
+        elif producers is not None:
+            self._producers = [Path(p) for p in producers]
+        else:
+            self._producers = find_producers()
+        self._index = int(index)
+        if line_time_us is not None and not (math.isfinite(line_time_us) and line_time_us > 0):
+            raise ValueError(f"line_time_us must be > 0, got {line_time_us!r}")
+        self._line_time_decl = line_time_us
+        self._pattern_decl = None if readout_pattern is None else ReadoutPattern(readout_pattern)
+        self._num_buffers = int(num_buffers)
+        self._poll_s = float(poll_s)
+        self._h: Any = None
+        self._ia: Any = None
+        self._nm: Any = None
+        self._armed = False
+        self._trigger_pending = False
+        self._trigger_mode = TriggerMode.FREE_RUN
+        self._last_id: int | None = None
+        self._id_base: int | None = None
+        self._model = ""
+        self._display = ""
+
+    def describe(self) -> str:
+        """Device description for messages."""
+        name = f" ({self._display})" if self._display else ""
+        return f"genicam camera {self._index}{name}"
+
+    # -- lifetime ------------------------------------------------------------------------------
+
+    def _open(self) -> None:
+        if not self._producers:
+            raise CameraError(
+                "no GenTL producer found (set GENICAM_GENTL64_PATH or LENSLESSCAM_GENTL_PATH)"
+            )
+        h = _harvester(self._producers)
+        try:
+            n = len(h.device_info_list)
+            if self._index >= n:
+                raise CameraError(
+                    f"no GenICam device {self._index}: the producers "
+                    f"{[p.name for p in self._producers]} list {n} device(s)"
+                )
+            info = h.device_info_list[self._index]
+            self._display = _info_str(info, "display_name")
+            self._model = _info_str(info, "model")
+            serial = _info_str(info, "serial_number")
+            self._camera_id = f"{self._model or 'genicam'}:{serial or self._index}"
+            with _keep_sigint():
+                ia = h.create(self._index)
+        except CameraError:
+            h.reset()
+            raise
+        except Exception as exc:
+            h.reset()
+            raise CameraError(f"cannot open {self.describe()}: {exc}") from exc
+        self._h, self._ia = h, ia
+        self._nm = ia.remote_device.node_map
+        try:
+            ia.num_buffers = max(self._num_buffers, ia.min_num_buffers)
+            self._init_device()
+        except Exception as exc:
+            self._close()
+            raise CameraError(f"cannot set up {self.describe()}: {exc}") from exc
+
+    def _init_device(self) -> None:
+        pf = self._node("PixelFormat")
+        if pf is not None and self._readable(pf) and pf.value not in _MONO_FORMATS:
+            for name in _MONO_FORMATS:
+                if name in self._enum_values(pf):
+                    pf.value = name
+                    break
+        if self._node("TriggerSelector") is not None:
+            with contextlib.suppress(Exception):
+                self._nm.TriggerSelector.value = "FrameStart"
+        if self._node("TriggerMode") is not None:
+            self._nm.TriggerMode.value = "Off"
+        self._trigger_mode = TriggerMode.FREE_RUN
+
+    def _close(self) -> None:
+        try:
+            self._disarm()
+        finally:
+            ia, h = self._ia, self._h
+            self._ia = self._h = self._nm = None
+            try:
+                if ia is not None:
+                    ia.destroy()
+            finally:
+                if h is not None:
+                    h.reset()
+
+    # -- node helpers --------------------------------------------------------------------------
+
+    def _node(self, name: str) -> Any | None:
+        nm = self._nm
+        if nm is None:
+            raise CameraError(f"{self.describe()} is not open")
+        try:
+            if not nm.has_node(name):
+                return None
+            node = getattr(nm, name)
+            mode = int(node.node.get_access_mode())
+        except Exception:
+            return None
+        return node if mode >= 2 else None  # WO, RO or RW: implemented and available
+
+    @staticmethod
+    def _readable(node: Any) -> bool:
+        return int(node.node.get_access_mode()) in (3, 4)
+
+    @staticmethod
+    def _writable(node: Any) -> bool:
+        return int(node.node.get_access_mode()) in (2, 4)
+
+    @staticmethod
+    def _enum_values(node: Any) -> list[str]:
+        try:
+            return [e.symbolic for e in node.entries if int(e.node.get_access_mode()) >= 3]
+        except Exception:
+            return list(node.symbolics)
+
+    def _require(self, feature: Feature, name: str, *, write: bool = False) -> Any:
+        node = self._node(name)
+        if node is None:
+            raise self._unavailable(feature, f"the device has no '{name}' node")
+        if write and not self._writable(node):
+            raise self._unavailable(feature, f"'{name}' is not writable now")
+        if not write and not self._readable(node):
+            raise self._unavailable(feature, f"'{name}' is not readable now")
+        return node
+
+    def _get(self, feature: Feature, name: str) -> Any:
+        with self._lock:
+            return self._require(feature, name).value
+
+    def _set(self, feature: Feature, name: str, value: Any) -> None:
+        import genicam.genapi as genapi
+
+        with self._lock:
+            node = self._require(feature, name, write=True)
+            try:
+                node.value = value
+            except (genapi.OutOfRangeException, genapi.InvalidArgumentException) as exc:
+                raise ValueError(f"{self.describe()}: {name} = {value!r} rejected: {exc}") from exc
+            except genapi.GenericException as exc:
+                raise CameraError(f"{self.describe()}: setting {name} failed: {exc}") from exc
+
+    def _has(self, name: str, write: bool = True) -> bool:
+        node = self._node(name)
+        return node is not None and (self._writable(node) if write else self._readable(node))
+
+    # -- capabilities --------------------------------------------------------------------------
+
+    def capabilities(self) -> Capabilities:
+        """Features present on this device (writable SFNC nodes)."""
+        self._require_open()
+        with self._lock:
+            feats: set[Feature] = set()
+            table = {
+                Feature.EXPOSURE: ("ExposureTime",),
+                Feature.GAIN: ("Gain",),
+                Feature.ROI: ("Width", "Height"),
+                Feature.BINNING: ("BinningHorizontal", "BinningVertical"),
+                Feature.PIXEL_FORMAT: ("PixelFormat",),
+                Feature.SHUTTER_MODE: ("SensorShutterMode",),
+                Feature.TRIGGER_DELAY: ("TriggerDelay",),
+                Feature.TRIGGER_SOFTWARE: ("TriggerMode", "TriggerSoftware"),
+                Feature.FRAME_RATE: ("AcquisitionFrameRate",),
+            }
+            for feat, names in table.items():
+                if all(self._has(n) for n in names):
+                    feats.add(feat)
+            w = self._node("Width")
+            hgt = self._node("Height")
+            sw = self._int_or(("SensorWidth", "WidthMax"), w.max if w is not None else 0)
+            sh = self._int_or(("SensorHeight", "HeightMax"), hgt.max if hgt is not None else 0)
+            pf = self._node("PixelFormat")
+            formats = tuple(
+                f for f in (self._enum_values(pf) if pf is not None else []) if f in _MONO_FORMATS
+            )
+            modes: tuple[TriggerMode, ...] = (TriggerMode.FREE_RUN,)
+            if Feature.TRIGGER_SOFTWARE in feats:
+                modes = (TriggerMode.FREE_RUN, TriggerMode.SOFTWARE)
+            shutter: tuple[ShutterMode, ...] = ()
+            ssm = self._node("SensorShutterMode")
+            if ssm is not None:
+                shutter = tuple(
+                    dict.fromkeys(
+                        _SHUTTER_FROM_SFNC[v]
+                        for v in self._enum_values(ssm)
+                        if v in _SHUTTER_FROM_SFNC
+                    )
+                )
+            return Capabilities(
+                backend=self.backend,
+                camera_id=self.camera_id,
+                model=self._model,
+                sensor_width=int(sw),
+                sensor_height=int(sh),
+                features=frozenset(feats),
+                pixel_formats=formats,
+                trigger_modes=modes,
+                shutter_modes=shutter,
+                readout_patterns=() if self._pattern_decl is None else (self._pattern_decl,),
+                exposure_range_us=self._range("ExposureTime"),
+                gain_range=self._range("Gain"),
+                frame_rate_range_hz=self._range("AcquisitionFrameRate"),
+                binning_factors=self._binnings(),
+                roi_min_size=(int(w.min) if w is not None else 1, int(hgt.min) if hgt else 1),
+                roi_step=(self._inc(w), self._inc(hgt)),
+            )
+
+    def _int_or(self, names: Sequence[str], default: int) -> int:
+        for n in names:
+            node = self._node(n)
+            if node is not None and self._readable(node):
+                return int(node.value)
+        return int(default)
+
+    def _range(self, name: str) -> tuple[float, float] | None:
+        node = self._node(name)
+        if node is None:
+            return None
+        try:
+            return (float(node.min), float(node.max))
+        except Exception:
+            return None
+
+    @staticmethod
+    def _inc(node: Any) -> int:
+        if node is None:
+            return 1
+        try:
+            return max(1, int(node.inc))
+        except Exception:
+            return 1
+
+    def _binnings(self) -> tuple[int, ...]:
+        node = self._node("BinningHorizontal")
+        if node is None:
+            return (1,)
+        try:
+            return tuple(range(int(node.min), int(node.max) + 1))
+        except Exception:
+            return (1,)
+
+    # -- features ------------------------------------------------------------------------------
+
+    @property
+    def exposure_us(self) -> float:
+        """SFNC ExposureTime (microseconds)."""
+        return float(self._get(Feature.EXPOSURE, "ExposureTime"))
+
+    @exposure_us.setter
+    def exposure_us(self, value: float) -> None:
+        with self._lock:
+            if self._has("ExposureAuto"):
+                with contextlib.suppress(Exception):
+                    self._nm.ExposureAuto.value = "Off"
+            self._set(Feature.EXPOSURE, "ExposureTime", float(value))
+
+    @property
+    def gain(self) -> float:
+        """SFNC Gain (device units, usually dB)."""
+        return float(self._get(Feature.GAIN, "Gain"))
+
+    @gain.setter
+    def gain(self, value: float) -> None:
+        with self._lock:
+            if self._has("GainAuto"):
+                with contextlib.suppress(Exception):
+                    self._nm.GainAuto.value = "Off"
+            self._set(Feature.GAIN, "Gain", float(value))
+
+    @property
+    def binning(self) -> int:
+        """SFNC BinningHorizontal (1 without binning nodes)."""
+        with self._lock:
+            node = self._node("BinningHorizontal")
+            return 1 if node is None or not self._readable(node) else int(node.value)
+
+    @binning.setter
+    def binning(self, value: int) -> None:
+        self._require_idle("change binning")
+        with self._lock:
+            if value == 1 and self._node("BinningHorizontal") is None:
+                return
+            self._disarm()
+            self._set(Feature.BINNING, "BinningHorizontal", int(value))
+            self._set(Feature.BINNING, "BinningVertical", int(value))
+
+    @property
+    def roi(self) -> Roi:
+        """Width/Height/OffsetX/OffsetY (in unbinned pixels)."""
+        with self._lock:
+            b = self.binning
+            w = int(self._get(Feature.ROI, "Width"))
+            h = int(self._get(Feature.ROI, "Height"))
+            ox = self._node("OffsetX")
+            oy = self._node("OffsetY")
+            x = int(ox.value) if ox is not None and self._readable(ox) else 0
+            y = int(oy.value) if oy is not None and self._readable(oy) else 0
+            return Roi(x * b, y * b, w * b, h * b)
+
+    @roi.setter
+    def roi(self, value: Roi) -> None:
+        self._require_idle("change the ROI")
+        with self._lock:
+            self._require(Feature.ROI, "Width", write=True)
+            self._require(Feature.ROI, "Height", write=True)
+            b = self.binning
+            if value.x and not self._has("OffsetX"):
+                raise self._unavailable(Feature.ROI, "no writable 'OffsetX': ROI x must be 0")
+            if value.y and not self._has("OffsetY"):
+                raise self._unavailable(Feature.ROI, "no writable 'OffsetY': ROI y must be 0")
+            self._disarm()
+            for off in ("OffsetX", "OffsetY"):
+                if self._has(off):
+                    self._set(Feature.ROI, off, 0)
+            self._set(Feature.ROI, "Width", value.width // b)
+            self._set(Feature.ROI, "Height", value.height // b)
+            if value.x:
+                self._set(Feature.ROI, "OffsetX", value.x // b)
+            if value.y:
+                self._set(Feature.ROI, "OffsetY", value.y // b)
+
+    @property
+    def pixel_format(self) -> str:
+        """SFNC PixelFormat."""
+        return str(self._get(Feature.PIXEL_FORMAT, "PixelFormat"))
+
+    @pixel_format.setter
+    def pixel_format(self, value: str) -> None:
+        self._require_idle("change the pixel format")
+        if value not in _MONO_FORMATS:
+            raise ValueError(f"pixel format {value!r} not supported; use one of {_MONO_FORMATS}")
+        with self._lock:
+            node = self._require(Feature.PIXEL_FORMAT, "PixelFormat", write=True)
+            if value not in self._enum_values(node):
+                raise ValueError(
+                    f"{self.describe()}: pixel format {value!r} not offered "
+                    f"(device offers {self._enum_values(node)})"
+                )
+            self._disarm()
+            self._set(Feature.PIXEL_FORMAT, "PixelFormat", value)
+
+    @property
+    def bit_depth(self) -> int:
+        """Bits of the current pixel format."""
+        return bit_depth_of(self.pixel_format)
+
+    @property
+    def shutter_mode(self) -> ShutterMode:
+        """SFNC SensorShutterMode (Global, GlobalReset -> global; Rolling)."""
+        v = str(self._get(Feature.SHUTTER_MODE, "SensorShutterMode"))
+        if v not in _SHUTTER_FROM_SFNC:
+            raise CameraError(f"{self.describe()}: unknown SensorShutterMode {v!r}")
+        mode = _SHUTTER_FROM_SFNC[v]
+        if mode is ShutterMode.ROLLING and self._pattern_decl in (
+            ReadoutPattern.OUTSIDE_IN,
+            ReadoutPattern.CENTRE_OUT,
+        ):
+            return ShutterMode.DUAL_ROLLING
+        return mode
+
+    @shutter_mode.setter
+    def shutter_mode(self, value: ShutterMode) -> None:
+        mode = ShutterMode(value)
+        if mode is ShutterMode.DUAL_ROLLING:
+            raise self._unavailable(
+                Feature.SHUTTER_MODE, "SFNC has no dual rolling shutter (vendor feature)"
+            )
+        self._set(Feature.SHUTTER_MODE, "SensorShutterMode", _SFNC_FROM_SHUTTER[mode])
+
+    @property
+    def readout_pattern(self) -> ReadoutPattern:
+        """Declared readout pattern (``readout_pattern=`` at construction)."""
+        if self._pattern_decl is None:
+            raise self._unavailable(
+                Feature.READOUT_PATTERN, "not in SFNC; declare readout_pattern= from the datasheet"
+            )
+        return self._pattern_decl
+
+    @readout_pattern.setter
+    def readout_pattern(self, value: ReadoutPattern) -> None:
+        raise self._unavailable(Feature.READOUT_PATTERN, "a property of the sensor, not settable")
+
+    @property
+    def line_time_us(self) -> float:
+        """Declared line time (``line_time_us=`` at construction)."""
+        if self._line_time_decl is None:
+            raise self._unavailable(
+                Feature.LINE_TIME, "not in SFNC; declare line_time_us= from the datasheet"
+            )
+        return self._line_time_decl
+
+    @line_time_us.setter
+    def line_time_us(self, value: float) -> None:
+        raise self._unavailable(Feature.LINE_TIME, "a property of the sensor, not settable")
+
+    @property
+    def trigger_delay_us(self) -> float:
+        """SFNC TriggerDelay (microseconds)."""
+        return float(self._get(Feature.TRIGGER_DELAY, "TriggerDelay"))
+
+    @trigger_delay_us.setter
+    def trigger_delay_us(self, value: float) -> None:
+        self._set(Feature.TRIGGER_DELAY, "TriggerDelay", float(value))
+
+    @property
+    def trigger_mode(self) -> TriggerMode:
+        """Free-run (TriggerMode Off) or software (TriggerMode On, TriggerSource Software)."""
+        return self._trigger_mode
+
+    @trigger_mode.setter
+    def trigger_mode(self, value: TriggerMode) -> None:
+        mode = TriggerMode(value)
+        self._require_idle("change the trigger mode")
+        with self._lock:
+            if mode is TriggerMode.SOFTWARE:
+                self._require(Feature.TRIGGER_SOFTWARE, "TriggerSoftware", write=True)
+                self._require(Feature.TRIGGER_SOFTWARE, "TriggerMode", write=True)
+            elif self._node("TriggerMode") is None:
+                self._trigger_mode = mode
+                return
+            self._disarm()
+            if mode is TriggerMode.SOFTWARE and self._has("TriggerSource"):
+                self._set(Feature.TRIGGER_SOFTWARE, "TriggerSource", "Software")
+            self._set(
+                Feature.TRIGGER_SOFTWARE,
+                "TriggerMode",
+                "On" if mode is TriggerMode.SOFTWARE else "Off",
+            )
+            self._trigger_mode = mode
+
+    @property
+    def frame_rate_hz(self) -> float:
+        """SFNC AcquisitionFrameRate."""
+        return float(self._get(Feature.FRAME_RATE, "AcquisitionFrameRate"))
+
+    @frame_rate_hz.setter
+    def frame_rate_hz(self, value: float) -> None:
+        with self._lock:
+            if self._has("AcquisitionFrameRateEnable"):
+                with contextlib.suppress(Exception):
+                    self._nm.AcquisitionFrameRateEnable.value = True
+            self._set(Feature.FRAME_RATE, "AcquisitionFrameRate", float(value))
+
+    @property
+    def timing(self) -> SensorTiming | None:
+        """Timing from the declared line time/pattern and ExposureTime, else None."""
+        if self._line_time_decl is None or self._pattern_decl is None:
+            return None
+        try:
+            exposure = self.exposure_us
+            delay = self._optional(lambda: self.trigger_delay_us) or 0.0
+            with self._lock:
+                height = self._require(Feature.ROI, "Height")
+                rows = self._int_or(("SensorHeight", "HeightMax"), int(height.max))
+        except FeatureNotAvailable:
+            return None
+        return SensorTiming.from_exposure_us(
+            rows, self._line_time_decl, exposure, self._pattern_decl, delay
+        )
+
+    # -- acquisition ---------------------------------------------------------------------------
+
+    def _arm(self) -> None:
+        if not self._armed:
+            self._ia.start()
+            self._armed = True
+            self._trigger_pending = False
+            self._id_base = None  # devices may restart their frame counter
+
+    def _disarm(self) -> None:
+        if self._armed and self._ia is not None:
+            self._armed = False
+            self._trigger_pending = False
+            self._ia.stop()
+
+    def _fetch(self, timeout_s: float) -> Frame:
+        """One buffer, copied before it is re-queued; CameraTimeout after ``timeout_s``."""
+        from genicam.gentl import TimeoutException
+
+        try:
+            with self._ia.fetch(timeout=timeout_s) as buffer:
+                comp = buffer.payload.components[0]
+                fmt = str(comp.data_format)
+                w, h = int(comp.width), int(comp.height)
+                if fmt not in _MONO_FORMATS:
+                    raise CameraError(f"{self.describe()}: delivered unsupported format {fmt}")
+                pixels = comp.data.reshape(h, w).copy()  # owned: the buffer goes back
+                device_id = int(buffer.frame_id)
+                extra: dict[str, Any] = {"device_frame_id": device_id, "model": self._model}
+                with contextlib.suppress(Exception):
+                    extra["device_timestamp_ns"] = int(buffer.timestamp_ns)
+        except TimeoutException:
+            raise CameraTimeout(f"{self.describe()}: no frame within {timeout_s:.3g} s") from None
+        frame_id = self._frame_id_of(device_id)
+        if fmt != self._optional(lambda: self.pixel_format):
+            extra["requested_pixel_format"] = self._optional(lambda: self.pixel_format)
+        return self._make_frame(pixels, frame_id, pixel_format=fmt, extra=extra)
+
+    def _frame_id_of(self, device_id: int) -> int:
+        """Frame id: the device's id shifted so ids keep increasing across acquisitions.
+
+        Within one acquisition a gap in the device's ids stays a gap (a lost frame shows).
+        """
+        if self._id_base is None:
+            self._id_base = 0 if self._last_id is None else self._last_id + 1 - device_id
+        frame_id = device_id + self._id_base
+        self._last_id = frame_id
+        return frame_id
+
+    def _trigger(self) -> None:
+        self._nm.TriggerSoftware.execute()
+        self._trigger_pending = True
+
+    def _snap(self, timeout_s: float) -> Frame:
+        with self._lock:
+            self._arm()
+            try:
+                if self._trigger_mode is TriggerMode.SOFTWARE:
+                    self._trigger()
+                    frame = self._fetch(timeout_s)
+                    self._trigger_pending = False
+                    return frame
+                return self._fetch(timeout_s)
+            except BaseException:
+                self._disarm()
+                raise
+            finally:
+                if self._trigger_mode is TriggerMode.FREE_RUN:
+                    self._disarm()
+
+    def _stream_begin(self) -> None:
+        self._arm()
+
+    def _stream_grab(self, poll_s: float) -> Frame | None:
+        with self._lock:
+            if self._trigger_mode is TriggerMode.SOFTWARE and not self._trigger_pending:
+                self._trigger()
+            try:
+                frame = self._fetch(min(poll_s, self._poll_s))
+            except CameraTimeout:
+                return None
+            self._trigger_pending = False
+            return frame
+
+    def _stream_end(self) -> None:
+        if self._trigger_mode is TriggerMode.FREE_RUN or self._trigger_pending:
+            self._disarm()
+
+    # -- white-box helpers for tests -------------------------------------------------------------
+
+    def _fetch_untriggered(self, timeout_s: float) -> Frame:
+        """Fetch without triggering (tests: a software-triggered device times out)."""
+        with self._lock:
+            self._arm()
+            try:
+                return self._fetch(timeout_s)
+            except CameraTimeout:
+                self._disarm()
+                raise

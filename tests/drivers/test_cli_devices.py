@@ -1,0 +1,103 @@
+"""``lenslesscam devices`` and ``lenslesscam snap`` through ``app.cli.main``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+import app.cli
+from app.commands.devices import parse_duration_us
+
+pytestmark = pytest.mark.timeout(60)
+
+
+@pytest.fixture(autouse=True)
+def only_device_commands(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Register just this module's subcommands (the others are tested on their own)."""
+    monkeypatch.setattr(app.cli, "COMMAND_MODULES", ("app.commands.devices",))
+
+
+def test_devices_lists_cameras_producers_and_ports(
+    capsys: pytest.CaptureFixture[str], tlsimu_cti: Path
+) -> None:
+    assert app.cli.main(["devices", "--producer", str(tlsimu_cti)]) == 0
+    out = capsys.readouterr().out
+    assert "Cameras:" in out and "Serial ports:" in out and "GenTL producers:" in out
+    assert "sim " in out and "TLSimuMono" in out and "Viky" in out
+    assert app.cli.main(["devices", "--json", "--producer", str(tlsimu_cti)]) == 0
+    data = json.loads(capsys.readouterr().out)
+    specs = [c["spec"] for c in data["cameras"]]
+    assert specs[0] == "sim" and "genicam:0" in specs
+    assert str(tlsimu_cti) in data["gentl_producers"]
+    assert isinstance(data["serial_ports"], list)
+
+
+def _read_tiff(path: Path) -> tuple[np.ndarray, dict[str, object]]:
+    with tifffile.TiffFile(path) as tf:
+        page = tf.pages[0]
+        return page.asarray(), json.loads(page.description)
+
+
+def test_snap_sim_saves_frame_and_metadata(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "f.tif"
+    rc = app.cli.main(["snap", "--camera", "sim", "--exposure", "10ms", "--out", str(out)])
+    assert rc == 0
+    assert "saved" in capsys.readouterr().out
+    pixels, meta = _read_tiff(out)
+    assert pixels.shape == (96, 128) and pixels.dtype == np.uint16
+    assert pixels.max() > 200  # the demo scene, not a dark frame
+    assert meta["format"] == "lenslesscam-frame" and meta["exposure_us"] == 10_000.0
+    assert meta["backend"] == "sim" and meta["timing"]["exposure_lines"] == 1000
+    assert "provenance" in meta
+    assert not [p for p in tmp_path.iterdir() if p.name != "f.tif"]  # no temp file left
+
+
+def test_snap_genicam_and_v4l2(tmp_path: Path, tlsimu_cti: Path, png_sequence: str) -> None:
+    out = tmp_path / "g.tif"
+    argv = ["snap", "--camera", "genicam:0", "--producer", str(tlsimu_cti), "--out", str(out)]
+    assert app.cli.main(argv) == 0
+    pixels, meta = _read_tiff(out)
+    assert meta["backend"] == "genicam" and meta["exposure_us"] is None
+    assert pixels.dtype == np.uint8
+    out2 = tmp_path / "v.tif"
+    assert app.cli.main(["snap", "--camera", f"v4l2:{png_sequence}", "--out", str(out2)]) == 0
+    pixels, meta = _read_tiff(out2)
+    assert meta["backend"] == "v4l2" and pixels.dtype == np.uint16
+
+
+def test_snap_errors_are_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], viky_cti: Path
+) -> None:
+    out = str(tmp_path / "x.tif")
+    argv = ["snap", "--camera", "genicam:0", "--producer", str(viky_cti), "--exposure", "1ms"]
+    assert app.cli.main([*argv, "--out", out]) == 2
+    err = capsys.readouterr().err
+    assert "feature 'exposure' is not available" in err and "Traceback" not in err
+    assert app.cli.main(["snap", "--camera", "webcam", "--out", out]) == 2
+    assert "unknown camera spec" in capsys.readouterr().err
+    assert not Path(out).exists()
+
+
+def test_parse_duration() -> None:
+    assert parse_duration_us("10ms") == 10_000.0
+    assert parse_duration_us("250us") == 250.0
+    assert parse_duration_us("0.5s") == 500_000.0
+    assert parse_duration_us("40") == 40.0
+    for bad in ("ten ms", "-1ms", "0", "5 min"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse_duration_us(bad)
+
+
+def test_the_real_cli_registers_devices_and_snap(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.undo()  # the full command list, as installed
+    parser = app.cli.build_parser()
+    ns = parser.parse_args(["snap", "--camera", "sim", "--exposure", "2ms", "--out", "x.tif"])
+    assert ns.func.__module__ == "app.commands.devices" and ns.exposure == 2000.0
+    assert parser.parse_args(["devices", "--json"]).func.__module__ == "app.commands.devices"
