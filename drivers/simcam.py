@@ -492,9 +492,13 @@ class SimulatedCamera(CameraBase):
 
     @property
     def point_position(self) -> tuple[float, float]:
-        """(row, col) of the simulated point source in scene pixels (default: centre)."""
+        """(row, col) of the simulated point source in scene pixels.
+
+        Default: the on-axis pixel (H // 2, W // 2), the point that the forward model's crop
+        convention maps onto the PSF as measured (a whole pixel, so no half-pixel blur).
+        """
         if self._point_position is None:
-            return ((self._scene_shape[0] - 1) / 2.0, (self._scene_shape[1] - 1) / 2.0)
+            return (float(self._scene_shape[0] // 2), float(self._scene_shape[1] // 2))
         return self._point_position
 
     @point_position.setter

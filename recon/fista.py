@@ -30,7 +30,16 @@ import torch
 from recon.operators import LinearOperator
 from recon.tv import TV, TVProx
 
-__all__ = ["Fista", "FistaResult", "FistaStep", "NumericalError", "StopReason"]
+__all__ = [
+    "Fista",
+    "FistaResult",
+    "FistaStep",
+    "NumericalError",
+    "SolverResult",
+    "SolverStep",
+    "StepwiseSolver",
+    "StopReason",
+]
 
 
 class NumericalError(FloatingPointError):
@@ -47,8 +56,8 @@ class StopReason(str, Enum):
 
 
 @dataclass(frozen=True)
-class FistaStep:
-    """Progress after one iteration."""
+class SolverStep:
+    """Progress after one iteration of an iterative solver."""
 
     iteration: int
     objective: float
@@ -60,24 +69,81 @@ class FistaStep:
 
 
 @dataclass
-class FistaResult:
-    """Outcome of :meth:`Fista.run`."""
+class SolverResult:
+    """Outcome of :meth:`StepwiseSolver.run`."""
 
     x: torch.Tensor
     reason: StopReason
-    history: list[FistaStep]
+    history: list[SolverStep]
     iterations: int
     elapsed_s: float
     params: dict[str, Any]
 
 
-def _check_finite(t: torch.Tensor, where: str, it: int) -> None:
+FistaStep = SolverStep
+FistaResult = SolverResult
+
+
+def _check_finite(t: torch.Tensor, where: str, it: int, solver: str = "FISTA") -> None:
     if not bool(torch.isfinite(t).all()):
         n_bad = int((~torch.isfinite(t)).sum())
-        raise NumericalError(f"FISTA: {n_bad} NaN/inf values appeared in {where} at iteration {it}")
+        raise NumericalError(
+            f"{solver}: {n_bad} NaN/inf values appeared in {where} at iteration {it}"
+        )
 
 
-class Fista:
+class StepwiseSolver:
+    """Shared driver of iterative solvers: subclasses implement :meth:`step` and ``params``.
+
+    Subclasses set ``x``, ``iteration``, ``max_iter``, ``reason`` and ``_elapsed``.
+    """
+
+    x: torch.Tensor
+    iteration: int
+    max_iter: int
+    reason: StopReason | None
+    _elapsed: float
+
+    @property
+    def params(self) -> dict[str, Any]:
+        """Solver settings, for run records and metadata."""
+        raise NotImplementedError  # abstract
+
+    def step(self) -> SolverStep:
+        """Do one iteration and report it."""
+        raise NotImplementedError  # abstract
+
+    @property
+    def done(self) -> bool:
+        """True once a stop criterion was met."""
+        return self.reason is not None or self.iteration >= self.max_iter
+
+    def steps(self) -> Iterator[SolverStep]:
+        """Generator of steps until a stop criterion; stop iterating to cancel."""
+        while not self.done:
+            yield self.step()
+
+    def run(
+        self,
+        callback: Callable[[SolverStep], None] | None = None,
+        cancel: Callable[[], bool] | None = None,
+    ) -> SolverResult:
+        """Run to a stop criterion (or until ``cancel()`` returns True) and return the result."""
+        history: list[SolverStep] = []
+        for s in self.steps():
+            history.append(s)
+            if callback is not None:
+                callback(s)
+            if cancel is not None and cancel():
+                self.reason = StopReason.CANCELLED
+                break
+        if self.reason is None:
+            self.reason = StopReason.MAX_ITER
+        return SolverResult(self.x, self.reason, history, self.iteration, self._elapsed,
+                            self.params)
+
+
+class Fista(StepwiseSolver):
     """Stepwise FISTA-TV. Use :meth:`step`, iterate :meth:`steps`, or call :meth:`run`."""
 
     def __init__(
@@ -162,7 +228,7 @@ class Fista:
         reg = self.tau * self.tv.value(x) if self.tau > 0 else 0.0
         return data + reg, data
 
-    def step(self) -> FistaStep:
+    def step(self) -> SolverStep:
         """Do one iteration and report it."""
         start = time.perf_counter()
         it = self.iteration + 1
@@ -212,33 +278,4 @@ class Fista:
         elif it >= self.max_iter:
             self.reason = StopReason.MAX_ITER
         residual = math.sqrt(2.0 * data) / self._b_norm
-        return FistaStep(it, f_report, data, residual, rel, self._elapsed, restarted)
-
-    @property
-    def done(self) -> bool:
-        """True once a stop criterion was met."""
-        return self.reason is not None or self.iteration >= self.max_iter
-
-    def steps(self) -> Iterator[FistaStep]:
-        """Generator of steps until a stop criterion; stop iterating to cancel."""
-        while not self.done:
-            yield self.step()
-
-    def run(
-        self,
-        callback: Callable[[FistaStep], None] | None = None,
-        cancel: Callable[[], bool] | None = None,
-    ) -> FistaResult:
-        """Run to a stop criterion (or until ``cancel()`` returns True) and return the result."""
-        history: list[FistaStep] = []
-        for s in self.steps():
-            history.append(s)
-            if callback is not None:
-                callback(s)
-            if cancel is not None and cancel():
-                self.reason = StopReason.CANCELLED
-                break
-        if self.reason is None:
-            self.reason = StopReason.MAX_ITER
-        return FistaResult(self.x, self.reason, history, self.iteration, self._elapsed,
-                           self.params)
+        return SolverStep(it, f_report, data, residual, rel, self._elapsed, restarted)

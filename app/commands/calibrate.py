@@ -1,0 +1,415 @@
+"""``lenslesscam calibrate``: PSF, depth stack, darks/pixel maps, shutter function, filter cube.
+
+Each subcommand runs the same workflow the GUI wizard runs (``calibration``) and draws its
+progress on stderr. A refusal (saturated PSF, no light, off-centre source, camera timeout)
+is printed as one line with what to change, exit code 2, and no file is written.
+
+``--camera sim`` is the simulated camera; with ``--source sim`` it sees the simulated point
+source, whose firmware runs on a real PTY for the duration of the command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import re
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from app.commands._common import ProgressBar, parse_duration_us
+
+
+def _common(p: argparse.ArgumentParser, *, source: bool, source_required: bool) -> None:
+    g = p.add_argument_group("devices")
+    g.add_argument("--camera", default="sim", help="camera spec: sim, genicam[:N], v4l2[:N]")
+    if source:
+        g.add_argument(
+            "--source",
+            required=source_required,
+            help="point source: 'sim' (simulated firmware on a PTY) or a serial port path",
+        )
+        g.add_argument(
+            "--intensity", type=float, default=1.0, help="source intensity 0..1 (default 1)"
+        )
+    g.add_argument("--exposure", help="exposure (10ms, 250us, 0.5s); default the camera's")
+    g.add_argument("--gain", type=float, default=None, help="camera gain (device units)")
+    g.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for a frame")
+    g.add_argument("--settle", type=int, default=1, help="frames dropped after each change")
+    s = p.add_argument_group("simulated camera (--camera sim)")
+    s.add_argument("--sim-size", help="sensor HxW (default: the --sim-psf's, else 64x80)")
+    s.add_argument("--sim-psf", help="PSF file the simulator renders with (default synthetic)")
+    s.add_argument("--sim-flux", type=float, default=5e6, help="point source e-/ms (sim)")
+    s.add_argument("--sim-seed", type=int, default=0)
+
+
+def register(sub: Any) -> None:
+    """Add ``calibrate`` and its subcommands."""
+    p = sub.add_parser("calibrate", help="calibrate at the bench: PSF, darks, shutter, filters")
+    csub = p.add_subparsers(dest="what", metavar="WHAT", required=True)
+
+    psf = csub.add_parser("psf", help="capture a PSF with the point source")
+    _common(psf, source=True, source_required=True)
+    _psf_options(psf)
+    psf.add_argument("--out", required=True, help="calibration file (.tif)")
+    psf.set_defaults(func=run_psf)
+
+    depth = csub.add_parser("depth", help="capture a PSF stack over a series of positions")
+    _common(depth, source=True, source_required=True)
+    _psf_options(depth)
+    depth.add_argument(
+        "--positions", required=True, help="comma-separated labels, e.g. 10mm,20mm,40mm"
+    )
+    depth.add_argument(
+        "--no-prompt", action="store_true", help="do not wait for Enter before each position"
+    )
+    depth.add_argument("--out", required=True, help="stack file (.tif)")
+    depth.set_defaults(func=run_depth)
+
+    darks = csub.add_parser("darks", help="dark frames and hot/dead pixel maps")
+    _common(darks, source=True, source_required=False)
+    darks.add_argument("--frames", type=int, default=16, help="dark frames to average")
+    darks.add_argument(
+        "--flats", type=int, default=0, help="flat frames to average (dead pixels); 0: none"
+    )
+    darks.add_argument("--hot-sigma", type=float, default=6.0)
+    darks.add_argument("--dead-fraction", type=float, default=0.5)
+    darks.add_argument("--no-prompt", action="store_true", help="do not wait for Enter")
+    darks.add_argument("--out", required=True, help="pixel-maps file (.npz)")
+    darks.set_defaults(func=run_darks)
+
+    sh = csub.add_parser(
+        "shutter", help="shutter function from the timing, or measured with --source"
+    )
+    _common(sh, source=True, source_required=False)
+    sh.add_argument("--bin-lines", type=int, default=1, help="time bin width in lines")
+    sh.add_argument("--downsample", type=int, default=1, help="row downsampling factor")
+    sh.add_argument("--pulse", help="strobe pulse length (default one line time)")
+    sh.add_argument("--step", help="delay step (default half the pulse)")
+    sh.add_argument("--span", help="last delay (default 1.25 x frame time)")
+    sh.add_argument("--frames-per-delay", type=int, default=1)
+    sh.add_argument("--out", required=True, help="shutter file (.npz)")
+    sh.set_defaults(func=run_shutter)
+
+    fc = csub.add_parser("filters", help="validate, normalise and save a filter cube")
+    fc.add_argument("--cube", required=True, help="filter cube file (.mat, .npy, .npz, .tif)")
+    fc.add_argument("--key", help="variable name in a .mat/.npz file")
+    where = fc.add_mutually_exclusive_group(required=True)
+    where.add_argument("--sensor", help="sensor size HxW")
+    where.add_argument("--like", help="a PSF or calibration file of the sensor's size")
+    fc.add_argument("--layout", choices=("auto", "khw", "hwk"), default="auto")
+    fc.add_argument("--normalise", choices=("max", "none"), default="max")
+    fc.add_argument("--downsample", type=int, default=1)
+    fc.add_argument("--out", required=True, help="filter-cube file (.tif)")
+    fc.set_defaults(func=run_filters)
+
+
+def _psf_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("PSF capture")
+    g.add_argument("--frames", type=int, default=16, help="PSF frames to average")
+    g.add_argument("--darks", type=int, default=16, help="dark frames to average")
+    g.add_argument("--no-auto-exposure", action="store_true", help="keep the exposure")
+    g.add_argument("--target", type=float, default=0.75, help="target peak (fraction)")
+    g.add_argument(
+        "--max-exposure", default="1s", help="longest exposure auto-exposure may use (1s)"
+    )
+    g.add_argument(
+        "--centre", default="none", help="'none', 'centroid' or ROW,COL moved to the centre"
+    )
+    g.add_argument("--shape", help="crop/pad the PSF to HxW")
+    g.add_argument("--max-offcentre", type=float, default=0.25, help="fraction of the sensor")
+    g.add_argument("--min-snr", type=float, default=10.0)
+    g.add_argument("--pixel-maps", help="pixel-maps file whose bad pixels are repaired too")
+
+
+def _hw(value: str, what: str) -> tuple[int, int]:
+    m = re.fullmatch(r"\s*(\d+)\s*[xX,]\s*(\d+)\s*", value)
+    if not m:
+        raise ValueError(f"{what} must be HxW (for example 64x80), got {value!r}")
+    return int(m.group(1)), int(m.group(2))
+
+
+@contextlib.contextmanager
+def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
+    """Open the camera and the source (spawning the simulated firmware for ``sim``)."""
+    import tempfile
+
+    from drivers.lightsource import SerialPointSource
+    from drivers.registry import open_camera
+
+    with contextlib.ExitStack() as stack:
+        src_spec: str | None = getattr(args, "source", None)
+        state_path = None
+        source = None
+        port: str | None
+        if src_spec == "sim":
+            from drivers.pointsource_sim import spawn_simulated_source
+
+            tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="lenslesscam-cal-"))
+            sim = spawn_simulated_source(Path(tmp) / "light-state.json")
+            stack.callback(sim.stop)
+            state_path = sim.state_path
+            port = sim.port
+        else:
+            port = src_spec
+        if args.camera.strip().lower() == "sim":
+            camera = open_camera("sim", **_sim_camera_kwargs(args, state_path))
+        else:
+            camera = open_camera(args.camera)
+        stack.callback(camera.close)
+        if args.exposure:
+            camera.exposure_us = parse_duration_us(args.exposure)
+        if args.gain is not None:
+            camera.gain = args.gain
+        if port:
+            source = SerialPointSource(port)
+            try:
+                source.open()
+            except Exception as exc:
+                raise ValueError(f"cannot open the point source on {port}: {exc}") from exc
+            stack.callback(source.close)
+        yield camera, source
+
+
+def _sim_camera_kwargs(args: argparse.Namespace, state_path: Path | None) -> dict[str, Any]:
+    from recon.simulate import render_frames, synthetic_psf
+
+    if args.sim_psf:
+        from recon.io import box_downsample, load_psf, normalise
+
+        psf = load_psf(args.sim_psf)[0]
+        if args.sim_size:
+            h, w = _hw(args.sim_size, "--sim-size")
+            f = psf.shape[0] // h
+            if f < 1 or psf.shape[0] != f * h or psf.shape[1] != f * w:
+                raise ValueError(
+                    f"--sim-psf {args.sim_psf} is {psf.shape[0]}x{psf.shape[1]}: not an "
+                    f"integer multiple of --sim-size {h}x{w}"
+                )
+            psf = normalise(box_downsample(psf, f), "sum")
+        h, w = (int(psf.shape[0]), int(psf.shape[1]))
+    else:
+        h, w = _hw(args.sim_size or "64x80", "--sim-size")
+        psf = synthetic_psf((h, w), seed=args.sim_seed)
+    return {
+        "width": w,
+        "height": h,
+        "renderer": render_frames(psf),
+        "light_state": state_path,
+        "point_position": (h // 2, w // 2),
+        "point_flux_e_per_ms": args.sim_flux,
+        "pacing": False,
+        "exposure_us": 100.0,
+        "seed": args.sim_seed,
+    }
+
+
+def _drive(workflow: Any, label: str) -> Any:
+    """Run a workflow with a progress bar on stderr (when it is a terminal)."""
+    bar = ProgressBar(1000, label)
+    try:
+        for p in workflow:
+            bar.update(int(1000 * p.fraction), p.message[:60])
+    finally:
+        bar.close()
+    return workflow.result
+
+
+def _psf_settings(args: argparse.Namespace) -> Any:
+    from calibration.psf import PsfSettings
+
+    centre: Any = args.centre
+    if centre not in ("none", "centroid"):
+        parts = centre.split(",")
+        if len(parts) != 2:
+            raise ValueError(f"--centre must be 'none', 'centroid' or ROW,COL, got {centre!r}")
+        centre = (float(parts[0]), float(parts[1]))
+    return PsfSettings(
+        n_frames=args.frames,
+        n_darks=args.darks,
+        auto_exposure=not args.no_auto_exposure,
+        max_exposure_us=parse_duration_us(args.max_exposure),
+        target_peak=args.target,
+        intensity=args.intensity,
+        centre=centre,
+        shape=_hw(args.shape, "--shape") if args.shape else None,
+        max_offcentre=args.max_offcentre,
+        min_snr=args.min_snr,
+        frame_timeout_s=args.timeout,
+        settle_frames=args.settle,
+    )
+
+
+def _bad_pixels(args: argparse.Namespace) -> Any:
+    if not args.pixel_maps:
+        return None
+    from recon.calibfile import load_pixel_mask
+
+    return load_pixel_mask(args.pixel_maps) == 0
+
+
+def run_psf(args: argparse.Namespace) -> int:
+    """Capture and save a PSF calibration."""
+    from calibration.psf import capture_psf
+    from calibration.workflow import Workflow
+
+    settings = _psf_settings(args)
+    with _devices(args) as (camera, source):
+        wf = Workflow(
+            capture_psf(camera, source, settings, out=args.out, bad_pixels=_bad_pixels(args)),
+            "PSF calibration",
+        )
+        cal = _drive(wf, "PSF")
+    print(f"wrote {cal.path}")
+    print(f"exposure {cal.exposure_us:g} us; {cal.quality.summary()}")
+    return 0
+
+
+def run_depth(args: argparse.Namespace) -> int:
+    """Capture and save a depth PSF stack."""
+    from calibration.psf import capture_depth_stack
+    from calibration.workflow import Workflow
+
+    positions = [p.strip() for p in args.positions.split(",") if p.strip()]
+    if not positions:
+        raise ValueError("--positions lists no position")
+    settings = _psf_settings(args)
+
+    def prompt(index: int, position: str) -> None:
+        if args.no_prompt:
+            return
+        sys.stderr.write(
+            f"\nMove the point source to {position} ({index + 1} of {len(positions)}) "
+            "and press Enter... "
+        )
+        sys.stderr.flush()
+        if not sys.stdin.readline():
+            raise ValueError("no answer on standard input (use --no-prompt to run unattended)")
+
+    with _devices(args) as (camera, source):
+        wf = Workflow(
+            capture_depth_stack(
+                camera, source, positions, prompt=prompt, settings=settings, out=args.out
+            ),
+            "depth stack",
+        )
+        result = _drive(wf, "depth")
+    print(f"wrote {result.path} ({len(positions)} planes)")
+    for pos, plane in zip(result.positions, result.planes, strict=True):
+        print(f"  {pos}: exposure {plane.exposure_us:g} us; {plane.quality.summary()}")
+    return 0
+
+
+def run_darks(args: argparse.Namespace) -> int:
+    """Capture darks (and flats) and save the pixel maps."""
+    from calibration.darks import calibrate_pixel_maps
+    from calibration.workflow import Workflow
+
+    def ask(text: str) -> Any:
+        if args.no_prompt:
+            return None
+
+        def prompt() -> None:
+            sys.stderr.write(f"\n{text} and press Enter... ")
+            sys.stderr.flush()
+            if not sys.stdin.readline():
+                raise ValueError("no answer on standard input (use --no-prompt)")
+
+        return prompt
+
+    with _devices(args) as (camera, source):
+        wf = Workflow(
+            calibrate_pixel_maps(
+                camera,
+                source=source,
+                n_darks=args.frames,
+                n_flats=args.flats,
+                prepare_darks=None if source is not None else ask("Cover the sensor"),
+                prepare_flats=ask("Illuminate the sensor uniformly") if args.flats else None,
+                hot_sigma=args.hot_sigma,
+                dead_fraction=args.dead_fraction,
+                timeout_s=args.timeout,
+                settle=args.settle,
+                out=args.out,
+            ),
+            "pixel maps",
+        )
+        maps = _drive(wf, "darks")
+    print(f"wrote {maps.path}")
+    print(
+        f"{int(maps.hot.sum())} hot, {int(maps.dead.sum())} dead pixels; dark level "
+        f"{maps.metadata()['dark_level']:.4g} ADU, noise {maps.metadata()['dark_noise_adu']:.3g}"
+    )
+    return 0
+
+
+def run_shutter(args: argparse.Namespace) -> int:
+    """Shutter function from the camera's timing, or measured by strobing the source."""
+    from calibration.shutter import ShutterSettings, measure_shutter, shutter_for_frame
+    from calibration.workflow import Workflow
+
+    if args.bin_lines < 1 or args.downsample < 1:
+        raise ValueError("--bin-lines and --downsample must be >= 1")
+    with _devices(args) as (camera, source):
+        if source is None:
+            frame = camera.snap(args.timeout)
+            sf = shutter_for_frame(frame, bin_lines=args.bin_lines, row_factor=args.downsample)
+            from calibration.sources import camera_description
+
+            path = sf.save(args.out, {"camera": camera_description(camera, frame)})
+            print(f"wrote {path}: shutter {sf.shutter.shape[0]} bins x {sf.shutter.shape[1]} rows")
+            print(f"timing {sf.timing.to_dict()}")
+            return 0
+        settings = ShutterSettings(
+            pulse_us=parse_duration_us(args.pulse) if args.pulse else None,
+            step_us=parse_duration_us(args.step) if args.step else None,
+            span_us=parse_duration_us(args.span) if args.span else None,
+            frames_per_delay=args.frames_per_delay,
+            intensity=args.intensity,
+            frame_timeout_s=args.timeout,
+            settle_frames=args.settle,
+        )
+        wf = Workflow(
+            measure_shutter(
+                camera,
+                source,
+                settings,
+                bin_lines=args.bin_lines,
+                row_factor=args.downsample,
+                out=args.out,
+            ),
+            "shutter measurement",
+        )
+        sf = _drive(wf, "shutter")
+    assert sf.measurement is not None
+    print(f"wrote {sf.path}: shutter {sf.shutter.shape[0]} bins x {sf.shutter.shape[1]} rows")
+    print(sf.measurement.summary())
+    return 0
+
+
+def run_filters(args: argparse.Namespace) -> int:
+    """Validate, normalise and save a filter cube."""
+    from calibration.filters import load_filter_cube
+
+    if args.sensor:
+        shape = _hw(args.sensor, "--sensor")
+    else:
+        import numpy as np
+
+        from recon.io import load_image
+
+        like = np.asarray(load_image(args.like))
+        if like.ndim < 2:
+            raise ValueError(f"--like {args.like} is not an image (shape {like.shape})")
+        shape = (int(like.shape[-2]), int(like.shape[-1]))
+    cube = load_filter_cube(
+        args.cube,
+        shape,
+        key=args.key,
+        layout=args.layout,
+        normalise=args.normalise,
+        downsample=args.downsample,
+    ).save(args.out)
+    print(f"wrote {cube.path}: {cube.bands} bands of {shape[0]}x{shape[1]}")
+    return 0

@@ -1,0 +1,105 @@
+"""Talking to the light source and describing the camera, with calibration-grade errors.
+
+A failing source command (a timeout, an ``ERR`` reply, a vanished port) becomes a
+:class:`~calibration.workflow.CalibrationError` that names the command and says what to check;
+:func:`source_off_quietly` is for ``finally`` blocks (a workflow that failed still tries to
+leave the light off, without hiding the original error).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+from calibration.workflow import CalibrationError
+from drivers.camera import Camera, CameraError, Frame
+from drivers.lightsource import LightSource, LightSourceError
+
+__all__ = [
+    "camera_description",
+    "source_call",
+    "source_identity",
+    "source_off",
+    "source_off_quietly",
+    "source_on",
+    "source_strobe",
+]
+
+_log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+
+def _describe(source: LightSource) -> str:
+    d = getattr(source, "describe", None)
+    return str(d()) if callable(d) else type(source).__name__
+
+
+def source_call(source: LightSource, what: str, fn: Callable[[], T], *, stage: str) -> T:
+    """Run ``fn`` (a source command described by ``what``); errors become CalibrationError."""
+    try:
+        return fn()
+    except LightSourceError as exc:
+        raise CalibrationError(
+            f"{stage}: the point source failed to {what} ({exc})",
+            f"Check the {_describe(source)}: power, cable and port; then run the calibration "
+            "again; nothing was saved",
+            stage=stage,
+        ) from exc
+
+
+def source_on(source: LightSource, intensity: float | None = None, *, stage: str) -> None:
+    """Set the intensity (when given) and switch the continuous light on."""
+    if intensity is not None:
+        value = float(intensity)
+        source_call(
+            source, f"set intensity {value:g}", lambda: source.set_intensity(value), stage=stage
+        )
+    source_call(source, "switch on", source.on, stage=stage)
+
+
+def source_off(source: LightSource, *, stage: str) -> None:
+    """Switch the light (and any strobe) off."""
+    source_call(source, "switch off", source.off, stage=stage)
+
+
+def source_strobe(source: LightSource, delay_us: float, duration_us: float, *, stage: str) -> None:
+    """Arm one pulse per camera trigger."""
+    source_call(
+        source,
+        f"strobe at {delay_us:g} us for {duration_us:g} us",
+        lambda: source.strobe(delay_us, duration_us),
+        stage=stage,
+    )
+
+
+def source_off_quietly(source: LightSource | None) -> None:
+    """Best effort to switch off after a failure (logs instead of raising)."""
+    if source is None:
+        return
+    try:
+        source.off()
+    except Exception as exc:  # the original error is what the user must see
+        _log.warning("could not switch the point source off: %s", exc)
+
+
+def source_identity(source: LightSource, *, stage: str) -> str:
+    """The source's identification string (also proves it answers)."""
+    return source_call(source, "identify itself", source.identify, stage=stage)
+
+
+def camera_description(camera: Camera, frame: Frame | None = None) -> dict[str, Any]:
+    """Camera identity and settings for calibration metadata (plain JSON types)."""
+    out: dict[str, Any] = {"backend": camera.backend, "camera_id": camera.camera_id}
+    try:
+        caps = camera.capabilities()
+        out.update(
+            model=caps.model, sensor_width=caps.sensor_width, sensor_height=caps.sensor_height
+        )
+    except (CameraError, NotImplementedError) as exc:
+        _log.info("camera capabilities unavailable: %s", exc)
+    if frame is not None:
+        md = frame.metadata()
+        for key in ("roi", "binning", "pixel_format", "bit_depth", "exposure_us", "gain"):
+            out[key] = md[key]
+    return out

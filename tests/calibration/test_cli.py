@@ -1,0 +1,158 @@
+"""``lenslesscam calibrate``: the same workflows from the command line."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from recon.calibfile import load_calibration
+
+
+def test_calibrate_psf_with_simulated_camera_and_source(tmp_path, capsys):
+    out = tmp_path / "psf.tif"
+    rc = main(
+        [
+            "calibrate",
+            "psf",
+            "--camera",
+            "sim",
+            "--source",
+            "sim",
+            "--frames",
+            "4",
+            "--darks",
+            "4",
+            "--settle",
+            "0",
+            "--out",
+            str(out),
+        ]
+    )
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert f"wrote {out}" in text and "0 saturated" in text
+    cal = load_calibration(out, expect="psf")
+    assert cal.data.shape == (64, 80) and cal.metadata["quality"]["saturated_pixels"] == 0
+
+
+def test_calibrate_psf_refusal_is_one_line_and_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "psf.tif"
+    rc = main(
+        [
+            "calibrate",
+            "psf",
+            "--camera",
+            "sim",
+            "--source",
+            "sim",
+            "--intensity",
+            "0",
+            "--max-exposure",
+            "2ms",
+            "--frames",
+            "2",
+            "--darks",
+            "2",
+            "--settle",
+            "0",
+            "--out",
+            str(out),
+        ]
+    )
+    err = capsys.readouterr().err.strip()
+    assert rc == 2
+    assert err.startswith("lenslesscam calibrate: error: no light from the point source")
+    assert "intensity 0" in err and "\n" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_calibrate_shutter_from_timing_and_darks(tmp_path, capsys):
+    sh = tmp_path / "shutter.npz"
+    assert (
+        main(
+            [
+                "calibrate",
+                "shutter",
+                "--camera",
+                "sim",
+                "--exposure",
+                "200us",
+                "--bin-lines",
+                "4",
+                "--downsample",
+                "2",
+                "--out",
+                str(sh),
+            ]
+        )
+        == 0
+    )
+    cal = load_calibration(sh, expect="shutter")
+    assert cal.data.shape[1] == 32 and cal.metadata["timing"]["exposure_lines"] == 20
+    dk = tmp_path / "darks.npz"
+    assert (
+        main(
+            [
+                "calibrate",
+                "darks",
+                "--camera",
+                "sim",
+                "--source",
+                "sim",
+                "--frames",
+                "4",
+                "--settle",
+                "0",
+                "--out",
+                str(dk),
+            ]
+        )
+        == 0
+    )
+    assert load_calibration(dk).kind == "pixel-maps"
+    assert "hot" in capsys.readouterr().out
+
+
+def test_calibrate_filters(tmp_path, capsys):
+    cube = np.random.default_rng(0).uniform(0, 2, (16, 20, 5)).astype(np.float32)
+    np.save(tmp_path / "cube.npy", cube)
+    out = tmp_path / "cube.tif"
+    assert (
+        main(
+            [
+                "calibrate",
+                "filters",
+                "--cube",
+                str(tmp_path / "cube.npy"),
+                "--sensor",
+                "16x20",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    assert load_calibration(out).data.shape == (5, 16, 20)
+    assert (
+        main(
+            [
+                "calibrate",
+                "filters",
+                "--cube",
+                str(tmp_path / "cube.npy"),
+                "--sensor",
+                "16x21",
+                "--out",
+                str(tmp_path / "bad.tif"),
+            ]
+        )
+        == 2
+    )
+    assert "does not match the 16x21 sensor" in capsys.readouterr().err
+    assert not (tmp_path / "bad.tif").exists()
+
+
+def test_calibrate_needs_a_subcommand():
+    with pytest.raises(SystemExit):
+        main(["calibrate"])

@@ -1,0 +1,105 @@
+"""Dark frames and hot/dead pixel maps on the simulated camera; pixel repair."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from calibration.darks import calibrate_pixel_maps, capture_darks, pixel_maps, repair_pixels
+from calibration.frames import acquire_frames
+from calibration.workflow import CalibrationError, Workflow
+from drivers.lightstate import LightMode
+from drivers.simcam import SimulatedCamera
+from recon.calibfile import load_calibration, load_pixel_mask
+from recon.fista import Fista
+from recon.models import build_model
+from recon.simulate import simulate
+from tests.calibration.conftest import COLS, ROWS
+
+
+def test_hot_and_dead_maps_match_the_sensor_and_serve_as_erasure_mask(source, true_psf, tmp_path):
+    cam = SimulatedCamera(
+        COLS,
+        ROWS,
+        dead_pixel_fraction=0.01,
+        hot_pixel_fraction=0.01,
+        exposure_us=1000.0,
+        pacing=False,
+        seed=5,
+    )
+    flat = np.full((ROWS, COLS), 5000.0, dtype=np.float32)  # e-/ms through the default renderer
+
+    def light_the_flat_field() -> None:
+        cam.scene = flat
+
+    out = tmp_path / "darks.npz"
+    with cam:
+        wf = Workflow(
+            calibrate_pixel_maps(
+                cam,
+                source=source,
+                n_darks=8,
+                n_flats=8,
+                prepare_flats=light_the_flat_field,
+                settle=0,
+                out=out,
+            )
+        )
+        stages = [p.stage for p in wf]
+        maps = wf.result
+    assert {"darks", "flats", "maps", "save"} <= set(stages)
+    assert source.status().mode is LightMode.OFF
+    dead, hot = cam.defect_maps
+    assert np.array_equal(maps.hot, hot) and np.array_equal(maps.dead, dead)
+    assert np.array_equal(maps.mask, (~(dead | hot)).astype(np.float32))
+
+    cal = load_calibration(out, expect="pixel-maps")
+    assert cal.metadata["hot_pixels"] == hot.sum() and cal.metadata["dead_pixels"] == dead.sum()
+    mask = load_pixel_mask(out)
+    assert np.array_equal(mask, maps.mask)
+
+    # the mask is the erasure mask of the 2D model: reconstruct through it
+    truth = np.zeros((1, 1, ROWS, COLS), dtype=np.float32)
+    truth[..., 20:40, 25:50] = 1.0
+    sim = simulate(build_model("2d", true_psf), truth, seed=0)
+    meas = sim.meas * mask
+    model = build_model("2d", true_psf, mask=mask)
+    x = Fista(model.op, torch.as_tensor(meas), tau=1e-4, max_iter=60).run().x.numpy()
+    assert float(np.corrcoef(x.ravel(), truth.ravel())[0, 1]) > 0.8
+
+
+def test_darks_without_flats_have_no_dead_pixels(make_camera, source):
+    cam = make_camera(hot_pixel_fraction=0.005, exposure_us=2000.0)
+    darks = Workflow(capture_darks(cam, 6, source=source, settle=0)).run()
+    maps = pixel_maps(darks)
+    assert np.array_equal(maps.hot, cam.defect_maps[1]) and not maps.dead.any()
+    assert darks.n == 6 and darks.exposure_us == 2000.0
+
+
+def test_bad_flats_are_refused():
+    cam = SimulatedCamera(COLS, ROWS, exposure_us=1000.0, pacing=False, seed=1)
+    with cam:
+        darks = Workflow(acquire_frames(cam, 4, stage="darks", what="dark")).run()
+        cam.scene = np.full((ROWS, COLS), 0.001, dtype=np.float32)
+        dim = Workflow(acquire_frames(cam, 4, stage="flats", what="flat")).run()
+        cam.scene = np.full((ROWS, COLS), 1e6, dtype=np.float32)
+        bright = Workflow(acquire_frames(cam, 4, stage="flats", what="flat")).run()
+    with pytest.raises(CalibrationError, match="too dark"):
+        pixel_maps(darks, dim)
+    with pytest.raises(CalibrationError, match="saturated"):
+        pixel_maps(darks, bright)
+
+
+def test_repair_pixels():
+    img = np.arange(49, dtype=float).reshape(7, 7)
+    bad = np.zeros((7, 7), dtype=bool)
+    bad[3, 3] = True  # isolated
+    bad[0:3, 0:3] = True  # a cluster: its centre pixel has no good 3x3 neighbour
+    out = repair_pixels(np.where(bad, 1e6, img), bad)
+    # median of the good neighbours ((2, 2) is bad): 17, 18, 23, 25, 30, 31, 32
+    assert out[3, 3] == pytest.approx(25.0)
+    assert np.all(out[bad] < 100)
+    assert np.array_equal(out[~bad], img[~bad])
+    with pytest.raises(ValueError, match="does not match"):
+        repair_pixels(img, bad[:3])

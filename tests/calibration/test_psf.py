@@ -1,0 +1,278 @@
+"""PSF capture end to end on the simulated camera + simulated point source (real PTY)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from calibration.psf import (
+    PsfSettings,
+    autocorrelation_fwhm,
+    capture_depth_stack,
+    capture_psf,
+    centre_psf,
+    centroid,
+    crop_or_pad,
+    psf_quality,
+)
+from calibration.workflow import CalibrationCancelled, CalibrationError, Workflow
+from drivers.lightstate import LightMode
+from recon.calibfile import load_calibration, load_psf_calibration
+from recon.fista import Fista
+from recon.io import load_psf
+from recon.metrics import gain_fit, psnr
+from recon.models import build_model
+from recon.simulate import render_frames, simulate
+from tests.calibration.conftest import COLS, ON_AXIS, ROWS, out_dir_files
+
+FAST = PsfSettings(n_frames=8, n_darks=8, intensity=1.0, settle_frames=0, frame_timeout_s=2.0)
+
+
+def _ncc(a: np.ndarray, b: np.ndarray) -> float:
+    x = a.astype(np.float64).ravel() - a.mean()
+    y = b.astype(np.float64).ravel() - b.mean()
+    return float(x @ y / (np.linalg.norm(x) * np.linalg.norm(y)))
+
+
+def _scene() -> np.ndarray:
+    s = np.zeros((ROWS, COLS), dtype=np.float32)
+    s[10:30, 12:30] = 1.0
+    s[40:55, 45:70] = 0.6
+    s[20:50, 55:60] = 0.8
+    y, x = np.mgrid[0:ROWS, 0:COLS]
+    s += 0.7 * np.exp(-((y - 45) ** 2 + (x - 20) ** 2) / 40.0).astype(np.float32)
+    return s
+
+
+def _fista_psnr(psf: np.ndarray, meas: np.ndarray, truth: np.ndarray) -> float:
+    model = build_model("2d", psf)
+    solver = Fista(model.op, torch.as_tensor(meas), tau=3e-4, max_iter=250, tol=0)
+    est = solver.run().x.numpy()
+    fitted, _ = gain_fit(truth, est)
+    return psnr(truth, fitted)
+
+
+def test_end_to_end_capture_matches_true_psf_and_reconstructs(
+    make_camera, source, true_psf, tmp_path
+):
+    cam = make_camera(hot_pixel_fraction=0.003)
+    out = tmp_path / "psf.tif"
+    events = []
+    wf = Workflow(capture_psf(cam, source, FAST, out=out), "PSF")
+    for p in wf:
+        events.append(p)
+    cal = wf.result
+
+    # the progress is a proper stepwise report
+    fractions = [p.fraction for p in events]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    assert {"setup", "darks", "exposure", "frames", "quality", "save", "done"} <= {
+        p.stage for p in events
+    }
+    assert source.status().mode is LightMode.OFF  # left off
+
+    # the PSF is the simulator's
+    assert cal.psf.dtype == np.float32 and cal.psf.shape == (ROWS, COLS)
+    assert _ncc(cal.psf, true_psf) >= 0.99
+    assert np.all(cal.psf >= 0)
+    _, hot = cam.defect_maps
+    assert hot.sum() > 0 and np.array_equal(cal.hot, hot)  # found and repaired
+
+    # the quality report is right
+    q = cal.quality
+    assert q.saturated_pixels == 0
+    assert 0.7 - 0.06 <= q.peak_fraction <= 0.8 + 0.02
+    assert q.snr > 100
+    ref = psf_quality(true_psf, noise_adu=1e-9, peak_fraction=0.75, saturated_pixels=0)
+    assert abs(q.autocorr_fwhm_px[0] - ref.autocorr_fwhm_px[0]) < 0.2
+    assert abs(q.autocorr_fwhm_px[1] - ref.autocorr_fwhm_px[1]) < 0.2
+    assert abs(q.support_pixels - ref.support_pixels) <= 0.05 * ref.support_pixels
+    assert np.allclose(q.centroid_px, ref.centroid_px, atol=0.3)
+    # peak in ADU = flux * exposure * PSF peak * conversion gain
+    expected_peak = 5e6 * cal.exposure_us / 1000 * true_psf.max() * cam.adu_per_electron
+    assert q.peak_adu == pytest.approx(expected_peak, rel=0.03)
+
+    # the file holds the PSF and its metadata, and recon's loaders read it
+    psf_file, meta = load_psf_calibration(out)
+    assert np.array_equal(psf_file, cal.psf)
+    assert meta["format"] == "lenslesscam.psf-calibration"
+    assert meta["exposure_us"] == cal.exposure_us and meta["frames_averaged"] == FAST.n_frames
+    assert meta["camera"]["backend"] == "sim" and meta["timing"]["rows"] == ROWS
+    assert meta["quality"]["saturated_pixels"] == 0
+    assert meta["source"].startswith("LENSLESSCAM")
+    assert load_psf(out).shape == (1, ROWS, COLS)
+    assert out_dir_files(tmp_path) == sorted(["psf.tif", "light-state.json"])
+
+    # FISTA with the captured PSF is as good as with the true one
+    truth = _scene()
+    sim = simulate(build_model("2d", true_psf), truth[None, None], noise=0.005, seed=1)
+    p_true = _fista_psnr(true_psf, sim.meas, truth[None, None])
+    p_cap = _fista_psnr(cal.normalised(), sim.meas, truth[None, None])
+    assert p_true > 20
+    assert abs(p_cap - p_true) <= 0.5, (p_cap, p_true)
+
+
+def test_saturated_source_is_refused_and_nothing_saved(make_camera, source, tmp_path):
+    cam = make_camera(point_flux_e_per_ms=1e13)  # saturates even at the shortest exposure
+    out = tmp_path / "psf.tif"
+    with pytest.raises(CalibrationError, match="saturated") as info:
+        Workflow(capture_psf(cam, source, FAST, out=out)).run()
+    assert "intensity" in str(info.value)  # says what to change
+    assert info.value.stage == "exposure"
+    assert not out.exists() and out_dir_files(tmp_path) == ["light-state.json"]
+    assert source.status().mode is LightMode.OFF
+
+
+def test_saturated_psf_at_fixed_exposure_is_refused(make_camera, source, tmp_path):
+    cam = make_camera(point_flux_e_per_ms=5e7)
+    settings = PsfSettings(
+        n_frames=4,
+        n_darks=4,
+        intensity=1.0,
+        auto_exposure=False,
+        exposure_us=2000.0,
+        settle_frames=0,
+    )
+    out = tmp_path / "psf.tif"
+    with pytest.raises(CalibrationError, match=r"PSF is saturated: \d+ pixels"):
+        Workflow(capture_psf(cam, source, settings, out=out)).run()
+    assert out_dir_files(tmp_path) == ["light-state.json"]
+
+
+def test_source_that_never_turns_on_is_refused(make_camera, source, tmp_path):
+    # the camera looks at another bench: it never sees this source's light
+    cam = make_camera(light_state=tmp_path / "elsewhere.json")
+    out = tmp_path / "psf.tif"
+    settings = PsfSettings(
+        n_frames=4, n_darks=4, intensity=1.0, max_exposure_us=5000.0, settle_frames=0
+    )
+    with pytest.raises(CalibrationError, match="no light from the point source") as info:
+        Workflow(capture_psf(cam, source, settings, out=out)).run()
+    assert "switched on" in str(info.value) and "5000 us" in str(info.value)
+    assert out_dir_files(tmp_path) == ["light-state.json"]
+    assert source.status().mode is LightMode.OFF
+
+
+def test_camera_timeout_mid_capture_stops_cleanly(make_camera, source, true_psf, tmp_path):
+    render = render_frames(true_psf)
+    cams = []
+    calls = [0]
+
+    def unplug_after_some_lit_frames(frames, shutter):
+        calls[0] += 1
+        if calls[0] == 4:  # the camera dies in the middle of the PSF frames
+            cams[0].simulate_unplug()
+        return render(frames, shutter)
+
+    cam = make_camera(renderer=unplug_after_some_lit_frames)
+    cams.append(cam)
+    settings = PsfSettings(
+        n_frames=8,
+        n_darks=4,
+        intensity=1.0,
+        auto_exposure=False,
+        exposure_us=500.0,
+        settle_frames=0,
+        frame_timeout_s=0.3,
+    )
+    out = tmp_path / "psf.tif"
+    stages = []
+    with pytest.raises(CalibrationError, match=r"camera failed at PSF frame \d+ of 8") as info:
+        for p in Workflow(capture_psf(cam, source, settings, out=out)):
+            stages.append(p.stage)
+    assert "frames" in stages and "no frame within" in str(info.value)
+    assert "nothing was saved" in str(info.value)
+    assert out_dir_files(tmp_path) == ["light-state.json"]
+    assert source.status().mode is LightMode.OFF
+
+
+def test_off_centre_source_is_refused(make_camera, source, tmp_path):
+    cam = make_camera(point_position=(ON_AXIS[0], ON_AXIS[1] + 30))  # 30 columns aside
+    settings = PsfSettings(
+        n_frames=4, n_darks=4, intensity=1.0, settle_frames=0, max_offcentre=0.15
+    )
+    with pytest.raises(CalibrationError, match="off-centre") as info:
+        Workflow(capture_psf(cam, source, settings, out=tmp_path / "psf.tif")).run()
+    assert "Move the point source" in str(info.value)
+    assert out_dir_files(tmp_path) == ["light-state.json"]
+
+
+def test_cancel_leaves_no_file_and_light_off(make_camera, source, tmp_path):
+    cam = make_camera()
+    wf = Workflow(capture_psf(cam, source, FAST, out=tmp_path / "psf.tif"), "PSF")
+    with pytest.raises(CalibrationCancelled, match="during frames"):
+        for p in wf:
+            if p.stage == "frames":
+                wf.cancel()
+    assert out_dir_files(tmp_path) == ["light-state.json"]
+    assert source.status().mode is LightMode.OFF
+
+
+def test_depth_stack_follows_the_moving_source(make_camera, source, tmp_path):
+    cam = make_camera()
+    shifts = {"near": 0, "mid": 4, "far": -6}
+
+    def move(index: int, position: str) -> None:  # the "user" moves the source sideways
+        cam.point_position = (ON_AXIS[0], ON_AXIS[1] + shifts[position])
+
+    out = tmp_path / "stack.tif"
+    settings = PsfSettings(n_frames=4, n_darks=4, intensity=1.0, settle_frames=0)
+    wf = Workflow(
+        capture_depth_stack(cam, source, list(shifts), prompt=move, settings=settings, out=out)
+    )
+    moves = [p.data["position"] for p in wf if p.stage == "move"]
+    stack = wf.result
+    assert moves == list(shifts)
+    assert stack.stack.shape == (3, ROWS, COLS)
+    for k, dx in enumerate(shifts.values()):
+        cx = centroid(stack.stack[k])[1]
+        assert cx - centroid(stack.stack[0])[1] == pytest.approx(dx, abs=0.3)
+    cal = load_calibration(out, expect="psf-stack")
+    assert cal.metadata["positions"] == list(shifts)
+    assert len(cal.metadata["planes"]) == 3
+    assert np.array_equal(cal.data, stack.stack)
+
+
+def test_autocorrelation_width_of_a_gaussian():
+    y, x = np.mgrid[0:64, 0:64]
+    sigma = 2.0
+    g = np.exp(-((y - 32.0) ** 2 + (x - 32.0) ** 2) / (2 * sigma**2))
+    fy, fx = autocorrelation_fwhm(g)
+    expected = 2 * math.sqrt(2 * math.log(2)) * sigma * math.sqrt(2)
+    assert fy == pytest.approx(expected, rel=0.05) and fx == pytest.approx(expected, rel=0.05)
+
+
+def test_centring_and_crop_pad():
+    img = np.zeros((20, 30))
+    img[3:6, 4:7] = 1.0  # centroid (4, 5)
+    out, shift = centre_psf(img, "centroid")
+    assert shift == (6, 10) and centroid(out) == pytest.approx((10.0, 15.0))
+    out, shift = centre_psf(img, (4.0, 5.0), shape=(10, 40))
+    assert out.shape == (10, 40) and out.sum() == pytest.approx(9.0)
+    assert centroid(out) == pytest.approx((5.0, 20.0))
+    assert crop_or_pad(np.ones((4, 4)), (2, 6)).sum() == pytest.approx(8.0)
+    with pytest.raises(ValueError, match="outside"):
+        centre_psf(img, (25.0, 1.0))
+
+
+def test_settings_are_validated():
+    with pytest.raises(ValueError, match="target peak"):
+        PsfSettings(target_peak=0.98, peak_tolerance=0.05)
+    with pytest.raises(ValueError, match="centre"):
+        PsfSettings(centre="middle")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="n_frames"):
+        PsfSettings(n_frames=0)
+
+
+def test_quality_report_flags_no_signal(tmp_path: Path):
+    rng = np.random.default_rng(0)
+    noise_only = np.maximum(rng.normal(0, 1, (ROWS, COLS)), 0)
+    q = psf_quality(noise_only, noise_adu=1.0, peak_fraction=0.03, saturated_pixels=0)
+    from calibration.psf import check_quality
+
+    with pytest.raises(CalibrationError, match="no PSF signal above the dark noise"):
+        check_quality(q, PsfSettings(), exposure_us=100.0)
