@@ -18,9 +18,12 @@ COMMAND_MODULES: tuple[str, ...] = (
     "app.commands.demo",
     "app.commands.simulate",
     "app.commands.recon",
+    "app.commands.jobs",
     "app.commands.metrics",
     "app.commands.bench",
     "app.commands.devices",
+    "app.commands.calibrate",
+    "app.commands.gui",
 )
 
 

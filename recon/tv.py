@@ -27,7 +27,7 @@ _AXES = {"k": 1, "y": 2, "x": 3}
 
 
 def _fwd_diff_into(x: torch.Tensor, dim: int, out: torch.Tensor, scale: float = 1.0) -> None:
-    """out = scale * forward difference of x along ``dim``; the last entry is left as is (0)."""
+    """Out = scale * forward difference of x along ``dim``; the last entry is left as is (0)."""
     n = x.shape[dim]
     torch.sub(x.narrow(dim, 1, n - 1), x.narrow(dim, 0, n - 1), out=out.narrow(dim, 0, n - 1))
     if scale != 1.0:
@@ -35,7 +35,7 @@ def _fwd_diff_into(x: torch.Tensor, dim: int, out: torch.Tensor, scale: float = 
 
 
 def _adj_diff_add(p: torch.Tensor, dim: int, out: torch.Tensor, scale: float = 1.0) -> None:
-    """out += scale * D^T p along ``dim`` (p's last entry along dim is ignored, as D has none)."""
+    """Out += scale * D^T p along ``dim`` (p's last entry along dim is ignored, as D has none)."""
     n = p.shape[dim]
     q = p.narrow(dim, 0, n - 1)
     out.narrow(dim, 0, n - 1).sub_(q, alpha=scale)

@@ -10,6 +10,7 @@ BENCHMARKS = {
     "fista": "benchmarks.bench_fista",
     "udn": "benchmarks.bench_udn",
     "protocol": "benchmarks.sim_protocol",
+    "preview": "benchmarks.bench_preview",
 }
 
 

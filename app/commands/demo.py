@@ -75,7 +75,7 @@ def _maybe_open(args: argparse.Namespace, path: Path) -> None:
         return
     viewer = shutil.which("xdg-open")
     if viewer and os.environ.get("DISPLAY"):
-        subprocess.Popen([viewer, str(path)])  # noqa: S603 - fixed program, our file
+        subprocess.Popen([viewer, str(path)])
     else:
         print(f"no display or viewer: open {path} yourself")
 

@@ -1,0 +1,143 @@
+"""``lenslesscam jobs run|resume|status|cancel``: overnight UDN jobs in run folders.
+
+Exit codes of ``run`` and ``resume``: 0 completed or stopped early, 3 cancelled (SIGTERM,
+SIGINT, ``jobs cancel``), 2 failed (the run record says why).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+EXIT_CANCELLED = 3
+
+
+def register(sub: Any) -> None:
+    """Add ``jobs`` and its actions."""
+    p = sub.add_parser("jobs", help="overnight UDN jobs: run, resume, status, cancel")
+    act = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+
+    r = act.add_parser("run", help="run a job spec (TOML) into a new run folder")
+    r.add_argument("spec", help="job spec file (TOML)")
+    r.add_argument("--out", required=True, help="run folder to create")
+    _common_run_args(r)
+    r.set_defaults(func=cmd_run)
+
+    s = act.add_parser("resume", help="continue a run from its last checkpoint")
+    s.add_argument("run_dir", help="run folder")
+    s.add_argument("--max-iter", type=int, help="raise the iteration limit")
+    s.add_argument("--time-limit", type=float, help="raise the wall-time limit (seconds)")
+    _common_run_args(s)
+    s.set_defaults(func=cmd_resume)
+
+    t = act.add_parser("status", help="show a run's iteration, loss, ETA, device, preview")
+    t.add_argument("run_dir", help="run folder")
+    t.add_argument("--json", action="store_true", help="print JSON")
+    t.set_defaults(func=cmd_status)
+
+    c = act.add_parser("cancel", help="ask a running job to stop cleanly")
+    c.add_argument("run_dir", help="run folder")
+    c.add_argument("--signal", action="store_true",
+                   help="also send SIGTERM to the job's process")
+    c.set_defaults(func=cmd_cancel)
+
+
+def _common_run_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--max-memory", help="refuse runs estimated above this (e.g. 2GB)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def run_with_progress(start: Any, args: argparse.Namespace, total: int | None,
+                      run_dir: str) -> int:
+    """Run ``start(progress=..., cancel=...)`` with a progress bar and signal handling."""
+    import threading
+
+    from app.cli import CliError
+    from app.commands._common import ProgressBar
+    from recon.udn.jobs import cancel_on_signals
+
+    bar = ProgressBar(total or 1, "udn", enabled=False if args.quiet else None)
+
+    def progress(s: Any) -> None:
+        held = "-" if s.heldout is None else f"{s.heldout:.3g}"
+        eta = "-" if s.eta_s is None else f"{s.eta_s:.0f}s"
+        bar.update(s.iteration, f"loss {s.loss:.3g} held-out {held} ETA {eta}")
+
+    event = threading.Event()
+    try:
+        with cancel_on_signals(event):
+            outcome = start(progress=progress, cancel=event)
+    except (ValueError, FileNotFoundError, OSError, ArithmeticError, RuntimeError) as exc:
+        bar.close()
+        where = Path(run_dir) / "run.json"
+        suffix = f" (run record: {where})" if where.is_file() else ""
+        raise CliError(f"{exc}{suffix}") from exc
+    bar.close()
+    rec = outcome.record
+    summary = {
+        "run_dir": str(outcome.run_dir), "finish_reason": outcome.finish_reason,
+        "detail": outcome.detail, "iterations": outcome.iterations,
+        "results": rec.get("results"),
+    }
+    print(json.dumps(summary), file=sys.stdout)
+    return EXIT_CANCELLED if outcome.finish_reason == "cancelled" else 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """``jobs run``."""
+    from recon.udn.jobs import run_job
+    from recon.udn.memory import parse_bytes
+
+    mm = parse_bytes(args.max_memory) if args.max_memory else None
+    total = _spec_max_iter(args.spec)
+    return run_with_progress(
+        lambda progress, cancel: run_job(args.spec, args.out, progress=progress, cancel=cancel,
+                                         max_memory=mm), args, total, args.out)
+
+
+def cmd_resume(args: argparse.Namespace) -> int:
+    """``jobs resume``."""
+    from recon.udn.jobs import job_status, resume_job
+    from recon.udn.memory import parse_bytes
+
+    mm = parse_bytes(args.max_memory) if args.max_memory else None
+    total = args.max_iter or job_status(args.run_dir).max_iter
+    return run_with_progress(
+        lambda progress, cancel: resume_job(args.run_dir, max_iter=args.max_iter,
+                                            time_limit_s=args.time_limit, progress=progress,
+                                            cancel=cancel, max_memory=mm), args, total,
+        args.run_dir)
+
+
+def _spec_max_iter(path: str) -> int | None:
+    import tomllib
+
+    try:
+        with open(path, "rb") as fh:
+            v = tomllib.load(fh).get("stopping", {}).get("max_iter")
+    except (OSError, ValueError):
+        return None
+    return v if isinstance(v, int) else None
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """``jobs status``."""
+    from recon.udn.jobs import format_status, job_status
+
+    st = job_status(args.run_dir)
+    if args.json:
+        print(json.dumps(st.to_dict(), default=str))
+    else:
+        print(format_status(st))
+    return 0
+
+
+def cmd_cancel(args: argparse.Namespace) -> int:
+    """``jobs cancel``."""
+    from recon.udn.jobs import request_cancel
+
+    print(request_cancel(args.run_dir, send_signal=args.signal))
+    return 0

@@ -1,0 +1,152 @@
+"""``lenslesscam recon udn``: the one-shot form of a UDN job.
+
+Builds a job spec from the command line, writes it as ``RUN_DIR/job.toml`` and runs it exactly
+as ``lenslesscam jobs run`` would (same run folder, checkpoints, record; resumable with
+``lenslesscam jobs resume RUN_DIR``). ``--write-spec FILE`` writes the spec and stops, to start
+an overnight job later.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def register_udn(methods: Any) -> None:
+    """Add the ``udn`` method to ``recon``'s subparsers."""
+    from app.commands.recon import add_input_arguments
+
+    u = methods.add_parser("udn", help="untrained deep network (deep image prior) as a job")
+    add_input_arguments(u)
+    g = u.add_argument_group("network")
+    g.add_argument("--variant", choices=["auto", "2d", "frames", "3d"], default="auto",
+                   help="2d, frames (K as channels), 3d, auto (2d for K=1 else frames)")
+    g.add_argument("--scales", type=int, default=5, help="levels (default 5)")
+    g.add_argument("--net-channels", type=int, default=128, help="channels (default 128)")
+    g.add_argument("--skip-channels", type=int, default=4, help="skip channels (default 4)")
+    g.add_argument("--input-channels", type=int, default=32, help="channels of z (32)")
+    g.add_argument("--grad-checkpoint", action="store_true", help="gradient checkpointing")
+    o = u.add_argument_group("optimiser and stopping")
+    o.add_argument("--iters", type=int, default=3000, help="iteration limit (default 3000)")
+    o.add_argument("--time-limit", type=float, help="wall-time limit in seconds")
+    o.add_argument("--lr", type=float, default=0.01, help="Adam learning rate (0.01)")
+    o.add_argument("--reg-noise", type=float, default=0.05, help="input noise std (0.05)")
+    o.add_argument("--loss", choices=["mse", "scale_invariant"], default="mse")
+    o.add_argument("--tv-weight", type=float, default=0.0, help="TV weight (0)")
+    o.add_argument("--ema", type=float, default=0.99, help="output EMA decay (0.99)")
+    o.add_argument("--holdout", type=float, default=0.05,
+                   help="held-out fraction of measured pixels for early stopping (0.05)")
+    o.add_argument("--patience", type=int, default=500, help="early-stopping patience (500)")
+    o.add_argument("--seed", type=int, default=0)
+    o.add_argument("--truth", help="ground-truth scene (C,K,H,W) to score the result")
+    d = u.add_argument_group("device and output")
+    d.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N, mps")
+    d.add_argument("--precision", choices=["float32", "bf16"], default="float32")
+    d.add_argument("--compile", action="store_true", help="torch.compile the network")
+    d.add_argument("--channels-last", action="store_true")
+    d.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
+    d.add_argument("--max-memory", help="refuse runs estimated above this (e.g. 2GB)")
+    d.add_argument("--checkpoint-every", type=int, default=500)
+    d.add_argument("--preview-every", type=int, default=100)
+    d.add_argument("--name", default="", help="a name for the run")
+    d.add_argument("--quiet", action="store_true", help="no progress bar")
+    d.add_argument("--write-spec", metavar="FILE",
+                   help="only write the job spec (TOML) to FILE and exit")
+    u.add_argument("--out", help="run folder to create (required unless --write-spec)")
+    u.set_defaults(func=run_udn)
+
+
+def _path(value: str | None) -> str | None:
+    return None if value is None else str(Path(value).expanduser().resolve())
+
+
+def _dark(value: str | None) -> Any:
+    if value is None or value == "auto":
+        return value
+    try:
+        return float(value)
+    except ValueError:
+        return _path(value)
+
+
+def build_spec(args: argparse.Namespace) -> dict[str, Any]:
+    """The job spec (as a dict of TOML tables) that the command line describes."""
+    if getattr(args, "float64", False):
+        raise ValueError("--float64 is not available for UDN (the network runs in float32 or "
+                         "bf16)")
+    if args.model == "depth":
+        if not args.psf_stack:
+            raise ValueError("--model depth needs --psf-stack")
+        psf = _path(args.psf_stack)
+    else:
+        if not args.psf:
+            raise ValueError(f"--model {args.model} needs --psf")
+        psf = _path(args.psf)
+    if args.field in ("sensor", "full"):
+        field: Any = args.field
+    else:
+        m = re.fullmatch(r"(\d+)x(\d+)", args.field or "")
+        if not m:
+            raise ValueError(f"--field must be 'sensor', 'full' or HxW, got {args.field!r}")
+        field = [int(m.group(1)), int(m.group(2))]
+    spec: dict[str, Any] = {
+        "job": {"name": args.name},
+        "data": {
+            "model": args.model, "psf": psf, "measurement": _path(args.meas),
+            "mask": _path(args.mask), "shutter": _path(args.shutter),
+            "filters": _path(args.filters), "truth": _path(args.truth),
+            "downsample": args.downsample, "dark": _dark(args.dark),
+            "psf_dark": _dark(args.psf_dark), "color": "rgb" if args.rgb else "gray",
+            "field": field,
+        },
+        "network": {
+            "variant": args.variant, "scales": args.scales, "channels": args.net_channels,
+            "skip_channels": args.skip_channels, "input_channels": args.input_channels,
+            "gradient_checkpointing": args.grad_checkpoint,
+        },
+        "optimizer": {"lr": args.lr, "reg_noise": args.reg_noise, "loss": args.loss,
+                      "tv_weight": args.tv_weight, "ema": args.ema, "seed": args.seed},
+        "stopping": {"max_iter": args.iters, "time_limit_s": args.time_limit,
+                     "holdout": args.holdout, "patience": args.patience},
+        "device": {"device": args.device, "precision": args.precision,
+                   "compile": args.compile, "channels_last": args.channels_last,
+                   "threads": args.threads, "max_memory": args.max_memory},
+        "output": {"checkpoint_every": args.checkpoint_every,
+                   "preview_every": args.preview_every},
+    }
+    return spec
+
+
+def run_udn(args: argparse.Namespace) -> int:
+    """Write the spec and run it as a job."""
+    from app.commands.jobs import run_with_progress
+    from recon.udn.jobs import run_job
+    from recon.udn.spec import normalise_spec, spec_to_toml
+
+    spec = build_spec(args)
+    text = spec_to_toml(spec)
+    normalise_spec(spec_from_toml(text), Path.cwd(), source="command line")  # fail early
+    if args.write_spec:
+        from recon.formats import atomic_write_bytes
+
+        atomic_write_bytes(args.write_spec, text.encode("utf-8"))
+        print(f"wrote {args.write_spec}; run it with: lenslesscam jobs run {args.write_spec} "
+              "--out RUN_DIR", file=sys.stdout)
+        return 0
+    if not args.out:
+        raise ValueError("--out RUN_DIR is required (or --write-spec FILE)")
+    out = Path(args.out)
+    return run_with_progress(
+        lambda progress, cancel: run_job(out / "job.toml", out, progress=progress,
+                                         cancel=cancel, spec_text=text),
+        args, args.iters, str(out))
+
+
+def spec_from_toml(text: str) -> dict[str, Any]:
+    """Parse TOML text (helper for round-trip checks)."""
+    import tomllib
+
+    return tomllib.loads(text)

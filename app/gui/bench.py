@@ -1,0 +1,355 @@
+"""The devices at the bench, without Qt: a camera and a point source, real or simulated.
+
+:class:`Bench` opens and closes them by spec. With no hardware it builds the simulated bench:
+a :class:`~drivers.simcam.SimulatedCamera` that renders a bundled lensed scene through the
+tutorial PSF with the same forward model the solvers invert
+(:func:`recon.simulate.render_frames`, injected), and the simulated point-source firmware on a
+PTY (:func:`drivers.pointsource_sim.spawn_simulated_source`) whose lit state the camera reads
+from a state file, so switching the source on lights the next frame.
+
+Every method may block (opening a GenICam device, spawning the firmware, a serial timeout):
+the GUI calls them from a worker thread, never from its own.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = [
+    "SCENES",
+    "SIM_CAMERA",
+    "SIM_PORT",
+    "Bench",
+    "CameraChoice",
+    "PortChoice",
+    "SimConfig",
+    "list_camera_choices",
+    "list_port_choices",
+    "make_sim_camera",
+    "scene_image",
+    "set_sim_scene",
+]
+
+_log = logging.getLogger(__name__)
+
+#: Camera spec of the simulated camera.
+SIM_CAMERA = "sim"
+#: Port name that means "spawn the simulated point-source firmware on a PTY".
+SIM_PORT = "sim"
+#: Scenes the simulated camera can show: name -> label ("none": dark, point source only).
+SCENES: dict[str, str] = {
+    "im65": "butterfly",
+    "im740": "crab",
+    "im408": "bottle caps",
+    "none": "none (dark; point source only)",
+}
+
+
+@dataclass(frozen=True)
+class CameraChoice:
+    """A camera the user can pick: ``spec`` for :func:`drivers.open_camera`."""
+
+    spec: str
+    backend: str
+    label: str
+
+
+@dataclass(frozen=True)
+class PortChoice:
+    """A point-source port: a serial device path, or :data:`SIM_PORT`."""
+
+    port: str
+    label: str
+
+
+def list_camera_choices() -> list[CameraChoice]:
+    """The simulated camera first, then every GenICam and V4L2 device found."""
+    try:
+        from drivers.registry import list_cameras
+
+        infos = list_cameras()
+    except Exception as exc:  # discovery must never stop the app from starting
+        _log.warning("camera discovery failed: %s", exc)
+        infos = []
+    out = [CameraChoice(SIM_CAMERA, "sim", "Simulated camera (bundled scene, tutorial PSF)")]
+    for info in infos:
+        if info.spec == SIM_CAMERA:
+            continue
+        out.append(CameraChoice(info.spec, info.backend, f"{info.spec}: {info.description}"))
+    return out
+
+
+def list_port_choices() -> list[PortChoice]:
+    """The simulated point source first, then the serial ports pyserial finds."""
+    out = [PortChoice(SIM_PORT, "Simulated point source (PTY)")]
+    try:
+        from drivers.registry import list_serial_ports
+
+        for p in list_serial_ports():
+            label = f"{p.device} {p.description}".strip()
+            out.append(PortChoice(p.device, label))
+    except Exception as exc:
+        _log.warning("serial port discovery failed: %s", exc)
+    return out
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """What the simulated bench shows.
+
+    ``psf`` None: the bundled DiffuserCam tutorial PSF (150 x 200). ``scene``: a key of
+    :data:`SCENES`. ``peak_fraction``: the brightest pixel of the scene's measurement at
+    ``exposure_us`` reaches this fraction of the full well (the PSF of the point source at
+    full intensity likewise). ``scene_fill``: the object covers this fraction of the field
+    (centred, black around it), as an object at the bench does; a scene that fills the whole
+    field sends much of its light past the sensor and reconstructs poorly.
+    """
+
+    psf: npt.NDArray[np.float32] | None = None
+    scene: str = "im65"
+    exposure_us: float = 10_000.0
+    frame_rate_hz: float = 20.0
+    peak_fraction: float = 0.6
+    scene_fill: float = 0.6
+    noise: bool = True
+    pacing: bool = True
+
+
+def sim_psf(config: SimConfig) -> npt.NDArray[np.float32]:
+    """The simulated bench's true PSF (H, W), unit sum."""
+    if config.psf is not None:
+        p = np.asarray(config.psf, dtype=np.float32)
+        p = p[0] if p.ndim == 3 else p
+    else:
+        from recon.samples import tutorial_psf
+
+        p = tutorial_psf()[0]
+    return np.ascontiguousarray(p / p.sum(dtype=np.float64), dtype=np.float32)
+
+
+def scene_image(
+    name: str, shape: tuple[int, int], fill: float = 0.6
+) -> npt.NDArray[np.float32] | None:
+    """Bundled lensed scene ``name`` resized to ``fill`` of ``shape``, centred on black."""
+    if name == "none":
+        return None
+    if name not in SCENES:
+        raise ValueError(f"unknown scene {name!r}; known: {', '.join(SCENES)}")
+    if not 0 < fill <= 1:
+        raise ValueError(f"scene fill must be in (0, 1], got {fill!r}")
+    from scipy.ndimage import zoom
+
+    from recon.samples import lensed_scene
+
+    img = lensed_scene(name)[0, 0]
+    h, w = max(1, round(shape[0] * fill)), max(1, round(shape[1] * fill))
+    small = zoom(img, (h / img.shape[0], w / img.shape[1]), order=1)[:h, :w]
+    out = np.zeros(shape, dtype=np.float32)
+    y, x = (shape[0] - small.shape[0]) // 2, (shape[1] - small.shape[1]) // 2
+    out[y : y + small.shape[0], x : x + small.shape[1]] = np.clip(small, 0.0, None)
+    return out
+
+
+def make_sim_camera(
+    config: SimConfig, light_state: str | Path | None = None, **kwargs: Any
+) -> Any:
+    """A simulated camera for ``config`` (not opened), the renderer injected.
+
+    The scene and the point source are scaled to ``config.peak_fraction`` of the full well at
+    the configured exposure. ``kwargs`` go to :class:`~drivers.simcam.SimulatedCamera`.
+    """
+    from drivers.simcam import SimulatedCamera
+    from recon.simulate import render_frames
+
+    psf = sim_psf(config)
+    h, w = psf.shape
+    cam = SimulatedCamera(
+        width=w,
+        height=h,
+        renderer=render_frames(psf),
+        scene=None,
+        scene_shape=(h, w),
+        light_state=light_state,
+        exposure_us=config.exposure_us,
+        frame_rate_hz=config.frame_rate_hz,
+        pacing=config.pacing,
+        noise=config.noise,
+        **kwargs,
+    )
+    exposure_ms = cam.exposure_us / 1000.0
+    target = config.peak_fraction * cam.full_well_e
+    cam.point_flux_e_per_ms = target / (float(psf.max()) * exposure_ms)
+    set_sim_scene(cam, config.scene, config.peak_fraction, config.scene_fill)
+    return cam
+
+
+def set_sim_scene(cam: Any, name: str, peak_fraction: float = 0.6, fill: float = 0.6) -> None:
+    """Show scene ``name`` (a key of :data:`SCENES`) on a simulated camera, scaled to the well.
+
+    The scale is computed at the camera's current exposure.
+    """
+    h, w = cam.capabilities().sensor_height, cam.capabilities().sensor_width
+    img = scene_image(name, (h, w), fill)
+    if img is None:
+        cam.scene = None
+        return
+    cam.scene = img
+    electrons, _ = cam.render_electrons()
+    peak = float(np.max(electrons))
+    if peak > 0:
+        cam.scene = img * np.float32(peak_fraction * cam.full_well_e / peak)
+
+
+class Bench:
+    """The camera and the point source the app works with (simulated or real).
+
+    Not thread-safe by itself: the GUI serialises all calls on one worker thread.
+    """
+
+    def __init__(self, sim: SimConfig | None = None) -> None:
+        self.sim = sim or SimConfig()
+        self._tmp = Path(tempfile.mkdtemp(prefix="lenslesscam-bench-"))
+        self.light_state_path = self._tmp / "light-state.json"
+        self.sim_port_link = self._tmp / "pointsource"
+        self.camera: Any = None
+        self.camera_spec: str | None = None
+        self.light: Any = None
+        self.light_port: str | None = None
+        self._sim_source: Any = None
+
+    # -- camera --------------------------------------------------------------------------------
+
+    @property
+    def is_simulated(self) -> bool:
+        """Whether the open camera is the simulated one."""
+        return self.camera_spec == SIM_CAMERA
+
+    @property
+    def sim_psf(self) -> npt.NDArray[np.float32]:
+        """True PSF of the simulated camera."""
+        return sim_psf(self.sim)
+
+    def open_camera(self, spec: str, **kwargs: Any) -> Any:
+        """Close the current camera, open ``spec`` (``sim``: the simulated bench) and return it."""
+        self.close_camera()
+        if spec == SIM_CAMERA:
+            cam = make_sim_camera(self.sim, light_state=self.light_state_path, **kwargs)
+            cam.open()
+        else:
+            from drivers.registry import open_camera
+
+            cam = open_camera(spec, **kwargs)
+        self.camera = cam
+        self.camera_spec = spec
+        return cam
+
+    def close_camera(self) -> None:
+        """Stop and close the camera (errors are logged: the device may be gone)."""
+        cam, self.camera, self.camera_spec = self.camera, None, None
+        if cam is not None:
+            try:
+                cam.close()
+            except Exception as exc:
+                _log.warning("closing %r: %s", cam, exc)
+
+    def reconnect_camera(self, check_timeout_s: float = 1.0) -> Any:
+        """Close and reopen the same camera object, then check a frame arrives.
+
+        Raises the camera's error (for example :class:`~drivers.camera.CameraTimeout`) when it
+        is still gone; the camera is then left closed.
+        """
+        cam = self.camera
+        if cam is None:
+            raise RuntimeError("no camera to reconnect")
+        with contextlib.suppress(Exception):
+            cam.close()
+        cam.open()
+        try:
+            cam.snap(timeout_s=check_timeout_s)
+        except BaseException:
+            with contextlib.suppress(Exception):
+                cam.close()
+            raise
+        return cam
+
+    # -- point source --------------------------------------------------------------------------
+
+    def open_light(self, port: str, *, timeout_s: float = 0.5) -> Any:
+        """Close the current source and connect to ``port`` (:data:`SIM_PORT`: spawn it)."""
+        self.close_light()
+        from drivers.lightsource import SerialPointSource
+
+        path = port
+        if port == SIM_PORT:
+            path = self._spawn_sim_source()
+        light = SerialPointSource(path, timeout_s=timeout_s)
+        light.open()
+        self.light = light
+        self.light_port = port
+        return light
+
+    def _spawn_sim_source(self) -> str:
+        from drivers.pointsource_sim import spawn_simulated_source
+
+        self._stop_sim_source()
+        src = spawn_simulated_source(self.light_state_path, link=self.sim_port_link)
+        self._sim_source = src
+        return str(self.sim_port_link)
+
+    def _stop_sim_source(self) -> None:
+        src, self._sim_source = self._sim_source, None
+        if src is not None:
+            try:
+                src.stop()
+            except Exception as exc:
+                _log.warning("stopping the simulated point source: %s", exc)
+
+    @property
+    def sim_source(self) -> Any:
+        """The running simulated firmware (``SimulatedSource``), if any (tests kill it)."""
+        return self._sim_source
+
+    def check_light(self) -> Any:
+        """Read the source's status (raises its error when it is gone)."""
+        if self.light is None:
+            raise RuntimeError("no point source connected")
+        return self.light.status()
+
+    def reconnect_light(self) -> Any:
+        """Reconnect the point source; a dead simulator is started again on the same link."""
+        if self.light is None or self.light_port is None:
+            raise RuntimeError("no point source to reconnect")
+        if self.light_port == SIM_PORT:
+            src = self._sim_source
+            if src is None or src.process.poll() is not None:
+                self._spawn_sim_source()
+        self.light.reconnect()
+        return self.light
+
+    def close_light(self) -> None:
+        """Switch the source off where possible, close it, stop a simulator."""
+        light, self.light, self.light_port = self.light, None, None
+        if light is not None:
+            with contextlib.suppress(Exception):
+                if light.is_open:
+                    light.off()
+            with contextlib.suppress(Exception):
+                light.close()
+        self._stop_sim_source()
+
+    # -- lifetime ------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Close everything and remove the temporary folder."""
+        self.close_camera()
+        self.close_light()
+        shutil.rmtree(self._tmp, ignore_errors=True)

@@ -1,0 +1,465 @@
+"""Calibration wizard: PSF capture and shutter function, step by step, with progress and save.
+
+The wizard runs the workflows of :mod:`calibration` (generators of
+:class:`~calibration.workflow.Progress` events) on the camera's worker thread through
+:meth:`MainWindow.run_camera_workflow`, which pauses the live view for the duration. Each event
+updates a progress bar, a stage line and the latest frame; Cancel takes effect at the next
+event (the workflow switches the source off and saves nothing). When a capture ends the
+quality report and the PSF are shown, and Save writes the calibration file (atomically, through
+:mod:`recon.calibfile`). On Finish the new PSF can become the live preview's PSF.
+
+With the simulated bench the scene is hidden while the wizard captures (a PSF is taken with
+the point source alone, as at the bench with the object removed) and restored afterwards.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from PySide6.QtCore import Qt
+from PySide6.QtGui import QAction
+from PySide6.QtWidgets import (
+    QCheckBox,
+    QComboBox,
+    QDoubleSpinBox,
+    QFileDialog,
+    QFormLayout,
+    QHBoxLayout,
+    QLabel,
+    QLineEdit,
+    QPlainTextEdit,
+    QProgressBar,
+    QPushButton,
+    QSpinBox,
+    QVBoxLayout,
+    QWidget,
+    QWizard,
+    QWizardPage,
+)
+
+from app.gui.image_view import ImagePanel
+
+if TYPE_CHECKING:
+    from app.gui.main_window import MainWindow
+
+__all__ = ["CalibrationWizard", "add_calibration_action"]
+
+
+def add_calibration_action(window: MainWindow) -> None:
+    """Add "Calibration wizard…" to the window's Tools menu."""
+    act = QAction("Calibration wizard…", window)
+    act.triggered.connect(lambda: open_wizard(window))
+    window.tools_menu.addAction(act)
+    window.calibration_action = act
+
+
+def open_wizard(window: MainWindow) -> CalibrationWizard:
+    """Show the (single) wizard of ``window``."""
+    wiz = getattr(window, "calibration_wizard", None)
+    if wiz is None or not wiz.isVisible():
+        wiz = CalibrationWizard(window)
+        window.calibration_wizard = wiz
+    wiz.show()
+    wiz.raise_()
+    return wiz
+
+
+def _stamp() -> str:
+    return time.strftime("%Y%m%d-%H%M%S")
+
+
+class _RunBox(QWidget):
+    """Start / Cancel, a progress bar, the stage line, the latest image, a report."""
+
+    def __init__(self, title: str) -> None:
+        super().__init__()
+        self.start = QPushButton(f"Start {title}")
+        self.cancel = QPushButton("Cancel")
+        self.cancel.setEnabled(False)
+        self.save = QPushButton("Save")
+        self.save.setEnabled(False)
+        self.progress = QProgressBar()
+        self.progress.setRange(0, 1000)
+        self.stage = QLabel("not started")
+        self.stage.setWordWrap(True)
+        self.image = ImagePanel(title)
+        self.image.setMinimumHeight(220)
+        self.report = QPlainTextEdit()
+        self.report.setReadOnly(True)
+        self.report.setMaximumHeight(110)
+        self.saved = QLabel("")
+        self.saved.setWordWrap(True)
+        row = QHBoxLayout()
+        row.addWidget(self.start)
+        row.addWidget(self.cancel)
+        row.addWidget(self.save)
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(0, 0, 0, 0)
+        lay.addLayout(row)
+        lay.addWidget(self.progress)
+        lay.addWidget(self.stage)
+        lay.addWidget(self.image, 1)
+        lay.addWidget(self.report)
+        lay.addWidget(self.saved)
+
+    def running(self, on: bool) -> None:
+        self.start.setEnabled(not on)
+        self.cancel.setEnabled(on)
+        if on:
+            self.save.setEnabled(False)
+            self.saved.setText("")
+
+    def show_progress(self, p: Any) -> None:
+        self.progress.setValue(int(1000 * min(max(p.fraction, 0.0), 1.0)))
+        self.stage.setText(f"{p.stage}: {p.message}")
+        if p.frame is not None:
+            self.image.set_image(np.asarray(p.frame, dtype=np.float32))
+
+
+class SetupPage(QWizardPage):
+    """Devices, output folder, capture settings."""
+
+    def __init__(self, window: MainWindow) -> None:
+        super().__init__()
+        self.window_ = window
+        self.setTitle("Set up")
+        self.setSubTitle("Connect the camera and the point source (Devices panel), place the "
+                         "source on axis, choose where the calibration files go.")
+        self.devices = QLabel("")
+        self.devices.setWordWrap(True)
+        s = window.settings
+        default_out = s.calibration_dir or str(Path.home() / "lenslesscam-calibration")
+        self.out_dir = QLineEdit(default_out)
+        browse = QPushButton("Browse…")
+        browse.clicked.connect(self._browse)
+        self.n_frames = QSpinBox()
+        self.n_frames.setRange(1, 1000)
+        self.n_frames.setValue(16)
+        self.n_darks = QSpinBox()
+        self.n_darks.setRange(1, 1000)
+        self.n_darks.setValue(16)
+        self.auto_exposure = QCheckBox("auto-exposure (peak at 75% of full scale)")
+        self.auto_exposure.setChecked(True)
+        self.intensity = QDoubleSpinBox()
+        self.intensity.setRange(0.0, 1.0)
+        self.intensity.setSingleStep(0.1)
+        self.intensity.setValue(1.0)
+        self.hide_scene = QCheckBox("simulated bench: hide the scene while calibrating")
+        self.hide_scene.setChecked(True)
+        form = QFormLayout(self)
+        form.addRow(self.devices)
+        row = QHBoxLayout()
+        row.addWidget(self.out_dir, 1)
+        row.addWidget(browse)
+        form.addRow("Output folder", row)
+        form.addRow("PSF frames", self.n_frames)
+        form.addRow("Dark frames", self.n_darks)
+        form.addRow(self.auto_exposure)
+        form.addRow("Source intensity", self.intensity)
+        form.addRow(self.hide_scene)
+        window.camera_state_changed.connect(lambda _s: self._refresh())
+        window.light_state_changed.connect(lambda _s: self._refresh())
+
+    def _browse(self) -> None:
+        d = QFileDialog.getExistingDirectory(self, "Calibration folder", self.out_dir.text())
+        if d:
+            self.out_dir.setText(d)
+
+    def initializePage(self) -> None:
+        self._refresh()
+
+    def _refresh(self) -> None:
+        w = self.window_
+        cam_ok = w.bench.camera is not None and w.camera_state in ("live", "stopped")
+        light_ok = w.light_state == "connected"
+        self.hide_scene.setVisible(w.bench.is_simulated)
+        lines = [
+            f"Camera: {'ready' if cam_ok else 'not ready'} ({w.camera_state})",
+            f"Point source: {'ready' if light_ok else 'not ready'} ({w.light_state})",
+        ]
+        if not (cam_ok and light_ok):
+            lines.append("Connect both in the Devices panel to continue.")
+        self.devices.setText("\n".join(lines))
+        self.completeChanged.emit()
+
+    def isComplete(self) -> bool:
+        w = self.window_
+        return (w.bench.camera is not None and w.camera_state in ("live", "stopped")
+                and w.light_state == "connected")
+
+    def out_path(self) -> Path:
+        """The chosen output folder."""
+        return Path(self.out_dir.text()).expanduser()
+
+
+class PsfPage(QWizardPage):
+    """Capture the PSF, show the quality report and the PSF, save it."""
+
+    def __init__(self, window: MainWindow, setup: SetupPage) -> None:
+        super().__init__()
+        self.window_ = window
+        self.setup = setup
+        self.setTitle("PSF capture")
+        self.setSubTitle("Darks with the source off, auto-exposure with it on, averaged PSF "
+                         "frames, dark subtraction and hot-pixel repair, quality checks.")
+        self.box = _RunBox("PSF capture")
+        QVBoxLayout(self).addWidget(self.box)
+        self.box.start.clicked.connect(self.start)
+        self.box.cancel.clicked.connect(self.cancel)
+        self.box.save.clicked.connect(self.save)
+        self.result: Any = None
+        self.saved_path: Path | None = None
+        self.error = ""
+        self._handle: Any = None
+
+    def start(self) -> None:
+        """Run :func:`calibration.capture_psf` on the camera's worker."""
+        from calibration import PsfSettings, capture_psf
+
+        s = PsfSettings(n_frames=self.setup.n_frames.value(),
+                        n_darks=self.setup.n_darks.value(),
+                        auto_exposure=self.setup.auto_exposure.isChecked(),
+                        intensity=float(self.setup.intensity.value()))
+        self.result = None
+        self.saved_path = None
+        self.error = ""
+        self.box.running(True)
+        self.box.report.setPlainText("")
+        self.completeChanged.emit()
+        self._handle = self.window_.run_camera_workflow(
+            lambda cam, light: capture_psf(cam, light, s),
+            name="PSF capture",
+            hide_scene=self.setup.hide_scene.isChecked(),
+            on_progress=self.box.show_progress,
+            on_done=self._done,
+            on_error=self._failed,
+        )
+
+    def cancel(self) -> None:
+        """Cancel at the next progress point."""
+        if self._handle is not None:
+            self._handle.cancel()
+
+    def _done(self, result: Any) -> None:
+        self.result = result
+        self.box.running(False)
+        self.box.save.setEnabled(True)
+        q = result.quality
+        self.box.report.setPlainText(
+            f"{q.summary()}\n"
+            f"exposure {result.exposure_us:.0f} us, gain {result.gain}, "
+            f"{result.metadata.get('frames_averaged')} frames, "
+            f"{result.metadata.get('darks_averaged')} darks averaged\n"
+            f"autocorrelation FWHM {q.autocorr_fwhm_px[0]:.2f} x {q.autocorr_fwhm_px[1]:.2f} px"
+        )
+        self.box.image.set_image(np.asarray(result.psf, dtype=np.float32))
+        self.box.stage.setText("done: review the PSF and the report, then Save")
+        self.completeChanged.emit()
+
+    def _failed(self, exc: BaseException) -> None:
+        self.box.running(False)
+        self.error = str(exc)
+        from calibration import CalibrationCancelled
+
+        kind = "cancelled" if isinstance(exc, CalibrationCancelled) else "refused / failed"
+        self.box.stage.setText(f"{kind}: {exc}")
+        self.box.report.setPlainText(str(exc))
+        self.completeChanged.emit()
+
+    def save(self) -> Path | None:
+        """Save the captured PSF into the output folder."""
+        if self.result is None:
+            return None
+        path = self.setup.out_path() / f"psf-{_stamp()}.tif"
+        try:
+            self.saved_path = self.result.save(path)
+        except Exception as exc:
+            self.box.saved.setText(f"not saved: {exc}")
+            return None
+        self.box.saved.setText(f"saved {self.saved_path}")
+        self.box.save.setEnabled(False)
+        self.window_.settings.calibration_dir = str(self.setup.out_path())
+        self.completeChanged.emit()
+        return self.saved_path
+
+    def isComplete(self) -> bool:
+        return self.saved_path is not None
+
+
+class ShutterPage(QWizardPage):
+    """Shutter function from the timing model, or measured by a strobe scan; save."""
+
+    def __init__(self, window: MainWindow, setup: SetupPage) -> None:
+        super().__init__()
+        self.window_ = window
+        self.setup = setup
+        self.setTitle("Shutter function")
+        self.setSubTitle("From the camera's timing model (instant), or measured by strobing "
+                         "the point source at increasing delays. Optional: Next skips it.")
+        self.method = QComboBox()
+        self.method.addItem("from the timing model", "timing")
+        self.method.addItem("measured (strobe scan)", "measured")
+        self.bin_lines = QSpinBox()
+        self.bin_lines.setRange(1, 100_000)
+        self.bin_lines.setValue(100)
+        self.bin_lines.setToolTip("Width of one time bin in line times")
+        self.pulse = QDoubleSpinBox()
+        self.pulse.setRange(0.0, 1e6)
+        self.pulse.setSpecialValueText("auto")
+        self.pulse.setSuffix(" µs")
+        self.step = QDoubleSpinBox()
+        self.step.setRange(0.0, 1e6)
+        self.step.setSpecialValueText("auto")
+        self.step.setSuffix(" µs")
+        form = QFormLayout()
+        form.addRow("Method", self.method)
+        form.addRow("Time bin", self.bin_lines)
+        form.addRow("Strobe pulse", self.pulse)
+        form.addRow("Delay step", self.step)
+        self.box = _RunBox("shutter")
+        lay = QVBoxLayout(self)
+        lay.addLayout(form)
+        lay.addWidget(self.box, 1)
+        self.box.start.clicked.connect(self.start)
+        self.box.cancel.clicked.connect(self.cancel)
+        self.box.save.clicked.connect(self.save)
+        self.result: Any = None
+        self.saved_path: Path | None = None
+        self._handle: Any = None
+
+    def start(self) -> None:
+        """Compute or measure the shutter function on the camera's worker."""
+        from calibration import ShutterSettings, measure_shutter, shutter_from_timing
+        from calibration.workflow import Progress
+
+        bin_lines = int(self.bin_lines.value())
+        self.result = None
+        self.saved_path = None
+        self.box.running(True)
+        if self.method.currentData() == "timing":
+            def steps(cam: Any, light: Any) -> Any:
+                yield Progress("timing", "reading the camera's timing model", 0.5)
+                timing = cam.timing
+                if timing is None:
+                    from calibration import CalibrationError
+
+                    raise CalibrationError("the camera has no timing model",
+                                           "Measure the shutter with the strobe scan")
+                roi = cam.roi
+                sf = shutter_from_timing(timing, bin_lines=bin_lines,
+                                         roi_rows=(roi.y, roi.height), binning=cam.binning)
+                yield Progress("done", f"{sf.shutter.shape[0]} time bins", 1.0)
+                return sf
+
+            hide = False
+        else:
+            ss = ShutterSettings(pulse_us=self.pulse.value() or None,
+                                 step_us=self.step.value() or None,
+                                 intensity=float(self.setup.intensity.value()))
+
+            def steps(cam: Any, light: Any) -> Any:
+                return measure_shutter(cam, light, ss, bin_lines=bin_lines)
+
+            hide = self.setup.hide_scene.isChecked()
+        self._handle = self.window_.run_camera_workflow(
+            steps, name="shutter", hide_scene=hide, on_progress=self.box.show_progress,
+            on_done=self._done, on_error=self._failed)
+
+    def cancel(self) -> None:
+        """Cancel at the next progress point."""
+        if self._handle is not None:
+            self._handle.cancel()
+
+    def _done(self, sf: Any) -> None:
+        self.result = sf
+        self.box.running(False)
+        self.box.save.setEnabled(True)
+        m = np.asarray(sf.shutter, dtype=np.float32)
+        self.box.image.set_image(m.T.copy())  # rows down, time bins across
+        text = (f"{m.shape[0]} time bins of {sf.bin_lines} lines ({sf.bin_us:.1f} µs), "
+                f"{m.shape[1]} rows, method {sf.method}; timing {sf.timing.to_dict()}")
+        if sf.measurement is not None:
+            text += "\n" + sf.measurement.summary()
+        self.box.report.setPlainText(text)
+        self.box.stage.setText("done: review, then Save (image: rows down, time bins across)")
+
+    def _failed(self, exc: BaseException) -> None:
+        self.box.running(False)
+        self.box.stage.setText(f"failed: {exc}")
+        self.box.report.setPlainText(str(exc))
+
+    def save(self) -> Path | None:
+        """Save the shutter function into the output folder."""
+        if self.result is None:
+            return None
+        path = self.setup.out_path() / f"shutter-{_stamp()}.npz"
+        try:
+            self.saved_path = self.result.save(path)
+        except Exception as exc:
+            self.box.saved.setText(f"not saved: {exc}")
+            return None
+        self.box.saved.setText(f"saved {self.saved_path}")
+        self.box.save.setEnabled(False)
+        return self.saved_path
+
+
+class FinishPage(QWizardPage):
+    """What was saved; use the PSF for the preview."""
+
+    def __init__(self, psf_page: PsfPage, shutter_page: ShutterPage) -> None:
+        super().__init__()
+        self.psf_page = psf_page
+        self.shutter_page = shutter_page
+        self.setTitle("Done")
+        self.summary = QLabel("")
+        self.summary.setWordWrap(True)
+        self.summary.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.use_psf = QCheckBox("use the new PSF for the live reconstruction preview")
+        self.use_psf.setChecked(True)
+        lay = QVBoxLayout(self)
+        lay.addWidget(self.summary)
+        lay.addWidget(self.use_psf)
+        lay.addStretch(1)
+
+    def initializePage(self) -> None:
+        lines = []
+        if self.psf_page.saved_path is not None:
+            lines.append(f"PSF: {self.psf_page.saved_path}")
+            lines.append(f"  {self.psf_page.result.quality.summary()}")
+        if self.shutter_page.saved_path is not None:
+            lines.append(f"Shutter function: {self.shutter_page.saved_path}")
+        self.summary.setText("\n".join(lines) or "nothing saved")
+
+
+class CalibrationWizard(QWizard):
+    """The calibration wizard of a :class:`MainWindow` (non-modal)."""
+
+    def __init__(self, window: MainWindow) -> None:
+        super().__init__(window)
+        self.window_ = window
+        self.setWindowTitle("Calibration wizard")
+        self.setWizardStyle(QWizard.WizardStyle.ClassicStyle)
+        self.setModal(False)
+        self.resize(720, 760)
+        self.setup_page = SetupPage(window)
+        self.psf_page = PsfPage(window, self.setup_page)
+        self.shutter_page = ShutterPage(window, self.setup_page)
+        self.finish_page = FinishPage(self.psf_page, self.shutter_page)
+        for p in (self.setup_page, self.psf_page, self.shutter_page, self.finish_page):
+            self.addPage(p)
+        self.accepted.connect(self._finish)
+        self.rejected.connect(self._cancel_running)
+
+    def _cancel_running(self) -> None:
+        self.psf_page.cancel()
+        self.shutter_page.cancel()
+
+    def _finish(self) -> None:
+        page = self.psf_page
+        if self.finish_page.use_psf.isChecked() and page.result is not None:
+            name = page.saved_path.name if page.saved_path else "captured"
+            self.window_.use_psf(page.result.normalised(), f"calibration {name}",
+                                 str(page.saved_path or ""))

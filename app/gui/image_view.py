@@ -1,0 +1,210 @@
+"""An image panel: pyqtgraph image (row-major) with histogram/LUT, fixed levels, overlays, ROI.
+
+Levels stay fixed between frames (no auto-levels per frame: it costs time and makes the live
+view flicker); :meth:`ImagePanel.autoscale` sets them from the current image on demand, and the
+first image of a new shape is autoscaled once. Pixels at or above ``saturation_level`` are
+painted red by a second image item on top. An optional rectangular ROI reports its statistics.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+import pyqtgraph as pg
+from PySide6.QtCore import Qt, Signal
+from PySide6.QtWidgets import QCheckBox, QHBoxLayout, QLabel, QPushButton, QVBoxLayout, QWidget
+
+__all__ = ["ImagePanel", "configure_pyqtgraph"]
+
+_configured = False
+
+
+def configure_pyqtgraph() -> None:
+    """Global pyqtgraph options, once per process: row-major images (``image[row, col]``)."""
+    global _configured
+    if not _configured:
+        pg.setConfigOptions(imageAxisOrder="row-major", antialias=False)
+        _configured = True
+
+
+class ImagePanel(QWidget):
+    """Title, image with histogram/LUT, a footer line for readouts.
+
+    Signals: ``roi_changed(x, y, w, h)`` in image pixels when the user moves the ROI.
+    """
+
+    roi_changed = Signal(int, int, int, int)
+
+    def __init__(
+        self,
+        title: str,
+        *,
+        with_roi: bool = False,
+        with_saturation: bool = False,
+        auto_levels_option: bool = False,
+        parent: QWidget | None = None,
+    ) -> None:
+        super().__init__(parent)
+        configure_pyqtgraph()
+        self.setObjectName(f"panel-{title.lower().replace(' ', '-')}")
+        self._shape: tuple[int, ...] | None = None
+        self._image: npt.NDArray[np.generic] | None = None
+        self.saturation_level: float | None = None
+        self.saturated = 0
+
+        self.title = QLabel(f"<b>{title}</b>")
+        self.autoscale_button = QPushButton("Autoscale")
+        self.autoscale_button.setToolTip("Set the display levels from the current image")
+        self.autoscale_button.clicked.connect(self.autoscale)
+        self.auto_levels = QCheckBox("auto levels")
+        self.auto_levels.setToolTip("Rescale the levels at every image")
+        self.auto_levels.setVisible(auto_levels_option)
+        head = QHBoxLayout()
+        head.addWidget(self.title)
+        head.addStretch(1)
+        head.addWidget(self.auto_levels)
+        head.addWidget(self.autoscale_button)
+
+        self.graphics = pg.GraphicsLayoutWidget()
+        self.graphics.setMinimumSize(160, 140)
+        self.view = self.graphics.addViewBox(lockAspect=True, invertY=True, enableMenu=False)
+        self.item = pg.ImageItem()
+        self.view.addItem(self.item)
+        self.overlay = pg.ImageItem()
+        self.overlay.setZValue(10)
+        self.overlay.setVisible(False)
+        self.view.addItem(self.overlay)
+        self.hist = pg.HistogramLUTItem(image=self.item)
+        self.graphics.addItem(self.hist)
+        self._with_saturation = with_saturation
+
+        self.roi: pg.RectROI | None = None
+        if with_roi:
+            self.roi = pg.RectROI([10, 10], [40, 40], pen=pg.mkPen("y", width=1))
+            self.roi.addScaleHandle([0, 0], [1, 1])
+            self.roi.setZValue(20)
+            self.roi.setVisible(False)
+            self.view.addItem(self.roi)
+            self.roi.sigRegionChangeFinished.connect(self._emit_roi)
+
+        self.footer = QLabel("–")
+        self.footer.setObjectName("footer")
+        self.footer.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.message = QLabel("")
+        self.message.setWordWrap(True)
+        self.message.setStyleSheet("color: #b00;")
+        self.message.setVisible(False)
+
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(2, 2, 2, 2)
+        lay.addLayout(head)
+        lay.addWidget(self.graphics, 1)
+        lay.addWidget(self.message)
+        lay.addWidget(self.footer)
+
+    # -- images --------------------------------------------------------------------------------
+
+    @property
+    def image(self) -> npt.NDArray[np.generic] | None:
+        """The image shown last."""
+        return self._image
+
+    @property
+    def levels(self) -> tuple[float, float]:
+        """Current display levels."""
+        lo, hi = self.hist.getLevels()
+        return float(lo), float(hi)
+
+    def set_levels(self, lo: float, hi: float) -> None:
+        """Fix the display levels."""
+        if not hi > lo:
+            hi = lo + 1.0
+        self.hist.setLevels(float(lo), float(hi))
+
+    def set_image(
+        self, image: npt.NDArray[np.generic], levels: tuple[float, float] | None = None
+    ) -> None:
+        """Show ``image`` (H, W); ``levels`` fixes the levels (else they stay as they are)."""
+        first = self._shape != image.shape
+        self._image = image
+        self.item.setImage(image, autoLevels=False)
+        if levels is not None and (self.auto_levels.isChecked() or first
+                                    or not self.auto_levels.isVisible()):
+            self.set_levels(*levels)
+        elif first or self.auto_levels.isChecked():
+            self.autoscale()
+        if first:
+            self._shape = image.shape
+            self.view.autoRange(padding=0.0)
+            if self.roi is not None:
+                h, w = image.shape[:2]
+                self.roi.setPos([w // 4, h // 4])
+                self.roi.setSize([w // 2, h // 2])
+        if self._with_saturation:
+            self._update_saturation(image)
+        self.set_message("")
+
+    def _update_saturation(self, image: npt.NDArray[np.generic]) -> None:
+        level = self.saturation_level
+        if level is None:
+            self.saturated = 0
+            self.overlay.setVisible(False)
+            return
+        mask = image >= level
+        self.saturated = int(np.count_nonzero(mask))
+        if self.saturated == 0:
+            self.overlay.setVisible(False)
+            return
+        rgba = np.zeros((*image.shape[:2], 4), dtype=np.uint8)
+        rgba[mask] = (255, 0, 0, 255)
+        self.overlay.setImage(rgba, autoLevels=False, levels=(0, 255))
+        self.overlay.setVisible(True)
+
+    def autoscale(self) -> None:
+        """Levels from the current image: its minimum and maximum."""
+        if self._image is None or self._image.size == 0:
+            return
+        lo = float(np.min(self._image))
+        hi = float(np.max(self._image))
+        self.set_levels(lo, hi)
+
+    def set_message(self, text: str) -> None:
+        """Show (or clear) a message under the image (errors)."""
+        if text == self.message.text() and bool(text) == self.message.isVisible():
+            return
+        self.message.setText(text)
+        self.message.setVisible(bool(text))
+
+    # -- ROI -----------------------------------------------------------------------------------
+
+    def set_roi_visible(self, visible: bool) -> None:
+        """Show or hide the ROI rectangle."""
+        if self.roi is not None:
+            self.roi.setVisible(visible)
+
+    def roi_rect(self) -> tuple[int, int, int, int] | None:
+        """(x, y, w, h) of the ROI clipped to the image, or None when hidden or empty."""
+        if self.roi is None or not self.roi.isVisible() or self._image is None:
+            return None
+        x, y = (round(float(v)) for v in self.roi.pos())
+        w, h = (round(float(v)) for v in self.roi.size())
+        ih, iw = self._image.shape[:2]
+        x0, y0 = max(0, x), max(0, y)
+        x1, y1 = min(iw, x + w), min(ih, y + h)
+        if x1 <= x0 or y1 <= y0:
+            return None
+        return x0, y0, x1 - x0, y1 - y0
+
+    def roi_stats(self) -> tuple[float, float] | None:
+        """(mean, max) inside the ROI."""
+        r = self.roi_rect()
+        if r is None or self._image is None:
+            return None
+        x, y, w, h = r
+        patch = self._image[y : y + h, x : x + w]
+        return float(patch.mean()), float(patch.max())
+
+    def _emit_roi(self) -> None:
+        r = self.roi_rect()
+        if r is not None:
+            self.roi_changed.emit(*r)

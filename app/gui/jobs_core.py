@@ -1,0 +1,459 @@
+"""UDN jobs launched from the app, without Qt: a jobs folder, a queue, detached processes.
+
+Each job the app creates is a folder under the jobs folder::
+
+    <jobs dir>/<YYYYmmdd-HHMMSS>-<name>/
+        app-job.json     the app's entry: name, device, queue state, launches, memory estimate
+        job.toml         the UDN job spec (recon.udn.spec), paths relative to this folder
+        inputs/          measurement.npy (raw codes), measurement.json (frame metadata),
+                         psf.npy (unit sum, float32), shutter.npy (video)
+        run/             the run folder of ``lenslesscam jobs run`` (run.json, loss.csv,
+                         checkpoint.pt, previews/, final.tif, best.tif)
+        job.log          stdout and stderr of the job's processes
+
+The job runs in its own process (``python -m app jobs run job.toml --out run``), started in a
+new session, so closing the window (or the app crashing) leaves it running; its progress is read
+back from the run folder. :class:`JobQueue` starts queued jobs one at a time per device (a
+second job for a busy device waits), and :func:`discover_jobs` finds every job again after a
+restart: running, interrupted (process gone: resume continues from the last checkpoint),
+finished.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import datetime as _dt
+import json
+import os
+import re
+import subprocess
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = [
+    "APP_JOB_FILE",
+    "APP_JOB_FORMAT",
+    "JobQueue",
+    "JobView",
+    "cancel_job",
+    "create_job",
+    "default_sections",
+    "discover_jobs",
+    "estimate_job_memory",
+    "job_view",
+    "read_loss",
+    "resolve_device_name",
+]
+
+APP_JOB_FILE = "app-job.json"
+APP_JOB_FORMAT = "lenslesscam.app_job"
+APP_JOB_VERSION = 1
+RUN_DIR = "run"
+SPEC = "job.toml"
+LOG = "job.log"
+
+#: Processes this app process started (pid -> Popen), reaped by :meth:`JobQueue.poll` so a
+#: finished child never lingers as a zombie that looks alive. Process-wide on purpose: a job
+#: started by a window that was closed is still this process's child.
+_CHILDREN: dict[int, subprocess.Popen[bytes]] = {}
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+
+
+def _slug(name: str) -> str:
+    s = re.sub(r"[^A-Za-z0-9._-]+", "-", name.strip()).strip("-.")
+    return (s or "job")[:40]
+
+
+def _read_json(p: Path) -> dict[str, Any] | None:
+    try:
+        d = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return d if isinstance(d, dict) else None
+
+
+def _write_entry(folder: Path, entry: Mapping[str, Any]) -> None:
+    from recon.formats import atomic_write_json
+
+    atomic_write_json(folder / APP_JOB_FILE, dict(entry))
+
+
+def resolve_device_name(name: str) -> str:
+    """``auto`` -> the device a job would use (``cuda``, ``mps`` or ``cpu``); others as given."""
+    from recon.udn.runner import resolve_device
+
+    return str(resolve_device(name))
+
+
+def default_sections() -> dict[str, dict[str, Any]]:
+    """Spec sections the app fills in by default (a small network, CPU-friendly outputs)."""
+    return {
+        "network": {"scales": 4, "channels": 32},
+        "stopping": {"max_iter": 3000},
+        "device": {"device": "auto", "threads": 1},
+        "output": {"checkpoint_every": 200, "preview_every": 50, "status_seconds": 2.0},
+    }
+
+
+def _full_spec(sections: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Every schema key with its default, then ``sections`` on top (no file checks)."""
+    from recon.udn.spec import SCHEMA
+
+    out = {sec: {k: key.default for k, key in keys.items()} for sec, keys in SCHEMA.items()}
+    for sec, keys in sections.items():
+        out.setdefault(sec, {}).update(keys)
+    return out
+
+
+def estimate_job_memory(
+    sensor: tuple[int, int], downsample: int, sections: Mapping[str, Mapping[str, Any]],
+    k: int = 1,
+) -> tuple[Any, int | None, str]:
+    """Memory estimate of a 2D job: (MemoryEstimate, bytes available or None, their source)."""
+    from recon.udn.memory import available_memory, estimate_memory
+    from recon.udn.spec import network_config
+
+    spec = _full_spec(sections)
+    h, w = sensor[0] // downsample, sensor[1] // downsample
+    if h < 1 or w < 1:
+        raise ValueError(f"downsampling by {downsample} leaves nothing of {sensor}")
+    net = network_config(spec, k)
+    est = estimate_memory(net, (1, k, h, w), (1, h, w),
+                          precision=spec["device"]["precision"])
+    avail, source = available_memory(resolve_device_name(spec["device"]["device"]))
+    return est, avail, source
+
+
+def create_job(
+    jobs_dir: str | Path,
+    name: str,
+    measurement: npt.ArrayLike,
+    psf: npt.ArrayLike,
+    *,
+    downsample: int = 1,
+    dark: float | str = "auto",
+    sections: Mapping[str, Mapping[str, Any]] | None = None,
+    shutter: npt.ArrayLike | None = None,
+    measurement_metadata: Mapping[str, Any] | None = None,
+    queue: bool = True,
+) -> Path:
+    """Write a job folder (inputs, spec, entry) and queue it; returns the folder.
+
+    The spec is validated (:func:`recon.udn.spec.load_spec`) before the job is queued; an
+    invalid one raises :class:`~recon.udn.spec.SpecError` and leaves no folder behind.
+    """
+    import shutil
+
+    from recon.formats import atomic_write, atomic_write_bytes, atomic_write_json
+    from recon.udn.spec import load_spec, spec_to_toml
+
+    meas = np.asarray(measurement)
+    p = np.asarray(psf, dtype=np.float32)
+    if meas.ndim != 2:
+        raise ValueError(f"the measurement must be one 2D frame, got shape {meas.shape}")
+    root = Path(jobs_dir)
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    folder = root / f"{stamp}-{_slug(name)}"
+    n = 1
+    while folder.exists():
+        n += 1
+        folder = root / f"{stamp}-{_slug(name)}-{n}"
+    inputs = folder / "inputs"
+    inputs.mkdir(parents=True)
+    try:
+        atomic_write(inputs / "measurement.npy", lambda t: np.save(t, meas))
+        atomic_write(inputs / "psf.npy", lambda t: np.save(t, p / p.sum(dtype=np.float64)))
+        atomic_write_json(inputs / "measurement.json", dict(measurement_metadata or {}))
+        secs = {sec: dict(v) for sec, v in (sections or default_sections()).items()}
+        data: dict[str, Any] = {"model": "2d", "psf": "inputs/psf.npy",
+                                "measurement": "inputs/measurement.npy",
+                                "downsample": int(downsample), "dark": dark, "psf_dark": 0.0}
+        if shutter is not None:
+            atomic_write(inputs / "shutter.npy",
+                         lambda t: np.save(t, np.asarray(shutter, dtype=np.float32)))
+            data.update(model="video", shutter="inputs/shutter.npy")
+        spec = {"job": {"name": name}, "data": data, **secs}
+        atomic_write_bytes(folder / SPEC, spec_to_toml(spec).encode("utf-8"))
+        full = load_spec(folder / SPEC)
+        device = resolve_device_name(full["device"]["device"])
+        k = 1 if shutter is None else int(np.asarray(shutter).shape[0])
+        try:
+            est, avail, source = estimate_job_memory(meas.shape, int(downsample), secs, k)
+            memory = {"total_bytes": est.total_bytes, "available_bytes": avail,
+                      "source": source}
+        except ValueError as exc:
+            memory = {"error": str(exc)}
+        _write_entry(folder, {
+            "format": APP_JOB_FORMAT, "format_version": APP_JOB_VERSION, "name": name,
+            "created_utc": _now(), "device": device,
+            "state": "queued" if queue else "held", "action": "run", "launches": [],
+            "memory": memory,
+        })
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    return folder
+
+
+def _pid_alive(pid: int) -> bool:
+    child = _CHILDREN.get(pid)
+    if child is not None:
+        return child.poll() is None
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _launch(folder: Path, action: str, max_iter: int | None = None) -> subprocess.Popen[bytes]:
+    """Start ``jobs run`` / ``jobs resume`` for ``folder`` in a new session (detached)."""
+    if action == "run":
+        args = ["jobs", "run", str(folder / SPEC), "--out", str(folder / RUN_DIR), "--quiet"]
+    else:
+        args = ["jobs", "resume", str(folder / RUN_DIR), "--quiet"]
+        if max_iter is not None:
+            args += ["--max-iter", str(int(max_iter))]
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
+    env.pop("QT_QPA_PLATFORM", None)
+    with open(folder / LOG, "ab") as log:
+        log.write(f"--- {_now()} {action}\n".encode())
+        log.flush()
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "app", *args],
+            stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, cwd=str(folder),
+            env=env, start_new_session=True,
+        )
+    _CHILDREN[proc.pid] = proc
+    return proc
+
+
+@dataclass
+class JobView:
+    """What the panel shows about one job (read from its folder)."""
+
+    folder: Path
+    name: str
+    device: str
+    state: str  # queued, starting, running, interrupted, finished, withdrawn, failed to start
+    finish_reason: str | None = None
+    detail: str | None = None
+    iteration: int = 0
+    max_iter: int | None = None
+    loss: float | None = None
+    eta_s: float | None = None
+    elapsed_s: float | None = None
+    last_preview: Path | None = None
+    results: dict[str, Path] = field(default_factory=dict)
+    pid: int | None = None
+    memory: dict[str, Any] = field(default_factory=dict)
+    created_utc: str = ""
+
+    @property
+    def fraction(self) -> float:
+        """Fraction of the iteration limit done."""
+        if not self.max_iter:
+            return 0.0
+        return min(1.0, self.iteration / self.max_iter)
+
+    @property
+    def active(self) -> bool:
+        """Whether a process of this job runs (or is being started)."""
+        return self.state in ("starting", "running")
+
+    @property
+    def run_dir(self) -> Path:
+        """The job's run folder."""
+        return self.folder / RUN_DIR
+
+    @property
+    def can_resume(self) -> bool:
+        """An interrupted or cancelled run (with iterations left) can continue."""
+        if self.state == "interrupted":
+            return True
+        return self.state == "finished" and self.finish_reason in ("cancelled", "failed") and (
+            (self.run_dir / "checkpoint.pt").is_file())
+
+
+def job_view(folder: str | Path) -> JobView | None:
+    """Read one job folder (None when it is not an app job)."""
+    f = Path(folder)
+    entry = _read_json(f / APP_JOB_FILE)
+    if entry is None or entry.get("format") != APP_JOB_FORMAT:
+        return None
+    v = JobView(folder=f, name=str(entry.get("name", f.name)),
+                device=str(entry.get("device", "?")), state=str(entry.get("state", "queued")),
+                memory=dict(entry.get("memory") or {}),
+                created_utc=str(entry.get("created_utc", "")))
+    launches = entry.get("launches") or []
+    last = launches[-1] if launches else None
+    record = f / RUN_DIR / "run.json"
+    if v.state in ("queued", "held", "withdrawn"):
+        if v.state == "queued" and last is not None and record.is_file():
+            pass  # a resume waits in the queue: show the run's numbers
+        else:
+            return v
+    if record.is_file():
+        from recon.udn.jobs import job_status
+
+        try:
+            st = job_status(f / RUN_DIR)
+        except (OSError, ValueError) as exc:
+            v.detail = f"run record unreadable: {exc}"
+            return v
+        v.iteration, v.max_iter, v.loss = st.iteration, st.max_iter, st.loss
+        v.eta_s, v.elapsed_s, v.pid = st.eta_s, st.elapsed_s, st.pid
+        v.finish_reason, v.detail = st.finish_reason, st.detail
+        v.last_preview = Path(st.last_preview) if st.last_preview else None
+        if v.state != "queued":
+            v.state = st.state
+            if st.state == "running" and st.pid is not None and not _pid_alive(st.pid):
+                v.state = "interrupted"
+            # a resume launched but not yet re-registered in the record
+            if (st.state != "running" and last is not None and last.get("action") == "resume"
+                    and _pid_alive(int(last["pid"]))):
+                v.state = "starting"
+        rec = _read_json(record) or {}
+        for which in ("final", "best"):
+            r = (rec.get("results") or {}).get(which)
+            if isinstance(r, str) and (f / RUN_DIR / r).is_file():
+                v.results[which] = f / RUN_DIR / r
+        return v
+    if last is not None and _pid_alive(int(last["pid"])):
+        v.state = "starting"
+    elif last is not None:
+        v.state = "failed to start"
+        v.detail = _log_tail(f)
+    return v
+
+
+def _log_tail(folder: Path, n: int = 3) -> str:
+    try:
+        lines = (folder / LOG).read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return ""
+    return " | ".join(line for line in lines[-n:] if line.strip())
+
+
+def discover_jobs(jobs_dir: str | Path) -> list[JobView]:
+    """Every app job under ``jobs_dir``, oldest first."""
+    root = Path(jobs_dir)
+    if not root.is_dir():
+        return []
+    out = []
+    for f in sorted(p for p in root.iterdir() if p.is_dir()):
+        v = job_view(f)
+        if v is not None:
+            out.append(v)
+    return out
+
+
+def read_loss(folder: str | Path) -> tuple[npt.NDArray[np.float64], ...]:
+    """(iterations, loss, held-out error) from the run's ``loss.csv`` (empty arrays if none)."""
+    p = Path(folder) / RUN_DIR / "loss.csv"
+    its: list[float] = []
+    loss: list[float] = []
+    held: list[float] = []
+    try:
+        with open(p, encoding="utf-8", newline="") as fh:
+            for row in csv.DictReader(fh):
+                try:
+                    its.append(float(row["iteration"]))
+                    loss.append(float(row["loss"]))
+                    held.append(float(row["heldout"]) if row.get("heldout") else np.nan)
+                except (KeyError, ValueError):
+                    continue
+    except OSError:
+        pass
+    return np.array(its), np.array(loss), np.array(held)
+
+
+def cancel_job(folder: str | Path) -> str:
+    """Cancel a job: withdraw it from the queue, or ask its running process to stop."""
+    f = Path(folder)
+    entry = _read_json(f / APP_JOB_FILE) or {}
+    if entry.get("state") in ("queued", "held"):
+        entry["state"] = "withdrawn"
+        _write_entry(f, entry)
+        return f"{f.name}: withdrawn from the queue"
+    from recon.udn.jobs import request_cancel
+
+    return request_cancel(f / RUN_DIR)
+
+
+def queue_resume(folder: str | Path, max_iter: int | None = None) -> None:
+    """Queue a resume of an interrupted or cancelled run (continues from its checkpoint)."""
+    f = Path(folder)
+    entry = _read_json(f / APP_JOB_FILE)
+    if entry is None:
+        raise FileNotFoundError(f"{f}: not an app job")
+    entry.update(state="queued", action="resume", max_iter=max_iter)
+    _write_entry(f, entry)
+
+
+class JobQueue:
+    """Starts queued jobs, one at a time per device, and reports every job's state."""
+
+    def __init__(self, jobs_dir: str | Path) -> None:
+        self.jobs_dir = Path(jobs_dir)
+
+    def poll(self) -> list[JobView]:
+        """Reap finished children, start what may start, return every job's view."""
+        for pid, proc in list(_CHILDREN.items()):
+            if proc.poll() is not None:
+                del _CHILDREN[pid]
+        views = discover_jobs(self.jobs_dir)
+        busy = {v.device for v in views if v.active}
+        for v in views:
+            if v.state != "queued" or v.device in busy:
+                continue
+            entry = _read_json(v.folder / APP_JOB_FILE) or {}
+            action = str(entry.get("action", "run"))
+            try:
+                proc = _launch(v.folder, action, entry.get("max_iter"))
+            except OSError as exc:
+                entry["state"] = "failed to start"
+                entry["error"] = str(exc)
+                _write_entry(v.folder, entry)
+                continue
+            entry["state"] = "launched"
+            entry.setdefault("launches", []).append(
+                {"pid": proc.pid, "action": action, "utc": _now()})
+            _write_entry(v.folder, entry)
+            busy.add(v.device)
+            nv = job_view(v.folder)
+            if nv is not None:
+                views[views.index(v)] = nv
+        return views
+
+    @staticmethod
+    def children() -> list[int]:
+        """Pids of job processes this app process started and that still run."""
+        return [pid for pid, p in _CHILDREN.items() if p.poll() is None]
+
+
+def stop_children_for_tests() -> None:
+    """Terminate and reap every job process this process started (tests only)."""
+    for pid, proc in list(_CHILDREN.items()):
+        if proc.poll() is None:
+            proc.terminate()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(20)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        _CHILDREN.pop(pid, None)

@@ -1,0 +1,518 @@
+"""UDN jobs panel: create a job from the current measurement, queue it, watch it, open results.
+
+The panel is a view of the jobs folder (:mod:`app.gui.jobs_core`): a timer polls the
+:class:`~app.gui.jobs_core.JobQueue` (which also starts queued jobs, one per device) and shows
+each job's state, a progress bar with ETA, its loss curve and latest preview. Jobs run in their
+own processes, so closing the window leaves them running; a new window finds them again.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6.QtCore import Qt, QTimer, QUrl, Signal
+from PySide6.QtGui import QDesktopServices
+from PySide6.QtWidgets import (
+    QComboBox,
+    QDialog,
+    QDialogButtonBox,
+    QDockWidget,
+    QDoubleSpinBox,
+    QFormLayout,
+    QHBoxLayout,
+    QHeaderView,
+    QLabel,
+    QLineEdit,
+    QProgressBar,
+    QPushButton,
+    QSpinBox,
+    QSplitter,
+    QTableWidget,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
+
+from app.gui.image_view import ImagePanel
+from app.gui.jobs_core import (
+    JobQueue,
+    JobView,
+    cancel_job,
+    create_job,
+    estimate_job_memory,
+    queue_resume,
+    read_loss,
+)
+from app.gui.settings import default_jobs_dir
+
+if TYPE_CHECKING:
+    from app.gui.main_window import MainWindow
+
+__all__ = ["JobsPanel", "NewJobDialog", "ResultDialog", "add_jobs_dock"]
+
+_COLUMNS = ("Job", "Device", "State", "Progress", "ETA", "Iteration", "Loss")
+
+
+def add_jobs_dock(window: MainWindow) -> None:
+    """Put a :class:`JobsPanel` in a bottom dock of ``window``."""
+    panel = JobsPanel(window)
+    dock = QDockWidget("UDN jobs", window)
+    dock.setObjectName("jobs-dock")
+    dock.setWidget(panel)
+    window.addDockWidget(Qt.DockWidgetArea.BottomDockWidgetArea, dock)
+    window.jobs_panel = panel
+    window.jobs_dock = dock
+    act = dock.toggleViewAction()
+    act.setText("UDN jobs panel")
+    window.tools_menu.addAction(act)
+    window._close_hooks = [*getattr(window, "_close_hooks", []), panel.stop]
+
+
+def _hms(s: float | None) -> str:
+    if s is None or not math.isfinite(s):
+        return "–"
+    n = round(s)
+    return f"{n // 3600:d}:{n % 3600 // 60:02d}:{n % 60:02d}"
+
+
+def _fmt_bytes(n: float | None) -> str:
+    if n is None:
+        return "unknown"
+    from recon.udn.memory import format_bytes
+
+    return format_bytes(n)
+
+
+class NewJobDialog(QDialog):
+    """Settings of a new UDN job with a live memory estimate."""
+
+    def __init__(self, sensor: tuple[int, int], source: str, parent: QWidget | None = None,
+                 name: str = "udn") -> None:
+        super().__init__(parent)
+        self.setWindowTitle("New UDN job")
+        self.sensor = sensor
+        self.name = QLineEdit(name)
+        self.downsample = QSpinBox()
+        self.downsample.setRange(1, 64)
+        self.downsample.setValue(2)
+        self.max_iter = QSpinBox()
+        self.max_iter.setRange(1, 10_000_000)
+        self.max_iter.setValue(3000)
+        self.time_limit = QDoubleSpinBox()
+        self.time_limit.setRange(0.0, 240.0)
+        self.time_limit.setSuffix(" h")
+        self.time_limit.setSpecialValueText("none")
+        self.scales = QSpinBox()
+        self.scales.setRange(1, 8)
+        self.scales.setValue(4)
+        self.channels = QSpinBox()
+        self.channels.setRange(1, 512)
+        self.channels.setValue(32)
+        self.device = QComboBox()
+        self.device.addItems(["auto", "cpu"])
+        try:
+            import torch
+
+            for i in range(torch.cuda.device_count()):
+                self.device.addItem(f"cuda:{i}")
+        except Exception:  # no torch CUDA: CPU only
+            pass
+        self.threads = QSpinBox()
+        self.threads.setRange(0, 256)
+        self.threads.setValue(1)
+        self.threads.setSpecialValueText("torch default")
+        self.precision = QComboBox()
+        self.precision.addItems(["float32", "bf16"])
+        self.checkpoint_every = QSpinBox()
+        self.checkpoint_every.setRange(1, 1_000_000)
+        self.checkpoint_every.setValue(200)
+        self.preview_every = QSpinBox()
+        self.preview_every.setRange(0, 1_000_000)
+        self.preview_every.setValue(50)
+        self.memory = QLabel("")
+        self.memory.setWordWrap(True)
+        form = QFormLayout(self)
+        form.addRow(QLabel(source))
+        form.addRow("Name", self.name)
+        form.addRow("Downsampling", self.downsample)
+        form.addRow("Iterations", self.max_iter)
+        form.addRow("Time limit", self.time_limit)
+        form.addRow("Network scales", self.scales)
+        form.addRow("Channels", self.channels)
+        form.addRow("Device", self.device)
+        form.addRow("CPU threads", self.threads)
+        form.addRow("Precision", self.precision)
+        form.addRow("Checkpoint every", self.checkpoint_every)
+        form.addRow("Preview every", self.preview_every)
+        form.addRow("Memory", self.memory)
+        self.buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Ok
+                                        | QDialogButtonBox.StandardButton.Cancel)
+        self.buttons.button(QDialogButtonBox.StandardButton.Ok).setText("Queue job")
+        self.buttons.accepted.connect(self.accept)
+        self.buttons.rejected.connect(self.reject)
+        form.addRow(self.buttons)
+        for w in (self.downsample, self.scales, self.channels):
+            w.valueChanged.connect(self.update_estimate)
+        self.device.currentIndexChanged.connect(self.update_estimate)
+        self.precision.currentIndexChanged.connect(self.update_estimate)
+        self.update_estimate()
+
+    def sections(self) -> dict[str, dict[str, Any]]:
+        """Spec sections from the controls."""
+        stopping: dict[str, Any] = {"max_iter": int(self.max_iter.value()),
+                                    "patience": max(500, int(self.max_iter.value()) // 4)}
+        if self.time_limit.value() > 0:
+            stopping["time_limit_s"] = float(self.time_limit.value()) * 3600.0
+        return {
+            "network": {"scales": int(self.scales.value()),
+                        "channels": int(self.channels.value())},
+            "stopping": stopping,
+            "device": {"device": self.device.currentText(), "threads": int(self.threads.value()),
+                       "precision": self.precision.currentText()},
+            "output": {"checkpoint_every": int(self.checkpoint_every.value()),
+                       "preview_every": int(self.preview_every.value()),
+                       "status_seconds": 1.0},
+        }
+
+    def update_estimate(self) -> None:
+        """Recompute the memory estimate shown."""
+        try:
+            est, avail, source = estimate_job_memory(self.sensor, int(self.downsample.value()),
+                                                     self.sections())
+        except Exception as exc:  # shown, and the job cannot be queued
+            self.memory.setText(f"cannot estimate: {exc}")
+            self.memory.setStyleSheet("color: #cf222e;")
+            self.estimate_bytes = None
+            return
+        self.estimate_bytes = est.total_bytes
+        fits = avail is None or est.total_bytes <= avail
+        h, w = self.sensor[0] // self.downsample.value(), self.sensor[1] // self.downsample.value()
+        self.memory.setText(
+            f"about {_fmt_bytes(est.total_bytes)} ({est.parameters:,} parameters, scene "
+            f"{w}x{h}); available {_fmt_bytes(avail)} ({source})"
+            + ("" if fits else " – will NOT fit: fewer channels or more downsampling"))
+        self.memory.setStyleSheet("" if fits else "color: #cf222e;")
+
+
+class ResultDialog(QDialog):
+    """A job's result (best and final estimates) with its metadata."""
+
+    def __init__(self, view: JobView, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        from recon.io import read_reconstruction
+
+        self.setWindowTitle(f"Result: {view.name}")
+        self.resize(900, 520)
+        lay = QHBoxLayout(self)
+        self.panels: dict[str, ImagePanel] = {}
+        self.meta: dict[str, dict[str, Any]] = {}
+        for which in ("best", "final"):
+            path = view.results.get(which)
+            if path is None:
+                continue
+            x, meta = read_reconstruction(path)
+            img = np.asarray(x[0, 0] if x.shape[1] == 1 else x[0].mean(axis=0), dtype=np.float32)
+            panel = ImagePanel(f"{which} ({meta.get('iterations')} it)")
+            panel.set_image(img, (0.0, float(np.percentile(img, 99.5)) or 1.0))
+            panel.footer.setText(f"{path.name} · {img.shape[1]}x{img.shape[0]}")
+            self.panels[which] = panel
+            self.meta[which] = meta
+            lay.addWidget(panel)
+        if not self.panels:
+            lay.addWidget(QLabel("this job has no result yet"))
+
+
+class JobsPanel(QWidget):
+    """Jobs table, loss plot, latest preview, and the actions."""
+
+    job_created = Signal(object)
+
+    def __init__(self, window: MainWindow, poll_ms: int = 1000) -> None:
+        super().__init__(window)
+        self.window_ = window
+        jobs_dir = window.settings.jobs_dir or str(default_jobs_dir())
+        window.settings.jobs_dir = jobs_dir
+        self.queue = JobQueue(jobs_dir)
+        self.views: list[JobView] = []
+        self.result_dialog: ResultDialog | None = None
+
+        self.new_button = QPushButton("New job from current measurement…")
+        self.cancel_button = QPushButton("Cancel")
+        self.resume_button = QPushButton("Resume")
+        self.open_button = QPushButton("Open results")
+        self.folder_button = QPushButton("Open folder")
+        self.folder_label = QLabel(f"jobs folder: {jobs_dir}")
+        self.folder_label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.message = _MessageLabel()
+        bar = QHBoxLayout()
+        for b in (self.new_button, self.cancel_button, self.resume_button, self.open_button,
+                  self.folder_button):
+            bar.addWidget(b)
+        bar.addStretch(1)
+        bar.addWidget(self.folder_label)
+
+        self.table = QTableWidget(0, len(_COLUMNS))
+        self.table.setHorizontalHeaderLabels(list(_COLUMNS))
+        self.table.setSelectionBehavior(QTableWidget.SelectionBehavior.SelectRows)
+        self.table.setSelectionMode(QTableWidget.SelectionMode.SingleSelection)
+        self.table.setEditTriggers(QTableWidget.EditTrigger.NoEditTriggers)
+        self.table.horizontalHeader().setSectionResizeMode(0, QHeaderView.ResizeMode.Stretch)
+        self.table.verticalHeader().setVisible(False)
+        self.loss_plot = pg.PlotWidget()
+        self.loss_plot.setLabel("left", "log10")
+        self.loss_plot.setLabel("bottom", "iteration")
+        self.loss_plot.addLegend(offset=(-10, 10))
+        self.loss_curve = self.loss_plot.plot([], [], pen=pg.mkPen("c", width=2), name="loss")
+        self.held_curve = self.loss_plot.plot([], [], pen=pg.mkPen("y", width=1),
+                                              name="held-out")
+        self.preview = ImagePanel("Latest preview")
+        self.preview.autoscale_button.setVisible(False)
+        self.details = QLabel("")
+        self.details.setWordWrap(True)
+        self.details.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+
+        split = QSplitter(Qt.Orientation.Horizontal)
+        left = QWidget()
+        ll = QVBoxLayout(left)
+        ll.setContentsMargins(0, 0, 0, 0)
+        ll.addWidget(self.table, 1)
+        ll.addWidget(self.details)
+        split.addWidget(left)
+        split.addWidget(self.loss_plot)
+        split.addWidget(self.preview)
+        split.setSizes([500, 300, 250])
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(2, 2, 2, 2)
+        lay.addLayout(bar)
+        lay.addWidget(self.message)
+        lay.addWidget(split, 1)
+
+        self.new_button.clicked.connect(self.new_job_dialog)
+        self.cancel_button.clicked.connect(self.cancel_selected)
+        self.resume_button.clicked.connect(self.resume_selected)
+        self.open_button.clicked.connect(self.open_selected)
+        self.folder_button.clicked.connect(self.open_folder)
+        self.table.itemSelectionChanged.connect(self._selection_changed)
+        self.timer = QTimer(self)
+        self.timer.setInterval(int(poll_ms))
+        self.timer.timeout.connect(self.refresh)
+        self.timer.start()
+        self._shown_preview: Path | None = None
+        self.refresh()
+
+    # -- state ---------------------------------------------------------------------------------
+
+    def stop(self) -> None:
+        """Stop polling (the jobs themselves keep running)."""
+        self.timer.stop()
+
+    def refresh(self) -> None:
+        """Poll the queue (starts queued jobs) and update the table and the details."""
+        try:
+            views = self.queue.poll()
+        except Exception as exc:  # a broken folder must not break the window
+            self.message.setText(f"jobs folder: {exc}")
+            return
+        selected = self.selected()
+        keep = selected.folder if selected is not None else None
+        self.views = views
+        self.table.setRowCount(len(views))
+        for row, v in enumerate(views):
+            state = v.state if v.state != "finished" else f"finished: {v.finish_reason}"
+            cells = (v.name, v.device, state, None, _hms(v.eta_s),
+                     f"{v.iteration}" + (f" / {v.max_iter}" if v.max_iter else ""),
+                     "–" if v.loss is None else f"{v.loss:.4g}")
+            for col, text in enumerate(cells):
+                if text is None:
+                    continue
+                item = self.table.item(row, col)
+                if item is None:
+                    item = QTableWidgetItem()
+                    self.table.setItem(row, col, item)
+                if item.text() != text:
+                    item.setText(text)
+                if col == 0:
+                    item.setToolTip(str(v.folder))
+            bar = self.table.cellWidget(row, 3)
+            if not isinstance(bar, QProgressBar):
+                bar = QProgressBar()
+                bar.setRange(0, 1000)
+                self.table.setCellWidget(row, 3, bar)
+            bar.setValue(int(1000 * v.fraction))
+            bar.setFormat(f"{100 * v.fraction:.0f}%")
+        if keep is not None:
+            for row, v in enumerate(views):
+                if v.folder == keep:
+                    self.table.selectRow(row)
+        elif views and self.table.currentRow() < 0:
+            self.table.selectRow(len(views) - 1)
+        self._show_details()
+
+    def selected(self) -> JobView | None:
+        """The selected job."""
+        rows = self.table.selectionModel().selectedRows() if self.table.selectionModel() else []
+        if not rows:
+            return None
+        r = rows[0].row()
+        return self.views[r] if 0 <= r < len(self.views) else None
+
+    def _selection_changed(self) -> None:
+        self._shown_preview = None
+        self._show_details()
+
+    def _show_details(self) -> None:
+        v = self.selected()
+        self.cancel_button.setEnabled(v is not None and v.state in ("queued", "starting",
+                                                                    "running", "held"))
+        self.resume_button.setEnabled(v is not None and v.can_resume)
+        self.open_button.setEnabled(v is not None and bool(v.results))
+        if v is None:
+            self.details.setText("")
+            return
+        mem = v.memory.get("total_bytes")
+        lines = [f"{v.folder}", f"state: {v.state}" + (f" – {v.detail}" if v.detail else "")]
+        if mem is not None:
+            lines.append(f"memory estimate: {_fmt_bytes(mem)}")
+        if v.elapsed_s is not None:
+            lines.append(f"elapsed {_hms(v.elapsed_s)}, ETA {_hms(v.eta_s)}")
+        self.details.setText("\n".join(lines))
+        its, loss, held = read_loss(v.folder)
+        ok = np.isfinite(loss) & (loss > 0)
+        self.loss_curve.setData(its[ok], np.log10(loss[ok]))
+        okh = np.isfinite(held) & (held > 0)
+        self.held_curve.setData(its[okh], np.log10(held[okh]))
+        if v.last_preview is not None and v.last_preview != self._shown_preview:
+            img = _load_png(v.last_preview)
+            if img is not None:
+                self.preview.set_image(img, (0.0, 255.0))
+                self.preview.footer.setText(v.last_preview.name)
+                self._shown_preview = v.last_preview
+
+    # -- actions -------------------------------------------------------------------------------
+
+    def new_job_dialog(self) -> NewJobDialog | None:
+        """Ask for the settings of a job on the newest frame and the preview's PSF."""
+        w = self.window_
+        frame = w.last_frame
+        psf = w.engine.psf
+        if frame is None or psf is None:
+            self.message.setText("a job needs a measurement (a live or snapped frame) and a PSF "
+                                 "(the simulated bench's, a loaded one or a calibration)")
+            return None
+        src = (f"measurement: frame {frame.frame_id} ({frame.shape[1]}x{frame.shape[0]}, "
+               f"{frame.backend}); PSF: {w.psf_source or 'current'}")
+        dlg = NewJobDialog(frame.shape, src, self)
+        self.dialog = dlg
+        dlg.accepted.connect(lambda: self._create_from_dialog(dlg, frame, psf))
+        dlg.show()
+        return dlg
+
+    def _create_from_dialog(self, dlg: NewJobDialog, frame: Any, psf: Any) -> None:
+        self.create_job(frame, psf, dlg.name.text() or "udn", int(dlg.downsample.value()),
+                        dlg.sections())
+
+    def create_job(self, frame: Any, psf: Any, name: str, downsample: int,
+                   sections: dict[str, dict[str, Any]]) -> Path | None:
+        """Write and queue a job for ``frame`` with ``psf``; returns its folder."""
+        w = self.window_
+        if frame.shape != psf.shape:
+            self.message.setText(
+                f"the frame ({frame.shape}) and the PSF ({psf.shape}) differ in size: use a "
+                "full-sensor frame")
+            return None
+        s = w.engine.settings
+        dark: float | str
+        if s.dark is not None:
+            dark = float(s.dark)
+        else:
+            flat = np.asarray(frame.pixels, dtype=np.float32).ravel()
+            k = flat.size // 100
+            dark = float(np.partition(flat, k)[k])
+        meta = {"frame": frame.metadata(), "psf_source": w.psf_source,
+                "psf_path": w.settings.psf_path or None, "dark": dark}
+        try:
+            folder = create_job(self.queue.jobs_dir, name, frame.pixels, psf,
+                                downsample=downsample, dark=dark, sections=sections,
+                                measurement_metadata=meta)
+        except Exception as exc:
+            self.message.setText(f"cannot create the job: {exc}")
+            return None
+        self.message.setText(f"queued {folder.name}")
+        self.refresh()
+        for row, v in enumerate(self.views):
+            if v.folder == folder:
+                self.table.selectRow(row)
+        self.job_created.emit(folder)
+        return folder
+
+    def cancel_selected(self) -> None:
+        """Cancel the selected job (withdraw it, or stop its run at the next iteration)."""
+        v = self.selected()
+        if v is None:
+            return
+        try:
+            self.message.setText(cancel_job(v.folder))
+        except Exception as exc:
+            self.message.setText(f"cannot cancel: {exc}")
+        self.refresh()
+
+    def resume_selected(self) -> None:
+        """Queue a resume of the selected (interrupted or cancelled) run."""
+        v = self.selected()
+        if v is None:
+            return
+        try:
+            queue_resume(v.folder)
+        except Exception as exc:
+            self.message.setText(f"cannot resume: {exc}")
+            return
+        self.message.setText(f"resume of {v.name} queued")
+        self.refresh()
+
+    def open_selected(self) -> ResultDialog | None:
+        """Show the selected job's best and final estimates."""
+        v = self.selected()
+        if v is None or not v.results:
+            return None
+        try:
+            dlg = ResultDialog(v, self)
+        except Exception as exc:
+            self.message.setText(f"cannot open the result: {exc}")
+            return None
+        self.result_dialog = dlg
+        dlg.show()
+        return dlg
+
+    def open_folder(self) -> None:
+        """Open the selected job's folder (or the jobs folder) in the file manager."""
+        v = self.selected()
+        target = v.folder if v is not None else self.queue.jobs_dir
+        QDesktopServices.openUrl(QUrl.fromLocalFile(str(target)))
+
+
+class _MessageLabel(QLabel):
+    """A one-line message that takes no space while empty."""
+
+    def __init__(self) -> None:
+        super().__init__("")
+        self.setWordWrap(True)
+        self.setVisible(False)
+
+    def setText(self, text: str) -> None:
+        """Show ``text`` (hidden when empty)."""
+        super().setText(text)
+        self.setVisible(bool(text))
+
+
+def _load_png(path: Path) -> Any:
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            return np.asarray(im.convert("L"), dtype=np.float32)
+    except (OSError, ValueError):
+        return None

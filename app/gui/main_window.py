@@ -1,0 +1,1020 @@
+"""The main window: devices, live view, live reconstruction preview, calibration, UDN jobs.
+
+Threads: the GUI thread only displays. Everything that touches a device runs on that device's
+:class:`~app.gui.workers.TaskQueue` (one QThread each, in order); the live view is a QTimer
+that polls the camera's newest frame without waiting (:meth:`Camera.latest_frame` with timeout
+0); the preview runs on its own QThread (:class:`~app.gui.workers.PreviewWorker`) and only ever
+sees the newest frame.
+
+Device loss: an error from the live stream (the camera timing out) or from the point source
+(its port gone) is shown in the window's banner and the device panel, and a reconnect is tried
+every ``reconnect_interval_ms`` until it works or the user disconnects.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PySide6.QtCore import QByteArray, Qt, QTimer, Signal
+from PySide6.QtGui import QAction, QCloseEvent
+from PySide6.QtWidgets import (
+    QDockWidget,
+    QFileDialog,
+    QLabel,
+    QMainWindow,
+    QScrollArea,
+    QSplitter,
+    QWidget,
+)
+
+from app.gui.bench import (
+    SIM_CAMERA,
+    SIM_PORT,
+    Bench,
+    CameraChoice,
+    PortChoice,
+    SimConfig,
+    list_camera_choices,
+    list_port_choices,
+)
+from app.gui.image_view import ImagePanel, configure_pyqtgraph
+from app.gui.panels import (
+    CameraControls,
+    DevicePanel,
+    PreviewControls,
+    make_sidebar,
+    set_status,
+)
+from app.gui.preview_engine import PreviewEngine, PreviewResult, PreviewSettings
+from app.gui.settings import AppSettings, default_jobs_dir, save_settings
+from app.gui.workers import PreviewWorker, TaskQueue
+
+__all__ = ["MainWindow", "WorkflowHandle", "load_psf_any"]
+
+_log = logging.getLogger(__name__)
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc)
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def _read_camera(cam: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+    """What the camera reports now (None where it lacks a feature), and the ranges."""
+    values: dict[str, Any] = {}
+    for name in CameraControls.PROPERTIES:
+        try:
+            v = getattr(cam, name)
+        except Exception:  # FeatureNotAvailable or a device error: the control is disabled
+            v = None
+        values[name] = getattr(v, "value", v)
+    ranges: dict[str, Any] = {}
+    try:
+        caps = cam.capabilities()
+        ranges["exposure_us"] = caps.exposure_range_us
+        ranges["gain"] = caps.gain_range
+        ranges["frame_rate_hz"] = caps.frame_rate_range_hz
+        values["bit_depth"] = cam.bit_depth
+        values["sensor"] = (caps.sensor_height, caps.sensor_width)
+        values["model"] = caps.model
+    except Exception as exc:
+        _log.warning("reading the camera's capabilities: %s", exc)
+    try:
+        roi = cam.roi
+        values["roi"] = (roi.x, roi.y, roi.width, roi.height)
+    except Exception:
+        values["roi"] = None
+    return values, ranges
+
+
+class _Rate:
+    """Events per second over the last few seconds."""
+
+    def __init__(self, window_s: float = 2.0) -> None:
+        self.window_s = window_s
+        self.times: collections.deque[float] = collections.deque()
+
+    def tick(self, t: float | None = None) -> None:
+        now = time.monotonic() if t is None else t
+        self.times.append(now)
+        while self.times and now - self.times[0] > self.window_s:
+            self.times.popleft()
+
+    def rate(self) -> float:
+        if len(self.times) < 2:
+            return 0.0
+        span = self.times[-1] - self.times[0]
+        return (len(self.times) - 1) / span if span > 0 else 0.0
+
+
+class WorkflowHandle:
+    """A workflow started by :meth:`MainWindow.run_camera_workflow`; :meth:`cancel` it."""
+
+    def __init__(self) -> None:
+        self.workflow: Any = None
+        self.task: Any = None
+
+    def cancel(self) -> None:
+        """Cancel at the workflow's next progress point (nothing is saved)."""
+        if self.workflow is not None:
+            self.workflow.cancel()
+
+
+class MainWindow(QMainWindow):
+    """The lenslesscam desktop app.
+
+    Args:
+        settings: what to start with (see :class:`~app.gui.settings.AppSettings`).
+        settings_path: where :meth:`closeEvent` saves them (None: the user config file;
+            ``False``-y Path("") disables saving).
+        bench: the devices (default: a new :class:`~app.gui.bench.Bench`, simulated bench).
+        autoconnect: connect the camera (and point source) from the settings at start.
+        reconnect_interval_ms: time between reconnect attempts after a device is lost.
+
+    """
+
+    camera_state_changed = Signal(str)
+    frame_shown = Signal(object)
+    preview_shown = Signal(object)
+    light_state_changed = Signal(str)
+
+    def __init__(
+        self,
+        settings: AppSettings | None = None,
+        *,
+        settings_path: Path | None = None,
+        save_settings_on_close: bool = True,
+        bench: Bench | None = None,
+        autoconnect: bool = True,
+        reconnect_interval_ms: int = 1000,
+        light_check_interval_ms: int = 2000,
+    ) -> None:
+        super().__init__()
+        configure_pyqtgraph()
+        self.setWindowTitle("lenslesscam")
+        self.settings = settings or AppSettings()
+        self._settings_path = settings_path
+        self._save_on_close = save_settings_on_close
+        self.bench = bench or Bench(SimConfig(scene=self.settings.sim_scene))
+        self.reconnect_interval_ms = int(reconnect_interval_ms)
+
+        self.camera_queue = TaskQueue("camera", self)
+        self.light_queue = TaskQueue("light", self)
+
+        # state
+        self.camera_state = "disconnected"  # connecting | live | stopped | reconfiguring | lost
+        self.light_state = "disconnected"  # connecting | connected | lost
+        self.last_frame: Any = None
+        self.frames_shown = 0
+        self.previews_shown = 0
+        self.reconnect_attempts = 0
+        self.last_error = ""
+        self._bit_depth: int | None = None
+        self._display_rate = _Rate()
+        self._camera_rate = _Rate()
+        self._preview_rate = _Rate()
+        self._latency_ms: collections.deque[float] = collections.deque(maxlen=30)
+        self._preview_latency_ms: collections.deque[float] = collections.deque(maxlen=30)
+        self._closing = False
+        self.psf_source = ""
+
+        # widgets
+        self.banner = QLabel("")
+        self.banner.setObjectName("banner")
+        self.banner.setWordWrap(True)
+        self.banner.setStyleSheet(
+            "QLabel#banner { background: #ffebe9; color: #82071e; padding: 4px;"
+            " border: 1px solid #ff8182; }"
+        )
+        self.banner.setVisible(False)
+        self.raw_panel = ImagePanel("Raw frame", with_roi=True, with_saturation=True)
+        self.preview_panel = ImagePanel("Reconstruction preview", auto_levels_option=True)
+        self.preview_panel.auto_levels.setChecked(True)
+        split = QSplitter(Qt.Orientation.Horizontal)
+        split.addWidget(self.raw_panel)
+        split.addWidget(self.preview_panel)
+        split.setSizes([1, 1])
+        central = QWidget()
+        from PySide6.QtWidgets import QVBoxLayout
+
+        lay = QVBoxLayout(central)
+        lay.setContentsMargins(2, 2, 2, 2)
+        lay.addWidget(self.banner)
+        lay.addWidget(split, 1)
+        self.setCentralWidget(central)
+
+        self.device_panel = DevicePanel()
+        self.camera_controls = CameraControls()
+        self.preview_controls = PreviewControls()
+        side = make_sidebar(self.device_panel, self.camera_controls, self.preview_controls)
+        scroll = QScrollArea()
+        scroll.setWidget(side)
+        scroll.setWidgetResizable(True)
+        scroll.setMinimumWidth(side.sizeHint().width()
+                               + scroll.verticalScrollBar().sizeHint().width() + 4)
+        scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.controls_dock = QDockWidget("Controls", self)
+        self.controls_dock.setObjectName("controls-dock")
+        self.controls_dock.setWidget(scroll)
+        self.controls_dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable
+                                       | QDockWidget.DockWidgetFeature.DockWidgetFloatable)
+        self.addDockWidget(Qt.DockWidgetArea.LeftDockWidgetArea, self.controls_dock)
+        self.status_label = QLabel("")
+        self.statusBar().addWidget(self.status_label, 1)
+
+        # preview
+        try:
+            ps = PreviewSettings.from_dict(self.settings.preview)
+        except (TypeError, ValueError) as exc:
+            _log.warning("preview settings ignored: %s", exc)
+            ps = PreviewSettings()
+        self.preview_controls.set_settings(ps)
+        self.preview_controls.enabled.setChecked(self.settings.preview_enabled)
+        self.engine = PreviewEngine(None, ps)
+        self.preview_worker = PreviewWorker(self.engine)
+        self.preview_worker.result.connect(self._on_preview)
+        self.preview_worker.error.connect(self._on_preview_error)
+
+        # timers
+        self.poll_timer = QTimer(self)
+        self.poll_timer.setInterval(max(5, round(1000.0 / max(1.0, self.settings.display_hz))))
+        self.poll_timer.timeout.connect(self._poll)
+        self.reconnect_timer = QTimer(self)
+        self.reconnect_timer.setSingleShot(True)
+        self.reconnect_timer.setInterval(self.reconnect_interval_ms)
+        self.reconnect_timer.timeout.connect(self._try_reconnect_camera)
+        self.light_timer = QTimer(self)
+        self.light_timer.setInterval(int(light_check_interval_ms))
+        self.light_timer.timeout.connect(self._check_light)
+        self.readout_timer = QTimer(self)
+        self.readout_timer.setInterval(250)
+        self.readout_timer.timeout.connect(self._update_readouts)
+        self.readout_timer.start()
+
+        self._connect_signals()
+        self._build_menu()
+        self._build_extra_docks()
+        self.device_panel.set_scene(self.settings.sim_scene)
+        # discovery may block (GenTL producers): the lists fill in from the worker
+        self.device_panel.set_cameras(
+            [CameraChoice(SIM_CAMERA, "sim", "Simulated camera (bundled scene, tutorial PSF)")],
+            self.settings.camera)
+        self.device_panel.set_ports([PortChoice(SIM_PORT, "Simulated point source (PTY)")],
+                                    self.settings.light_port)
+        self._restore_geometry()
+        if self.settings.psf_path:
+            self._load_psf(self.settings.psf_path, quiet=True)
+        if autoconnect:
+            self.connect_camera(self.settings.camera or SIM_CAMERA)
+            if self.settings.connect_light and self.settings.light_port:
+                self.connect_light(self.settings.light_port)
+        self.refresh_devices()
+
+    # -- wiring --------------------------------------------------------------------------------
+
+    def _connect_signals(self) -> None:
+        dp = self.device_panel
+        dp.refresh_requested.connect(self.refresh_devices)
+        dp.connect_camera_requested.connect(self.connect_camera)
+        dp.disconnect_camera_requested.connect(self.disconnect_camera)
+        dp.scene_changed.connect(self.set_scene)
+        dp.connect_light_requested.connect(self.connect_light)
+        dp.disconnect_light_requested.connect(self.disconnect_light)
+        dp.light_on_changed.connect(self.set_light_on)
+        dp.intensity_changed.connect(self.set_light_intensity)
+        cc = self.camera_controls
+        cc.live_toggled.connect(self.set_live)
+        cc.property_changed.connect(self.set_camera_property)
+        cc.snap_requested.connect(self.snap_and_save)
+        cc.save_as_requested.connect(self._save_as)
+        cc.roi_visible_changed.connect(self.raw_panel.set_roi_visible)
+        cc.roi_apply_requested.connect(self.apply_roi)
+        cc.roi_reset_requested.connect(self.reset_roi)
+        pc = self.preview_controls
+        pc.settings_changed.connect(self.set_preview_settings)
+        pc.enabled_changed.connect(self._preview_enabled)
+        pc.load_psf_requested.connect(self._choose_psf)
+        pc.reset_requested.connect(self.engine.reset)
+
+    def _build_menu(self) -> None:
+        m = self.menuBar().addMenu("&File")
+        act = QAction("Snap && save", self)
+        act.setShortcut("Ctrl+S")
+        act.triggered.connect(self.snap_and_save)
+        m.addAction(act)
+        act = QAction("Load PSF…", self)
+        act.triggered.connect(self._choose_psf)
+        m.addAction(act)
+        m.addSeparator()
+        act = QAction("Quit", self)
+        act.setShortcut("Ctrl+Q")
+        act.triggered.connect(self.close)
+        m.addAction(act)
+        self.tools_menu = self.menuBar().addMenu("&Tools")
+        self.toolbar = self.addToolBar("Main")
+        self.toolbar.setObjectName("main-toolbar")
+        self.toolbar.addAction(m.actions()[0])
+
+    def _build_extra_docks(self) -> None:
+        """Calibration wizard launcher and the UDN jobs panel (when their modules load)."""
+        try:
+            from app.gui.calibration_wizard import add_calibration_action
+
+            add_calibration_action(self)
+            self.toolbar.addAction(self.calibration_action)
+        except ImportError as exc:
+            _log.info("calibration wizard unavailable: %s", exc)
+        try:
+            from app.gui.jobs_panel import add_jobs_dock
+
+            add_jobs_dock(self)
+            act = QAction("New UDN job…", self)
+            act.triggered.connect(self.jobs_panel.new_job_dialog)
+            self.toolbar.addAction(act)
+        except ImportError as exc:
+            _log.info("jobs panel unavailable: %s", exc)
+
+    # -- messages ------------------------------------------------------------------------------
+
+    def show_error(self, text: str) -> None:
+        """Show ``text`` in the banner (empty: hide it)."""
+        self.last_error = text or self.last_error
+        self.banner.setText(text)
+        self.banner.setVisible(bool(text))
+
+    def _status(self, text: str) -> None:
+        self.status_label.setText(text)
+
+    def _set_camera_state(self, state: str, text: str = "", kind: str = "off") -> None:
+        self.camera_state = state
+        set_status(self.device_panel.camera_status, text or state, kind)
+        connected = state in ("live", "stopped", "reconfiguring")
+        self.camera_controls.set_connected(connected)
+        self.device_panel.set_camera_connected(state != "disconnected", self.bench.is_simulated)
+        self.camera_controls.set_live(state == "live")
+        if state == "live":
+            self.poll_timer.start()
+        else:
+            self.poll_timer.stop()
+        self.camera_state_changed.emit(state)
+
+    # -- camera --------------------------------------------------------------------------------
+
+    def refresh_devices(self) -> None:
+        """List cameras and serial ports again (on the camera worker: discovery may block)."""
+        def work() -> tuple[Any, Any]:
+            return list_camera_choices(), list_port_choices()
+
+        def done(r: tuple[Any, Any]) -> None:
+            cams = list(r[0])
+            spec = self.bench.camera_spec
+            if spec and spec not in {c.spec for c in cams}:
+                # an open device may be missing from discovery (a GenTL producer does not
+                # list a device that is open): keep it selectable
+                cams.append(CameraChoice(spec, spec.partition(":")[0], f"{spec} (open)"))
+            self.device_panel.set_cameras(cams, spec or self.settings.camera)
+            self.device_panel.set_ports(r[1], self.bench.light_port or self.settings.light_port)
+            self._status(f"{len(cams)} camera(s), {len(r[1])} point-source port(s) found")
+
+        self.camera_queue.submit(work, name="refresh", on_done=done,
+                                 on_error=lambda e: self.show_error(f"refresh: {_describe(e)}"))
+
+    def connect_camera(self, spec: str) -> None:
+        """Open camera ``spec`` (closing the current one), apply the settings, start live."""
+        self.reconnect_timer.stop()
+        self.poll_timer.stop()
+        self._set_camera_state("connecting", f"connecting to {spec}…", "busy")
+        s = self.settings
+        bench = self.bench
+
+        def work() -> tuple[dict[str, Any], dict[str, Any]]:
+            cam = bench.open_camera(spec)
+            for name, value in (("exposure_us", s.exposure_us), ("gain", s.gain),
+                                ("frame_rate_hz", s.frame_rate_hz),
+                                ("shutter_mode", s.shutter_mode)):
+                if value in ("", None):
+                    continue
+                try:
+                    setattr(cam, name, value)
+                except Exception as exc:  # a saved value the device refuses: keep its own
+                    _log.info("%s: not restoring %s=%r: %s", spec, name, value, exc)
+            cam.start_live()
+            return _read_camera(cam)
+
+        def done(r: tuple[dict[str, Any], dict[str, Any]]) -> None:
+            values, ranges = r
+            self.settings.camera = spec
+            self._camera_values(values, ranges)
+            desc = values.get("model") or spec
+            self._set_camera_state("live", f"{spec}: {desc} – live", "ok")
+            self.show_error("")
+            self._configure_psf_for_camera()
+
+        def failed(exc: BaseException) -> None:
+            msg = f"Camera {spec}: cannot connect: {_describe(exc)}"
+            self._set_camera_state("disconnected", msg, "error")
+            self.show_error(msg)
+
+        self.camera_queue.submit(work, name=f"connect {spec}", on_done=done, on_error=failed)
+
+    def _camera_values(self, values: dict[str, Any], ranges: dict[str, Any]) -> None:
+        self.camera_controls.show_values(values, ranges)
+        bd = values.get("bit_depth")
+        self._bit_depth = int(bd) if bd else None
+        self.raw_panel.saturation_level = (1 << self._bit_depth) - 1 if self._bit_depth else None
+
+    def _configure_psf_for_camera(self) -> None:
+        if self.settings.psf_path:
+            return
+        if self.bench.is_simulated:
+            self.engine.set_psf(self.bench.sim_psf)
+            self.psf_source = "simulated bench (tutorial PSF)"
+        else:
+            self.engine.set_psf(None)
+            self.psf_source = ""
+            self.preview_panel.set_message(
+                "no PSF for this camera: load one (File > Load PSF) or run the calibration "
+                "wizard")
+        self._show_psf_label()
+
+    def _show_psf_label(self) -> None:
+        text = f"PSF: {self.psf_source}" if self.psf_source else (
+            "PSF: none – load one or run the calibration wizard")
+        self.preview_controls.psf_label.setText(text)
+
+    def disconnect_camera(self) -> None:
+        """Stop and close the camera (also stops reconnect attempts)."""
+        self.reconnect_timer.stop()
+        self._set_camera_state("disconnected", "disconnecting…", "busy")
+        bench = self.bench
+
+        def done(_r: Any) -> None:
+            self._set_camera_state("disconnected", "not connected", "off")
+            self.show_error("")
+
+        self.camera_queue.submit(bench.close_camera, name="disconnect", on_done=done,
+                                 on_error=lambda e: done(None))
+
+    def set_live(self, on: bool) -> None:
+        """Start or stop the live stream."""
+        cam = self.bench.camera
+        if cam is None:
+            return
+        self.poll_timer.stop()
+        self._set_camera_state("reconfiguring", "starting…" if on else "stopping…", "busy")
+
+        def work() -> None:
+            cam.stop()
+            if on:
+                cam.start_live()
+
+        def done(_r: Any) -> None:
+            self._set_camera_state("live" if on else "stopped",
+                                   "live" if on else "stopped (not streaming)", "ok")
+
+        self.camera_queue.submit(work, name="live", on_done=done, on_error=self._camera_failed)
+
+    def set_camera_property(self, name: str, value: Any) -> None:
+        """Set one camera property (on the worker); the controls then show what it reports."""
+        cam = self.bench.camera
+        if cam is None or value is None:
+            return
+        if name in ("exposure_us", "gain", "frame_rate_hz", "shutter_mode"):
+            setattr(self.settings, name, value)
+
+        def work() -> tuple[dict[str, Any], dict[str, Any]]:
+            setattr(cam, name, value)
+            return _read_camera(cam)
+
+        def failed(exc: BaseException) -> None:
+            self._status(f"{name} = {value!r} refused: {_describe(exc)}")
+            self.show_error(f"Camera: {name} = {value!r} refused: {_describe(exc)}")
+            self.camera_queue.submit(lambda: _read_camera(cam), name="read back",
+                                     on_done=lambda r: self._camera_values(*r))
+
+        self.camera_queue.submit(work, name=f"set {name}",
+                                 on_done=lambda r: self._camera_values(*r), on_error=failed)
+
+    def set_scene(self, name: str) -> None:
+        """Change the simulated camera's scene."""
+        self.settings.sim_scene = name
+        cam = self.bench.camera
+        if cam is None or not self.bench.is_simulated:
+            return
+        from app.gui.bench import set_sim_scene
+
+        sim = self.bench.sim
+        self.camera_queue.submit(lambda: set_sim_scene(cam, name, sim.peak_fraction,
+                                                       sim.scene_fill), name="scene",
+                                 on_error=lambda e: self.show_error(f"scene: {_describe(e)}"))
+
+    def apply_roi(self) -> None:
+        """Set the camera's ROI to the rectangle drawn on the raw frame (restarts live)."""
+        rect = self.raw_panel.roi_rect()
+        frame = self.last_frame
+        if rect is None or frame is None:
+            self._status("show the ROI and draw it on the raw frame first")
+            return
+        from drivers.camera import Roi
+
+        b = frame.binning
+        x, y, w, h = rect
+        roi = Roi(frame.roi.x + x * b, frame.roi.y + y * b, w * b, h * b)
+        self._reconfigure(lambda cam: setattr(cam, "roi", roi), f"ROI {roi.width}x{roi.height}")
+
+    def reset_roi(self) -> None:
+        """Full-sensor ROI (restarts live)."""
+        def full(cam: Any) -> None:
+            from drivers.camera import Roi
+
+            caps = cam.capabilities()
+            cam.roi = Roi(0, 0, caps.sensor_width, caps.sensor_height)
+
+        self._reconfigure(full, "full sensor")
+
+    def _reconfigure(self, change: Any, what: str) -> None:
+        cam = self.bench.camera
+        if cam is None:
+            return
+        was_live = self.camera_state == "live"
+        self._set_camera_state("reconfiguring", f"setting {what}…", "busy")
+
+        def work() -> tuple[dict[str, Any], dict[str, Any]]:
+            cam.stop()
+            try:
+                change(cam)
+            finally:
+                if was_live:
+                    cam.start_live()
+            return _read_camera(cam)
+
+        def done(r: tuple[dict[str, Any], dict[str, Any]]) -> None:
+            self._camera_values(*r)
+            self.engine.reset()
+            self._set_camera_state("live" if was_live else "stopped", what, "ok")
+
+        def failed(exc: BaseException) -> None:
+            self.show_error(f"Camera: {what}: {_describe(exc)}")
+            self._set_camera_state("live" if was_live else "stopped", f"{what} failed", "error")
+
+        self.camera_queue.submit(work, name=what, on_done=done, on_error=failed)
+
+    def _camera_failed(self, exc: BaseException) -> None:
+        """A camera task failed: the device may be gone; try to reconnect."""
+        self._camera_lost(exc)
+
+    # -- live view -----------------------------------------------------------------------------
+
+    def _poll(self) -> None:
+        if self.camera_state != "live":
+            return
+        cam = self.bench.camera
+        if cam is None:
+            return
+        try:
+            frame = cam.latest_frame(0.0)
+        except Exception as exc:  # the stream ended with an error: the device is lost
+            self._camera_lost(exc)
+            return
+        if frame is not None:
+            self._show_frame(frame)
+
+    def _show_frame(self, frame: Any) -> None:
+        self.last_frame = frame
+        self.raw_panel.set_image(frame.pixels)
+        now = time.time()
+        self._latency_ms.append((now - frame.timestamp) * 1000.0)
+        self._display_rate.tick()
+        self._camera_rate.tick(frame.timestamp)
+        self.frames_shown += 1
+        if self.preview_controls.enabled.isChecked() and self.engine.has_psf:
+            self.preview_worker.submit(frame)
+        self.frame_shown.emit(frame)
+
+    def _update_readouts(self) -> None:
+        parts: list[str] = []
+        cam = self.bench.camera
+        if self.camera_state == "live" and cam is not None:
+            try:
+                stats = cam.stream_stats()
+                dropped = stats.dropped
+            except Exception:
+                dropped = -1
+            lat = float(np.median(self._latency_ms)) if self._latency_ms else float("nan")
+            parts.append(f"camera {self._camera_rate.rate():.1f} fps")
+            parts.append(f"shown {self._display_rate.rate():.1f} fps")
+            parts.append(f"dropped {dropped}")
+            parts.append(f"latency {lat:.0f} ms")
+            if self.raw_panel.saturation_level is not None:
+                parts.append(f"saturated {self.raw_panel.saturated} px")
+            st = self.raw_panel.roi_stats()
+            if st is not None:
+                parts.append(f"ROI mean {st[0]:.0f} max {st[1]:.0f}")
+            if self.last_frame is not None:
+                parts.append(f"{self.last_frame.shape[1]}x{self.last_frame.shape[0]}")
+        else:
+            parts.append(self.camera_state)
+        self.raw_panel.footer.setText(" · ".join(parts))
+        ps = self.preview_worker.slot.stats()
+        if self._preview_latency_ms:
+            plat = float(np.median(self._preview_latency_ms))
+            self.preview_panel.footer.setText(
+                f"preview {self._preview_rate.rate():.1f}/s · latency {plat:.0f} ms · "
+                f"stale dropped {ps.dropped} · {self.engine.settings.iters_per_frame} it/frame"
+                f" · {self._last_preview_info}"
+            )
+
+    _last_preview_info = ""
+
+    # -- loss and reconnection ----------------------------------------------------------------
+
+    def _camera_lost(self, exc: BaseException) -> None:
+        if self.camera_state in ("disconnected", "lost") or self._closing:
+            return
+        self.poll_timer.stop()
+        self.reconnect_attempts = 0
+        msg = f"Camera lost: {_describe(exc)} – reconnecting…"
+        self._set_camera_state("lost", msg, "error")
+        self.show_error(msg)
+        self.reconnect_timer.start()
+
+    def _try_reconnect_camera(self) -> None:
+        if self.camera_state != "lost" or self._closing:
+            return
+        self.reconnect_attempts += 1
+        n = self.reconnect_attempts
+        bench = self.bench
+
+        def work() -> tuple[dict[str, Any], dict[str, Any]]:
+            cam = bench.camera
+            if cam is None:
+                raise RuntimeError("no camera")
+            with contextlib.suppress(Exception):
+                cam.stop()
+            bench.reconnect_camera(check_timeout_s=min(2.0, self.reconnect_interval_ms / 1000))
+            cam.start_live()
+            return _read_camera(cam)
+
+        def done(r: tuple[dict[str, Any], dict[str, Any]]) -> None:
+            if self.camera_state != "lost":
+                return
+            self._camera_values(*r)
+            self._set_camera_state("live", f"reconnected after {n} attempt(s) – live", "ok")
+            self.show_error("")
+            self._status(f"camera reconnected after {n} attempt(s)")
+
+        def failed(exc: BaseException) -> None:
+            if self.camera_state != "lost":
+                return
+            msg = f"Camera lost: {_describe(exc)} – reconnect attempt {n} failed, retrying…"
+            set_status(self.device_panel.camera_status, msg, "error")
+            self.show_error(msg)
+            self.reconnect_timer.start()
+
+        self.camera_queue.submit(work, name="reconnect camera", on_done=done, on_error=failed)
+
+    # -- point source --------------------------------------------------------------------------
+
+    def _set_light_state(self, state: str, text: str, kind: str) -> None:
+        self.light_state = state
+        set_status(self.device_panel.light_status, text, kind)
+        self.device_panel.set_light_connected(state == "connected")
+        if state in ("connected", "lost"):
+            self.light_timer.start()
+        else:
+            self.light_timer.stop()
+        self.light_state_changed.emit(state)
+
+    def connect_light(self, port: str) -> None:
+        """Connect the point source on ``port`` (``sim``: spawn the simulated firmware)."""
+        if not port:
+            return
+        self._set_light_state("connecting", f"connecting to {port}…", "busy")
+        bench = self.bench
+
+        def work() -> Any:
+            light = bench.open_light(port)
+            return light.identify(), light.status()
+
+        def done(r: Any) -> None:
+            ident, st = r
+            self.settings.light_port = port
+            self.settings.connect_light = True
+            self._set_light_state("connected", f"{ident}", "ok")
+            self.device_panel.show_light_state(st.is_on, st.intensity)
+
+        def failed(exc: BaseException) -> None:
+            msg = f"Point source {port}: cannot connect: {_describe(exc)}"
+            self._set_light_state("disconnected", msg, "error")
+            self.show_error(msg)
+
+        self.light_queue.submit(work, name="connect light", on_done=done, on_error=failed)
+
+    def disconnect_light(self) -> None:
+        """Switch the source off and close it."""
+        self.settings.connect_light = False
+        self._set_light_state("disconnected", "disconnecting…", "busy")
+        self.light_queue.submit(
+            self.bench.close_light, name="disconnect light",
+            on_done=lambda _r: self._set_light_state("disconnected", "not connected", "off"),
+            on_error=lambda _e: self._set_light_state("disconnected", "not connected", "off"))
+
+    def set_light_on(self, on: bool) -> None:
+        """Switch the source on (at the set intensity) or off."""
+        bench = self.bench
+        level = float(self.device_panel.intensity.value())
+
+        def work() -> Any:
+            light = bench.light
+            if light is None:
+                raise RuntimeError("no point source connected")
+            if on:
+                light.set_intensity(level)
+                light.on()
+            else:
+                light.off()
+            return light.status()
+
+        self.light_queue.submit(work, name="light on/off", on_done=self._light_status,
+                                on_error=self._light_lost)
+
+    def set_light_intensity(self, value: float) -> None:
+        """Set the source's intensity."""
+        bench = self.bench
+
+        def work() -> Any:
+            if bench.light is None:
+                raise RuntimeError("no point source connected")
+            bench.light.set_intensity(float(value))
+            return bench.light.status()
+
+        self.light_queue.submit(work, name="intensity", on_done=self._light_status,
+                                on_error=self._light_lost)
+
+    def _light_status(self, st: Any) -> None:
+        self.device_panel.show_light_state(st.is_on, st.intensity)
+        if self.light_state == "lost":
+            self._set_light_state("connected", f"reconnected: {st.identity}", "ok")
+            self.show_error("")
+
+    def _check_light(self) -> None:
+        if self.light_queue.busy or self.light_state not in ("connected", "lost"):
+            return
+        bench = self.bench
+        if self.light_state == "lost":
+            self.light_queue.submit(lambda: (bench.reconnect_light(), bench.check_light())[1],
+                                    name="reconnect light", on_done=self._light_status,
+                                    on_error=self._light_still_lost)
+        else:
+            self.light_queue.submit(bench.check_light, name="check light",
+                                    on_done=self._light_status, on_error=self._light_lost)
+
+    def _light_lost(self, exc: BaseException) -> None:
+        if self.light_state not in ("connected", "lost"):
+            self.show_error(f"Point source: {_describe(exc)}")
+            return
+        msg = f"Point source lost: {_describe(exc)} – reconnecting…"
+        self._set_light_state("lost", msg, "error")
+        self.show_error(msg)
+
+    def _light_still_lost(self, exc: BaseException) -> None:
+        if self.light_state == "lost":
+            msg = f"Point source lost: {_describe(exc)} – retrying…"
+            set_status(self.device_panel.light_status, msg, "error")
+            self.show_error(msg)
+
+    # -- preview -------------------------------------------------------------------------------
+
+    def set_preview_settings(self, s: PreviewSettings) -> None:
+        """New preview settings (applied at the next frame)."""
+        self.settings.preview = s.to_dict()
+        self.engine.set_settings(s)
+
+    def _preview_enabled(self, on: bool) -> None:
+        self.settings.preview_enabled = on
+        if not on:
+            self.preview_panel.set_message("preview off")
+
+    def _on_preview(self, res: PreviewResult) -> None:
+        self.preview_panel.set_image(res.image, res.levels)
+        self._preview_rate.tick()
+        self._preview_latency_ms.append(res.latency_s * 1000.0)
+        self._last_preview_info = f"{res.shape[1]}x{res.shape[0]} · residual {res.residual:.3f}"
+        self.previews_shown += 1
+        self.preview_shown.emit(res)
+
+    def _on_preview_error(self, text: str) -> None:
+        self.preview_panel.set_message(text)
+
+    def _choose_psf(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(
+            self, "Load PSF", self.settings.calibration_dir or str(Path.home()),
+            "PSF (*.tif *.tiff *.npy *.npz *.png *.mat);;All files (*)")
+        if path:
+            self._load_psf(path)
+
+    def _load_psf(self, path: str, *, quiet: bool = False) -> bool:
+        """Use the PSF in ``path`` for the preview (a calibration file or an image)."""
+        try:
+            psf = load_psf_any(path)
+            self.engine.set_psf(psf)
+        except Exception as exc:
+            if not quiet:
+                self.show_error(f"PSF {path}: {_describe(exc)}")
+            _log.warning("PSF %s: %s", path, exc)
+            return False
+        self.settings.psf_path = str(path)
+        self.psf_source = f"{Path(path).name} ({psf.shape[-2]}x{psf.shape[-1]})"
+        self._show_psf_label()
+        return True
+
+    def use_psf(self, psf: Any, source: str, path: str = "") -> None:
+        """Use ``psf`` for the preview (from the calibration wizard)."""
+        self.engine.set_psf(psf)
+        self.settings.psf_path = path
+        self.psf_source = source
+        self._show_psf_label()
+
+    # -- workflows (calibration) ---------------------------------------------------------------
+
+    def run_camera_workflow(
+        self,
+        make_steps: Any,
+        *,
+        name: str,
+        hide_scene: bool = False,
+        on_progress: Any = None,
+        on_done: Any = None,
+        on_error: Any = None,
+    ) -> WorkflowHandle:
+        """Run a calibration workflow on the camera's worker, the live view paused.
+
+        ``make_steps(camera, light_source)`` returns the workflow's generator. Progress, the
+        result and errors arrive on the GUI thread; the live view resumes afterwards.
+        ``hide_scene``: with the simulated camera, show no scene meanwhile (point source only).
+        """
+        from calibration.workflow import Workflow
+
+        handle = WorkflowHandle()
+        cam, light = self.bench.camera, self.bench.light
+        if cam is None or self.camera_state not in ("live", "stopped"):
+            exc = RuntimeError(f"the camera is not ready ({self.camera_state})")
+            if on_error is not None:
+                on_error(exc)
+            return handle
+        was_live = self.camera_state == "live"
+        wf = Workflow(make_steps(cam, light), name)  # nothing runs until iterated
+        handle.workflow = wf
+        hide = hide_scene and self.bench.is_simulated
+        self._set_camera_state("calibrating", f"{name} running…", "busy")
+
+        def work() -> Any:
+            cam.stop()
+            scene = cam.scene if hide else None
+            if hide:
+                cam.scene = None
+            try:
+                yield from wf
+                return wf.result
+            finally:
+                if hide:
+                    cam.scene = scene
+                if was_live:
+                    with contextlib.suppress(Exception):
+                        cam.start_live()
+
+        def resume() -> None:
+            if self.camera_state == "calibrating":
+                self._set_camera_state("live" if was_live else "stopped",
+                                       "live" if was_live else "stopped", "ok")
+
+        def done(result: Any) -> None:
+            resume()
+            if on_done is not None:
+                on_done(result)
+
+        def failed(exc: BaseException) -> None:
+            resume()
+            if on_error is not None:
+                on_error(exc)
+
+        handle.task = self.camera_queue.submit(work, name=name, on_done=done, on_error=failed,
+                                               on_progress=on_progress)
+        return handle
+
+    # -- snap & save ---------------------------------------------------------------------------
+
+    def save_dir(self) -> Path:
+        """Folder for snapshots."""
+        return Path(self.settings.save_dir or (Path.home() / "lenslesscam-snaps"))
+
+    def snap_and_save(self, path: str | Path | None = None) -> None:
+        """Save the newest frame (live) or snap one (stopped), with its metadata."""
+        target = Path(path) if path else self.save_dir()
+        extra = {"camera_spec": self.bench.camera_spec,
+                 "scene": self.settings.sim_scene if self.bench.is_simulated else None}
+        from app.gui.snapshots import save_frame
+
+        cam = self.bench.camera
+        frame = self.last_frame if self.camera_state == "live" else None
+        if frame is None and cam is None:
+            self.show_error("Snap: no camera connected")
+            return
+
+        def work() -> list[Path]:
+            f = frame if frame is not None else cam.snap()
+            self.last_saved_frame = f
+            return save_frame(f, target, extra)
+
+        def done(paths: list[Path]) -> None:
+            self.last_saved = paths[0]
+            self.camera_controls.save_info.setText(f"saved {paths[0]}")
+            self._status(f"saved {paths[0]}")
+
+        self.camera_queue.submit(work, name="snap", on_done=done,
+                                 on_error=lambda e: self.show_error(f"Snap: {_describe(e)}"))
+
+    last_saved: Path | None = None
+    last_saved_frame: Any = None
+
+    def _save_as(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Save frame", str(self.save_dir()),
+                                              "TIFF (*.tif)")
+        if path:
+            self.settings.save_dir = str(Path(path).parent)
+            self.snap_and_save(path)
+
+    # -- settings and closing ------------------------------------------------------------------
+
+    def _restore_geometry(self) -> None:
+        g = self.settings.window_geometry
+        if g:
+            with contextlib.suppress(Exception):
+                self.restoreGeometry(QByteArray.fromBase64(g.encode("ascii")))
+        else:
+            self.resize(1400, 800)
+        st = self.settings.window_state
+        restored = False
+        if st:
+            with contextlib.suppress(Exception):
+                restored = bool(self.restoreState(QByteArray.fromBase64(st.encode("ascii"))))
+        dock = getattr(self, "jobs_dock", None)
+        if not restored and dock is not None:
+            # the images get the height; the jobs panel a strip at the bottom
+            self.resizeDocks([dock], [240], Qt.Orientation.Vertical)
+
+    def collect_settings(self) -> AppSettings:
+        """Current settings (window geometry included)."""
+        s = self.settings
+        s.window_geometry = bytes(self.saveGeometry().toBase64().data()).decode("ascii")
+        s.window_state = bytes(self.saveState().toBase64().data()).decode("ascii")
+        s.preview = self.preview_controls.settings().to_dict()
+        s.preview_enabled = self.preview_controls.enabled.isChecked()
+        s.display_hz = 1000.0 / max(1, self.poll_timer.interval())
+        if not s.jobs_dir:
+            s.jobs_dir = str(default_jobs_dir())
+        return s
+
+    def closeEvent(self, event: QCloseEvent) -> None:
+        """Save the settings, stop the workers, close the devices (jobs keep running)."""
+        self._closing = True
+        for t in (self.poll_timer, self.reconnect_timer, self.light_timer, self.readout_timer):
+            t.stop()
+        if self._save_on_close:
+            try:
+                save_settings(self.collect_settings(), self._settings_path)
+            except OSError as exc:
+                _log.error("saving the settings: %s", exc)
+        hook = getattr(self, "_close_hooks", [])
+        for fn in hook:
+            with contextlib.suppress(Exception):
+                fn()
+        self.preview_worker.stop()
+        self.camera_queue.shutdown()
+        self.light_queue.shutdown()
+        self.bench.close()
+        super().closeEvent(event)
+
+
+def load_psf_any(path: str | Path) -> Any:
+    """A PSF (H, W) for the preview: a PSF calibration file, else any image file."""
+    p = Path(path)
+    from recon.formats import FormatError
+
+    try:
+        from recon.calibfile import load_psf_calibration
+
+        psf, _meta = load_psf_calibration(p)
+        return np.asarray(psf, dtype=np.float32)
+    except FormatError as exc:  # not a calibration file: read it as an image
+        _log.debug("%s is not a PSF calibration file: %s", p, exc)
+    from recon.io import load_psf
+
+    a = load_psf(p, normalise="sum")
+    return np.asarray(a, dtype=np.float32)[0]

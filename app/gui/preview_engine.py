@@ -1,0 +1,629 @@
+"""Live reconstruction preview, without Qt: newest frame in, a few warm-started FISTA steps out.
+
+:class:`PreviewEngine` turns one camera frame into a quick FISTA-TV estimate:
+
+1. the frame's pixels minus a dark level (a number, or ``auto``: a low percentile of the
+   frame), clipped at 0;
+2. when the frame is a region of the sensor (``frame.roi`` smaller than the PSF), it is placed
+   into a sensor-sized array and the pixels outside the ROI are masked out of the data term, so
+   the model stays exact (a ROI is an erasure mask, not a smaller PSF);
+3. box-downsampled by ``downsample`` (the PSF too, renormalised to unit sum), scaled to max 1;
+4. ``iters_per_frame`` FISTA-TV iterations warm-started from the previous frame's solver.
+
+The forward model, its Lipschitz constant and the FISTA state (iterate, momentum, the TV
+prox's dual) are kept between frames of the same geometry (shape, ROI, downsampling, model):
+the new frame only replaces the measurement, so on a still scene the preview converges like one
+long run, and FISTA's monotone adaptive restart resets the momentum when a new frame makes a
+step go uphill (a moving scene). Changing the geometry or the PSF starts over from zero;
+changing tau or the prox iterations keeps the iterate but restarts the momentum.
+
+Models: ``2d`` (one PSF, one image) and ``video`` (dual rolling shutter: ``video_bins`` time
+bins from the frame's :class:`~drivers.timing.SensorTiming`, shown side by side).
+
+:class:`PreviewLoop` runs an engine on a background thread and keeps only the newest submitted
+frame (stale frames are dropped and counted); the GUI wraps it in a Qt worker, the benchmark
+drives it directly. Nothing here imports Qt.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+
+from recon.fista import Fista
+
+__all__ = [
+    "MODELS",
+    "FrameSlot",
+    "PreviewEngine",
+    "PreviewError",
+    "PreviewLoop",
+    "PreviewResult",
+    "PreviewSettings",
+    "PreviewStats",
+    "frame_keywords",
+    "run_one",
+]
+
+F32 = npt.NDArray[np.float32]
+
+#: Preview models the engine knows.
+MODELS: tuple[str, ...] = ("2d", "video")
+
+
+class PreviewError(ValueError):
+    """The frame cannot be previewed with this PSF and these settings (message says why)."""
+
+
+@dataclass(frozen=True)
+class PreviewSettings:
+    """What the preview computes.
+
+    Attributes:
+        model: ``2d`` or ``video``.
+        tau: TV weight (on the measurement scaled to max 1).
+        iters_per_frame: FISTA iterations per frame (warm-started).
+        downsample: box-downsampling factor of frame and PSF.
+        prox_iters: inner TV-prox iterations per FISTA step.
+        dark: dark level in camera codes, or ``None`` for auto (the 1st percentile).
+        video_bins: number of time bins of the ``video`` model.
+        threads: torch intra-op threads (process-wide; 0 leaves torch's setting). One thread
+            is the default: a preview is small, and on a few cores more threads only fight
+            the camera and GUI threads for them.
+
+    """
+
+    model: str = "2d"
+    tau: float = 3e-4
+    iters_per_frame: int = 3
+    downsample: int = 1
+    prox_iters: int = 2
+    dark: float | None = None
+    video_bins: int = 4
+    threads: int = 1
+
+    def __post_init__(self) -> None:
+        if self.model not in MODELS:
+            raise ValueError(f"preview model must be one of {MODELS}, got {self.model!r}")
+        if not (math.isfinite(self.tau) and self.tau >= 0):
+            raise ValueError(f"tau must be a finite number >= 0, got {self.tau!r}")
+        for name in ("iters_per_frame", "downsample", "prox_iters", "video_bins"):
+            v = getattr(self, name)
+            if int(v) != v or v < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        if int(self.threads) != self.threads or self.threads < 0:
+            raise ValueError(f"threads must be an integer >= 0, got {self.threads!r}")
+        if self.dark is not None and not math.isfinite(self.dark):
+            raise ValueError(f"dark must be a finite number or None, got {self.dark!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-JSON form."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> PreviewSettings:
+        """Inverse of :meth:`to_dict`; unknown keys are ignored, bad values raise ValueError."""
+        known = {f for f in cls.__dataclass_fields__}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+
+@dataclass(frozen=True)
+class PreviewResult:
+    """One preview.
+
+    ``image`` is (H, W) float32 (the ``video`` model: its bins side by side); ``levels`` are
+    display levels (0 and the 99.5th percentile). ``latency_s`` runs from the frame's host
+    timestamp to the end of the computation; ``compute_s`` is the engine's own time.
+    """
+
+    image: F32
+    levels: tuple[float, float]
+    frame_id: int
+    iterations: int
+    total_iterations: int
+    objective: float
+    residual: float
+    compute_s: float
+    latency_s: float
+    warm: bool
+    settings: PreviewSettings
+    shape: tuple[int, int]
+    done_time: float = field(default=0.0)
+
+
+@dataclass(frozen=True)
+class _Geometry:
+    model: str
+    frame_shape: tuple[int, int]
+    roi: tuple[int, int, int, int] | None
+    downsample: int
+    video_bins: int
+    timing_key: tuple[Any, ...] | None
+
+
+class _StreamingFista(Fista):
+    """FISTA whose measurement can be replaced between steps (a new frame).
+
+    The iterate, the momentum and the TV prox's dual carry over, so on a scene that changes
+    slowly the preview converges as if it had one long run; when the new data make a step
+    raise the objective, FISTA's adaptive restart resets the momentum.
+    """
+
+    def set_measurement(self, b: torch.Tensor) -> None:
+        """Use ``b`` (same shape) from the next step on."""
+        if tuple(b.shape) != tuple(self.b.shape):
+            raise ValueError(f"measurement shape {tuple(b.shape)} != {tuple(self.b.shape)}")
+        self.b = b.to(dtype=self.op.dtype, device=self.op.device)
+        # recon.fista.Fista has no public way to swap b; these are its own fields
+        self._b_norm = max(float(torch.linalg.vector_norm(self.b)), 1e-30)
+        self.objective = self._objective(self.Ax, self.x)[0]
+        self._stalls = 0
+        self.reason = None
+
+
+def _box(a: npt.NDArray[Any], f: int) -> F32:
+    """Mean over f x f blocks of the last two axes (float32, remainder dropped)."""
+    arr = np.asarray(a, dtype=np.float32)
+    if f == 1:
+        return np.ascontiguousarray(arr)
+    h, w = arr.shape[-2] // f, arr.shape[-1] // f
+    if h == 0 or w == 0:
+        raise PreviewError(f"downsampling by {f} leaves nothing of a {arr.shape[-2:]} image")
+    blocks = arr[..., : h * f, : w * f].reshape(*arr.shape[:-2], h, f, w, f)
+    return np.ascontiguousarray(blocks.mean(axis=(-3, -1), dtype=np.float32))
+
+
+class PreviewEngine:
+    """Frame -> quick FISTA-TV estimate, warm-started across frames of the same geometry.
+
+    ``psf`` is the full-sensor PSF (H, W) or (1, H, W) at the camera's unbinned resolution (a
+    binned frame uses the PSF box-downsampled by the binning). Not thread-safe: one thread
+    calls :meth:`process`; :meth:`set_settings` and :meth:`set_psf` may be called from any
+    thread and take effect at the next frame.
+    """
+
+    def __init__(self, psf: npt.ArrayLike | None, settings: PreviewSettings | None = None) -> None:
+        self._lock = threading.Lock()
+        self._pending_psf: F32 | None = None
+        self._psf: F32 | None = None
+        self._settings = settings or PreviewSettings()
+        self._pending_settings: PreviewSettings | None = None
+        self._geometry: _Geometry | None = None
+        self._model: Any = None
+        self._lipschitz = 0.0
+        self._mask: Any = None
+        self._x: Any = None
+        self._solver: _StreamingFista | None = None
+        self._solver_key: tuple[float, int] | None = None
+        self._total_iters = 0
+        if psf is not None:
+            self._psf = self._check_psf(psf)
+
+    # -- configuration -------------------------------------------------------------------------
+
+    @staticmethod
+    def _check_psf(psf: npt.ArrayLike) -> F32:
+        arr = np.asarray(psf, dtype=np.float32)
+        if arr.ndim == 3 and arr.shape[0] == 1:
+            arr = arr[0]
+        if arr.ndim != 2:
+            raise PreviewError(f"the preview needs one 2D PSF (H, W), got shape {arr.shape}")
+        if not np.all(np.isfinite(arr)) or float(arr.sum()) <= 0:
+            raise PreviewError("the PSF must be finite with a positive sum")
+        return np.ascontiguousarray(arr / arr.sum(dtype=np.float64), dtype=np.float32)
+
+    @property
+    def settings(self) -> PreviewSettings:
+        """Settings in effect (or to take effect at the next frame)."""
+        with self._lock:
+            return self._pending_settings or self._settings
+
+    def set_settings(self, settings: PreviewSettings) -> None:
+        """Use ``settings`` from the next frame on."""
+        with self._lock:
+            self._pending_settings = settings
+
+    def set_psf(self, psf: npt.ArrayLike | None) -> None:
+        """Use ``psf`` from the next frame on (None: no preview possible)."""
+        checked = None if psf is None else self._check_psf(psf)
+        with self._lock:
+            self._pending_psf = checked
+            if checked is None:
+                self._psf = None
+            self._geometry = None
+
+    @property
+    def psf(self) -> F32 | None:
+        """The PSF in use (or about to be), unit sum, at the camera's unbinned resolution."""
+        with self._lock:
+            return self._pending_psf if self._pending_psf is not None else self._psf
+
+    @property
+    def has_psf(self) -> bool:
+        """Whether a PSF is set."""
+        with self._lock:
+            return self._psf is not None or self._pending_psf is not None
+
+    def reset(self) -> None:
+        """Forget the warm start (the next frame starts from zero)."""
+        with self._lock:
+            self._geometry = None
+
+    # -- processing ----------------------------------------------------------------------------
+
+    def _apply_pending(self) -> PreviewSettings:
+        with self._lock:
+            if self._pending_psf is not None:
+                self._psf = self._pending_psf
+                self._pending_psf = None
+                self._geometry = None
+            if self._pending_settings is not None:
+                # model, downsampling and bins are part of the geometry: a change of those
+                # rebuilds the model at the next frame; tau and iterations apply at once
+                self._settings = self._pending_settings
+                self._pending_settings = None
+            return self._settings
+
+    def process(
+        self,
+        pixels: npt.ArrayLike,
+        *,
+        frame_id: int = 0,
+        timestamp: float | None = None,
+        roi: tuple[int, int, int, int] | None = None,
+        binning: int = 1,
+        timing: Any = None,
+    ) -> PreviewResult:
+        """Preview one frame.
+
+        Args:
+            pixels: (H, W) frame in camera codes.
+            frame_id: carried into the result.
+            timestamp: host time (``time.time()``) the frame arrived; latency is measured
+                from it (default: now).
+            roi: (x, y, width, height) of the frame on the sensor in unbinned pixels, or None
+                for the full sensor.
+            binning: the frame's binning factor.
+            timing: the frame's :class:`~drivers.timing.SensorTiming` (``video`` model only).
+
+        """
+        t0 = time.perf_counter()
+        s = self._apply_pending()
+        if s.threads and torch.get_num_threads() != s.threads:
+            torch.set_num_threads(int(s.threads))
+        if self._psf is None:
+            raise PreviewError("no PSF: load or calibrate one to see a reconstruction")
+        frame = np.asarray(pixels)
+        if frame.ndim != 2:
+            raise PreviewError(f"the preview takes 2D frames, got shape {frame.shape}")
+        sensor_psf = self._psf_at_binning(binning)
+        ph, pw = sensor_psf.shape
+        full_roi = roi is None or (roi[2] // binning, roi[3] // binning) == (ph, pw)
+        if full_roi:
+            if frame.shape != (ph, pw):
+                raise PreviewError(
+                    f"frame {frame.shape[0]}x{frame.shape[1]} does not match the PSF "
+                    f"{ph}x{pw} (binning {binning}); calibrate a PSF for this sensor size"
+                )
+            roi = None
+        timing_key = None
+        if s.model == "video":
+            if timing is None:
+                raise PreviewError("the video model needs the frame's sensor timing")
+            timing_key = (timing.rows, timing.line_time_us, timing.exposure_lines,
+                          str(timing.pattern), timing.trigger_delay_us)
+        geo = _Geometry(s.model, (int(frame.shape[0]), int(frame.shape[1])), roi,
+                        int(s.downsample), int(s.video_bins), timing_key)
+        warm = geo == self._geometry and self._x is not None
+        if geo != self._geometry:
+            self._build(geo, sensor_psf, binning, timing)
+        b = self._measurement(frame, s, roi, binning, (ph, pw))
+        bt = torch.from_numpy(b)[None]
+        solver = self._solver
+        key = (s.tau, s.prox_iters)
+        if warm and solver is not None and self._solver_key == key:
+            solver.set_measurement(bt)  # keep the iterate and the momentum
+        else:
+            from recon.tv import TV
+
+            tv = TV(weight_k=0.5) if s.model == "video" else TV()
+            solver = _StreamingFista(self._model.op, bt, tau=s.tau, tv=tv,
+                                     x0=self._x if warm else None, max_iter=10**12, tol=0.0,
+                                     prox_iters=s.prox_iters, lipschitz=self._lipschitz)
+            self._solver, self._solver_key = solver, key
+        step = None
+        for _ in range(s.iters_per_frame):
+            step = solver.step()
+        self._x = solver.x
+        self._total_iters += s.iters_per_frame
+        img = self._display(solver.x)
+        lo = 0.0
+        hi = float(np.percentile(img, 99.5)) if img.size else 1.0
+        if not (hi > lo):
+            hi = lo + 1.0
+        done = time.time()
+        compute = time.perf_counter() - t0
+        return PreviewResult(
+            image=img,
+            levels=(lo, hi),
+            frame_id=int(frame_id),
+            iterations=s.iters_per_frame,
+            total_iterations=self._total_iters,
+            objective=float(solver.objective),
+            residual=float(step.residual) if step is not None else float("nan"),
+            compute_s=compute,
+            latency_s=(done - timestamp) if timestamp is not None else compute,
+            warm=warm,
+            settings=s,
+            shape=(int(img.shape[0]), int(img.shape[1])),
+            done_time=done,
+        )
+
+    def _psf_at_binning(self, binning: int) -> F32:
+        assert self._psf is not None
+        if binning == 1:
+            return self._psf
+        p = _box(self._psf, int(binning))
+        return p / p.sum(dtype=np.float32)
+
+    def _build(self, geo: _Geometry, psf: F32, binning: int, timing: Any) -> None:
+        from recon.models import build_model
+
+        d = geo.downsample
+        psf_d = _box(psf, d)
+        total = float(psf_d.sum())
+        if total <= 0:
+            raise PreviewError("the downsampled PSF is empty")
+        psf_d = psf_d / np.float32(total)
+        mask = None
+        if geo.roi is not None:
+            x, y, w, h = geo.roi
+            m = np.zeros(psf.shape, dtype=np.float32)
+            b = binning
+            m[y // b : (y + h) // b, x // b : (x + w) // b] = 1.0
+            mask = _box(m, d)
+            mask = (mask > 0.999).astype(np.float32)
+            if not mask.any():
+                raise PreviewError(f"the ROI {geo.roi} is too small for downsampling by {d}")
+        if geo.model == "video":
+            from drivers.timing import bin_time, downsample_rows, shutter_function
+
+            full = shutter_function(timing, 1)
+            factor = max(1, -(-full.shape[0] // geo.video_bins))
+            m_k = bin_time(full, factor)
+            if binning > 1:
+                m_k = downsample_rows(m_k, binning)
+            m_k = downsample_rows(m_k, d)[:, : psf_d.shape[0]]
+            model = build_model("video", psf_d, shutter=m_k.astype(np.float32), mask=mask)
+        else:
+            model = build_model("2d", psf_d, mask=mask)
+        self._model = model
+        self._mask = mask
+        with torch.no_grad():
+            self._lipschitz = float(model.op.lipschitz())
+        self._x = None
+        self._solver = None
+        self._geometry = geo
+
+    def _measurement(
+        self,
+        frame: npt.NDArray[Any],
+        s: PreviewSettings,
+        roi: tuple[int, int, int, int] | None,
+        binning: int,
+        sensor: tuple[int, int],
+    ) -> F32:
+        f = frame.astype(np.float32)
+        if s.dark is None:
+            flat = f.ravel()
+            k = max(0, flat.size // 100)
+            dark = float(np.partition(flat, k)[k])
+        else:
+            dark = float(s.dark)
+        f -= np.float32(dark)
+        np.maximum(f, np.float32(0.0), out=f)
+        if roi is not None:
+            x, y, _, _ = roi
+            full = np.zeros(sensor, dtype=np.float32)
+            y0, x0 = y // binning, x // binning
+            full[y0 : y0 + f.shape[0], x0 : x0 + f.shape[1]] = f[
+                : sensor[0] - y0, : sensor[1] - x0
+            ]
+            f = full
+        b = _box(f, s.downsample)
+        if self._mask is not None:
+            b *= self._mask
+        peak = float(b.max())
+        if peak > 0:
+            b *= np.float32(1.0 / peak)
+        return b
+
+    def _display(self, x: Any) -> F32:
+        arr = x.detach().numpy()[0]  # (K, H, W)
+        if arr.shape[0] == 1:
+            return np.ascontiguousarray(arr[0], dtype=np.float32)
+        k, h, w = arr.shape
+        gap = 2
+        out = np.zeros((h, k * w + (k - 1) * gap), dtype=np.float32)
+        for i in range(k):
+            out[:, i * (w + gap) : i * (w + gap) + w] = arr[i]
+        return out
+
+
+@dataclass(frozen=True)
+class PreviewStats:
+    """Counters of a :class:`FrameSlot`: frames submitted, previewed, dropped as stale."""
+
+    submitted: int
+    processed: int
+    dropped: int
+    errors: int
+    last_error: str | None
+
+
+def frame_keywords(frame: Any) -> dict[str, Any]:
+    """:meth:`PreviewEngine.process` keywords of a :class:`drivers.camera.Frame`."""
+    roi = frame.roi
+    return {"frame_id": frame.frame_id, "timestamp": frame.timestamp,
+            "roi": (roi.x, roi.y, roi.width, roi.height), "binning": frame.binning,
+            "timing": frame.timing}
+
+
+class FrameSlot:
+    """A one-frame mailbox: :meth:`put` replaces a frame nobody took yet (counted as dropped).
+
+    Shared by :class:`PreviewLoop` (a Python thread) and the GUI's Qt worker, so both drop
+    stale frames the same way.
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._pending: tuple[Any, dict[str, Any]] | None = None
+        self._closed = False
+        self._submitted = self._processed = self._dropped = self._errors = 0
+        self._last_error: str | None = None
+        self._busy = False
+
+    def put(self, pixels: npt.ArrayLike, **meta: Any) -> None:
+        """Offer a frame (with :meth:`PreviewEngine.process` keywords)."""
+        with self._cond:
+            if self._pending is not None:
+                self._dropped += 1
+            self._pending = (pixels, meta)
+            self._submitted += 1
+            self._cond.notify_all()
+
+    def take(self, timeout_s: float | None = 0.0) -> tuple[Any, dict[str, Any]] | None:
+        """The waiting frame (waiting up to ``timeout_s``; None: until one comes or close)."""
+        with self._cond:
+            if timeout_s is None:
+                while self._pending is None and not self._closed:
+                    self._cond.wait()
+            elif self._pending is None and timeout_s > 0:
+                self._cond.wait(timeout_s)
+            item, self._pending = self._pending, None
+            if item is not None:
+                self._busy = True
+            return item
+
+    def done(self, error: BaseException | None = None) -> None:
+        """Report the end of the frame last taken."""
+        with self._cond:
+            self._busy = False
+            if error is None:
+                self._processed += 1
+            else:
+                self._errors += 1
+                self._last_error = f"{type(error).__name__}: {error}"
+
+    def close(self) -> None:
+        """Wake a waiting :meth:`take` for good."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called."""
+        with self._cond:
+            return self._closed
+
+    @property
+    def busy(self) -> bool:
+        """Whether a frame is being processed or waits."""
+        with self._cond:
+            return self._busy or self._pending is not None
+
+    def stats(self) -> PreviewStats:
+        """Current counters."""
+        with self._cond:
+            return PreviewStats(self._submitted, self._processed, self._dropped, self._errors,
+                                self._last_error)
+
+
+def run_one(engine: PreviewEngine, slot: FrameSlot) -> PreviewResult | BaseException | None:
+    """Take the newest frame from ``slot`` and preview it (None: no frame waited).
+
+    Errors are returned, not raised, after being counted in the slot.
+    """
+    item = slot.take()
+    if item is None:
+        return None
+    pixels, meta = item
+    try:
+        result = engine.process(pixels, **meta)
+    except Exception as exc:  # returned to the caller, who shows it
+        slot.done(exc)
+        return exc
+    slot.done()
+    return result
+
+
+class PreviewLoop:
+    """Runs a :class:`PreviewEngine` on its own thread, always on the newest submitted frame.
+
+    ``on_result`` / ``on_error`` are called on the loop's thread.
+    """
+
+    def __init__(
+        self,
+        engine: PreviewEngine,
+        on_result: Callable[[PreviewResult], None],
+        on_error: Callable[[BaseException], None] | None = None,
+        name: str = "preview",
+    ) -> None:
+        self.engine = engine
+        self.slot = FrameSlot()
+        self._on_result = on_result
+        self._on_error = on_error
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def submit(self, pixels: npt.ArrayLike, **meta: Any) -> None:
+        """Queue ``pixels`` (with :meth:`PreviewEngine.process` keywords), replacing a stale one."""
+        self.slot.put(pixels, **meta)
+
+    def submit_frame(self, frame: Any) -> None:
+        """Queue a :class:`drivers.camera.Frame`."""
+        self.slot.put(frame.pixels, **frame_keywords(frame))
+
+    @property
+    def busy(self) -> bool:
+        """Whether a frame is being processed or waits."""
+        return self.slot.busy
+
+    def stats(self) -> PreviewStats:
+        """Current counters."""
+        return self.slot.stats()
+
+    def _run(self) -> None:
+        while True:
+            item = self.slot.take(None)
+            if item is None:
+                if self.slot.closed:
+                    return
+                continue
+            pixels, meta = item
+            try:
+                result = self.engine.process(pixels, **meta)
+            except Exception as exc:  # reported to the caller, the loop goes on
+                self.slot.done(exc)
+                if self._on_error is not None:
+                    self._on_error(exc)
+                continue
+            self.slot.done()
+            self._on_result(result)
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """End the thread (after the frame in progress)."""
+        self.slot.close()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout_s)

@@ -1,0 +1,130 @@
+"""App settings that persist between sessions: one JSON file in the user's config folder.
+
+The file is ``<config dir>/app-settings.json`` where the config dir is ``$LENSLESSCAM_CONFIG_DIR``
+if set, else ``$XDG_CONFIG_HOME/lenslesscam`` (``~/.config/lenslesscam``). It is written
+atomically (:func:`recon.formats.atomic_write_json`) and carries ``format`` and
+``format_version``; an unreadable or foreign file is set aside (renamed ``.bad``) and the
+defaults are used, so a broken settings file never stops the app from starting.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "SETTINGS_FORMAT",
+    "SETTINGS_VERSION",
+    "AppSettings",
+    "config_dir",
+    "default_jobs_dir",
+    "load_settings",
+    "save_settings",
+    "settings_path",
+]
+
+_log = logging.getLogger(__name__)
+
+SETTINGS_FORMAT = "lenslesscam.app_settings"
+SETTINGS_VERSION = 1
+
+
+def config_dir() -> Path:
+    """The user's lenslesscam config folder (not created)."""
+    env = os.environ.get("LENSLESSCAM_CONFIG_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
+    return Path(base) / "lenslesscam"
+
+
+def settings_path() -> Path:
+    """Path of the settings file."""
+    return config_dir() / "app-settings.json"
+
+
+def default_jobs_dir() -> Path:
+    """Where UDN jobs go unless the user chose another folder."""
+    env = os.environ.get("LENSLESSCAM_JOBS_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "lenslesscam" / "jobs"
+
+
+@dataclass
+class AppSettings:
+    """Everything the app remembers. Unknown keys in the file are ignored."""
+
+    camera: str = "sim"
+    light_port: str = "sim"
+    connect_light: bool = True
+    sim_scene: str = "im65"
+    exposure_us: float = 10_000.0
+    gain: float = 1.0
+    frame_rate_hz: float = 20.0
+    shutter_mode: str = ""
+    display_hz: float = 30.0
+    preview_enabled: bool = True
+    preview: dict[str, Any] = field(default_factory=dict)
+    psf_path: str = ""
+    save_dir: str = ""
+    jobs_dir: str = ""
+    calibration_dir: str = ""
+    window_geometry: str = ""
+    window_state: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON with format keys."""
+        return {"format": SETTINGS_FORMAT, "format_version": SETTINGS_VERSION, **asdict(self)}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> AppSettings:
+        """Settings from a dict; keys of the wrong type keep their defaults."""
+        out = cls()
+        for f in fields(cls):
+            if f.name not in d:
+                continue
+            default = getattr(out, f.name)
+            value = d[f.name]
+            if isinstance(default, float) and isinstance(value, int | float):
+                value = float(value)
+            if type(value) is not type(default):
+                _log.warning("settings: ignoring %s=%r (expected %s)", f.name, value,
+                             type(default).__name__)
+                continue
+            setattr(out, f.name, value)
+        return out
+
+
+def load_settings(path: Path | None = None) -> AppSettings:
+    """Read the settings (defaults when the file is missing or unreadable)."""
+    p = path or settings_path()
+    try:
+        raw = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return AppSettings()
+    except (OSError, ValueError) as exc:
+        _log.warning("settings file %s is unreadable (%s); using defaults", p, exc)
+        with contextlib.suppress(OSError):
+            p.replace(p.with_suffix(".json.bad"))
+        return AppSettings()
+    if not isinstance(raw, dict) or raw.get("format") != SETTINGS_FORMAT:
+        _log.warning("%s is not a lenslesscam settings file; using defaults", p)
+        return AppSettings()
+    if int(raw.get("format_version", 0)) > SETTINGS_VERSION:
+        _log.warning("%s was written by a newer version; using defaults", p)
+        return AppSettings()
+    return AppSettings.from_dict(raw)
+
+
+def save_settings(settings: AppSettings, path: Path | None = None) -> Path:
+    """Write the settings atomically; returns the path."""
+    from recon.formats import atomic_write_json
+
+    return atomic_write_json(path or settings_path(), settings.to_dict())

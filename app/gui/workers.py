@@ -1,0 +1,238 @@
+"""Qt workers: run blocking device calls, generators and the preview off the GUI thread.
+
+- :class:`TaskQueue`: one QThread that runs submitted callables (or generators) one at a
+  time, in order; results, errors and progress come back to the GUI thread as signals of a
+  :class:`Task`. One queue per device serialises everything that touches it.
+- :class:`PreviewWorker`: a QObject moved to its own QThread that previews the newest frame
+  only (:class:`~app.gui.preview_engine.FrameSlot` drops stale ones).
+"""
+
+from __future__ import annotations
+
+import inspect
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from PySide6.QtCore import QObject, QThread, Signal, Slot
+
+from app.gui.preview_engine import FrameSlot, PreviewEngine, PreviewResult, frame_keywords
+
+__all__ = ["Cancelled", "PreviewWorker", "Task", "TaskQueue"]
+
+_log = logging.getLogger(__name__)
+
+
+class Cancelled(Exception):
+    """A task was cancelled before or while it ran."""
+
+
+class Task(QObject):
+    """A unit of work for a :class:`TaskQueue`.
+
+    ``fn`` returns a value, or is a generator function whose every ``yield`` is a progress
+    report (emitted as :attr:`progress`) and a cancellation point; its return value is the
+    result. Signals arrive on the GUI thread.
+    """
+
+    finished = Signal(object, object)  # (task, result)
+    failed = Signal(object, object)  # (task, exception)
+    progress = Signal(object, object)  # (task, event)
+
+    def __init__(self, fn: Callable[[], Any], name: str) -> None:
+        super().__init__()
+        self.fn = fn
+        self.name = name
+        self._cancel = threading.Event()
+        self.done = False
+
+    def cancel(self) -> None:
+        """Ask the task to stop at its next cancellation point (or not to start)."""
+        self._cancel.set()
+
+    @property
+    def cancelled(self) -> bool:
+        """Whether :meth:`cancel` was called."""
+        return self._cancel.is_set()
+
+
+class _Runner(QObject):
+    """Lives in the queue's thread and runs tasks."""
+
+    idle = Signal()
+
+    @Slot(object)
+    def run(self, task: Task) -> None:
+        try:
+            if task.cancelled:
+                raise Cancelled(f"{task.name}: cancelled")
+            out = task.fn()
+            if inspect.isgenerator(out):
+                gen = out
+                try:
+                    while True:
+                        if task.cancelled:
+                            gen.close()
+                            raise Cancelled(f"{task.name}: cancelled")
+                        event = next(gen)
+                        task.progress.emit(task, event)
+                except StopIteration as stop:
+                    out = stop.value
+        except BaseException as exc:  # handed to the GUI, which shows it
+            task.done = True
+            task.failed.emit(task, exc)
+        else:
+            task.done = True
+            task.finished.emit(task, out)
+        self.idle.emit()
+
+
+class TaskQueue(QObject):
+    """Runs tasks one after another on its own QThread."""
+
+    _go = Signal(object)
+
+    def __init__(self, name: str, parent: QObject | None = None) -> None:
+        super().__init__(parent)
+        self.name = name
+        self._thread = QThread()
+        self._thread.setObjectName(name)
+        self._runner = _Runner()
+        self._runner.moveToThread(self._thread)
+        self._go.connect(self._runner.run)
+        self._runner.idle.connect(self._on_idle)
+        self._pending = 0
+        self._callbacks: dict[int, tuple[Any, Any, Any]] = {}
+        self._tasks: dict[int, Task] = {}
+        self._thread.start()
+
+    @property
+    def busy(self) -> bool:
+        """Whether tasks wait or run."""
+        return self._pending > 0
+
+    def submit(
+        self,
+        fn: Callable[[], Any],
+        *,
+        name: str = "task",
+        on_done: Callable[[Any], None] | None = None,
+        on_error: Callable[[BaseException], None] | None = None,
+        on_progress: Callable[[Any], None] | None = None,
+    ) -> Task:
+        """Queue ``fn``; the callbacks run on the GUI thread."""
+        task = Task(fn, name)
+        key = id(task)
+        self._callbacks[key] = (on_done, on_error, on_progress)
+        self._tasks[key] = task
+        task.finished.connect(self._finished)
+        task.failed.connect(self._failed)
+        task.progress.connect(self._progress)
+        self._pending += 1
+        self._go.emit(task)
+        return task
+
+    def _take(self, task: Task) -> tuple[Any, Any, Any]:
+        self._tasks.pop(id(task), None)
+        return self._callbacks.pop(id(task), (None, None, None))
+
+    @Slot(object, object)
+    def _finished(self, task: Task, result: Any) -> None:
+        on_done, _, _ = self._take(task)
+        if on_done is not None:
+            on_done(result)
+
+    @Slot(object, object)
+    def _failed(self, task: Task, exc: BaseException) -> None:
+        _, on_error, _ = self._take(task)
+        if on_error is not None:
+            on_error(exc)
+        else:
+            _log.error("%s: task %s failed: %s", self.name, task.name, exc)
+
+    @Slot(object, object)
+    def _progress(self, task: Task, event: Any) -> None:
+        _, _, on_progress = self._callbacks.get(id(task), (None, None, None))
+        if on_progress is not None:
+            on_progress(event)
+
+    @Slot()
+    def _on_idle(self) -> None:
+        self._pending = max(0, self._pending - 1)
+
+    def cancel_all(self) -> None:
+        """Cancel every task that waits or runs."""
+        for task in list(self._tasks.values()):
+            task.cancel()
+
+    def shutdown(self, timeout_ms: int = 10_000) -> bool:
+        """Cancel the waiting tasks, let the running one end, stop the thread."""
+        self.cancel_all()
+        self._thread.quit()
+        ok = bool(self._thread.wait(timeout_ms))
+        if not ok:
+            _log.error("%s: worker thread did not stop within %d ms", self.name, timeout_ms)
+        return ok
+
+
+class PreviewWorker(QObject):
+    """Previews the newest frame on its own QThread; stale frames are dropped.
+
+    :meth:`submit` (GUI thread) puts the frame into a one-frame slot and wakes the worker;
+    the worker takes whatever is newest when it gets to it. Results and errors come back as
+    signals on the GUI thread.
+    """
+
+    result = Signal(object)
+    error = Signal(str)
+    _wake = Signal()
+
+    def __init__(self, engine: PreviewEngine) -> None:
+        super().__init__()
+        self.engine = engine
+        self.slot = FrameSlot()
+        self._thread = QThread()
+        self._thread.setObjectName("preview")
+        self._inner = _PreviewRunner(self)
+        self._inner.moveToThread(self._thread)
+        self._wake.connect(self._inner.process)
+        self._inner.result.connect(self.result)
+        self._inner.error.connect(self.error)
+        self._thread.start()
+
+    def submit(self, frame: Any) -> None:
+        """Offer a :class:`drivers.camera.Frame` (replaces one still waiting)."""
+        self.slot.put(frame.pixels, **frame_keywords(frame))
+        self._wake.emit()
+
+    def stop(self, timeout_ms: int = 10_000) -> None:
+        """End the worker thread (after the frame in progress)."""
+        self.slot.close()
+        self._thread.quit()
+        self._thread.wait(timeout_ms)
+
+
+class _PreviewRunner(QObject):
+    result = Signal(object)
+    error = Signal(str)
+
+    def __init__(self, owner: PreviewWorker) -> None:
+        super().__init__()
+        self._engine = owner.engine
+        self._slot = owner.slot
+
+    @Slot()
+    def process(self) -> None:
+        item = self._slot.take()
+        if item is None:
+            return  # a newer wake-up already took the frame (it was stale)
+        pixels, meta = item
+        try:
+            res: PreviewResult = self._engine.process(pixels, **meta)
+        except Exception as exc:  # shown in the preview panel
+            self._slot.done(exc)
+            self.error.emit(f"{type(exc).__name__}: {exc}" if not str(exc) else str(exc))
+            return
+        self._slot.done()
+        self.result.emit(res)

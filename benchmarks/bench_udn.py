@@ -1,0 +1,258 @@
+"""Time per UDN iteration (fp32 / bf16, eager / torch.compile) and peak memory.
+
+Cases: 2D 150x200 and 256x256 (one image), and 128x128 with 16 frames (video model, frames as
+output channels and, with ``--with-3d``, the 3D network). Each case is timed over ``--iters``
+iterations after ``--warmup`` (the first call of a compiled network compiles it; its time is
+reported separately). Peak memory: ``torch.cuda.max_memory_allocated`` on a GPU; on the CPU
+each case runs in a fresh subprocess and reports its peak resident set (``ru_maxrss``) above
+the baseline after imports. The estimate of ``recon.udn.memory`` is printed beside it.
+
+    lenslesscam bench udn [--device auto] [--channels 128] [--scales 5] [--iters 5]
+                          [--precision float32 bf16] [--compile off on] [--cases 2d-150x200 ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+CASES: dict[str, dict[str, Any]] = {
+    "2d-150x200": {"model": "2d", "shape": (150, 200), "k": 1, "variant": "2d"},
+    "2d-256x256": {"model": "2d", "shape": (256, 256), "k": 1, "variant": "2d"},
+    "video-128x128x16": {"model": "video", "shape": (128, 128), "k": 16, "variant": "frames"},
+    "video3d-128x128x16": {"model": "video", "shape": (128, 128), "k": 16, "variant": "3d"},
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Options of ``lenslesscam bench udn``."""
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda, mps")
+    p.add_argument("--cases", nargs="+", default=["2d-150x200", "2d-256x256",
+                                                  "video-128x128x16"],
+                   choices=list(CASES), help="which cases")
+    p.add_argument("--with-3d", action="store_true", help="add the 3D-network video case")
+    p.add_argument("--channels", type=int, default=128, help="network channels (128)")
+    p.add_argument("--scales", type=int, default=5, help="network scales (5)")
+    p.add_argument("--iters", type=int, default=5, help="timed iterations per case (5)")
+    p.add_argument("--warmup", type=int, default=2, help="untimed iterations first (2)")
+    p.add_argument("--precision", nargs="+", default=["float32", "bf16"],
+                   choices=["float32", "bf16"])
+    p.add_argument("--compile", nargs="+", default=["off", "on"], choices=["off", "on"])
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
+    p.add_argument("--grad-checkpoint", action="store_true", help="gradient checkpointing")
+    p.add_argument("--json", help="also write the rows as JSON here")
+    p.add_argument("--case-json", help=argparse.SUPPRESS)  # internal: run one case, print JSON
+
+
+def _peak_rss_bytes() -> int:
+    import resource
+
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024  # Linux: KiB
+
+
+def _problem(case: dict[str, Any], device: Any) -> tuple[Any, Any]:
+    import numpy as np
+
+    from recon.models import build_model
+    from recon.simulate import synthetic_psf
+
+    h, w = case["shape"]
+    psf = synthetic_psf((h, w), seed=1)
+    rng = np.random.default_rng(0)
+    if case["model"] == "video":
+        k = case["k"]
+        shutter = np.zeros((k, h))
+        rows = np.array_split(np.arange(h), k)
+        for i, r in enumerate(rows):
+            shutter[i, r] = 1.0
+        model = build_model("video", psf, shutter=shutter, device=device)
+    else:
+        model = build_model("2d", psf, device=device)
+    b = rng.random(model.meas_shape).astype(np.float32)
+    return model, b
+
+
+def run_one(name: str, precision: str, compiled: bool, args: argparse.Namespace) -> dict[str, Any]:
+    """Time one configuration in this process."""
+    import torch
+
+    from recon.udn.memory import estimate_memory
+    from recon.udn.network import NetworkConfig
+    from recon.udn.runner import UDNConfig, UDNRunner, resolve_device
+
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)
+    case = CASES[name]
+    _load_kernels(precision, device)  # library code pages count in the baseline, not the run
+    base_rss = _peak_rss_bytes()
+    model, b = _problem(case, device)
+    net = NetworkConfig(variant=case["variant"], scales=args.scales, channels=args.channels,
+                        gradient_checkpointing=args.grad_checkpoint)
+    cfg = UDNConfig(precision=precision, compile=compiled, max_iter=10**9, holdout=0.05,
+                    gain=1.0)
+    est = estimate_memory(net, model.scene_shape, model.meas_shape, precision=precision)
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    t0 = time.perf_counter()
+    runner = UDNRunner(model, b, network=net, config=cfg)
+    runner.step()  # the first step (compiles when compiled)
+    _sync(device)
+    first = time.perf_counter() - t0
+    for _ in range(max(0, args.warmup - 1)):
+        runner.step()
+    _sync(device)
+    t1 = time.perf_counter()
+    for _ in range(args.iters):
+        runner.step()
+    _sync(device)
+    per_iter = (time.perf_counter() - t1) / max(args.iters, 1)
+    if device.type == "cuda":
+        peak = int(torch.cuda.max_memory_allocated(device))
+        peak_src = "cuda max allocated"
+    else:
+        peak = _peak_rss_bytes() - base_rss
+        peak_src = "ru_maxrss above baseline"
+    return {
+        "case": name, "precision": precision, "compile": compiled,
+        "compile_active": bool(runner._compiled), "notes": runner.notes,
+        "device": str(device), "threads": torch.get_num_threads(),
+        "scene": list(model.scene_shape), "variant": net.variant, "channels": net.channels,
+        "scales": net.scales, "params": runner.G.parameter_count(),
+        "first_step_s": first, "per_iter_s": per_iter, "peak_bytes": peak,
+        "peak_source": peak_src, "estimate_bytes": est.total_bytes,
+    }
+
+
+def _load_kernels(precision: str, device: Any) -> None:
+    """One step of a tiny run, so lazily loaded kernels are resident before the baseline."""
+    import numpy as np
+
+    from recon.models import build_model
+    from recon.udn.network import NetworkConfig
+    from recon.udn.runner import UDNConfig, UDNRunner
+
+    for model in (build_model("2d", np.ones((16, 16)), device=device),
+                  build_model("video", np.ones((16, 16)), shutter=np.ones((2, 16)),
+                              device=device)):
+        for variant in ("2d", "3d") if model.k == 1 else ("frames", "3d"):
+            if variant == "3d" and model.k == 1:
+                continue
+            net = NetworkConfig(variant=variant, scales=2, channels=4, input_channels=2)
+            UDNRunner(model, np.ones(model.meas_shape, dtype=np.float32), network=net,
+                      config=UDNConfig(precision=precision,
+                                       gain=1.0, holdout=0.0)).step()
+
+
+def _sync(device: Any) -> None:
+    import torch
+
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _run_isolated(name: str, precision: str, compiled: bool,
+                  args: argparse.Namespace) -> dict[str, Any]:
+    """Run one configuration in a fresh process (clean peak-RSS on the CPU)."""
+    spec = json.dumps({"case": name, "precision": precision, "compile": compiled})
+    argv = [sys.executable, "-m", "benchmarks.bench_udn", "--case-json", spec,
+            "--device", args.device, "--channels", str(args.channels), "--scales",
+            str(args.scales), "--iters", str(args.iters), "--warmup", str(args.warmup),
+            "--threads", str(args.threads)]
+    if args.grad_checkpoint:
+        argv.append("--grad-checkpoint")
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(root) + os.pathsep + env.get("PYTHONPATH", "")
+    res = subprocess.run(argv, cwd=root, env=env, capture_output=True, text=True)
+    if res.returncode != 0:
+        return {"case": name, "precision": precision, "compile": compiled,
+                "error": (res.stderr.strip().splitlines() or ["?"])[-1]}
+    row: dict[str, Any] = json.loads(res.stdout.strip().splitlines()[-1])
+    return row
+
+
+def _fmt_bytes(n: float | None) -> str:
+    if n is None:
+        return "-"
+    return f"{n / 2**20:.0f} MiB"
+
+
+def run_udn_benchmark(args: argparse.Namespace) -> int:
+    """Run the benchmark matrix and print the table."""
+    if args.case_json:
+        spec = json.loads(args.case_json)
+        row = run_one(spec["case"], spec["precision"], spec["compile"], args)
+        print(json.dumps(row))
+        return 0
+    import torch
+
+    from recon.udn.runner import resolve_device
+
+    device = resolve_device(args.device)
+    cases = list(args.cases) + (["video3d-128x128x16"] if args.with_3d else [])
+    rows = []
+    for name in cases:
+        for precision in args.precision:
+            for comp in args.compile:
+                compiled = comp == "on"
+                if device.type == "cpu":
+                    row = _run_isolated(name, precision, compiled, args)
+                else:
+                    try:
+                        row = run_one(name, precision, compiled, args)
+                    except Exception as exc:  # report it in the table, go on
+                        row = {"case": name, "precision": precision, "compile": compiled,
+                               "error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
+                    torch.cuda.empty_cache() if device.type == "cuda" else None
+                rows.append(row)
+                print(_line(row), file=sys.stderr)
+    threads = next((r["threads"] for r in rows if "threads" in r), torch.get_num_threads())
+    dev_name = str(device)
+    if device.type == "cuda":
+        dev_name += f" ({torch.cuda.get_device_name(device)})"
+    print(f"\nUDN iteration time on {dev_name}, {threads} torch threads, "
+          f"{args.scales} scales x {args.channels} channels, skip 4, "
+          f"{args.iters} timed iterations after {args.warmup} warm-up"
+          + (", gradient checkpointing" if args.grad_checkpoint else ""))
+    print("| case | scene (C,K,H,W) | network | precision | compile | first step (s) | "
+          "per iteration (s) | peak memory | estimate |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(_line(r, table=True))
+    if args.json:
+        from recon.formats import atomic_write_json
+
+        atomic_write_json(args.json, {"rows": rows, "threads": threads, "device": dev_name})
+    return 0
+
+
+def _line(r: dict[str, Any], table: bool = False) -> str:
+    comp = "on" if r.get("compile") else "off"
+    if "error" in r:
+        body = [r["case"], "-", "-", r["precision"], comp, "-", f"failed: {r['error']}", "-",
+                "-"]
+    else:
+        if r["compile"] and not r["compile_active"]:
+            comp = "on (fell back to eager)"
+        body = [r["case"], "x".join(map(str, r["scene"])), r["variant"], r["precision"], comp,
+                f"{r['first_step_s']:.2f}", f"{r['per_iter_s']:.3f}",
+                f"{_fmt_bytes(r['peak_bytes'])} ({r['peak_source']})",
+                _fmt_bytes(r["estimate_bytes"])]
+    return ("| " + " | ".join(body) + " |") if table else "  ".join(body)
+
+
+#: ``lenslesscam bench udn`` calls ``run``.
+run = run_udn_benchmark
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__)
+    add_arguments(parser)
+    sys.exit(run_udn_benchmark(parser.parse_args()))

@@ -1,0 +1,55 @@
+"""GUI test fixtures: offscreen Qt, a private config folder, the app on the simulated bench."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")  # before anything imports Qt
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+
+@pytest.fixture(autouse=True)
+def _private_dirs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Settings and jobs of each test live in its own temporary folder."""
+    monkeypatch.setenv("LENSLESSCAM_CONFIG_DIR", str(tmp_path / "config"))
+    monkeypatch.setenv("LENSLESSCAM_JOBS_DIR", str(tmp_path / "jobs"))
+
+
+@pytest.fixture
+def make_window(qtbot: Any, tmp_path: Path) -> Iterator[Any]:
+    """Factory: a shown MainWindow on the simulated bench (closed at teardown)."""
+    from app.gui.main_window import MainWindow
+    from app.gui.settings import AppSettings
+
+    windows: list[Any] = []
+
+    def make(settings: AppSettings | None = None, **kwargs: Any) -> Any:
+        s = settings or AppSettings()
+        s.save_dir = s.save_dir or str(tmp_path / "snaps")
+        s.jobs_dir = s.jobs_dir or str(tmp_path / "jobs")
+        kwargs.setdefault("reconnect_interval_ms", 300)
+        kwargs.setdefault("light_check_interval_ms", 300)
+        w = MainWindow(s, **kwargs)
+        qtbot.addWidget(w)
+        w.show()
+        windows.append(w)
+        return w
+
+    yield make
+    for w in windows:
+        if w.isVisible():
+            w.close()
+
+
+@pytest.fixture
+def live_window(make_window: Any, qtbot: Any) -> Any:
+    """A window whose simulated camera is live and has shown a few frames."""
+    w = make_window()
+    qtbot.waitUntil(lambda: w.camera_state == "live", timeout=20_000)
+    qtbot.waitUntil(lambda: w.frames_shown >= 3, timeout=10_000)
+    return w

@@ -1,0 +1,162 @@
+"""The main window on the simulated bench: live view, preview, controls, snap, unplug/replug."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytestmark = pytest.mark.gui
+
+
+def test_app_starts_live_with_preview_and_point_source(live_window: Any, qtbot: Any) -> None:
+    w = live_window
+    assert w.bench.is_simulated
+    assert w.raw_panel.image is not None and w.raw_panel.image.shape == (150, 200)
+    qtbot.waitUntil(lambda: w.previews_shown >= 3, timeout=20_000)
+    assert w.preview_panel.image.shape == (150, 200)
+    assert w.preview_panel.image.dtype.name == "float32"
+    qtbot.waitUntil(lambda: w.light_state == "connected", timeout=15_000)
+    w._update_readouts()
+    assert "fps" in w.raw_panel.footer.text() and "latency" in w.raw_panel.footer.text()
+    assert "preview" in w.preview_panel.footer.text()
+    assert not w.banner.isVisible()
+
+
+def test_preview_controls_reach_the_engine(live_window: Any, qtbot: Any) -> None:
+    w = live_window
+    w.preview_controls.downsample.setValue(2)
+    w.preview_controls.iters.setValue(2)
+    qtbot.waitUntil(lambda: w.preview_panel.image is not None
+                    and w.preview_panel.image.shape == (75, 100), timeout=20_000)
+    assert w.engine.settings.iters_per_frame == 2
+    assert w.settings.preview["downsample"] == 2
+
+
+def test_exposure_control_sets_the_camera(live_window: Any, qtbot: Any) -> None:
+    w = live_window
+    w.camera_controls.exposure.setValue(5.0)  # ms
+    qtbot.waitUntil(lambda: abs(w.bench.camera.exposure_us - 5000.0) < 20, timeout=5_000)
+    qtbot.waitUntil(lambda: w.last_frame is not None and w.last_frame.exposure_us < 6000,
+                    timeout=5_000)
+
+
+def test_refused_setting_is_shown_not_raised(live_window: Any, qtbot: Any) -> None:
+    w = live_window
+    w.set_camera_property("gain", 1000.0)  # the simulated camera allows [1, 64]
+    qtbot.waitUntil(lambda: w.banner.isVisible(), timeout=5_000)
+    assert "gain" in w.banner.text()
+    assert w.camera_state == "live"
+    n = w.frames_shown
+    qtbot.waitUntil(lambda: w.frames_shown > n + 2, timeout=5_000)
+
+
+def test_snap_and_save_writes_tiff_with_metadata(live_window: Any, qtbot: Any,
+                                                 tmp_path: Path) -> None:
+    import tifffile
+
+    w = live_window
+    w.camera_controls.snap.click()
+    qtbot.waitUntil(lambda: w.last_saved is not None, timeout=10_000)
+    tif = Path(w.last_saved)
+    assert tif.parent == tmp_path / "snaps"
+    with tifffile.TiffFile(tif) as f:
+        meta = json.loads(f.pages[0].description)
+        pixels = f.asarray()
+    assert meta["format"] == "lenslesscam-frame" and meta["format_version"] == 1
+    assert meta["backend"] == "sim" and meta["app"]["scene"] == "im65"
+    assert pixels.shape == (150, 200) and pixels.dtype.name == "uint16"
+    assert json.loads(tif.with_suffix(".json").read_text())["frame_id"] == meta["frame_id"]
+
+
+def test_roi_applies_to_the_camera_and_preview_follows(live_window: Any, qtbot: Any) -> None:
+    w = live_window
+    w.camera_controls.show_roi.setChecked(True)
+    w.raw_panel.roi.setPos([40, 30])
+    w.raw_panel.roi.setSize([100, 80])
+    w.camera_controls.roi_apply.click()
+    qtbot.waitUntil(lambda: w.last_frame is not None and w.last_frame.shape == (80, 100),
+                    timeout=10_000)
+    n = w.previews_shown
+    qtbot.waitUntil(lambda: w.previews_shown > n + 1, timeout=20_000)
+    assert w.preview_panel.image.shape == (150, 200)  # the ROI is a mask on the full model
+    w.camera_controls.roi_reset.click()
+    qtbot.waitUntil(lambda: w.last_frame.shape == (150, 200), timeout=10_000)
+
+
+def test_camera_unplug_shows_error_and_reconnects(live_window: Any, qtbot: Any) -> None:
+    w = live_window
+    cam = w.bench.camera
+    cam.stream_timeout_s = 0.5
+    w.set_live(True)  # restart the stream with the short stall timeout
+    qtbot.waitUntil(lambda: w.camera_state == "live", timeout=5_000)
+    cam.simulate_unplug()
+    qtbot.waitUntil(lambda: w.camera_state == "lost", timeout=10_000)
+    assert w.banner.isVisible() and "Camera lost" in w.banner.text()
+    assert "CameraTimeout" in w.banner.text()
+    qtbot.waitUntil(lambda: w.reconnect_attempts >= 2, timeout=10_000)
+    # the window stays usable: a control still works while the camera is gone
+    w.preview_controls.tau.setValue(1e-3)
+    assert w.engine.settings.tau == pytest.approx(1e-3)
+    cam.simulate_replug()
+    qtbot.waitUntil(lambda: w.camera_state == "live", timeout=10_000)
+    n = w.frames_shown
+    qtbot.waitUntil(lambda: w.frames_shown > n + 3, timeout=10_000)
+    assert not w.banner.isVisible()
+
+
+def test_point_source_death_is_shown_and_recovered(live_window: Any, qtbot: Any) -> None:
+    w = live_window
+    qtbot.waitUntil(lambda: w.light_state == "connected", timeout=15_000)
+    old_pid = w.bench.sim_source.process.pid
+    w.bench.sim_source.kill()
+    qtbot.waitUntil(lambda: w.light_state == "lost", timeout=10_000)
+    assert "Point source lost" in w.banner.text()
+    qtbot.waitUntil(lambda: w.light_state == "connected", timeout=20_000)
+    assert w.bench.sim_source.process.pid != old_pid
+    w.device_panel.light_on.setChecked(True)
+    qtbot.waitUntil(lambda: w.bench.light.is_on is True, timeout=5_000)
+
+
+def test_bad_camera_spec_is_an_error_in_the_window(make_window: Any, qtbot: Any) -> None:
+    from app.gui.settings import AppSettings
+
+    w = make_window(AppSettings(camera="v4l2:/nonexistent/video", connect_light=False))
+    qtbot.waitUntil(lambda: w.banner.isVisible(), timeout=20_000)
+    assert w.camera_state == "disconnected"
+    assert "cannot connect" in w.banner.text()
+    w.connect_camera("sim")  # and the window still works
+    qtbot.waitUntil(lambda: w.frames_shown >= 2, timeout=20_000)
+
+
+def test_settings_persist_between_sessions(make_window: Any, qtbot: Any) -> None:
+    from app.gui.settings import load_settings, settings_path
+
+    w = make_window()
+    qtbot.waitUntil(lambda: w.camera_state == "live", timeout=20_000)
+    w.preview_controls.iters.setValue(7)
+    w.device_panel.scene_combo.setCurrentIndex(w.device_panel.scene_combo.findData("im740"))
+    w.camera_controls.exposure.setValue(8.0)
+    qtbot.waitUntil(lambda: abs(w.bench.camera.exposure_us - 8000.0) < 20, timeout=5_000)
+    w.close()
+    assert settings_path().exists()
+    s = load_settings()
+    assert s.preview["iters_per_frame"] == 7 and s.sim_scene == "im740"
+    assert s.exposure_us == pytest.approx(8000.0)
+    w2 = make_window(s)
+    qtbot.waitUntil(lambda: w2.camera_state == "live", timeout=20_000)
+    assert w2.preview_controls.iters.value() == 7
+    assert w2.device_panel.scene_combo.currentData() == "im740"
+    qtbot.waitUntil(lambda: abs(w2.bench.camera.exposure_us - 8000.0) < 20, timeout=5_000)
+
+
+def test_bad_serial_port_is_an_error_in_the_window(live_window: Any, qtbot: Any) -> None:
+    w = live_window
+    qtbot.waitUntil(lambda: w.light_state == "connected", timeout=15_000)
+    w.device_panel.port_combo.setEditText("/dev/does-not-exist")
+    w.device_panel.light_connect.click()
+    qtbot.waitUntil(lambda: w.banner.isVisible(), timeout=10_000)
+    assert "Point source /dev/does-not-exist: cannot connect" in w.banner.text()
+    assert w.light_state == "disconnected" and w.camera_state == "live"

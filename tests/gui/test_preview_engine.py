@@ -1,0 +1,125 @@
+"""The Qt-free preview engine: warm starts, stale-frame dropping, ROI and video models."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+from app.gui.preview_engine import (
+    FrameSlot,
+    PreviewEngine,
+    PreviewError,
+    PreviewLoop,
+    PreviewResult,
+    PreviewSettings,
+)
+from drivers.timing import SensorTiming
+from recon.simulate import synthetic_psf
+
+
+@pytest.fixture
+def psf() -> np.ndarray:
+    return synthetic_psf((48, 64), n_points=20, seed=1)
+
+
+def _frame(psf: np.ndarray, seed: int = 0) -> np.ndarray:
+    from recon.models import build_model
+
+    rng = np.random.default_rng(seed)
+    scene = np.zeros((1, 1, *psf.shape), dtype=np.float32)
+    scene[0, 0, 16:32, 20:44] = rng.random((16, 24), dtype=np.float32)
+    model = build_model("2d", psf)
+    with torch.no_grad():
+        b = model.apply(torch.as_tensor(scene))[0].numpy()
+    return (100 + 3000 * b / b.max()).astype(np.uint16)
+
+
+def test_warm_start_keeps_model_and_lowers_the_objective(psf: np.ndarray) -> None:
+    eng = PreviewEngine(psf, PreviewSettings(iters_per_frame=3, downsample=1, dark=100.0))
+    frame = _frame(psf)
+    first = eng.process(frame)
+    model, solver = eng._model, eng._solver
+    second = eng.process(frame)
+    assert not first.warm and second.warm
+    assert eng._model is model  # kept between frames of the same geometry
+    assert eng._solver is solver and solver.iteration == 6  # momentum carried over
+    assert second.objective < first.objective
+    assert second.total_iterations == 6
+    assert second.image.dtype == np.float32 and second.image.shape == psf.shape
+    assert eng._x.dtype == torch.float32
+
+
+def test_settings_change_rebuilds_only_when_geometry_changes(psf: np.ndarray) -> None:
+    eng = PreviewEngine(psf, PreviewSettings(downsample=1))
+    frame = _frame(psf)
+    eng.process(frame)
+    solver = eng._solver
+    eng.set_settings(PreviewSettings(downsample=1, tau=1e-2, iters_per_frame=1))
+    assert eng.process(frame).warm  # the iterate is kept ...
+    assert eng._solver is not solver and eng._solver.tau == 1e-2  # ... the momentum restarts
+    eng.set_settings(PreviewSettings(downsample=2))
+    r = eng.process(frame)
+    assert not r.warm and r.shape == (24, 32)
+
+
+def test_roi_frame_is_masked_into_the_full_model(psf: np.ndarray) -> None:
+    eng = PreviewEngine(psf, PreviewSettings(downsample=1))
+    full = _frame(psf)
+    r = eng.process(full[8:40, 16:48], roi=(16, 8, 32, 32))
+    assert r.shape == psf.shape
+    assert eng._mask is not None and eng._mask.sum() == 32 * 32
+
+
+def test_mismatched_frame_and_missing_psf_raise(psf: np.ndarray) -> None:
+    eng = PreviewEngine(psf)
+    with pytest.raises(PreviewError, match="does not match"):
+        eng.process(np.zeros((10, 10), np.uint16))
+    with pytest.raises(PreviewError, match="no PSF"):
+        PreviewEngine(None).process(np.zeros((10, 10), np.uint16))
+
+
+def test_video_model_shows_bins_side_by_side(psf: np.ndarray) -> None:
+    timing = SensorTiming(rows=48, line_time_us=10.0, exposure_lines=12)
+    eng = PreviewEngine(psf, PreviewSettings(model="video", video_bins=3, downsample=2))
+    r = eng.process(_frame(psf), timing=timing)
+    k = eng._model.k
+    assert k >= 2
+    assert r.shape == (24, k * 32 + (k - 1) * 2)
+
+
+def test_frame_slot_keeps_only_the_newest() -> None:
+    slot = FrameSlot()
+    for i in range(5):
+        slot.put(np.full((2, 2), i), frame_id=i)
+    item = slot.take()
+    assert item is not None and item[1]["frame_id"] == 4
+    slot.done()
+    st = slot.stats()
+    assert (st.submitted, st.processed, st.dropped) == (5, 1, 4)
+    assert slot.take() is None
+
+
+def test_preview_loop_drops_stale_frames(psf: np.ndarray) -> None:
+    got: list[PreviewResult] = []
+    done = threading.Event()
+
+    def on_result(r: PreviewResult) -> None:
+        got.append(r)
+        if r.frame_id == 29:
+            done.set()
+
+    loop = PreviewLoop(PreviewEngine(psf, PreviewSettings(iters_per_frame=5)), on_result)
+    try:
+        frame = _frame(psf)
+        for i in range(30):
+            loop.submit(frame, frame_id=i)
+        assert done.wait(30)
+    finally:
+        loop.stop()
+    st = loop.stats()
+    assert st.processed == len(got) < 30
+    assert st.dropped == 30 - st.processed
+    assert [r.frame_id for r in got] == sorted(r.frame_id for r in got)

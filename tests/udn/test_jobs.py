@@ -1,0 +1,346 @@
+"""Jobs: run folders, records, spec errors, status, disk full, NaN, SIGTERM, kill + resume."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from app.cli import main as cli_main
+from recon.io import read_reconstruction
+from recon.udn.jobs import (
+    JobError,
+    format_status,
+    job_status,
+    load_checkpoint,
+    request_cancel,
+    resume_job,
+    run_job,
+)
+from recon.udn.memory import MemoryRefusal
+from recon.udn.runner import NumericalError
+from recon.udn.spec import SpecError
+from tests.udn.conftest import write_spec
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def record(run_dir: Path) -> dict:
+    return json.loads((run_dir / "run.json").read_text())
+
+
+def test_run_folder_layout_and_record(tiny_data, tmp_path):
+    spec = write_spec(tiny_data, stopping={"max_iter": 40})
+    out = tmp_path / "run"
+    seen = []
+    outcome = run_job(spec, out, progress=seen.append)
+    assert outcome.finish_reason == "completed" and outcome.iterations == 40
+    assert [s.iteration for s in seen] == list(range(1, 41))
+    names = {p.relative_to(out).as_posix() for p in out.rglob("*")}
+    for n in ("job.toml", "run.json", "loss.csv", "checkpoint.pt", "final.tif", "final.png",
+              "best.tif", "best.png", "previews/iter_0000020.png", "previews/iter_0000040.png"):
+        assert n in names, n
+    assert not any(n.startswith(".") or ".tmp" in n for n in names)  # no temp files left
+    assert (out / "job.toml").read_text() == spec.read_text()
+    rec = record(out)
+    assert rec["format"] == "lenslesscam.udn_run" and rec["format_version"] >= 1
+    assert rec["status"] == "finished" and rec["finish_reason"] == "completed"
+    assert rec["detail"] == "reached the iteration limit" and rec["error"] is None
+    assert rec["spec"]["data"]["psf"] == str(tiny_data / "psf.npy")
+    assert set(rec["inputs"]) == {"psf", "measurement", "mask", "truth"}
+    assert all(len(v["file_hash"]) == 16 for v in rec["inputs"].values())
+    assert "torch" in rec["provenance"]["versions"]
+    assert rec["device"]["device"] == "cpu" and rec["device"]["threads"] == 1
+    assert rec["timings"]["per_iteration_s"] > 0 and rec["checkpoint"]["iteration"] == 40
+    assert rec["memory"]["estimate"]["total_bytes"] > 0
+    assert rec["results"]["scores"]["best"]["psnr"] > 5
+    rows = (out / "loss.csv").read_text().splitlines()
+    assert rows[0].startswith("iteration,loss,heldout") and len(rows) == 41
+    x, meta = read_reconstruction(out / "best.tif")
+    assert x.shape == (1, 1, 24, 28)
+    assert meta["method"] == "udn" and meta["estimate"] == "best"
+    assert meta["inputs"]["psf"]["file_hash"] == rec["inputs"]["psf"]["file_hash"]
+    ck = load_checkpoint(out / "checkpoint.pt")
+    assert ck["iteration"] == 40 and ck["format"] == "lenslesscam.udn_checkpoint"
+
+
+def cli_fails(argv, capsys) -> str:
+    rc = cli_main(argv)
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert len(err.strip().splitlines()) == 1, err  # one line, no traceback
+    return err
+
+
+def test_spec_with_an_unknown_key(tiny_data, tmp_path, capsys):
+    spec = write_spec(tiny_data, network={"chanels": 8})
+    out = tmp_path / "run"
+    err = cli_fails(["jobs", "run", str(spec), "--out", str(out)], capsys)
+    assert "unknown key 'network.chanels'" in err and "did you mean 'channels'" in err
+    rec = record(out)
+    assert rec["finish_reason"] == "failed" and rec["error"]["type"] == "SpecError"
+    assert "network.chanels" in rec["error"]["message"]
+    with pytest.raises(SpecError, match="unknown section"):
+        run_job(write_spec(tiny_data, name="b.toml", netwrok={"a": 1}), tmp_path / "run2")
+
+
+def test_spec_naming_a_missing_file(tiny_data, tmp_path, capsys):
+    spec = write_spec(tiny_data, data={"psf": "nowhere/psf.npy"})
+    out = tmp_path / "run"
+    err = cli_fails(["jobs", "run", str(spec), "--out", str(out)], capsys)
+    assert "data.psf" in err and str(tiny_data / "nowhere" / "psf.npy") in err
+    rec = record(out)
+    assert rec["finish_reason"] == "failed" and "data.psf" in rec["error"]["message"]
+    assert rec["error"]["type"] == "FileNotFoundError"
+
+
+def test_wrong_shaped_shutter(tiny_data, tmp_path, capsys):
+    np.save(tiny_data / "shutter.npy", np.ones((4, 30)))  # the sensor has 24 rows
+    spec = write_spec(tiny_data, data={"model": "video", "shutter": "shutter.npy",
+                                       "truth": None})
+    out = tmp_path / "run"
+    err = cli_fails(["jobs", "run", str(spec), "--out", str(out)], capsys)
+    assert "data.shutter" in err and "(4, 30)" in err and "(K, 24)" in err
+    rec = record(out)
+    assert rec["finish_reason"] == "failed" and "(4, 30)" in rec["error"]["message"]
+
+
+def test_video_job_with_a_right_shutter_runs_both_networks(tiny_data, tmp_path):
+    shutter = np.zeros((3, 24))
+    for k in range(3):
+        shutter[k, k * 8 : (k + 1) * 8] = 1.0
+    np.save(tiny_data / "shutter.npy", shutter)
+    for variant in ("frames", "3d"):
+        spec = write_spec(tiny_data, name=f"{variant}.toml",
+                          data={"model": "video", "shutter": "shutter.npy", "truth": None},
+                          network={"variant": variant}, stopping={"max_iter": 4})
+        outcome = run_job(spec, tmp_path / variant)
+        assert outcome.finish_reason == "completed"
+        x, meta = read_reconstruction(tmp_path / variant / "final.tif")
+        assert x.shape == (1, 3, 24, 28) and meta["kind"] == "video"
+        assert (tmp_path / variant / "final.gif").exists()
+
+
+def test_memory_refusal_fails_the_job_with_a_record(tiny_data, tmp_path):
+    spec = write_spec(tiny_data, device={"max_memory": "100KB"})
+    with pytest.raises(MemoryRefusal, match="gradient_checkpointing"):
+        run_job(spec, tmp_path / "run")
+    rec = record(tmp_path / "run")
+    assert rec["finish_reason"] == "failed" and rec["error"]["type"] == "MemoryRefusal"
+
+
+def test_status_of_finished_and_interrupted_runs(tiny_data, tmp_path, capsys):
+    out = tmp_path / "run"
+    run_job(write_spec(tiny_data), out)
+    assert cli_main(["jobs", "status", str(out)]) == 0
+    text = capsys.readouterr().out
+    for part in ("finished: completed", "iteration:  40 / 40", "device:     cpu (1 threads, "
+                 "float32)", "checkpoint: 40", "previews/iter_0000040.png", "(tiny)"):
+        assert part in text, part
+    assert cli_main(["jobs", "status", str(out), "--json"]) == 0
+    js = json.loads(capsys.readouterr().out)
+    assert js["state"] == "finished" and js["iteration"] == 40
+    # a record left 'running' by a process that no longer exists reads as interrupted
+    rec = record(out)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    rec.update(status="running", finish_reason=None, pid=dead.pid)
+    (out / "run.json").write_text(json.dumps(rec))
+    st = job_status(out)
+    assert st.state == "interrupted"
+    assert "jobs resume" in format_status(st)
+    with pytest.raises(FileNotFoundError, match="no UDN run"):
+        job_status(tmp_path)
+
+
+def test_disk_full_during_a_checkpoint_keeps_the_previous_one(tiny_data, tmp_path,
+                                                              monkeypatch):
+    real_save = torch.save
+    calls = {"n": 0}
+
+    def save(obj, f, *a, **k):
+        calls["n"] += 1
+        if calls["n"] >= 2:  # the second checkpoint: half a file, then the disk is full
+            with open(f, "wb") as fh:
+                fh.write(b"\0" * 100)
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_save(obj, f, *a, **k)
+
+    monkeypatch.setattr(torch, "save", save)
+    out = tmp_path / "run"
+    with pytest.raises(JobError, match="No space left"):
+        run_job(write_spec(tiny_data, stopping={"max_iter": 60}), out)
+    monkeypatch.setattr(torch, "save", real_save)
+    ck = load_checkpoint(out / "checkpoint.pt")  # intact and readable
+    assert ck["iteration"] == 20
+    rec = record(out)
+    assert rec["finish_reason"] == "failed"
+    assert "No space left on device" in rec["error"]["message"]
+    assert "previous checkpoint (iteration 20) is intact" in rec["error"]["message"]
+    assert not [p for p in out.iterdir() if ".tmp" in p.name]
+    # and the run can be resumed from that checkpoint
+    outcome = resume_job(out)
+    assert outcome.finish_reason == "completed" and outcome.iterations == 60
+
+
+def test_nan_in_the_loss_fails_with_a_record(tiny_data, tmp_path, capsys):
+    spec = write_spec(tiny_data, optimizer={"lr": 1e30, "max_backoffs": 2})
+    out = tmp_path / "run"
+    err = cli_fails(["jobs", "run", str(spec), "--out", str(out)], capsys)
+    assert "not finite" in err and "run.json" in err
+    rec = record(out)
+    assert rec["finish_reason"] == "failed" and rec["error"]["type"] == "NumericalError"
+    assert "not finite at iteration" in rec["error"]["message"]
+    assert "lower optimizer.lr" in rec["error"]["message"]
+    assert len(rec["notes"]) == 2  # the two restores before giving up
+    with pytest.raises(NumericalError):
+        run_job(spec, tmp_path / "run2")
+
+
+def test_cancel_file_stops_the_run_cleanly(tiny_data, tmp_path):
+    out = tmp_path / "run"
+
+    def progress(s):
+        if s.iteration == 7:
+            request_cancel(out)
+
+    outcome = run_job(write_spec(tiny_data, stopping={"max_iter": 1000}), out,
+                      progress=progress)
+    assert outcome.finish_reason == "cancelled" and outcome.iterations == 7
+    rec = record(out)
+    assert rec["checkpoint"]["iteration"] == outcome.iterations
+    assert "CANCEL file" in rec["detail"]
+    assert (out / "final.tif").exists() and not (out / "CANCEL").exists()
+    with pytest.raises(ValueError, match="not running"):
+        request_cancel(out)
+    # resuming a cancelled run continues it
+    assert resume_job(out, max_iter=12).iterations == 12
+
+
+def test_resume_rules(tiny_data, tmp_path):
+    out = tmp_path / "run"
+    run_job(write_spec(tiny_data, stopping={"max_iter": 20}), out)
+    with pytest.raises(ValueError, match="--max-iter"):
+        resume_job(out)
+    outcome = resume_job(out, max_iter=30)
+    assert outcome.iterations == 30 and record(out)["resumes"] == 1
+    assert len((out / "loss.csv").read_text().splitlines()) == 31
+    with pytest.raises(ValueError, match="already holds a run"):
+        run_job(write_spec(tiny_data), out)
+    np.save(tiny_data / "meas.npy", np.load(tiny_data / "meas.npy") * 2)
+    with pytest.raises(ValueError, match="changed since the run started"):
+        resume_job(out, max_iter=40)
+
+
+def _env(**extra):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    env.update(extra)
+    return env
+
+
+def _wait_for(cond, proc, timeout=60.0):
+    t0 = time.monotonic()
+    while not cond():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() - t0 < timeout, "timed out"
+        time.sleep(0.02)
+
+
+def _progress_iteration(out: Path) -> int:
+    try:
+        return int(record(out).get("progress", {}).get("iteration", 0))
+    except (FileNotFoundError, ValueError):
+        return 0
+
+
+def test_kill_and_resume_ends_with_identical_weights(tiny_data, tmp_path):
+    """2N iterations in one go == N, SIGKILL (mid-interval), resume for the rest."""
+    spec = write_spec(tiny_data, stopping={"max_iter": 40}, optimizer={"snapshot_every": 15},
+                      output={"checkpoint_every": 20, "preview_every": 10})
+    whole = run_job(spec, tmp_path / "whole")
+    assert whole.iterations == 40
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "app", "jobs", "run", str(spec), "--out", str(out), "--quiet"]
+    # the job stalls after iteration 27 (checkpoint at 20, progress written at 27)
+    proc = subprocess.Popen(cmd, cwd=REPO, env=_env(LENSLESSCAM_UDN_STALL_AT="27"),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        _wait_for(lambda: _progress_iteration(out) == 27, proc)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.communicate()
+    assert proc.returncode == -signal.SIGKILL
+    assert record(out)["checkpoint"]["iteration"] == 20
+    assert len((out / "loss.csv").read_text().splitlines()) == 28
+    res = subprocess.run([sys.executable, "-m", "app", "jobs", "resume", str(out), "--quiet"],
+                         cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    a = load_checkpoint(tmp_path / "whole" / "checkpoint.pt")["state"]
+    b = load_checkpoint(out / "checkpoint.pt")["state"]
+    assert a["iteration"] == b["iteration"] == 40
+    for k in a["G"]:
+        assert torch.equal(a["G"][k], b["G"][k]), k
+    for k in ("ema", "best", "heldout"):
+        assert torch.equal(a[k], b[k]), k
+    assert a["best_iteration"] == b["best_iteration"]
+    for sa, sb in zip(a["opt"]["state"].values(), b["opt"]["state"].values(), strict=True):
+        assert all(torch.equal(sa[k], sb[k]) for k in sa)
+    ra, rb = (np.genfromtxt(p / "loss.csv", delimiter=",", names=True)
+              for p in (tmp_path / "whole", out))
+    np.testing.assert_array_equal(ra["loss"], rb["loss"])  # the same history, no gaps
+    rec = record(out)
+    assert rec["finish_reason"] == "completed" and rec["resumes"] == 1
+    assert [s["start_iteration"] for s in rec["sessions"]] == [0, 20]
+
+
+def test_sigterm_cancels_cleanly_with_a_final_checkpoint(tiny_data, tmp_path):
+    spec = write_spec(tiny_data, stopping={"max_iter": 100000})
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "app", "jobs", "run", str(spec), "--out",
+                             str(out), "--quiet"], cwd=REPO, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for(lambda: _progress_iteration(out) >= 5, proc)
+        assert job_status(out).state == "running"
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 3, stderr
+    assert json.loads(stdout)["finish_reason"] == "cancelled"
+    rec = record(out)
+    assert rec["finish_reason"] == "cancelled" and rec["status"] == "finished"
+    assert "signal" in rec["detail"]
+    n = rec["progress"]["iteration"]
+    assert n >= 5 and load_checkpoint(out / "checkpoint.pt")["iteration"] == n
+    assert (out / "final.tif").exists() and (out / "best.tif").exists()
+
+
+def test_recon_udn_one_shot(tiny_data, tmp_path, capsys):
+    out = tmp_path / "oneshot"
+    argv = ["recon", "udn", "--psf", str(tiny_data / "psf.npy"), "--meas",
+            str(tiny_data / "meas.npy"), "--mask", str(tiny_data / "mask.npy"), "--iters", "6",
+            "--scales", "3", "--net-channels", "8", "--input-channels", "4", "--threads", "1",
+            "--preview-every", "3", "--quiet", "--out", str(out)]
+    assert cli_main(argv) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["finish_reason"] == "completed" and summary["iterations"] == 6
+    rec = record(out)
+    assert rec["spec"]["network"]["channels"] == 8
+    assert rec["spec"]["data"]["mask"] == str(tiny_data / "mask.npy")
+    assert "[network]" in (out / "job.toml").read_text()
+    spec_file = tmp_path / "written.toml"
+    assert cli_main([*argv[:-2], "--write-spec", str(spec_file)]) == 0
+    capsys.readouterr()
+    assert run_job(spec_file, tmp_path / "from_spec").iterations == 6

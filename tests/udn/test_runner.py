@@ -1,0 +1,233 @@
+"""The stepwise UDN solver: masked loss, held-out pixels, early stopping, divergence, NaN, state."""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from recon.metrics import gain_fit, psnr
+from recon.models import build_model
+from recon.udn.network import NetworkConfig
+from recon.udn.runner import NumericalError, UDNConfig, UDNRunner, UDNStopReason
+from tests.udn.conftest import TINY_NET, tiny_problem
+
+NET = NetworkConfig(**TINY_NET)
+
+
+def make_runner(meas=None, erasure=0.5, **cfg):
+    psf, sim = tiny_problem(erasure=erasure)
+    model = build_model("2d", psf, mask=sim.mask)
+    b = sim.meas if meas is None else meas
+    return UDNRunner(model, b, network=NET, config=UDNConfig(**cfg)), sim
+
+
+def weights(r):
+    return [p.detach().clone() for p in r.G.parameters()]
+
+
+def same(a, b):
+    return all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def test_loss_ignores_erased_pixels():
+    """Changing the value of erased pixels (even to NaN) changes nothing in the fit."""
+    r1, sim = make_runner(max_iter=10)
+    meas = sim.meas.copy()
+    erased = sim.mask == 0
+    assert erased.sum() > 10
+    meas[0][erased] = np.random.default_rng(5).uniform(0, 5, int(erased.sum()))
+    meas[0][np.argwhere(erased)[0][0], np.argwhere(erased)[0][1]] = np.nan
+    r2, _ = make_runner(meas=meas, max_iter=10)
+    for _ in range(3):
+        s1, s2 = r1.step(), r2.step()
+        assert s1.loss == s2.loss
+    assert same(weights(r1), weights(r2))
+    # ... while a measured pixel does matter
+    meas3 = sim.meas.copy()
+    y, x = np.argwhere((sim.mask == 1) & ~r1.heldout.numpy()[0])[0]
+    meas3[0, y, x] += 0.5
+    r3, _ = make_runner(meas=meas3, max_iter=10)
+    r3.step()
+    r1b, _ = make_runner(max_iter=10)
+    r1b.step()
+    assert not same(weights(r1b), weights(r3))
+
+
+def test_heldout_pixels_are_excluded_from_the_fit():
+    r1, sim = make_runner(holdout=0.2)
+    held = r1.heldout.numpy()
+    measured = sim.mask[None] == 1
+    assert held.sum() == round(0.2 * measured.sum())
+    assert not (held & ~measured).any()  # only measured pixels are held out
+    assert not (held & r1.fit.numpy()).any()
+    assert r1.n_fit + r1.n_heldout == int(measured.sum())
+    meas = sim.meas.copy()
+    meas[held] += 0.3  # change only the held-out pixels
+    r2, _ = make_runner(meas=meas, holdout=0.2)
+    for _ in range(3):
+        s1, s2 = r1.step(), r2.step()
+    assert same(weights(r1), weights(r2))  # the fit never saw them
+    assert s1.heldout != s2.heldout  # but they are what the held-out error measures
+
+
+def test_early_stopping_returns_the_best_estimate(monkeypatch):
+    r, _ = make_runner(holdout=0.1, patience=5, min_iter=0, max_iter=100, ema=0.5)
+    # a scripted held-out error: falls until iteration 8, then rises (overfitting)
+    script = iter([1.0 / i if i <= 8 else 0.125 + 0.01 * i for i in range(1, 101)])
+    monkeypatch.setattr(r, "heldout_error", lambda x: next(script))
+    estimates = {}
+    for s in r.steps(preview_every=1):
+        estimates[s.iteration] = s.preview
+    assert r.reason is UDNStopReason.STOPPED_EARLY
+    assert r.iteration == 8 + 5
+    assert r.best_iteration == 8
+    np.testing.assert_array_equal(r.best_estimate(), estimates[8])
+    assert not np.array_equal(r.final_estimate(), estimates[8])
+    res = r.result()
+    assert res.best_iteration == 8 and res.reason is UDNStopReason.STOPPED_EARLY
+
+
+def test_divergence_restores_the_last_good_state():
+    r, _ = make_runner(snapshot_every=5, max_iter=100, lr_backoff=0.5)
+    for _ in range(10):
+        r.step()
+    good = weights(r)
+    good_ema = r.ema.clone()
+    lr = r.lr
+    r.step()  # iteration 11 moves away from the snapshot
+    with torch.no_grad():
+        r.G.log_gain.add_(12.0)  # the output 160000x too bright: the loss jumps
+    s = r.step()
+    assert s.restored
+    assert same(weights(r), good)
+    assert torch.equal(r.ema, good_ema)
+    assert r.lr == pytest.approx(lr * 0.5)
+    assert all(g["lr"] == pytest.approx(lr * 0.5) for g in r.opt.param_groups)
+    assert any("restored the state of iteration 10" in n for n in r.notes)
+    s2 = r.step()
+    assert not s2.restored and math.isfinite(s2.loss)
+
+
+def test_nan_in_the_loss_stops_with_a_clear_message():
+    r, _ = make_runner(max_backoffs=2, snapshot_every=2)
+    for _ in range(3):
+        r.step()
+    real_apply = r.model.op.apply
+    r.model.op.apply = lambda x: real_apply(x) * float("nan")  # type: ignore[method-assign]
+    restored = [r.step().restored for _ in range(2)]
+    assert restored == [True, True]
+    with pytest.raises(NumericalError, match=r"not finite at iteration 6.*2 restores.*lower"):
+        r.step()
+
+
+def test_state_dict_roundtrip_continues_identically():
+    a, _ = make_runner(max_iter=20, snapshot_every=4)
+    a.run()
+    b, _ = make_runner(max_iter=20, snapshot_every=4)
+    for _ in range(9):
+        b.step()
+    buf = io.BytesIO()
+    torch.save(b.state_dict(), buf)
+    buf.seek(0)
+    state = torch.load(buf, weights_only=True)
+    c, _ = make_runner(max_iter=20, snapshot_every=4)
+    c.load_state_dict(state)
+    assert c.iteration == 9
+    c.run()
+    assert c.iteration == 20
+    assert same(weights(a), weights(c))
+    assert torch.equal(a.ema, c.ema) and torch.equal(a.best, c.best)
+
+
+def test_state_from_another_network_is_refused():
+    a, _ = make_runner()
+    state = a.state_dict()
+    psf, sim = tiny_problem()
+    other = UDNRunner(build_model("2d", psf, mask=sim.mask), sim.meas,
+                      network=NetworkConfig(**{**TINY_NET, "channels": 8}))
+    with pytest.raises(ValueError, match=r"different run.*network.channels"):
+        other.load_state_dict(state)
+
+
+def test_udn_improves_psnr_end_to_end():
+    """On a small simulated case (no erasures) the estimate gains well over its first iterate."""
+    r, sim = make_runner(erasure=0.0, max_iter=250, holdout=0.05, lr=0.01)
+    truth = sim.truth
+    first = None
+    for _ in r.steps():
+        if first is None:
+            first = r.final_estimate()
+    score = lambda x: psnr(truth, gain_fit(truth, x)[0])  # noqa: E731
+    p0, p_best = score(first), score(r.best_estimate())
+    assert p_best > p0 + 4.0, (p0, p_best)
+    assert r.reason is UDNStopReason.MAX_ITER
+
+
+def test_scale_invariant_loss_keeps_the_measurement_scale():
+    r, sim = make_runner(loss="scale_invariant", gain=100.0, max_iter=30)
+    res = r.run()
+    ax = r.model.apply(torch.as_tensor(res.final)).numpy()
+    m = sim.mask[None] == 1
+    # the estimate is rescaled to the data, whatever the network's gain
+    assert np.sum(ax[m] * sim.meas[m]) / np.sum(ax[m] ** 2) == pytest.approx(1.0, rel=0.2)
+
+
+def test_bf16_autocast_and_channels_last_run_on_cpu():
+    r, _ = make_runner(precision="bf16", channels_last=True, max_iter=5)
+    res = r.run()
+    assert res.final.dtype == np.float32 and np.isfinite(res.final).all()
+
+
+def test_compile_failure_falls_back_with_a_note(monkeypatch):
+    def broken(*a, **k):
+        raise RuntimeError("no compiler here")
+
+    monkeypatch.setattr(torch, "compile", broken)
+    r, _ = make_runner(compile=True, max_iter=3)
+    r.run()
+    assert r.iteration == 3 and not r._compiled
+    assert any("torch.compile failed" in n and "no compiler" in n for n in r.notes)
+
+
+def test_compile_error_at_first_call_falls_back(monkeypatch):
+    def lazy(module):
+        def call(z):
+            raise RuntimeError("inductor failed")
+        return call
+
+    monkeypatch.setattr(torch, "compile", lazy)
+    r, _ = make_runner(compile=True, max_iter=3)  # the gain fit makes the first call
+    r.run()
+    assert r.iteration == 3
+    assert any("first call" in n for n in r.notes)
+
+
+def test_cancel_and_time_limit():
+    r, _ = make_runner(max_iter=100)
+    res = r.run(cancel=lambda: True)
+    assert res.reason is UDNStopReason.CANCELLED and res.iterations == 1
+    r2, _ = make_runner(max_iter=10_000, time_limit_s=1e-6)
+    res2 = r2.run()
+    assert res2.reason is UDNStopReason.TIME_LIMIT and res2.iterations == 1
+
+
+def test_progress_reports_eta_and_preview():
+    r, _ = make_runner(max_iter=6)
+    steps = list(r.steps(preview_every=3))
+    assert [s.preview is not None for s in steps] == [False, False, True, False, False, True]
+    assert steps[2].preview.shape == r.model.scene_shape
+    assert steps[-1].eta_s == 0.0 and steps[1].eta_s > 0
+    assert steps[-1].elapsed_s > steps[0].elapsed_s
+
+
+def test_measurement_with_nan_at_a_measured_pixel_is_refused():
+    _, sim = tiny_problem()
+    meas = sim.meas.copy()
+    y, x = np.argwhere(sim.mask == 1)[0]
+    meas[0, y, x] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        make_runner(meas=meas)
