@@ -18,6 +18,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "app.commands.demo",
     "app.commands.simulate",
     "app.commands.recon",
+    "app.commands.plan",
     "app.commands.jobs",
     "app.commands.metrics",
     "app.commands.bench",

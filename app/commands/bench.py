@@ -11,6 +11,7 @@ BENCHMARKS = {
     "udn": "benchmarks.bench_udn",
     "protocol": "benchmarks.sim_protocol",
     "preview": "benchmarks.bench_preview",
+    "plan": "benchmarks.plan_cases",
 }
 
 

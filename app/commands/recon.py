@@ -28,11 +28,11 @@ def register(sub: Any) -> None:
     f.add_argument("--no-restart", action="store_true", help="disable adaptive restart")
     f.add_argument("--out", required=True, help="output TIFF (previews are written beside it)")
     f.set_defaults(func=run_fista)
-    try:
-        from app.commands.recon_udn import register_udn
-    except ImportError:  # the UDN command is optional in a partial install
-        return
+    from app.commands.plan import register_auto
+    from app.commands.recon_udn import register_udn
+
     register_udn(methods)
+    register_auto(methods)
 
 
 def add_input_arguments(p: argparse.ArgumentParser) -> None:

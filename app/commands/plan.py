@@ -1,0 +1,226 @@
+"""``lenslesscam plan`` and ``lenslesscam recon auto``: plan the simplest model, and run it.
+
+``plan`` analyses a measurement with its calibration and prints the plan (model, K, region,
+downsampling, method for the budget) with the reason for each choice, or its JSON.
+``recon auto`` makes the plan (or reads one with ``--plan``), applies ``--set`` overrides and
+runs it. The ``recon`` command calls :func:`register_auto` to add ``auto`` to its methods.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+from app.commands._common import ProgressBar, load_array, parse_dark
+
+_UNITS = {"ms": 1e-3, "s": 1.0, "sec": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0, "": 1.0}
+
+
+def parse_budget(value: str | None) -> float | None:
+    """'60s', '5min', '2h', '500ms' or a bare number of seconds; None or 'none' for none."""
+    if value is None or value.strip().lower() in ("", "none"):
+        return None
+    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*(ms|s|sec|min|m|h)?\s*",
+                     value)
+    if not m:
+        raise ValueError(f"cannot read {value!r} as a time budget (examples: 60s, 5min, 2h)")
+    seconds = float(m.group(1)) * _UNITS[m.group(2) or ""]
+    if seconds <= 0:
+        raise ValueError(f"the time budget must be positive, got {value!r}")
+    return seconds
+
+
+def parse_overrides(items: list[str] | None) -> dict[str, Any]:
+    """``--set KEY=VALUE`` items; VALUE is read as JSON when it parses, else as a string."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
+        key, raw = item.split("=", 1)
+        try:
+            value: Any = json.loads(raw)
+        except ValueError:
+            value = raw
+        out[key.strip().replace("-", "_")] = value
+    return out
+
+
+def _parse_field(value: str | None, sensor: tuple[int, int]) -> tuple[int, int] | None:
+    if value in (None, "sensor"):
+        return None
+    if value == "full":
+        return (2 * sensor[0], 2 * sensor[1])
+    m = re.fullmatch(r"(\d+)x(\d+)", value or "")
+    if not m:
+        raise ValueError(f"--field must be 'sensor', 'full' or HxW, got {value!r}")
+    return (int(m.group(1)), int(m.group(2)))
+
+
+def add_plan_inputs(p: argparse.ArgumentParser) -> None:
+    """Inputs shared by ``plan`` and ``recon auto``."""
+    p.add_argument("--psf", help="PSF file")
+    p.add_argument("--psf-stack", help="depth PSF stack (multi-page TIFF, (K,H,W) array, folder)")
+    p.add_argument("--meas", required=True, help="measurement file")
+    p.add_argument("--shutter", help="finest shutter function M (K, rows) (.npy/.npz/.tif)")
+    p.add_argument("--timing", help="sensor timing JSON (SensorTiming fields, or a frame's "
+                   "metadata with a 'timing' key)")
+    p.add_argument("--mask", help="dead-pixel / erasure mask (1 = measured)")
+    p.add_argument("--budget", help="time budget of the reconstruction: 60s, 5min, 2h")
+    p.add_argument("--field", default="sensor", help="scene field: sensor, full (2x) or HxW")
+    p.add_argument("--dark", help="dark level: a number, 'auto' or a dark-frame file")
+    p.add_argument("--psf-dark", help="dark level of the PSF (default: same as --dark)")
+    p.add_argument("--rgb", action="store_true", help="colour measurement and PSF")
+    p.add_argument("--tau", type=float, default=None, help="TV weight (default 1e-3)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the held-out pixels")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a plan field (repeatable), e.g. --set model=video --set k=8")
+
+
+def register(sub: Any) -> None:
+    """Add ``plan``."""
+    p = sub.add_parser("plan", help="choose the simplest model the scene needs, and say why")
+    add_plan_inputs(p)
+    p.add_argument("--json", action="store_true", help="print the plan as JSON")
+    p.add_argument("--out", help="also save the plan as JSON here (for recon auto --plan)")
+    p.add_argument("--no-probe", action="store_true",
+                   help="do not time the planned model (no time estimate)")
+    p.set_defaults(func=run_plan)
+
+
+def register_auto(methods: Any) -> None:
+    """Add ``auto`` to ``recon``'s methods (called by app/commands/recon.py)."""
+    p = methods.add_parser("auto", help="plan the simplest model the scene needs and run it")
+    add_plan_inputs(p)
+    p.add_argument("--plan", help="run this saved plan (from lenslesscam plan --out)")
+    p.add_argument("--out", required=True, help="output TIFF (previews are written beside it)")
+    p.add_argument("--float64", action="store_true", help="compute in float64")
+    p.add_argument("--quiet", action="store_true", help="do not print the plan to stderr")
+    p.set_defaults(func=run_auto)
+
+
+def load_inputs(args: argparse.Namespace) -> dict[str, Any]:
+    """Load measurement, PSF (or stack), shutter / timing and mask named on the command line."""
+    import numpy as np
+
+    from recon.io import load_measurement, load_psf, load_psf_stack
+
+    channels = "rgb" if args.rgb else "gray"
+    dark = parse_dark(args.dark)
+    psf_dark = parse_dark(args.psf_dark) if args.psf_dark is not None else dark
+    meas = load_measurement(args.meas, dark=dark, channels=channels)
+    sensor = (int(meas.shape[-2]), int(meas.shape[-1]))
+    psf = stack = None
+    if args.psf_stack:
+        stack = load_psf_stack(args.psf_stack, dark=psf_dark)
+        if stack.shape[1:] != sensor:
+            raise ValueError(f"PSF stack {stack.shape} does not match the measurement {sensor}")
+    elif args.psf:
+        psf = load_psf(args.psf, dark=psf_dark, channels=channels)
+        if psf.shape[1:] != sensor:
+            raise ValueError(f"PSF {psf.shape} does not match the measurement {meas.shape}")
+    else:
+        raise ValueError("give --psf (or --psf-stack for a depth measurement)")
+    shutter = None
+    if args.shutter:
+        shutter = load_array(args.shutter, "shutter", key="shutter").astype(np.float64)
+    timing = None
+    if args.timing:
+        path = Path(args.timing)
+        if not path.is_file():
+            raise FileNotFoundError(f"timing file not found: {args.timing}")
+        data = json.loads(path.read_text())
+        timing = data.get("timing", data) if isinstance(data, dict) else None
+        if not isinstance(timing, dict):
+            raise ValueError(f"{args.timing}: expected a JSON object with the timing fields")
+    if shutter is not None and timing is not None:
+        raise ValueError("give --shutter or --timing, not both")
+    mask = None
+    if args.mask:
+        raw = load_array(args.mask, "mask", key="mask").astype(np.float64)
+        raw = raw.reshape(raw.shape[-2:]) if raw.ndim == 3 and raw.shape[0] == 1 else raw
+        if raw.shape != sensor:
+            raise ValueError(f"mask {raw.shape} does not match the measurement {sensor}")
+        mask = (raw > 0.5).astype(np.float32)
+    return {"meas": meas, "psf": psf, "stack": stack, "shutter": shutter, "timing": timing,
+            "mask": mask, "sensor": sensor}
+
+
+def _make(args: argparse.Namespace, inputs: dict[str, Any], probe: bool = True) -> Any:
+    from recon.plan import DEFAULT_TAU, make_plan
+
+    def progress(msg: str) -> None:
+        if sys.stderr.isatty():
+            print(f"plan: {msg}", file=sys.stderr)
+
+    plan = make_plan(
+        inputs["psf"], inputs["meas"], shutter=inputs["shutter"], timing=inputs["timing"],
+        psf_stack=inputs["stack"], mask=inputs["mask"],
+        field=_parse_field(args.field, inputs["sensor"]),
+        budget_s=parse_budget(args.budget),
+        tau=args.tau if args.tau is not None else DEFAULT_TAU, seed=args.seed, probe=probe,
+        progress=progress)
+    overrides = parse_overrides(args.set)
+    return plan.override(**overrides) if overrides else plan
+
+
+def run_plan(args: argparse.Namespace) -> int:
+    """Print (and optionally save) the plan."""
+    from recon.formats import atomic_write_json
+
+    inputs = load_inputs(args)
+    plan = _make(args, inputs, probe=not args.no_probe)
+    if args.out:
+        atomic_write_json(args.out, plan.to_json())
+    if args.json:
+        print(json.dumps(plan.to_json(), indent=2, default=str))
+    else:
+        print(plan.describe())
+    return 0
+
+
+def run_auto(args: argparse.Namespace) -> int:
+    """Plan (or load a plan), run it and save the reconstruction with the plan in its metadata."""
+    import torch
+
+    from recon.formats import file_hash
+    from recon.io import save_reconstruction
+    from recon.plan import Plan, execute
+
+    inputs = load_inputs(args)
+    if args.plan:
+        path = Path(args.plan)
+        if not path.is_file():
+            raise FileNotFoundError(f"plan file not found: {args.plan}")
+        plan = Plan.from_json(json.loads(path.read_text()))
+        overrides = parse_overrides(args.set)
+        if overrides:
+            plan = plan.override(**overrides)
+    else:
+        plan = _make(args, inputs)
+    if not args.quiet:
+        print(plan.describe(), file=sys.stderr)
+    bar = ProgressBar(max(plan.iterations, 1), f"recon auto ({plan.model}, K={plan.k})")
+
+    def on_step(step: Any) -> None:
+        bar.update(int(step.iteration))
+
+    res = execute(plan, inputs["psf"], inputs["meas"], shutter=inputs["shutter"],
+                  timing=inputs["timing"], psf_stack=inputs["stack"], mask=inputs["mask"],
+                  dtype=torch.float64 if args.float64 else torch.float32, callback=on_step)
+    bar.close()
+    kind = {"2d": "image", "video": "video", "depth": "depth"}[plan.model]
+    meta = res.metadata()
+    meta["inputs"] = {"psf": args.psf or args.psf_stack, "meas": args.meas,
+                      "shutter": args.shutter, "timing": args.timing, "mask": args.mask}
+    meta["input_hashes"] = {"meas": file_hash(args.meas)}
+    paths = save_reconstruction(args.out, res.x, meta, kind=kind)
+    summary = {"out": [str(p) for p in paths], "model": plan.model, "k": plan.k,
+               "region": list(plan.region), "downsample": plan.downsample,
+               "iterations": res.iterations, "stop_reason": res.stop_reason,
+               "wall_time_s": round(res.wall_s, 3), "plan_s": round(plan.plan_s, 3)}
+    print(json.dumps(summary))
+    return 0

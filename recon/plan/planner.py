@@ -1,0 +1,709 @@
+"""The reconstruction plan: the simplest model the scene needs, with the reason for each choice.
+
+:func:`make_plan` analyses a measurement and its calibration (see :mod:`recon.plan.analysis`)
+and returns a :class:`Plan`: the model (2D, video or depth), the number of frames or planes K,
+the region of the scene field to reconstruct, the downsampling factor, and the method and
+iteration count for a time budget (see :mod:`recon.plan.cost`). Every field has a reason and
+can be overridden (:meth:`Plan.override`); :meth:`Plan.to_json` / :meth:`Plan.from_json` save
+and load it, :meth:`Plan.describe` prints it, and :func:`execute` runs it.
+
+Conventions: the measurement is scaled to maximum 1; the field and the region are in
+full-resolution sensor pixels of the scene field centred on the sensor axis (as
+:func:`recon.models.build_model` lays it out); a video plan bins the finest shutter function
+given (``base_bins`` bins) by ``bin_factor`` and normalises it (rows sum to about 1), with TV
+weights ``tau / K`` per frame and ``lambda_t * K`` along time (so a static video costs what its
+2D image costs; :mod:`recon.plan.analysis`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+
+from drivers.timing import ReadoutPattern, SensorTiming
+from recon.fista import Fista, FistaStep
+from recon.io import box_downsample
+from recon.models import ForwardModel
+from recon.plan.analysis import (
+    LAMBDA_T,
+    depth_extent,
+    normalised_shutter,
+    psf_resolution,
+    scene_extent,
+    time_scale,
+    video_tv,
+)
+from recon.plan.cost import MIN_ITERS, iteration_cost, method_for_budget
+from recon.plan.roi import Region, build_region_model, embed_region
+from recon.tv import TV
+
+__all__ = [
+    "DEFAULT_TAU",
+    "PLAN_FORMAT",
+    "PLAN_VERSION",
+    "Plan",
+    "PlanResult",
+    "base_shutter",
+    "execute",
+    "make_plan",
+    "planned_model",
+]
+
+PLAN_FORMAT = "lenslesscam.plan"
+PLAN_VERSION = 1
+#: TV weight of the reconstruction (the ``recon fista`` default), for a measurement of max 1.
+DEFAULT_TAU = 1e-3
+MODELS = ("2d", "video", "depth")
+METHODS = ("fista-tv", "udn")
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+
+
+# ---------------------------------------------------------------------------------------------
+# the plan
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A reconstruction plan; every field except the bookkeeping ones can be overridden.
+
+    Attributes:
+        model: ``2d``, ``video`` or ``depth``.
+        k: frames (video), planes (depth), 1 for 2D.
+        sensor: (H, W) of the measurement at full resolution.
+        field: the scene field (Hs, Ws), full-resolution pixels, centred on the sensor axis.
+        region: (top, left, height, width) of the field to reconstruct.
+        downsample: box downsampling factor of PSF, measurement and shutter.
+        method: ``fista-tv`` or ``udn``.
+        iterations: iteration limit (``udn``: 0 = until the budget or its early stop).
+        tau: TV weight for the full-resolution grid; a grid d times coarser uses ``tau / d``
+            (the discretisation of one continuous objective: the data term sums d^2 fewer
+            pixels, the TV of the coarse image in fine units is about d times smaller), and a
+            video ``tau / K`` per frame.
+        lambda_t: video TV weight along time per unit of exposure (weight_k = lambda_t K).
+        tv_depth: depth TV weight along the planes.
+        bin_factor: video: bins of the finest shutter function merged into one frame.
+        base_bins: video: bins of the finest shutter function given.
+        planes: depth (and 2D from a stack): [first, last) planes of the PSF stack.
+        budget_s: the time budget (None: none).
+        seconds_per_iter: measured cost of one iteration of the planned model.
+        estimated_s: expected reconstruction time.
+        channels: colour channels of the measurement.
+        reasons: why each field has its value.
+        evidence: the numbers behind the reasons.
+        overridden: fields the user set.
+        plan_s: seconds the analysis took.
+
+    """
+
+    model: str
+    k: int
+    sensor: tuple[int, int]
+    field: tuple[int, int]
+    region: tuple[int, int, int, int]
+    downsample: int
+    method: str
+    iterations: int
+    tau: float = DEFAULT_TAU
+    lambda_t: float = LAMBDA_T
+    tv_depth: float = 0.5
+    bin_factor: int | None = None
+    base_bins: int | None = None
+    planes: tuple[int, int] | None = None
+    budget_s: float | None = None
+    seconds_per_iter: float | None = None
+    estimated_s: float | None = None
+    channels: int = 1
+    reasons: dict[str, str] = dataclasses.field(default_factory=dict)
+    evidence: dict[str, Any] = dataclasses.field(default_factory=dict)
+    overridden: tuple[str, ...] = ()
+    plan_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    # -- checks ----------------------------------------------------------------------------
+    def validate(self) -> None:
+        """Raise ValueError naming the first inconsistent field."""
+        if self.model not in MODELS:
+            raise ValueError(f"plan.model must be one of {MODELS}, got {self.model!r}")
+        if self.method not in METHODS:
+            raise ValueError(f"plan.method must be one of {METHODS}, got {self.method!r}")
+        if int(self.k) != self.k or self.k < 1:
+            raise ValueError(f"plan.k must be an integer >= 1, got {self.k!r}")
+        if int(self.downsample) != self.downsample or self.downsample < 1:
+            raise ValueError(f"plan.downsample must be an integer >= 1, got {self.downsample!r}")
+        if int(self.iterations) != self.iterations or self.iterations < 0:
+            raise ValueError(f"plan.iterations must be an integer >= 0, got {self.iterations!r}")
+        if self.method == "fista-tv" and self.iterations < 1:
+            raise ValueError("plan.iterations must be >= 1 for fista-tv")
+        if not (math.isfinite(self.tau) and self.tau >= 0):
+            raise ValueError(f"plan.tau must be >= 0, got {self.tau!r}")
+        Region(*self.region, *self.field)  # raises if outside the field
+        if self.model == "2d" and self.k != 1:
+            raise ValueError(f"a 2d plan has k = 1, got {self.k}")
+        if self.model == "video":
+            if self.bin_factor is None or self.base_bins is None:
+                raise ValueError("a video plan needs bin_factor and base_bins (a shutter function)")
+            if self.bin_factor < 1 or self.bin_factor > self.base_bins:
+                raise ValueError(f"plan.bin_factor must be in [1, {self.base_bins}], "
+                                 f"got {self.bin_factor}")
+            if self.k != -(-self.base_bins // self.bin_factor):
+                raise ValueError(f"plan.k = {self.k} does not match {self.base_bins} shutter bins "
+                                 f"binned by {self.bin_factor}")
+        if self.model == "depth":
+            if self.planes is None:
+                raise ValueError("a depth plan needs planes [first, last)")
+            if self.k != self.planes[1] - self.planes[0]:
+                raise ValueError(f"plan.k = {self.k} does not match planes {self.planes}")
+        if self.planes is not None and not 0 <= self.planes[0] < self.planes[1]:
+            raise ValueError(f"plan.planes must be [first, last) with first < last: "
+                             f"{self.planes}")
+        h, w = self.sensor
+        if h // self.downsample < 2 or w // self.downsample < 2:
+            raise ValueError(f"downsampling {h}x{w} by {self.downsample} leaves too few pixels")
+
+    # -- derived ---------------------------------------------------------------------------
+    @property
+    def region_obj(self) -> Region:
+        """The region as a :class:`Region` at full resolution."""
+        return Region(*self.region, *self.field)
+
+    @property
+    def grid_region(self) -> Region:
+        """The region on the reconstruction grid (after downsampling)."""
+        return self.region_obj.scaled(self.downsample)
+
+    @property
+    def scene_shape(self) -> tuple[int, int, int, int]:
+        """(C, K, h, w) of the reconstruction."""
+        g = self.grid_region
+        return (self.channels, self.k, g.height, g.width)
+
+    # -- overrides ------------------------------------------------------------------------
+    def override(self, **changes: Any) -> Plan:
+        """A copy with some fields set by the user; related fields follow, reasons say so.
+
+        ``k`` for a video re-bins the shutter (``bin_factor = ceil(base_bins / k)``, so the K
+        that results may differ slightly); ``model='2d'`` sets k = 1 (from a PSF stack, the
+        strongest plane); ``region='whole'`` (or ``None``) is the whole field; a new ``field``
+        resets the region to it. Changing the model's size drops the cost estimate.
+        """
+        fixed = {"reasons", "evidence", "overridden", "plan_s", "sensor", "channels",
+                 "base_bins"}
+        names = {f.name for f in dataclasses.fields(self)} - fixed
+        bad = set(changes) - names
+        if bad:
+            raise ValueError(f"cannot override {sorted(bad)}; fields: {sorted(names)}")
+        new: dict[str, Any] = {}
+        for key, v in changes.items():
+            if key in ("field",) and v is not None:
+                new[key] = (int(v[0]), int(v[1]))
+            elif key == "region":
+                new[key] = None if v in (None, "whole") else tuple(int(a) for a in v)
+            elif key == "planes" and v is not None:
+                new[key] = (int(v[0]), int(v[1]))
+            elif key in ("k", "downsample", "iterations", "bin_factor") and v is not None:
+                new[key] = int(v)
+            elif key in ("tau", "lambda_t", "tv_depth", "budget_s", "seconds_per_iter",
+                         "estimated_s") and v is not None:
+                new[key] = float(v)
+            else:
+                new[key] = v
+        merged = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        merged.update(new)
+        if "field" in new and "region" not in new:
+            new["region"] = None
+        if merged.get("region") is None or new.get("region", 0) is None:
+            f = merged["field"]
+            merged["region"] = (0, 0, int(f[0]), int(f[1]))
+        model = merged["model"]
+        if model == "2d":
+            merged["k"] = 1
+            merged["bin_factor"] = None
+            if merged["planes"] is not None and merged["planes"][1] - merged["planes"][0] > 1:
+                energy = self.evidence.get("depth", {}).get("energy_per_plane")
+                lo, hi = merged["planes"]
+                best = lo + int(np.argmax(energy[lo:hi])) if energy else (lo + hi) // 2
+                merged["planes"] = (best, best + 1)
+        elif model == "video":
+            if self.base_bins is None:
+                raise ValueError("a video plan needs a shutter function; this plan was made "
+                                 "without one")
+            if "k" in new or "bin_factor" not in new or merged["bin_factor"] is None:
+                k_want = merged["k"] if ("k" in new or self.model == "video") else 2
+                k_want = max(1, min(int(k_want), self.base_bins))
+                merged["bin_factor"] = -(-self.base_bins // k_want)
+            merged["k"] = -(-self.base_bins // int(merged["bin_factor"]))
+        elif model == "depth":
+            if merged["planes"] is None:
+                raise ValueError("a depth plan needs planes (and a PSF stack)")
+            if "k" in changes and "planes" not in changes:
+                raise ValueError("a depth plan's K follows its planes: set planes=[first, last]")
+            merged["k"] = merged["planes"][1] - merged["planes"][0]
+        reasons = dict(self.reasons)
+        for key in changes:
+            old = getattr(self, key)
+            reasons[key] = f"set by the user (the plan had {old!r})"
+        size_keys = {"model", "k", "bin_factor", "planes", "region", "field", "downsample"}
+        if size_keys & set(changes) and "seconds_per_iter" not in changes:
+            merged["seconds_per_iter"] = None
+            merged["estimated_s"] = None
+            reasons["method"] = (reasons.get("method", "") + "; the cost estimate was made "
+                                 "for the model before the override")
+        merged["reasons"] = reasons
+        merged["overridden"] = tuple(dict.fromkeys([*self.overridden, *changes]))
+        return Plan(**merged)
+
+    # -- serialisation ---------------------------------------------------------------------
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-ready dict with ``format`` and ``format_version``."""
+        d: dict[str, Any] = {"format": PLAN_FORMAT, "format_version": PLAN_VERSION}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            d[f.name] = list(v) if isinstance(v, tuple) else v
+        return d
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> Plan:
+        """Inverse of :meth:`to_json` (checks the format and version)."""
+        if d.get("format") != PLAN_FORMAT:
+            raise ValueError(f"not a plan: format {d.get('format')!r}, expected {PLAN_FORMAT!r}")
+        if int(d.get("format_version", 0)) > PLAN_VERSION:
+            raise ValueError(f"plan format version {d.get('format_version')} is newer than "
+                             f"this software reads ({PLAN_VERSION})")
+        kw: dict[str, Any] = {}
+        for f in dataclasses.fields(cls):
+            if f.name not in d:
+                continue
+            v = d[f.name]
+            if f.name in ("sensor", "field", "region", "planes", "overridden") and v is not None:
+                v = tuple(v)
+            kw[f.name] = v
+        return cls(**kw)
+
+    def describe(self) -> str:
+        """Human-readable plan: each choice with its reason."""
+        g = self.grid_region
+        h, w = self.sensor
+        rows: list[tuple[str, str, str]] = []
+        k_txt = {"2d": "1", "video": f"{self.k} frames", "depth": f"{self.k} planes"}
+        model_txt = self.model
+        if self.planes is not None:
+            model_txt += f" (PSF planes {self.planes[0]}..{self.planes[1] - 1})"
+        rows.append(("model", model_txt, self.reasons.get("model", "")))
+        rows.append(("K", k_txt[self.model], self.reasons.get("k", "")))
+        reg = self.region_obj
+        reg_txt = ("whole field" if reg.is_whole else
+                   f"{reg.height}x{reg.width} at ({reg.top}, {reg.left})")
+        rows.append(("region", f"{reg_txt} of the {self.field[0]}x{self.field[1]} field",
+                     self.reasons.get("region", "")))
+        rows.append(("downsample", f"{self.downsample} -> grid {g.height}x{g.width}",
+                     self.reasons.get("downsample", "")))
+        est = f", about {self.estimated_s:.3g} s" if self.estimated_s is not None else ""
+        it = f"{self.iterations} iterations" if self.iterations else "until the budget"
+        rows.append(("method", f"{self.method}, {it}{est}", self.reasons.get("method", "")))
+        rows.append(("tau", f"{self.tau:g}", self.reasons.get("tau", "")))
+        lines = [f"Reconstruction plan for a {h}x{w} measurement ({self.channels} channel"
+                 f"{'s' if self.channels > 1 else ''}), analysed in {self.plan_s:.2f} s"]
+        for name, value, why in rows:
+            user = " [user]" if name in self.overridden else ""
+            lines.append(f"  {name:<11}{value}{user}")
+            if why:
+                lines.append(f"  {'':<11}why: {why}")
+        return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------
+# inputs
+
+
+def _as_chw(a: Any, what: str) -> F32:
+    arr = np.asarray(a, dtype=np.float32)
+    if arr.ndim == 2:
+        arr = arr[None]
+    if arr.ndim != 3:
+        raise ValueError(f"{what} must be (H, W) or (C, H, W), got shape {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{what} has NaN or inf values")
+    return arr
+
+
+def _scaled_meas(meas: Any) -> F32:
+    b = _as_chw(meas, "measurement")
+    peak = float(b.max())
+    if peak <= 0:
+        raise ValueError("the measurement is all zero or negative: nothing to reconstruct")
+    return np.asarray(b / peak, dtype=np.float32)
+
+
+def base_shutter(shutter: Any, timing: SensorTiming | Mapping[str, Any] | None,
+                 rows: int) -> tuple[F64 | None, str]:
+    """The finest shutter function (K0, rows) from an array or a sensor timing, and a note.
+
+    None (with the reason) when there is no shutter, or the sensor has a global shutter.
+    """
+    if shutter is not None:
+        m = np.asarray(shutter, dtype=np.float64)
+        if m.ndim != 2 or m.shape[1] != rows:
+            raise ValueError(f"shutter function must be (K, {rows}) for a {rows}-row sensor, "
+                             f"got {m.shape}")
+        if not np.isfinite(m).all() or (m < 0).any():
+            raise ValueError("shutter function must be finite and non-negative")
+        return m, f"shutter function of {m.shape[0]} bins given"
+    if timing is None:
+        return None, "no shutter function or sensor timing given: time is not resolvable"
+    t = timing if isinstance(timing, SensorTiming) else SensorTiming.from_dict(dict(timing))
+    if t.rows != rows:
+        raise ValueError(f"sensor timing has {t.rows} rows, the measurement {rows}")
+    if t.pattern is ReadoutPattern.GLOBAL:
+        return None, "global shutter: every row integrates the same window, no time resolution"
+    m = t.shutter(bin_lines=1)
+    return m, (f"{t.pattern.value} readout, exposure {t.exposure_lines} lines: "
+               f"{m.shape[0]} one-line bins")
+
+
+def planned_model(plan: Plan, psf: Any = None, *, shutter: F64 | None = None,
+                  psf_stack: Any = None, mask: Any = None,
+                  dtype: torch.dtype = torch.float32,
+                  device: torch.device | str = "cpu") -> ForwardModel:
+    """The forward model a plan reconstructs with (on its downsampled grid and region).
+
+    ``shutter`` is the finest shutter function (K0, H) the plan was made with; ``mask`` the
+    full-resolution sensor mask (a downsampled pixel counts as measured only if all of its
+    pixels are).
+    """
+    d = plan.downsample
+    region = plan.region_obj
+    m_d = None
+    if mask is not None:
+        m_d = (box_downsample(np.asarray(mask, dtype=np.float32) > 0.5, d) >= 1.0)
+        m_d = m_d.astype(np.float32)
+    kw: dict[str, Any] = {"downsample": d, "mask": m_d, "dtype": dtype, "device": device}
+    if plan.planes is not None:
+        if psf_stack is None:
+            raise ValueError("this plan uses planes of a PSF stack: pass psf_stack")
+        sub = np.asarray(psf_stack, dtype=np.float32)[plan.planes[0]:plan.planes[1]]
+        if plan.model == "2d":
+            return build_region_model("2d", sub[0], region, **kw)
+        return build_region_model("depth", sub, region, **kw)
+    if psf is None:
+        raise ValueError("pass the PSF")
+    p = _as_chw(psf, "PSF")
+    p_arg: Any = p[0] if p.shape[0] == 1 else p
+    if plan.model == "video":
+        if shutter is None or plan.bin_factor is None:
+            raise ValueError("a video plan needs the shutter function it was planned with")
+        if shutter.shape[0] != plan.base_bins:
+            raise ValueError(f"the plan was made for {plan.base_bins} shutter bins, "
+                             f"got {shutter.shape[0]}")
+        m = normalised_shutter(shutter, plan.bin_factor)
+        return build_region_model("video", p_arg, region, shutter=m, **kw)
+    return build_region_model("2d", p_arg, region, **kw)
+
+
+# ---------------------------------------------------------------------------------------------
+# planning
+
+
+def make_plan(
+    psf: Any,
+    meas: Any,
+    *,
+    shutter: Any = None,
+    timing: SensorTiming | Mapping[str, Any] | None = None,
+    psf_stack: Any = None,
+    mask: Any = None,
+    field: tuple[int, int] | None = None,
+    budget_s: float | None = None,
+    tau: float = DEFAULT_TAU,
+    analysis_rows: int = 24,
+    seed: int = 0,
+    probe: bool = True,
+    use_cache: bool = True,
+    progress: Callable[[str], None] | None = None,
+) -> Plan:
+    """Analyse a measurement and its calibration and return the plan.
+
+    Args:
+        psf: (H, W) or (C, H, W) PSF (None when ``psf_stack`` is given).
+        meas: (H, W) or (C, H, W) measurement (dark subtracted; any scale).
+        shutter: finest shutter function (K0, H) of a rolling-shutter frame, or
+        timing: the frame's :class:`~drivers.timing.SensorTiming` (or its dict).
+        psf_stack: (K, H, W) PSFs of depth planes: plan 2D (one plane) or depth.
+        mask: (H, W) sensor mask, 1 = measured (erased / dead pixels are left out).
+        field: scene field (Hs, Ws) to consider (default the sensor size).
+        budget_s: time budget of the reconstruction in seconds (None: none).
+        tau: TV weight of the reconstruction.
+        analysis_rows: the analysis runs on a grid of about this many rows.
+        seed: seeds the held-out pixels of the cross-validation.
+        probe: measure the planned model's cost (else no time estimate, default iterations).
+        use_cache: read and write the cost cache.
+        progress: called with a line of text at each stage.
+
+    """
+    t_start = time.perf_counter()
+
+    def say(msg: str) -> None:
+        if progress is not None:
+            progress(msg)
+
+    b = _scaled_meas(meas)
+    c, h, w = b.shape
+    stack: F32 | None = None
+    if psf_stack is not None:
+        stack = np.asarray(psf_stack, dtype=np.float32)
+        if stack.ndim != 3 or stack.shape[1:] != (h, w):
+            raise ValueError(f"PSF stack must be (K, {h}, {w}), got {stack.shape}")
+        if c != 1:
+            raise ValueError("a depth measurement must be grayscale")
+        psf_gray = stack.mean(axis=0)
+    else:
+        if psf is None:
+            raise ValueError("give a PSF (or a PSF stack)")
+        p = _as_chw(psf, "PSF")
+        if p.shape[1:] != (h, w) or p.shape[0] not in (1, c):
+            raise ValueError(f"PSF {p.shape} does not match the measurement {b.shape}")
+        psf_gray = p.mean(axis=0)
+    fld = (h, w) if field is None else (int(field[0]), int(field[1]))
+    if fld[0] < 1 or fld[1] < 1:
+        raise ValueError(f"field must be positive, got {fld}")
+    reasons: dict[str, str] = {}
+    evidence: dict[str, Any] = {}
+
+    # resolution (of a stack: its sharpest plane; the mean of the planes would be blurred)
+    if stack is not None:
+        res = min((psf_resolution(plane) for plane in stack),
+                  key=lambda r: min(r.fwhm_y, r.fwhm_x))
+    else:
+        res = psf_resolution(psf_gray)
+    d = res.factor
+    evidence["resolution"] = res.to_dict()
+    reasons["downsample"] = (
+        f"the PSF autocorrelation peak is {res.fwhm_y:.1f} x {res.fwhm_x:.1f} px wide (FWHM); "
+        f"details finer than that are not resolved, so {d} px per sample keeps two samples "
+        f"per resolvable width" + ("" if res.limited_by == "autocorrelation width"
+                                   else f" (capped by {res.limited_by})"))
+
+    # analysis grid
+    a = max(d, round(h / analysis_rows), 1)
+    while a > 1 and (h // a < 8 or w // a < 8):
+        a -= 1
+    b_a = box_downsample(b.mean(axis=0), a)
+    measured = None
+    if mask is not None:
+        mk = np.asarray(mask, dtype=np.float32)
+        if mk.shape[-2:] != (h, w):
+            raise ValueError(f"mask {mk.shape} does not match the sensor {(h, w)}")
+        measured = box_downsample(mk.reshape(h, w) > 0.5, a) >= 1.0
+        b_a = b_a * measured
+    evidence["analysis_grid"] = {"factor": a, "shape": list(b_a.shape)}
+
+    # extent
+    say("extent: low-resolution 2D reconstruction of the field")
+    ext = scene_extent(psf_gray, b_a, fld, a, measured=measured)
+    region = ext.region
+    evidence["extent"] = ext.to_dict()
+    if ext.cropped:
+        reasons["region"] = (
+            f"a {b_a.shape[0]}x{b_a.shape[1]} reconstruction puts the energy in "
+            f"{ext.bbox.height}x{ext.bbox.width} px at ({ext.bbox.top}, {ext.bbox.left}); "
+            f"with a margin the region holds {100 * ext.energy_fraction:.0f}% of the energy in "
+            f"{100 * region.area_fraction:.0f}% of the field")
+    else:
+        reasons["region"] = (
+            f"the scene's energy spans {ext.bbox.height}x{ext.bbox.width} px of the "
+            f"{fld[0]}x{fld[1]} field: with a margin that is more than 60% of it, so the "
+            "whole field")
+
+    # time and depth
+    model, k = "2d", 1
+    bin_factor: int | None = None
+    planes: tuple[int, int] | None = None
+    base, note = base_shutter(shutter, timing, h)
+    base_bins = None if base is None else int(base.shape[0])
+    if stack is not None:
+        say(f"depth: cross-validation over {stack.shape[0]} PSF planes")
+        dep = depth_extent(stack, b_a, region, a, measured=measured, seed=seed)
+        evidence["depth"] = dep.to_dict()
+        planes = (dep.first, dep.last)
+        tab = "; ".join(f"{cand.label}: {cand.heldout_mse:.3g}" for cand in dep.candidates)
+        if dep.k == 1:
+            reasons["model"] = (f"one PSF plane ({dep.first}) predicts held-out pixels as well "
+                                f"as more planes (held-out MSE {tab}): a 2D model")
+        else:
+            model, k = "depth", dep.k
+            reasons["model"] = (f"planes {dep.first}..{dep.last - 1} are needed to predict "
+                                f"held-out pixels (held-out MSE {tab})")
+        reasons["k"] = reasons["model"]
+        if base is not None:
+            reasons["model"] += "; the shutter function is not used with a PSF stack"
+        base_bins = None
+    elif base is None:
+        reasons["model"] = f"2D: {note}"
+        reasons["k"] = "one image"
+    else:
+        say(f"time: cross-validation over K ({base.shape[0]} shutter bins)")
+        ts = time_scale(psf_gray, b_a, base, region, a, measured=measured, seed=seed)
+        evidence["time"] = ts.to_dict()
+        c0 = ts.candidates[0]
+        best = min(ts.candidates, key=lambda cand: cand.heldout_mse)
+        tab = ", ".join(f"K={cand.k}: {cand.heldout_mse:.3g}" for cand in ts.candidates)
+        if ts.motion:
+            model, k, bin_factor = "video", ts.k, ts.factor
+            reasons["model"] = (
+                f"motion: the 2D model predicts held-out pixels "
+                f"{c0.heldout_mse / best.heldout_mse:.1f}x worse than the best video model "
+                f"(z = {c0.z:.1f}; held-out MSE {tab})")
+            reasons["k"] = (
+                f"the smallest K whose held-out error is within 5% (or 2 standard errors) of "
+                f"the best K={best.k}; {ts.k} frames of {ts.factor} shutter bins each ({note})")
+        else:
+            gap = c0.heldout_mse / best.heldout_mse - 1.0
+            reasons["model"] = (
+                f"no motion: video models predict held-out pixels at most "
+                f"{100 * max(gap, 0.0):.0f}% better than the 2D model (threshold 25%; "
+                f"held-out MSE {tab}); a static scene needs one image")
+            reasons["k"] = "one image (static scene)"
+
+    # method for the budget
+    reg4 = (region.top, region.left, region.height, region.width)
+    plan = Plan(model=model, k=k, sensor=(h, w), field=fld, region=reg4,
+                downsample=d, method="fista-tv", iterations=300, tau=tau, bin_factor=bin_factor,
+                base_bins=base_bins, planes=planes, budget_s=budget_s, channels=c,
+                reasons=reasons, evidence=evidence)
+    cost = None
+    if probe:
+        say("cost: timing a few iterations of the planned model")
+        for _ in range(8):
+            pm = planned_model(plan, psf, shutter=base, psf_stack=stack, mask=mask)
+            cost = iteration_cost(pm, use_cache=use_cache)
+            choice = method_for_budget(cost, budget_s)
+            bigger = plan.downsample * 2
+            if (choice.affordable or h // bigger < 16 or w // bigger < 16):
+                break
+            old = plan.downsample
+            plan = dataclasses.replace(plan, downsample=bigger)
+            reasons["downsample"] += (f"; raised from {old} to {bigger} so the budget allows "
+                                      f"at least {MIN_ITERS} iterations")
+    choice = method_for_budget(cost, budget_s)
+    reasons["method"] = choice.reason + (
+        "; rule and cost probe of recon.plan.cost (measured here at plan time)"
+        if cost is not None else "")
+    reasons["tau"] = ("the default TV weight of recon fista (measurement scaled to max 1)"
+                      if tau == DEFAULT_TAU else "given")
+    if cost is not None:
+        evidence["cost"] = cost.to_dict()
+    return dataclasses.replace(
+        plan, method=choice.method, iterations=choice.iterations,
+        seconds_per_iter=None if cost is None else cost.seconds_per_iter,
+        estimated_s=choice.estimated_s, reasons=reasons, evidence=evidence,
+        plan_s=time.perf_counter() - t_start)
+
+
+# ---------------------------------------------------------------------------------------------
+# execution
+
+
+@dataclass
+class PlanResult:
+    """A plan's reconstruction: x (C, K, h, w) on the grid of ``region`` (downsampled)."""
+
+    x: F32
+    plan: Plan
+    region: Region
+    iterations: int
+    stop_reason: str
+    wall_s: float
+    residual: float | None
+    params: dict[str, Any]
+
+    def field_image(self) -> F32:
+        """The reconstruction placed in the whole (downsampled) field, zero outside."""
+        return np.asarray(embed_region(self.x, self.region), dtype=np.float32)
+
+    def metadata(self) -> dict[str, Any]:
+        """JSON-ready description for the saved reconstruction."""
+        return {"method": self.plan.method, "model": self.plan.model, "plan": self.plan.to_json(),
+                "iterations": self.iterations, "stop_reason": self.stop_reason,
+                "wall_time_s": round(self.wall_s, 3), "residual": self.residual,
+                "region_on_grid": self.region.to_list(), "parameters": self.params}
+
+
+def execute(
+    plan: Plan,
+    psf: Any,
+    meas: Any,
+    *,
+    shutter: Any = None,
+    timing: SensorTiming | Mapping[str, Any] | None = None,
+    psf_stack: Any = None,
+    mask: Any = None,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+    callback: Callable[[Any], None] | None = None,
+    cancel: Callable[[], bool] | None = None,
+) -> PlanResult:
+    """Run a plan: downsample, build the planned model on its region, reconstruct.
+
+    ``callback`` receives every solver step (a :class:`~recon.fista.FistaStep` or a UDN step);
+    ``cancel()`` returning True stops the run after the current step.
+    """
+    b = _scaled_meas(meas)
+    if tuple(b.shape[1:]) != plan.sensor:
+        raise ValueError(f"the plan is for a {plan.sensor} sensor, the measurement is "
+                         f"{b.shape[1:]}")
+    base, _ = base_shutter(shutter, timing, plan.sensor[0])
+    model = planned_model(plan, psf, shutter=base, psf_stack=psf_stack, mask=mask,
+                          dtype=dtype, device=device)
+    b_d = box_downsample(b, plan.downsample)
+    if mask is not None:
+        m_d = box_downsample(np.asarray(mask, dtype=np.float32) > 0.5, plan.downsample) >= 1.0
+        b_d = b_d * m_d
+    bt = torch.as_tensor(b_d, dtype=dtype, device=device)
+    if tuple(bt.shape) != model.meas_shape:
+        raise ValueError(f"measurement {tuple(bt.shape)} does not fit the model "
+                         f"{model.meas_shape} (channels of PSF and measurement differ?)")
+    t0 = time.perf_counter()
+    if plan.method == "udn":
+        return _execute_udn(plan, model, b_d, t0, callback, cancel)
+    tau_grid = plan.tau / plan.downsample  # tau is per full-resolution pixel (see Plan)
+    if plan.model == "video":
+        tau, tv = video_tv(plan.k, tau_grid, plan.lambda_t)
+    elif plan.model == "depth":
+        tau, tv = tau_grid, TV(weight_k=plan.tv_depth)
+    else:
+        tau, tv = tau_grid, TV()
+    solver = Fista(model.op, bt, tau=tau, tv=tv, max_iter=plan.iterations, tol=1e-5)
+    last: FistaStep | None = None
+    for step in solver.steps():
+        last = step
+        if callback is not None:
+            callback(step)
+        if cancel is not None and cancel():
+            break
+    wall = time.perf_counter() - t0
+    reason = solver.reason.value if solver.reason is not None else "cancelled"
+    return PlanResult(solver.x.float().cpu().numpy(), plan, plan.grid_region, solver.iteration,
+                      reason, wall, None if last is None else last.residual, solver.params)
+
+
+def _execute_udn(plan: Plan, model: ForwardModel, b: F32, t0: float,
+                 callback: Callable[[Any], None] | None,
+                 cancel: Callable[[], bool] | None) -> PlanResult:
+    from recon.udn import UDNConfig, UDNRunner
+
+    cfg = UDNConfig(max_iter=plan.iterations or 10**7, time_limit_s=plan.budget_s)
+    res = UDNRunner(model, b, config=cfg).run(callback, cancel)
+    return PlanResult(np.asarray(res.best, dtype=np.float32), plan, plan.grid_region,
+                      res.iterations, res.reason.value, time.perf_counter() - t0,
+                      None, {"method": "udn", **cfg.to_dict()})

@@ -1,0 +1,79 @@
+"""``lenslesscam plan``, ``recon auto`` (through register_auto) and ``bench plan``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from app.cli import build_parser, main
+from app.commands.plan import parse_budget, parse_overrides, register_auto
+
+
+@pytest.fixture()
+def files(tmp_path, moving_cap):
+    cap = moving_cap
+    np.save(tmp_path / "psf.npy", cap.psf)
+    np.save(tmp_path / "meas.npy", cap.meas)
+    (tmp_path / "timing.json").write_text(json.dumps({"timing": cap.timing.to_dict()}))
+    return tmp_path
+
+
+def _inputs(d):
+    return ["--psf", str(d / "psf.npy"), "--meas", str(d / "meas.npy"),
+            "--timing", str(d / "timing.json")]
+
+
+def test_plan_prints_reasons_and_json(files, capsys):
+    assert main(["plan", *_inputs(files), "--no-probe"]) == 0
+    text = capsys.readouterr().out
+    assert "model      video" in text and "why:" in text
+    out = files / "plan.json"
+    assert main(["plan", *_inputs(files), "--json", "--budget", "30s", "--out", str(out),
+                 "--set", "iterations=40"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["model"] == "video" and d["iterations"] == 40 and d["budget_s"] == 30.0
+    assert "iterations" in d["overridden"] and json.loads(out.read_text()) == d
+
+
+def test_recon_auto_runs_a_saved_plan_with_overrides(files, capsys):
+    parser = argparse.ArgumentParser()
+    register_auto(parser.add_subparsers())
+    plan_file = files / "plan.json"
+    assert main(["plan", *_inputs(files), "--no-probe", "--out", str(plan_file)]) == 0
+    capsys.readouterr()
+    out = files / "rec.tif"
+    args = parser.parse_args(["auto", *_inputs(files), "--plan", str(plan_file), "--set",
+                              "model=2d", "--set", "iterations=20", "--out", str(out),
+                              "--quiet"])
+    assert args.func(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["model"] == "2d" and summary["iterations"] <= 20 and out.exists()
+    from recon.io import read_reconstruction
+
+    x, meta = read_reconstruction(out)
+    assert x.shape == (1, 1, 48, 64) and meta["plan"]["overridden"] == ["model", "iterations"]
+
+
+def test_bad_inputs_are_one_line_errors(files, capsys):
+    assert main(["plan", *_inputs(files), "--budget", "soon"]) == 2
+    assert "time budget" in capsys.readouterr().err
+    assert main(["plan", "--meas", str(files / "meas.npy")]) == 2
+    assert "--psf" in capsys.readouterr().err
+    assert main(["plan", *_inputs(files), "--no-probe", "--set", "k"]) == 2
+    assert "KEY=VALUE" in capsys.readouterr().err
+
+
+def test_parsers():
+    assert parse_budget("90") == 90.0 and parse_budget("2min") == 120.0
+    assert parse_budget("1.5h") == 5400.0 and parse_budget("250ms") == 0.25
+    assert parse_budget(None) is None
+    assert parse_overrides(["k=4", "model=video", "region=[1,2,3,4]"]) == {
+        "k": 4, "model": "video", "region": [1, 2, 3, 4]}
+
+
+def test_bench_plan_is_registered():
+    args = build_parser().parse_args(["bench", "plan", "--size", "48x64", "--markdown"])
+    assert args.size == "48x64" and args.markdown and callable(args.func)

@@ -1,0 +1,156 @@
+"""The Plan object (JSON, overrides, description), the budget rule, the cost cache, depth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from benchmarks.plan_cases import background
+from recon.models import build_model
+from recon.plan import PLAN_FORMAT, Plan, execute, make_plan
+from recon.plan.cost import (
+    DEFAULT_ITERS,
+    MAX_ITERS,
+    UDN_MIN_BUDGET_CPU_S,
+    CostEstimate,
+    cache_path,
+    iteration_cost,
+    method_for_budget,
+)
+from recon.simulate import simulate, synthetic_psf
+
+
+def _plan(**kw):
+    base = {"model": "2d", "k": 1, "sensor": (48, 64), "field": (48, 64),
+            "region": (0, 0, 48, 64), "downsample": 1, "method": "fista-tv",
+            "iterations": 300, "base_bins": 36, "reasons": {"model": "because"}}
+    base.update(kw)
+    return Plan(**base)
+
+
+def test_json_round_trip_keeps_every_field(static_cap):
+    cap = static_cap
+    plan = make_plan(cap.psf, cap.meas, timing=cap.timing, budget_s=30.0)
+    d = json.loads(json.dumps(plan.to_json()))
+    assert d["format"] == PLAN_FORMAT and d["format_version"] == 1
+    back = Plan.from_json(d)
+    assert back == plan
+    assert plan.seconds_per_iter is not None and plan.estimated_s is not None
+    assert plan.evidence["cost"]["source"] in ("probe", "cache")
+    with pytest.raises(ValueError, match="not a plan"):
+        Plan.from_json({"format": "something else"})
+    with pytest.raises(ValueError, match="newer"):
+        Plan.from_json({**d, "format_version": 99})
+
+
+def test_describe_gives_a_reason_for_each_choice(static_cap):
+    cap = static_cap
+    text = make_plan(cap.psf, cap.meas, timing=cap.timing).describe()
+    for word in ("model", "K", "region", "downsample", "method", "tau", "why:",
+                 "held-out", "autocorrelation", "FISTA-TV"):
+        assert word in text
+
+
+def test_overrides_follow_related_fields_and_say_so():
+    p = _plan()
+    v = p.override(model="video", k=8)
+    assert (v.model, v.bin_factor, v.k) == ("video", 5, 8)  # ceil(36 / 8) = 5 -> 8 frames
+    assert v.overridden == ("model", "k") and "set by the user" in v.reasons["k"]
+    assert v.seconds_per_iter is None  # the size changed: the cost estimate is dropped
+    back = v.override(model="2d")
+    assert (back.k, back.bin_factor) == (1, None)
+    r = p.override(region=(4, 6, 20, 30))
+    assert r.region == (4, 6, 20, 30) and r.override(region="whole").region_obj.is_whole
+    f = p.override(field=(96, 128))
+    assert f.region == (0, 0, 96, 128)
+    with pytest.raises(ValueError, match="cannot override"):
+        p.override(colour="blue")
+    with pytest.raises(ValueError, match="outside"):
+        p.override(region=(40, 0, 20, 10))
+    with pytest.raises(ValueError, match="shutter"):
+        _plan(base_bins=None).override(model="video")
+    with pytest.raises(ValueError, match="k = 1"):
+        _plan(k=2)
+    with pytest.raises(ValueError, match="method"):
+        _plan(method="magic")
+
+
+def test_budget_rule():
+    cost = CostEstimate(0.01, "probe", "key")
+    assert method_for_budget(cost, None).iterations == DEFAULT_ITERS
+    c = method_for_budget(cost, 2.0)  # 200 - 25 setup iterations
+    assert c.method == "fista-tv" and c.iterations == 175 and c.affordable
+    assert method_for_budget(cost, 1000.0, gpu=False).iterations == MAX_ITERS
+    tight = method_for_budget(cost, 0.5)
+    assert not tight.affordable and "under-converged" in tight.reason
+    # the UDN only for long budgets (and only when recon.udn imports)
+    assert method_for_budget(cost, 3600.0, gpu=False).method == "fista-tv"
+    assert method_for_budget(cost, UDN_MIN_BUDGET_CPU_S, gpu=False).method == "udn"
+    assert method_for_budget(cost, 1800.0, gpu=True).method == "udn"
+    with pytest.raises(ValueError, match="positive"):
+        method_for_budget(cost, -1.0)
+
+
+def test_cost_is_measured_once_then_cached(tmp_path):
+    model = build_model("2d", synthetic_psf((24, 32), seed=1))
+    path = tmp_path / "costs.json"
+    first = iteration_cost(model, path=path)
+    second = iteration_cost(model, path=path)
+    assert first.source == "probe" and second.source == "cache"
+    assert second.seconds_per_iter == pytest.approx(first.seconds_per_iter)
+    assert first.key in json.loads(path.read_text())
+    assert cache_path().name == "plan_costs.json"
+
+
+def test_a_tight_budget_raises_the_downsampling(static_cap):
+    cap = static_cap
+    plan = make_plan(cap.psf, cap.meas, budget_s=1e-3)
+    assert plan.downsample > 1 and "raised" in plan.reasons["downsample"]
+
+
+def test_depth_stack_plans_2d_for_one_plane_and_depth_for_two():
+    h, w = 48, 64
+    stack = np.stack([synthetic_psf((h, w), n_points=40, seed=s) for s in (1, 2, 3, 4)])
+    one = np.zeros((1, 4, h, w))
+    one[0, 1] = background(h, w, "im740")
+    sim = simulate(build_model("depth", stack), one, photons=20000, seed=0)
+    plan = make_plan(None, sim.meas, psf_stack=stack, probe=False)
+    assert plan.model == "2d" and plan.planes == (1, 2)
+    res = execute(plan.override(iterations=30), None, sim.meas, psf_stack=stack)
+    assert res.x.shape == (1, 1, h, w)
+    two = one.copy()
+    two[0, 2] = np.roll(background(h, w, "im65"), 10, axis=1)
+    sim2 = simulate(build_model("depth", stack), two, photons=20000, seed=0)
+    plan2 = make_plan(None, sim2.meas, psf_stack=stack, probe=False)
+    assert plan2.model == "depth" and plan2.planes is not None
+    assert plan2.planes[0] <= 1 and plan2.planes[1] >= 3
+
+
+def test_mask_and_execute_contract(static_cap):
+    cap = static_cap
+    rng = np.random.default_rng(0)
+    mask = (rng.random(cap.meas.shape) > 0.2).astype(np.float32)
+    plan = make_plan(cap.psf, cap.meas * mask, timing=cap.timing, mask=mask, probe=False)
+    assert plan.model == "2d"
+    steps = []
+    res = execute(plan.override(iterations=20), cap.psf, cap.meas * mask, timing=cap.timing,
+                  mask=mask, callback=steps.append, cancel=lambda: len(steps) >= 5)
+    assert res.iterations == 5 and len(steps) == 5 and res.stop_reason == "cancelled"
+    assert res.x.dtype == np.float32 and res.metadata()["plan"]["model"] == "2d"
+    with pytest.raises(ValueError, match="sensor"):
+        execute(plan, cap.psf, cap.meas[:40], timing=cap.timing)
+    with pytest.raises(ValueError, match="shutter"):
+        execute(plan.override(model="video", k=4), cap.psf, cap.meas)  # no timing given
+    assert torch.get_num_threads() == 1
+
+
+def test_udn_method_runs_through_the_runner(static_cap):
+    cap = static_cap
+    plan = make_plan(cap.psf, cap.meas, timing=cap.timing, probe=False)
+    res = execute(plan.override(method="udn", iterations=2), cap.psf, cap.meas,
+                  timing=cap.timing)
+    assert res.x.shape == (1, 1, 48, 64) and res.iterations == 2
+    assert res.params["method"] == "udn"
