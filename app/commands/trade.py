@@ -1,0 +1,182 @@
+"""``lenslesscam trade``: measure the speed/accuracy trade for a case (tables + Pareto plot)."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+PROTOCOL_SCENES = ("im408", "im740", "im65")
+PROTOCOL_ERASURES = (0.9, 0.99)
+QUALITY_LABEL = {"psnr": "PSNR vs truth (dB)", "heldout_psnr": "held-out prediction (dB)"}
+
+
+def register(sub: Any) -> None:
+    """Add ``trade``."""
+    p = sub.add_parser("trade", help="measure the speed/accuracy trade (methods x budgets)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--protocol", action="store_true",
+                     help="the three shared scenes at 90%% and 99%% erasures (noise 0.01) and "
+                          "the real DiffuserCam-Tutorial hand")
+    src.add_argument("--sample", choices=["tutorial"], help="a bundled real measurement")
+    src.add_argument("--meas", help="measurement file (with --psf)")
+    p.add_argument("--psf", help="PSF file")
+    p.add_argument("--mask", help="erasure mask (1 = measured)")
+    p.add_argument("--truth", help="ground truth (C,1,H,W) or (H,W), if known")
+    p.add_argument("--dark", help="dark level for the measurement and PSF files")
+    p.add_argument("--downsample", type=int, default=1)
+    p.add_argument("--quick", action="store_true", help="a small grid")
+    p.add_argument("--no-udn", action="store_true", help="leave the UDN out of the grid")
+    p.add_argument("--budgets", default="0.5,2,10,60", help="time budgets in seconds")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--out", required=True, help="output folder (CSV, Markdown, PNG)")
+    p.set_defaults(func=run)
+
+
+def _cases(args: argparse.Namespace) -> list[Any]:
+    import numpy as np
+
+    from recon import samples
+    from recon.models import build_model
+    from recon.simulate import simulate
+    from recon.trade import Case
+
+    if args.protocol:
+        psf = samples.tutorial_psf()
+        cases = []
+        for er in PROTOCOL_ERASURES:
+            for name in PROTOCOL_SCENES:
+                sim = simulate(build_model("2d", psf), samples.lensed_scene(name), erasure=er,
+                               noise=0.01, seed=0)
+                cases.append(Case(f"{name} {er:.0%}", psf, sim.meas, sim.mask, sim.truth))
+        cases.append(Case("tutorial hand (real)", psf, samples.tutorial_measurement()))
+        return cases
+    if args.sample == "tutorial":
+        return [Case("tutorial hand (real)", samples.tutorial_psf(),
+                     samples.tutorial_measurement())]
+    from app.commands._common import load_array, parse_dark
+    from recon.io import box_downsample, load_measurement, load_psf
+
+    if not args.psf:
+        raise ValueError("--meas needs --psf")
+    dark = parse_dark(args.dark)
+    psf = load_psf(args.psf, dark=dark, downsample=args.downsample)
+    meas = load_measurement(args.meas, dark=dark, downsample=args.downsample)
+    mask = truth = None
+    if args.mask:
+        raw = load_array(args.mask, "mask", key="mask").astype(np.float64)
+        mask = (box_downsample(raw.reshape(raw.shape[-2:]) > 0.5, args.downsample) > 0
+                ).astype(np.float32)
+    if args.truth:
+        t = load_array(args.truth, "truth").astype(np.float32)
+        truth = t.reshape(1, 1, *t.shape[-2:]) if t.ndim == 2 else t
+    return [Case(Path(args.meas).stem, psf, meas, mask, truth)]
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the grid on each case; write trade.csv, trade.md and trade_pareto.png."""
+    import torch
+
+    from recon.formats import atomic_write_bytes
+    from recon.trade import (
+        best_for_budgets,
+        default_grid,
+        pareto_front,
+        rank_correlation,
+        run_trade,
+    )
+
+    torch.set_num_threads(args.threads)
+    budgets = [float(b) for b in args.budgets.split(",")]
+    grid = default_grid(quick=args.quick, with_udn=not args.no_udn)
+    out = Path(args.out)
+    t_all = time.perf_counter()
+    rows = []
+    cases = _cases(args)
+    for case in cases:
+        for row in run_trade(case, grid):
+            rows.append(row)
+            print(f"{row.case:22s} {row.setting:26s} it {row.iterations:5d} "
+                  f"{row.wall_s:8.2f} s  held-out {row.heldout_psnr:6.2f} dB"
+                  + (f"  PSNR {row.psnr:6.2f} dB" if row.psnr is not None else ""),
+                  file=sys.stderr)
+    # CSV
+    buf = io.StringIO()
+    fields = list(rows[0].as_dict())
+    writer = csv.DictWriter(buf, fieldnames=fields)
+    writer.writeheader()
+    for r in rows:
+        writer.writerow(r.as_dict())
+    atomic_write_bytes(out / "trade.csv", buf.getvalue().encode())
+    # Markdown
+    md = [f"# Speed/accuracy trade\n\nProduced by `lenslesscam trade {' '.join(sys.argv[2:])}` "
+          f"in {time.perf_counter() - t_all:.0f} s, torch threads = {args.threads}. Wall time "
+          "is the time to reach the iteration count (one run per setting, scored at several "
+          "counts); peak memory is the run's peak resident memory above its start.\n"]
+    for case in cases:
+        cr = [r for r in rows if r.case == case.name]
+        key = "psnr" if case.truth is not None else "heldout_psnr"
+        md.append(f"\n## {case.name}\n")
+        if case.truth is not None:
+            rho = rank_correlation([r.heldout_psnr for r in cr], [r.psnr or 0.0 for r in cr])
+            md.append(f"Held-out proxy vs true PSNR over all {len(cr)} points: Spearman rank "
+                      f"correlation **{rho:.3f}**.\n")
+        md.append(f"\nBest setting per time budget (by {QUALITY_LABEL[key]}):\n\n"
+                  "| budget (s) | setting | iterations | wall (s) | quality (dB) |\n"
+                  "|---|---|---|---|---|")
+        for b, r in best_for_budgets(cr, budgets, key).items():
+            md.append(f"| {b:g} | " + (f"{r.setting} | {r.iterations} | {r.wall_s:.2f} | "
+                                        f"{getattr(r, key):.2f} |" if r else "none fits | | | |"))
+        md.append("\nPareto front (no other point is both faster and better):\n\n"
+                  "| setting | iterations | wall (s) | peak MB | held-out (dB) | residual | "
+                  "PSNR (dB) | SSIM |\n|---|---|---|---|---|---|---|---|")
+        for r in pareto_front(cr, key):
+            md.append(f"| {r.setting} | {r.iterations} | {r.wall_s:.2f} | {r.peak_mem_mb} | "
+                      f"{r.heldout_psnr:.2f} | {r.residual:.4f} | "
+                      + (f"{r.psnr:.2f} | {r.ssim:.3f} |" if r.psnr is not None else "- | - |"))
+    md.append("\nEvery point is in `trade.csv`; the plot is `trade_pareto.png`.\n")
+    atomic_write_bytes(out / "trade.md", "\n".join(md).encode())
+    _plot(cases, rows, out / "trade_pareto.png")
+    print("\n".join(md))
+    return 0
+
+
+def _plot(cases: list[Any], rows: list[Any], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from recon.formats import atomic_write
+    from recon.trade import pareto_front
+
+    n = len(cases)
+    cols = min(n, 4)
+    nrows = -(-n // cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(3.6 * cols, 3.0 * nrows), squeeze=False)
+    colours = {"fista": "tab:blue", "admm": "tab:orange", "udn": "tab:green"}
+    for ax, case in zip(axes.flat, cases, strict=False):
+        key = "psnr" if case.truth is not None else "heldout_psnr"
+        cr = [r for r in rows if r.case == case.name]
+        for method, colour in colours.items():
+            pts = [r for r in cr if r.method == method]
+            if pts:
+                ax.scatter([r.wall_s for r in pts], [getattr(r, key) for r in pts], s=10,
+                           c=colour, label=method, alpha=0.7)
+        front = pareto_front(cr, key)
+        ax.plot([r.wall_s for r in front], [getattr(r, key) for r in front], "k-", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_title(case.name, fontsize=9)
+        ax.set_xlabel("wall time (s)", fontsize=8)
+        ax.set_ylabel(QUALITY_LABEL[key], fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=7)
+    fig.tight_layout()
+    atomic_write(path, lambda p: fig.savefig(p, dpi=90))
+    plt.close(fig)

@@ -1,0 +1,372 @@
+"""The speed/accuracy trade: run a grid of methods and budgets on one case and score each.
+
+For every configuration (FISTA-TV and ADMM-TV over tau, UDN over network width and precision,
+float32/float64, downsampling) this records, at several iteration counts taken from one run,
+the wall time, the peak resident memory of the run and the quality:
+
+- with ground truth: PSNR and SSIM after a least-squares gain fit;
+- always (the normal case at the bench, where there is no truth): the *held-out proxy*. A
+  random 5 % of the measured pixels is hidden from every reconstruction; the proxy is how well
+  the reconstruction predicts them (held-out PSNR, in dB of the measurement's peak), beside the
+  data residual on the fitted pixels. ``rank_correlation`` tells how well the proxy orders the
+  configurations as true PSNR does (on simulated cases).
+
+Peak memory is measured, not estimated: before each run the kernel's peak-RSS counter is reset
+(``/proc/self/clear_refs``), and the run's peak is VmHWM minus the resident size before it.
+Where that is unavailable (not Linux) the column is empty.
+
+Everything here is stepwise: :func:`run_trade` is a generator of rows (progress and a
+cancellation point between configurations); nothing prints or plots.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+
+from recon.io import box_downsample
+from recon.metrics import gain_fit, psnr, ssim
+from recon.models import build_model
+
+__all__ = [
+    "Case",
+    "Config",
+    "TradeRow",
+    "best_for_budgets",
+    "default_grid",
+    "pareto_front",
+    "rank_correlation",
+    "run_trade",
+]
+
+F32 = npt.NDArray[np.float32]
+
+
+@dataclass
+class Case:
+    """A measurement with its calibration, and the truth where there is one."""
+
+    name: str
+    psf: F32  # (C, H, W), unit sum
+    meas: F32  # (C, H, W)
+    mask: F32 | None = None  # (H, W), 1 = measured
+    truth: F32 | None = None  # (C, 1, H, W)
+
+
+@dataclass(frozen=True)
+class Config:
+    """One configuration of the grid; ``checkpoints`` are the iteration counts scored."""
+
+    method: str  # fista | admm | udn
+    tau: float = 0.0
+    checkpoints: tuple[int, ...] = (50, 100, 200, 500)
+    precision: str = "float32"  # float32 | float64 (fista/admm) | bf16 (udn)
+    downsample: int = 1
+    channels: int = 0  # udn width
+    scales: int = 4
+
+    @property
+    def label(self) -> str:
+        """Short human-readable name."""
+        parts = [self.method]
+        if self.method == "udn":
+            parts.append(f"ch{self.channels}")
+        else:
+            parts.append(f"tau={self.tau:g}")
+        if self.precision != "float32":
+            parts.append(self.precision)
+        if self.downsample > 1:
+            parts.append(f"ds{self.downsample}")
+        return " ".join(parts)
+
+
+@dataclass
+class TradeRow:
+    """The score of one configuration at one iteration count."""
+
+    case: str
+    setting: str
+    method: str
+    tau: float
+    precision: str
+    downsample: int
+    channels: int
+    iterations: int
+    wall_s: float
+    peak_mem_mb: float | None
+    heldout_psnr: float
+    residual: float
+    psnr: float | None = None
+    ssim: float | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Flat dict for CSV/JSON."""
+        d = asdict(self)
+        d.pop("extra")
+        return d
+
+
+def default_grid(quick: bool = False, with_udn: bool = True) -> list[Config]:
+    """The grid of the issue; ``quick`` keeps a few points of each.
+
+    FISTA-TV (tau x iterations), ADMM-TV, UDN (iterations, width, precision), float32 and
+    float64, downsampling.
+    """
+    taus = (1e-5, 1e-4, 1e-3) if quick else (1e-5, 3e-5, 1e-4, 3e-4, 1e-3)
+    its = (30, 100, 300) if quick else (25, 50, 100, 200, 500)
+    grid = [Config("fista", t, its) for t in taus]
+    grid += [Config("admm", t, its) for t in taus]
+    grid.append(Config("fista", 1e-4, its, precision="float64"))
+    grid += [Config("fista", t, its, downsample=2) for t in (1e-5, 1e-4)]
+    if with_udn:
+        udn_its = (100, 300) if quick else (100, 250, 500)
+        grid.append(Config("udn", checkpoints=udn_its, channels=16))
+        grid.append(Config("udn", checkpoints=udn_its, channels=32))
+        grid.append(Config("udn", checkpoints=udn_its, channels=32, precision="bf16"))
+    return grid
+
+
+# --------------------------------------------------------------------------------------------
+# Memory
+# --------------------------------------------------------------------------------------------
+
+
+def _status_kb(key: str) -> int | None:
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def _reset_peak() -> int | None:
+    """Return freed heap to the OS, reset the peak-RSS counter; return the RSS in kB.
+
+    Without the trim, glibc keeps freed blocks mapped and a run that reuses them shows no
+    growth. None where unsupported (not Linux/glibc).
+    """
+    import ctypes
+    import ctypes.util
+    import gc
+
+    gc.collect()
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.malloc_trim(0)
+    except (OSError, AttributeError):
+        return None
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+    except OSError:
+        return None
+    return _status_kb("VmRSS")
+
+
+def _peak_mb(base_kb: int | None) -> float | None:
+    hwm = _status_kb("VmHWM")
+    if base_kb is None or hwm is None:
+        return None
+    return round(max(hwm - base_kb, 0) / 1024.0, 1)
+
+
+# --------------------------------------------------------------------------------------------
+# Running one configuration
+# --------------------------------------------------------------------------------------------
+
+
+def _downsample_case(psf: F32, meas: F32, mask: F32, d: int) -> tuple[F32, F32, F32]:
+    """Box-downsample a masked measurement.
+
+    A coarse pixel is the mean over its measured sub-pixels, and counts as measured when any of
+    its sub-pixels is.
+    """
+    if d == 1:
+        return psf, meas, mask
+    psf_d = box_downsample(psf, d)
+    psf_d = psf_d / psf_d.sum()
+    count = box_downsample(mask[None], d)[0]
+    total = box_downsample(meas * mask[None], d)
+    meas_d = np.where(count > 0, total / np.maximum(count, 1e-12), 0.0)
+    return (psf_d.astype(np.float32), meas_d.astype(np.float32),
+            (count > 0).astype(np.float32))
+
+
+def _upsample(x: F32, shape: tuple[int, int]) -> F32:
+    """Nearest-neighbour upsampling of (C, K, h, w) by whole factors, padded to ``shape``."""
+    c, k, h, w = x.shape
+    fy, fx = shape[0] // h, shape[1] // w
+    up = np.repeat(np.repeat(x, fy, axis=2), fx, axis=3)
+    out = np.zeros((c, k, *shape), dtype=np.float32)
+    out[..., : up.shape[2], : up.shape[3]] = up
+    return out
+
+
+def _iterate(cfg: Config, psf: F32, meas: F32, mask: F32, seed: int,
+             ) -> Iterator[tuple[int, F32, float]]:
+    """Yield (iteration, estimate, elapsed) at each checkpoint of one run."""
+    last = max(cfg.checkpoints)
+    if cfg.method in ("fista", "admm"):
+        dtype = torch.float64 if cfg.precision == "float64" else torch.float32
+        if cfg.precision not in ("float32", "float64"):
+            raise ValueError(f"{cfg.method} runs in float32 or float64, not {cfg.precision}")
+        model = build_model("2d", psf, mask=mask, dtype=dtype)
+        b = torch.as_tensor(meas, dtype=dtype)
+        t0 = time.perf_counter()
+        if cfg.method == "fista":
+            from recon.fista import Fista
+
+            solver: Any = Fista(model.op, b, tau=cfg.tau, max_iter=last, tol=0.0)
+        else:
+            from recon.admm import Admm
+
+            solver = Admm(model, b, tau=cfg.tau, max_iter=last, tol=0.0)
+        for step in solver.steps():
+            if step.iteration in cfg.checkpoints:
+                yield step.iteration, solver.x.detach().float().cpu().numpy(), (
+                    time.perf_counter() - t0)
+            if solver.done and step.iteration < last:  # stopped early: it serves the rest
+                x, elapsed = solver.x.detach().float().cpu().numpy(), time.perf_counter() - t0
+                for c in sorted(cfg.checkpoints):
+                    if c > step.iteration:
+                        yield c, x, elapsed
+        return
+    if cfg.method == "udn":
+        from recon.udn import NetworkConfig, UDNConfig, UDNRunner
+
+        model = build_model("2d", psf, mask=mask)
+        net = NetworkConfig(scales=cfg.scales, channels=cfg.channels)
+        conf = UDNConfig(max_iter=last, seed=seed, precision=cfg.precision,  # type: ignore[arg-type]
+                         holdout=0.0)
+        runner = UDNRunner(model, meas, network=net, config=conf)
+        t0 = time.perf_counter()
+        for step in runner.steps():
+            if step.iteration in cfg.checkpoints:
+                yield step.iteration, runner.final_estimate(), time.perf_counter() - t0
+        return
+    raise ValueError(f"unknown method {cfg.method!r}: use fista, admm or udn")
+
+
+def run_trade(
+    case: Case,
+    grid: Sequence[Config],
+    *,
+    holdout: float = 0.05,
+    seed: int = 0,
+    cancel: Callable[[], bool] | None = None,
+) -> Iterator[TradeRow]:
+    """Run every configuration on ``case``; yield one row per (configuration, checkpoint)."""
+    if not 0 < holdout < 0.5:
+        raise ValueError(f"holdout must be in (0, 0.5), got {holdout}")
+    h, w = case.meas.shape[-2:]
+    measured = np.ones((h, w), np.float32) if case.mask is None else case.mask.astype(np.float32)
+    idx = np.flatnonzero(measured > 0)
+    if idx.size < 20:
+        raise ValueError(f"case {case.name}: only {idx.size} measured pixels; the held-out "
+                         "proxy needs at least 20")
+    rng = np.random.default_rng(seed)
+    n_hold = max(1, round(holdout * idx.size))
+    hold = np.zeros(h * w, bool)
+    hold[rng.choice(idx, n_hold, replace=False)] = True
+    hold = hold.reshape(h, w)
+    fit_mask = (measured > 0) & ~hold
+    full = build_model("2d", case.psf, dtype=torch.float64)
+    peak = float(np.abs(case.meas[:, hold]).max()) or 1.0
+    # warm-up: one-time costs (thread pools, FFT plans) must not land on the first setting
+    for _ in _iterate(Config("fista", 0.0, (2,)), case.psf, case.meas, measured, seed):
+        pass
+    for cfg in grid:
+        if cancel is not None and cancel():
+            return
+        psf_d, meas_d, mask_d = _downsample_case(case.psf, case.meas,
+                                                 fit_mask.astype(np.float32), cfg.downsample)
+        base = _reset_peak()
+        for it, x, elapsed in _iterate(cfg, psf_d, meas_d, mask_d, seed):
+            mem = _peak_mb(base)
+            xf = _upsample(x, (h, w)) if cfg.downsample > 1 else x
+            with torch.no_grad():
+                pred = full.apply(torch.as_tensor(xf, dtype=torch.float64)).numpy()
+            fit = pred[:, fit_mask]
+            g = float((fit * case.meas[:, fit_mask]).sum() / max((fit * fit).sum(), 1e-30))
+            pred *= g
+            err_hold = float(np.mean((pred[:, hold] - case.meas[:, hold]) ** 2))
+            res_fit = float(np.linalg.norm(pred[:, fit_mask] - case.meas[:, fit_mask]) /
+                            max(float(np.linalg.norm(case.meas[:, fit_mask])), 1e-30))
+            row = TradeRow(
+                case=case.name, setting=cfg.label, method=cfg.method, tau=cfg.tau,
+                precision=cfg.precision, downsample=cfg.downsample, channels=cfg.channels,
+                iterations=it, wall_s=round(elapsed, 3), peak_mem_mb=mem,
+                heldout_psnr=10 * math.log10(peak**2 / max(err_hold, 1e-30)),
+                residual=res_fit,
+            )
+            if case.truth is not None:
+                est = gain_fit(case.truth, xf)[0]
+                row.psnr = psnr(case.truth, est)
+                row.ssim = ssim(case.truth, est)
+            yield row
+
+
+# --------------------------------------------------------------------------------------------
+# Summaries
+# --------------------------------------------------------------------------------------------
+
+
+def _quality(row: TradeRow, key: str) -> float:
+    v = getattr(row, key)
+    return -math.inf if v is None else float(v)
+
+
+def pareto_front(rows: Sequence[TradeRow], key: str = "psnr") -> list[TradeRow]:
+    """Rows not dominated in (less wall time, more ``key``), sorted by wall time."""
+    ordered = sorted(rows, key=lambda r: (r.wall_s, -_quality(r, key)))
+    front: list[TradeRow] = []
+    best = -math.inf
+    for r in ordered:
+        q = _quality(r, key)
+        if q > best:
+            front.append(r)
+            best = q
+    return front
+
+
+def best_for_budgets(rows: Sequence[TradeRow], budgets_s: Sequence[float],
+                     key: str = "psnr") -> dict[float, TradeRow | None]:
+    """For each time budget, the row of highest ``key`` whose wall time fits it."""
+    out: dict[float, TradeRow | None] = {}
+    for b in budgets_s:
+        fitting = [r for r in rows if r.wall_s <= b and getattr(r, key) is not None]
+        out[b] = max(fitting, key=lambda r: _quality(r, key)) if fitting else None
+    return out
+
+
+def rank_correlation(a: Sequence[float], b: Sequence[float]) -> float:
+    """Spearman rank correlation (average ranks for ties)."""
+    if len(a) != len(b) or len(a) < 3:
+        raise ValueError("rank correlation needs two sequences of equal length >= 3")
+
+    def ranks(v: Sequence[float]) -> npt.NDArray[np.float64]:
+        arr = np.asarray(v, dtype=np.float64)
+        order = arr.argsort(kind="mergesort")
+        r = np.empty(len(arr), dtype=np.float64)
+        r[order] = np.arange(len(arr), dtype=np.float64)
+        for val in np.unique(arr):
+            sel = arr == val
+            r[sel] = r[sel].mean()
+        return r
+
+    ra, rb = ranks(a), ranks(b)
+    ra -= ra.mean()
+    rb -= rb.mean()
+    den = math.sqrt(float((ra * ra).sum() * (rb * rb).sum()))
+    return float((ra * rb).sum() / den) if den > 0 else 0.0
