@@ -19,6 +19,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "app.commands.simulate",
     "app.commands.recon",
     "app.commands.plan",
+    "app.commands.trade",
     "app.commands.jobs",
     "app.commands.metrics",
     "app.commands.bench",
