@@ -339,6 +339,9 @@ class MainWindow(QMainWindow):
             self.toolbar.addAction(act)
         except ImportError as exc:
             _log.info("jobs panel unavailable: %s", exc)
+        from app.gui.trade_panel import add_trade_dock
+
+        add_trade_dock(self)
 
     # -- messages ------------------------------------------------------------------------------
 

@@ -1,0 +1,60 @@
+"""The trade panel: the CLI's trade.csv plotted, a suggestion per budget applied to the preview,
+and a quick trade measured on the live frame."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from recon.trade import TradeRow
+
+
+def _rows() -> list[TradeRow]:
+    def row(setting: str, method: str, tau: float, wall: float, q: float) -> TradeRow:
+        return TradeRow("c", setting, method, tau, "float32", 1, 0, 100, wall, 5.0, q, 0.01)
+
+    return [row("fista tau=1e-05", "fista", 1e-5, 0.2, 30.0),
+            row("fista tau=0.0001", "fista", 1e-4, 0.5, 33.0),
+            row("admm tau=0.001", "admm", 1e-3, 2.0, 35.0),
+            row("udn ch32", "udn", 0.0, 50.0, 36.0)]
+
+
+def test_csv_round_trip_plot_and_suggestion(make_window: Any, tmp_path: Any) -> None:
+    import csv
+
+    from app.gui.trade_panel import read_trade_csv
+
+    path = tmp_path / "trade.csv"
+    rows = _rows()
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0].as_dict()))
+        w.writeheader()
+        for r in rows:
+            w.writerow(r.as_dict())
+    assert [r.as_dict() for r in read_trade_csv(path)] == [r.as_dict() for r in rows]
+    win = make_window(autoconnect=False)
+    panel = win.trade_panel
+    panel.load_csv(path)
+    assert len(panel.plot.listDataItems()) == 4  # three methods + the Pareto line
+    panel.budget.setValue(1.0)
+    assert "fista tau=0.0001" in panel.suggestion.text()
+    panel.apply_suggestion()
+    assert win.preview_controls.settings().tau == 1e-4
+    assert win.engine.settings.tau == 1e-4
+    panel.budget.setValue(0.05)
+    assert "nothing fits" in panel.suggestion.text() and not panel.apply_button.isEnabled()
+    panel.load_csv(tmp_path / "missing.csv")
+    assert "cannot load" in panel.suggestion.text()
+
+
+def test_measure_on_the_live_frame(live_window: Any, qtbot: Any) -> None:
+    panel = live_window.trade_panel
+    qtbot.waitUntil(lambda: live_window.engine.psf is not None, timeout=10_000)
+    panel.measure_current()
+    assert panel.running
+    qtbot.waitUntil(lambda: not panel.running, timeout=120_000)
+    assert len(panel.rows) >= 10, panel.suggestion.text()
+    assert all(np.isfinite(r.heldout_psnr) for r in panel.rows)
+    assert panel.quality_key == "heldout_psnr"
+    assert "within" in panel.suggestion.text() or "nothing fits" in panel.suggestion.text()
