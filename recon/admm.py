@@ -14,6 +14,10 @@ To minimise exactly FISTA's objective, the TV penalty applies only to difference
 pixels of the field (Neumann TV of the field): the differences that cross the field's edge or
 lie outside it are split off but not penalised, and w keeps v zero outside the field.
 
+The reported objective is that of ADMM's internal iterate v (computed from M v, which the
+iteration has anyway); the returned estimate is v on the field, clamped at 0. Near
+convergence they agree; early on, score the returned estimate yourself (the trade does).
+
 Penalties: mu1 = 1 (x = M v), mu2 = mu3 = ``rho`` * max|H|^2 (u = Psi v, w = v), fixed.
 (Residual balancing was tried and converged worse on the simulation protocol.)
 """

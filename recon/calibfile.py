@@ -43,6 +43,7 @@ from recon.formats import (
     FormatError,
     array_hash,
     atomic_write,
+    json_default,
     provenance,
     software_version,
 )
@@ -145,18 +146,6 @@ class Calibration:
 # writing
 
 
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, os.PathLike):
-        return os.fspath(o)
-    if hasattr(o, "value"):  # Enum
-        return o.value
-    if hasattr(o, "to_dict"):  # SensorTiming, Roi, ...
-        return o.to_dict()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 def _finite_json(obj: Any) -> Any:
@@ -196,7 +185,7 @@ def _header(kind: str, metadata: Mapping[str, Any], arrays: Mapping[str, Array])
     }
     meta.update(user)
     try:
-        text = json.dumps(meta, default=_json_default, allow_nan=True)
+        text = json.dumps(meta, default=json_default, allow_nan=True)
         clean: dict[str, Any] = _finite_json(json.loads(text))
         json.dumps(clean, allow_nan=False)
     except (TypeError, ValueError) as exc:

@@ -14,6 +14,10 @@ Solves  min_x  0.5 ||A x - b||^2 + tau TV(x)  subject to x >= 0.
 - Stops on a relative change below ``tol`` or at ``max_iter``; every step is a progress report
   and a cancellation point (iterate :meth:`Fista.steps` and stop whenever you like).
 - NaN/inf anywhere raises :class:`NumericalError` naming where it appeared.
+- Very large tau: when gamma = tau / L is so large that the exact prox of gamma TV is a
+  constant (checked by an explicit dual certificate, :func:`constant_prox`), the constant is
+  used instead of the inexact inner solver, which would otherwise need thousands of inner
+  iterations there (it used to stall at x = 0).
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ __all__ = [
     "SolverStep",
     "StepwiseSolver",
     "StopReason",
+    "constant_prox",
 ]
 
 
@@ -90,6 +95,43 @@ def _check_finite(t: torch.Tensor, where: str, it: int, solver: str = "FISTA") -
         raise NumericalError(
             f"{solver}: {n_bad} NaN/inf values appeared in {where} at iteration {it}"
         )
+
+
+def constant_prox(tv: TV, z: torch.Tensor, gamma: float, nonneg: bool = True
+                  ) -> torch.Tensor | None:
+    """The exact prox of ``gamma`` TV (+ x >= 0) at ``z`` when it is constant, else None.
+
+    The prox is the group mean m (per channel, and per k unless TV couples k) exactly when
+    z - m = gamma D^T p for some dual p in the unit ball. Such a p is built from cumulative
+    sums (along x of z minus its row means, along y of the row means minus m, along k of the
+    slice means minus m); if it fits, the mean is the exact prox (clamped at 0 with the
+    non-negativity constraint, which is then also exact). A cheap necessary condition
+    (|z - m| <= gamma ||D^T||_inf per pixel) skips the check in the usual case (one min/max
+    pass over z).
+    """
+    if gamma <= 0 or z.ndim != 4:
+        return None
+    couple_k = tv.weight_k > 0 and z.shape[1] > 1
+    lo, hi = torch.aminmax(z.flatten(1 if couple_k else 2), dim=-1)
+    if float((hi - lo).max()) > gamma * (8.0 + 4.0 * tv.weight_k):
+        return None  # some pixel is too far from the mean for any dual in the unit ball
+    zd = z.double()
+    row = zd.mean(dim=3, keepdim=True)  # (C, K, H, 1)
+    px = torch.cumsum(zd - row, dim=3)[..., :-1]
+    sl = row.mean(dim=2, keepdim=True)  # (C, K, 1, 1)
+    py = torch.cumsum(row - sl, dim=2)[..., :-1, :]
+    a = float(px.abs().max()) if px.numel() else 0.0
+    b = float(py.abs().max()) if py.numel() else 0.0
+    need = math.hypot(a, b) if tv.isotropic else max(a, b)
+    mean = sl
+    if couple_k:
+        mean = sl.mean(dim=1, keepdim=True)  # (C, 1, 1, 1)
+        pk = torch.cumsum(sl - mean, dim=1)[:, :-1]
+        need = max(need, float(pk.abs().max()) / tv.weight_k)
+    if not need <= gamma:
+        return None
+    out = mean.to(z.dtype).expand(z.shape).clone()
+    return out.clamp_(min=0.0) if nonneg else out
 
 
 class StepwiseSolver:
@@ -169,9 +211,21 @@ class Fista(StepwiseSolver):
             raise ValueError(f"tau must be a finite number >= 0, got {tau}")
         if max_iter < 0:
             raise ValueError(f"max_iter must be >= 0, got {max_iter}")
+        if op.dtype not in (torch.float32, torch.float64):
+            raise ValueError(
+                f"FISTA runs in float32 or float64, not {op.dtype} (the FFTs of the forward "
+                "model need it; reduced precision such as bf16 is supported only for the UDN "
+                "network, through autocast)"
+            )
         self.op = op
         self.b = b.to(dtype=op.dtype, device=op.device)
         _check_finite(self.b, "the measurement", 0)
+        if not math.isfinite(0.5 * float(torch.sum(self.b * self.b))):
+            raise ValueError(
+                f"the measurement is too large for {op.dtype} (max |b| = "
+                f"{float(self.b.abs().max()):.3g}: its squared norm overflows); normalise it "
+                "(recon.io.normalise) or use float64"
+            )
         self.tau = float(tau)
         self.tv = tv if tv is not None else TV()
         self.prox = TVProx(self.tv, nonneg=nonneg)
@@ -180,9 +234,20 @@ class Fista(StepwiseSolver):
         self.tol = float(tol)
         self.restart = restart
         self.prox_iters = int(prox_iters)
-        self.L = float(lipschitz) if lipschitz is not None else op.lipschitz()
+        try:
+            self.L = float(lipschitz) if lipschitz is not None else op.lipschitz()
+        except FloatingPointError as exc:
+            raise NumericalError(
+                f"{exc}: the forward model's values are too large for {op.dtype}; normalise "
+                "the PSF (for example to unit sum, recon.io.normalise) or use float64"
+            ) from exc
         if not (math.isfinite(self.L) and self.L > 0):
-            raise ValueError(f"operator norm is {self.L}: the forward model maps everything to 0")
+            raise ValueError(
+                f"operator norm is {self.L} in {op.dtype}: the forward model maps everything to "
+                "0, or its values are so small that ||A^T A x|| underflows (a PSF with values "
+                "below about 1e-15 in float32); normalise the PSF (for example to unit sum, "
+                "recon.io.normalise)"
+            )
         self._b_norm = max(float(torch.linalg.vector_norm(self.b)), 1e-30)
         with torch.no_grad():
             if x0 is None:
@@ -235,7 +300,9 @@ class Fista(StepwiseSolver):
         with torch.no_grad():
             grad = self.op.adjoint(self.Ay - self.b)
             z = torch.add(self.y, grad, alpha=-1.0 / self.L)
-            x_new = self.prox(z, self.tau / self.L, self.prox_iters)
+            x_new = constant_prox(self.tv, z, self.tau / self.L, self.nonneg)
+            if x_new is None:
+                x_new = self.prox(z, self.tau / self.L, self.prox_iters)
             ax_new = self.op.apply(x_new)
             f_new, data = self._objective(ax_new, x_new)
             if not math.isfinite(f_new):

@@ -28,6 +28,7 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_json",
     "file_hash",
+    "json_default",
     "provenance",
     "software_version",
 ]
@@ -136,21 +137,24 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
 
 def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
     """Write ``obj`` as indented JSON atomically."""
-    text = json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n"
+    text = json.dumps(obj, indent=2, sort_keys=False, default=json_default) + "\n"
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
-def _json_default(o: Any) -> Any:
+def json_default(o: Any) -> Any:
+    """``default=`` for json.dumps: numpy scalars and arrays, paths, enums, ``to_dict()``."""
     import numpy as np
 
     if isinstance(o, np.generic):
         return o.item()
     if isinstance(o, np.ndarray):
         return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
+    if isinstance(o, os.PathLike):
+        return os.fspath(o)
     if hasattr(o, "value"):  # Enum
         return o.value
+    if hasattr(o, "to_dict"):  # SensorTiming, Roi, ...
+        return o.to_dict()
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 

@@ -25,7 +25,17 @@ from typing import Any
 import numpy as np
 import torch
 
-from recon.operators import Compose, Conv2D, Crop, LinearOperator, Mask, StackConvSum, SumK
+from recon.memory import CHECK_THRESHOLD_BYTES, ProblemTooLarge, check_fits, estimate_memory
+from recon.operators import (
+    Compose,
+    Conv2D,
+    Crop,
+    LinearOperator,
+    Mask,
+    StackConvSum,
+    SumK,
+    as_tensor,
+)
 
 __all__ = ["ForwardModel", "ModelKind", "build_model"]
 
@@ -64,10 +74,35 @@ class ForwardModel:
         return self.op.adjoint(y)
 
 
-def _tensor(a: Any, dtype: torch.dtype, device: torch.device | str) -> torch.Tensor:
-    if isinstance(a, torch.Tensor):
-        return a.to(dtype=dtype, device=device)
-    return torch.as_tensor(np.asarray(a)).to(dtype=dtype, device=device)
+
+
+def _check_memory(kind: ModelKind, psf: Any, channels: int | None, mask: Any, shutter: Any,
+                  filters: Any, field: Sequence[int] | None, dtype: torch.dtype,
+                  device: torch.device | str) -> None:
+    """Refuse a model whose FISTA reconstruction will not fit, from shapes alone."""
+    shape = tuple(int(s) for s in np.shape(psf))
+    if len(shape) not in (2, 3) or min(shape) < 1:
+        return  # build_model reports the bad shape itself
+    sensor = shape[-2:]
+    k, c, psf_c, psf_k = 1, channels or 1, 1, 1
+    if kind is ModelKind.DEPTH and len(shape) == 3:
+        k = psf_k = shape[0]
+    elif len(shape) == 3:
+        c = psf_c = shape[0]
+    if kind is ModelKind.VIDEO and shutter is not None and len(np.shape(shutter)) == 2:
+        k = int(np.shape(shutter)[0])
+    if kind is ModelKind.SPECTRAL and filters is not None and len(np.shape(filters)) == 3:
+        k = int(np.shape(filters)[0])
+    est = estimate_memory(sensor, field=field, channels=c, k=k, psf_channels=psf_c,
+                          psf_planes=psf_k, dtype=dtype, mask=mask is not None,
+                          shutter=kind is ModelKind.VIDEO, filters=kind is ModelKind.SPECTRAL)
+    if est.total_bytes <= CHECK_THRESHOLD_BYTES:
+        return
+    try:
+        check_fits(est, device=device)
+    except ProblemTooLarge as exc:
+        raise ProblemTooLarge(f"{exc} (build_model(..., check_memory=False) skips this check)",
+                              exc.estimate, exc.available) from None
 
 
 def build_model(
@@ -81,6 +116,7 @@ def build_model(
     field: Sequence[int] | None = None,
     dtype: torch.dtype = torch.float32,
     device: torch.device | str = "cpu",
+    check_memory: bool = True,
 ) -> ForwardModel:
     """Build a forward model.
 
@@ -94,12 +130,22 @@ def build_model(
         field: scene field (Hs, Ws); default the sensor size.
         dtype: torch dtype, float32 or float64.
         device: torch device.
+        check_memory: before anything is allocated, estimate the memory of a FISTA
+            reconstruction with this model (:mod:`recon.memory`) and, when it is above
+            ``recon.memory.CHECK_THRESHOLD_BYTES``, raise
+            :class:`recon.memory.ProblemTooLarge` if it will not fit in the device's available
+            memory.
 
     """
     kind = ModelKind(kind)
     if dtype not in (torch.float32, torch.float64):
-        raise ValueError(f"operators run in float32 or float64, not {dtype}")
-    h = _tensor(psf, dtype, device)
+        raise ValueError(
+            f"operators run in float32 or float64, not {dtype} (reduced precision such as "
+            "bf16 is supported only for the UDN network, through autocast)"
+        )
+    if check_memory:
+        _check_memory(kind, psf, channels, mask, shutter, filters, field, dtype, device)
+    h = as_tensor(psf, dtype, device)
     if kind is ModelKind.DEPTH:
         if h.ndim != 3:
             raise ValueError(f"depth model needs a PSF stack (K, H, W), got {tuple(h.shape)}")
@@ -126,7 +172,7 @@ def build_model(
     if kind is ModelKind.VIDEO:
         if shutter is None:
             raise ValueError("video model needs a shutter function M (K, H)")
-        m = _tensor(shutter, dtype, device)
+        m = as_tensor(shutter, dtype, device)
         if m.ndim != 2 or m.shape[1] != sensor[0]:
             raise ValueError(
                 f"shutter function must be (K, {sensor[0]}) for a sensor of {sensor[0]} rows, "
@@ -137,7 +183,7 @@ def build_model(
     elif kind is ModelKind.SPECTRAL:
         if filters is None:
             raise ValueError("spectral model needs a filter cube (K, H, W)")
-        f = _tensor(filters, dtype, device)
+        f = as_tensor(filters, dtype, device)
         if f.ndim != 3 or tuple(f.shape[1:]) != sensor:
             raise ValueError(
                 f"filter cube must be (K, {sensor[0]}, {sensor[1]}), got {tuple(f.shape)}"
@@ -165,7 +211,7 @@ def build_model(
     meas_shape = (c, *sensor)
     mask_t: torch.Tensor | None = None
     if mask is not None:
-        mask_t = _tensor(mask, dtype, device)
+        mask_t = as_tensor(mask, dtype, device)
         if tuple(mask_t.shape[-2:]) != sensor:
             raise ValueError(
                 f"mask of shape {tuple(mask_t.shape)} does not match the sensor {sensor}"

@@ -29,6 +29,7 @@ __all__ = [
     "Mask",
     "StackConvSum",
     "SumK",
+    "as_tensor",
     "fast_fft_size",
     "power_norm",
 ]
@@ -193,10 +194,13 @@ class Identity(LinearOperator):
         return y
 
 
-def _as_tensor(a: Any, dtype: torch.dtype, device: torch.device | str) -> torch.Tensor:
+def as_tensor(a: Any, dtype: torch.dtype, device: torch.device | str = "cpu") -> torch.Tensor:
+    """``a`` (tensor, array or nested list) as a tensor of ``dtype`` on ``device``."""
     if isinstance(a, torch.Tensor):
         return a.to(dtype=dtype, device=device)
-    return torch.as_tensor(a).to(dtype=dtype, device=device)
+    import numpy as np
+
+    return torch.as_tensor(np.asarray(a)).to(dtype=dtype, device=device)
 
 
 class Conv2D(LinearOperator):
@@ -214,7 +218,7 @@ class Conv2D(LinearOperator):
         if len(in_shape) != 4:
             raise ValueError(f"Conv2D input must be (C, K, H, W), got {tuple(in_shape)}")
         c, k, hs, ws = (int(s) for s in in_shape)
-        h = _as_tensor(psf, dtype, device)
+        h = as_tensor(psf, dtype, device)
         if h.ndim == 2:
             h = h[None, None]
         elif h.ndim == 3:
@@ -309,7 +313,7 @@ class Mask(LinearOperator):
 
     def __init__(self, mask: Any, shape: Sequence[int], *,
                  dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> None:
-        m = _as_tensor(mask, dtype, device)
+        m = as_tensor(mask, dtype, device)
         shp = tuple(int(s) for s in shape)
         try:
             _broadcast(tuple(m.shape), shp)

@@ -47,6 +47,11 @@ class Simulation:
     saturated: int
     params: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def saturated_fraction(self) -> float:
+        """Fraction of the sensor's pixels that were clipped at ``saturation``."""
+        return self.saturated / self.meas.size if self.meas.size else 0.0
+
 
 def simulate(
     model: ForwardModel,
@@ -100,7 +105,8 @@ def simulate(
         meas = meas * mask
     params = {"erasure": erasure, "noise": noise, "photons": photons, "bits": bits,
               "saturation": saturation, "normalise": normalise, "seed": seed,
-              "model": model.kind.value}
+              "model": model.kind.value, "saturated": saturated,
+              "saturated_fraction": saturated / meas.size if meas.size else 0.0}
     return Simulation(meas.astype(np.float32), mask, clean.astype(np.float32),
                       v.astype(np.float32), scale, saturated, params)
 

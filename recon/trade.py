@@ -21,10 +21,13 @@ cancellation point between configurations); nothing prints or plots.
 
 from __future__ import annotations
 
+import csv
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -43,6 +46,7 @@ __all__ = [
     "default_grid",
     "pareto_front",
     "rank_correlation",
+    "read_trade_csv",
     "run_trade",
 ]
 
@@ -159,8 +163,12 @@ def _reset_peak() -> int | None:
     import ctypes
     import ctypes.util
     import gc
+    import threading
 
-    gc.collect()
+    # Collect only on the main thread: from a worker, a collection may finalise GUI objects
+    # (Qt) away from their thread and deadlock (seen with the app's trade panel).
+    if threading.current_thread() is threading.main_thread():
+        gc.collect()
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
         libc.malloc_trim(0)
@@ -370,3 +378,31 @@ def rank_correlation(a: Sequence[float], b: Sequence[float]) -> float:
     rb -= rb.mean()
     den = math.sqrt(float((ra * ra).sum() * (rb * rb).sum()))
     return float((ra * rb).sum() / den) if den > 0 else 0.0
+
+
+_FLOAT = {"tau", "wall_s", "heldout_psnr", "residual"}
+_INT = {"downsample", "channels", "iterations"}
+
+
+def read_trade_csv(path: str | Path) -> list[TradeRow]:
+    """Rows of a ``trade.csv`` written by ``lenslesscam trade``."""
+    rows = []
+    with open(path, newline="") as fh:
+        for rec in csv.DictReader(fh):
+            kw: dict[str, Any] = {}
+            for f in dataclasses.fields(TradeRow):
+                if f.name == "extra":
+                    continue
+                v = rec.get(f.name, "")
+                if f.name in _FLOAT:
+                    kw[f.name] = float(v)
+                elif f.name in _INT:
+                    kw[f.name] = int(v)
+                elif f.name in ("psnr", "ssim", "peak_mem_mb"):
+                    kw[f.name] = float(v) if v not in ("", "None") else None
+                else:
+                    kw[f.name] = v
+            rows.append(TradeRow(**kw))
+    if not rows:
+        raise ValueError(f"{path}: no rows (is it a trade.csv from lenslesscam trade?)")
+    return rows

@@ -12,6 +12,7 @@ BENCHMARKS = {
     "protocol": "benchmarks.sim_protocol",
     "preview": "benchmarks.bench_preview",
     "plan": "benchmarks.plan_cases",
+    "udn-video": "benchmarks.udn_video",
 }
 
 

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from app.commands._common import ProgressBar, load_array, parse_dark
+from app.commands._common import ProgressBar, load_array, parse_dark, parse_field
 
 _UNITS = {"ms": 1e-3, "s": 1.0, "sec": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0, "": 1.0}
 
@@ -49,15 +49,6 @@ def parse_overrides(items: list[str] | None) -> dict[str, Any]:
     return out
 
 
-def _parse_field(value: str | None, sensor: tuple[int, int]) -> tuple[int, int] | None:
-    if value in (None, "sensor"):
-        return None
-    if value == "full":
-        return (2 * sensor[0], 2 * sensor[1])
-    m = re.fullmatch(r"(\d+)x(\d+)", value or "")
-    if not m:
-        raise ValueError(f"--field must be 'sensor', 'full' or HxW, got {value!r}")
-    return (int(m.group(1)), int(m.group(2)))
 
 
 def add_plan_inputs(p: argparse.ArgumentParser) -> None:
@@ -70,6 +61,8 @@ def add_plan_inputs(p: argparse.ArgumentParser) -> None:
                    "metadata with a 'timing' key)")
     p.add_argument("--mask", help="dead-pixel / erasure mask (1 = measured)")
     p.add_argument("--budget", help="time budget of the reconstruction: 60s, 5min, 2h")
+    p.add_argument("--trade", help="a trade.csv from `lenslesscam trade` on similar data: the "
+                                   "method, tau and iterations for the budget come from it")
     p.add_argument("--field", default="sensor", help="scene field: sensor, full (2x) or HxW")
     p.add_argument("--dark", help="dark level: a number, 'auto' or a dark-frame file")
     p.add_argument("--psf-dark", help="dark level of the PSF (default: same as --dark)")
@@ -159,12 +152,41 @@ def _make(args: argparse.Namespace, inputs: dict[str, Any], probe: bool = True) 
     plan = make_plan(
         inputs["psf"], inputs["meas"], shutter=inputs["shutter"], timing=inputs["timing"],
         psf_stack=inputs["stack"], mask=inputs["mask"],
-        field=_parse_field(args.field, inputs["sensor"]),
+        field=parse_field(args.field, inputs["sensor"]),
         budget_s=parse_budget(args.budget),
         tau=args.tau if args.tau is not None else DEFAULT_TAU, seed=args.seed, probe=probe,
         progress=progress)
+    if getattr(args, "trade", None):
+        plan = plan_from_trade(plan, args.trade)
     overrides = parse_overrides(args.set)
     return plan.override(**overrides) if overrides else plan
+
+
+def plan_from_trade(plan: Any, trade_csv: str) -> Any:
+    """Take method, tau and iterations from the best trade setting within the plan's budget."""
+    import dataclasses
+
+    from recon.trade import best_for_budgets, read_trade_csv
+
+    if plan.budget_s is None:
+        raise ValueError("--trade needs --budget (the time the reconstruction may take)")
+    rows = [r for r in read_trade_csv(trade_csv) if r.downsample == 1]
+    key = "psnr" if rows and all(r.psnr is not None for r in rows) else "heldout_psnr"
+    best = best_for_budgets(rows, [plan.budget_s], key)[plan.budget_s]
+    if best is None:
+        raise ValueError(f"{trade_csv}: no measured setting fits the budget of "
+                         f"{plan.budget_s:g} s")
+    method = "udn" if best.method == "udn" else "fista-tv"
+    new = plan.override(method=method, iterations=best.iterations,
+                        **({"tau": best.tau} if method == "fista-tv" else {}))
+    quality = getattr(best, key)
+    why = (f"from the trade ({trade_csv}): the best of {len(rows)} measured settings within "
+           f"{plan.budget_s:g} s was {best.setting} at {best.iterations} iterations "
+           f"({best.wall_s:.2f} s, {quality:.2f} dB {'PSNR' if key == 'psnr' else 'held-out'})")
+    if best.method == "admm":
+        why += "; run as FISTA-TV, which minimises the same objective"
+    reasons = {**new.reasons, "method": why, "tau": why, "iterations": why}
+    return dataclasses.replace(new, reasons=reasons)
 
 
 def run_plan(args: argparse.Namespace) -> int:

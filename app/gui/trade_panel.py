@@ -9,7 +9,6 @@ live preview's controls.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import threading
 from pathlib import Path
@@ -29,38 +28,12 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from recon.trade import TradeRow, best_for_budgets, pareto_front
+from recon.trade import TradeRow, best_for_budgets, pareto_front, read_trade_csv
 
 if TYPE_CHECKING:
     from app.gui.main_window import MainWindow
 
 COLOURS = {"fista": (31, 119, 180), "admm": (255, 127, 14), "udn": (44, 160, 44)}
-_FLOAT = {"tau", "wall_s", "heldout_psnr", "residual"}
-_INT = {"downsample", "channels", "iterations"}
-
-
-def read_trade_csv(path: str | Path) -> list[TradeRow]:
-    """Rows of a ``trade.csv`` written by ``lenslesscam trade``."""
-    rows = []
-    with open(path, newline="") as fh:
-        for rec in csv.DictReader(fh):
-            kw: dict[str, Any] = {}
-            for f in dataclasses.fields(TradeRow):
-                if f.name == "extra":
-                    continue
-                v = rec.get(f.name, "")
-                if f.name in _FLOAT:
-                    kw[f.name] = float(v)
-                elif f.name in _INT:
-                    kw[f.name] = int(v)
-                elif f.name in ("psnr", "ssim", "peak_mem_mb"):
-                    kw[f.name] = float(v) if v not in ("", "None") else None
-                else:
-                    kw[f.name] = v
-            rows.append(TradeRow(**kw))
-    if not rows:
-        raise ValueError(f"{path}: no rows (is it a trade.csv from lenslesscam trade?)")
-    return rows
 
 
 class _TradeWorker(QObject):

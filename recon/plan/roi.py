@@ -33,6 +33,7 @@ from recon.operators import (
     Mask,
     StackConvSum,
     SumK,
+    as_tensor,
 )
 from recon.plan.coarse import coarse_psf
 
@@ -104,10 +105,6 @@ class Region:
         return [self.top, self.left, self.height, self.width]
 
 
-def _tensor(a: Any, dtype: torch.dtype, device: torch.device | str) -> torch.Tensor:
-    if isinstance(a, torch.Tensor):
-        return a.to(dtype=dtype, device=device)
-    return torch.as_tensor(np.asarray(a)).to(dtype=dtype, device=device)
 
 
 def build_region_model(
@@ -159,11 +156,11 @@ def build_region_model(
     origin = (0, 0)
     if d > 1:
         kernel, origin = coarse_psf(h_full, d, (region.field_h, region.field_w))
-        h = _tensor(kernel, dtype, device)
+        h = as_tensor(kernel, dtype, device)
         region = region.scaled(d)
         sensor = (sensor_full[0] // d, sensor_full[1] // d)
     else:
-        h = _tensor(psf, dtype, device)
+        h = as_tensor(psf, dtype, device)
         sensor = sensor_full
     if kind is ModelKind.DEPTH:
         if h.ndim != 3:
@@ -182,7 +179,7 @@ def build_region_model(
     if kind is ModelKind.VIDEO:
         if shutter is None:
             raise ValueError("video model needs a shutter function M (K, H)")
-        m = _tensor(shutter, dtype, device)
+        m = as_tensor(shutter, dtype, device)
         if m.ndim != 2 or m.shape[1] != sensor[0]:
             raise ValueError(f"shutter function must be (K, {sensor[0]}), got {tuple(m.shape)}")
         k = int(m.shape[0])
@@ -221,7 +218,7 @@ def build_region_model(
     meas_shape = (c, *sensor)
     mask_t: torch.Tensor | None = None
     if mask is not None:
-        mask_t = _tensor(mask, dtype, device)
+        mask_t = as_tensor(mask, dtype, device)
         if tuple(mask_t.shape[-2:]) != sensor:
             raise ValueError(f"mask of shape {tuple(mask_t.shape)} does not match {sensor}")
         ops.insert(0, Mask(mask_t, meas_shape, dtype=dtype, device=device))
