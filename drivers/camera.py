@@ -814,26 +814,26 @@ class CameraBase:
     # -- backend hooks -------------------------------------------------------------------------
 
     def _open(self) -> None:
-        raise NotImplementedError
+        raise NotImplementedError  # abstract: every backend implements it
 
     def _close(self) -> None:
-        raise NotImplementedError
+        raise NotImplementedError  # abstract: every backend implements it
 
     def _snap(self, timeout_s: float) -> Frame:
-        raise NotImplementedError
+        raise NotImplementedError  # abstract: every backend implements it
 
     def _stream_begin(self) -> None:
         """Prepare the device for streaming (caller's thread; errors raise at start)."""
 
     def _stream_grab(self, poll_s: float) -> Frame | None:
-        raise NotImplementedError
+        raise NotImplementedError  # abstract: every backend implements it
 
     def _stream_end(self) -> None:
         """Undo :meth:`_stream_begin` (runs in the streaming thread when it ends)."""
 
     def capabilities(self) -> Capabilities:
         """Features, formats, ranges."""
-        raise NotImplementedError
+        raise NotImplementedError  # abstract: every backend implements it
 
     # -- features: defaults say "not available" ------------------------------------------------
 
