@@ -195,7 +195,28 @@ def build_model(
 
     hs, ws = (int(field[0]), int(field[1])) if field is not None else sensor
     scene_shape = (c, k, hs, ws)
-    offset = (hs // 2, ws // 2)
+    op, mask_t = assemble(kind, psf_c, scene_shape, sensor, (hs // 2, ws // 2), m_k, mask,
+                          dtype, device)
+    info = {"sensor": sensor, "field": (hs, ws), "pad": op.ops[-1].out_shape[-2:]}
+    return ForwardModel(kind, op, scene_shape, (c, *sensor), mask_t, info)
+
+
+def assemble(
+    kind: ModelKind,
+    psf_c: torch.Tensor,
+    scene_shape: tuple[int, int, int, int],
+    sensor: tuple[int, int],
+    offset: tuple[int, int],
+    m_k: torch.Tensor | None,
+    mask: Any,
+    dtype: torch.dtype,
+    device: torch.device | str,
+) -> tuple[Compose, torch.Tensor | None]:
+    """The operator chain of a model (see the table above) and its sensor mask tensor.
+
+    ``psf_c`` is (1|C, 1|K, h, w) as Conv2D takes it; ``offset`` is where the sensor window
+    starts in the padded grid; ``m_k`` the shutter / filter weights or None.
+    """
     ops: list[LinearOperator]
     if kind is ModelKind.DEPTH:
         conv_sum = StackConvSum(psf_c, scene_shape, dtype=dtype, device=device)
@@ -208,7 +229,6 @@ def build_model(
         if m_k is not None:
             ops.insert(0, Mask(m_k, crop.out_shape, dtype=dtype, device=device))
         ops.insert(0, SumK(crop.out_shape, dtype=dtype, device=device))
-    meas_shape = (c, *sensor)
     mask_t: torch.Tensor | None = None
     if mask is not None:
         mask_t = as_tensor(mask, dtype, device)
@@ -216,7 +236,5 @@ def build_model(
             raise ValueError(
                 f"mask of shape {tuple(mask_t.shape)} does not match the sensor {sensor}"
             )
-        ops.insert(0, Mask(mask_t, meas_shape, dtype=dtype, device=device))
-    op = Compose(ops)
-    info = {"sensor": sensor, "field": (hs, ws), "pad": op.ops[-1].out_shape[-2:]}
-    return ForwardModel(kind, op, scene_shape, meas_shape, mask_t, info)
+        ops.insert(0, Mask(mask_t, (scene_shape[0], *sensor), dtype=dtype, device=device))
+    return Compose(ops), mask_t

@@ -24,17 +24,8 @@ import numpy as np
 import torch
 
 from drivers.timing import downsample_rows
-from recon.models import ForwardModel, ModelKind, build_model
-from recon.operators import (
-    Compose,
-    Conv2D,
-    Crop,
-    LinearOperator,
-    Mask,
-    StackConvSum,
-    SumK,
-    as_tensor,
-)
+from recon.models import ForwardModel, ModelKind, assemble, build_model
+from recon.operators import as_tensor
 from recon.plan.coarse import coarse_psf
 
 __all__ = ["Region", "build_region_model", "embed_region"]
@@ -201,31 +192,10 @@ def build_region_model(
     if more_y or more_x:
         psf_c = torch.nn.functional.pad(psf_c, (0, more_x, 0, more_y))
     scene_shape = (c, k, region.height, region.width)
-    ops: list[LinearOperator]
-    if kind is ModelKind.DEPTH:
-        conv_sum = StackConvSum(psf_c, scene_shape, dtype=dtype, device=device)
-        crop = Crop(conv_sum.out_shape, sensor, (oy, ox), dtype=dtype, device=device)
-        ops = [crop, conv_sum]
-        grid = conv_sum.conv.pad
-    else:
-        conv = Conv2D(psf_c, scene_shape, dtype=dtype, device=device)
-        crop = Crop(conv.out_shape, sensor, (oy, ox), dtype=dtype, device=device)
-        ops = [crop, conv]
-        grid = conv.pad
-        if m_k is not None:
-            ops.insert(0, Mask(m_k, crop.out_shape, dtype=dtype, device=device))
-        ops.insert(0, SumK(crop.out_shape, dtype=dtype, device=device))
-    meas_shape = (c, *sensor)
-    mask_t: torch.Tensor | None = None
-    if mask is not None:
-        mask_t = as_tensor(mask, dtype, device)
-        if tuple(mask_t.shape[-2:]) != sensor:
-            raise ValueError(f"mask of shape {tuple(mask_t.shape)} does not match {sensor}")
-        ops.insert(0, Mask(mask_t, meas_shape, dtype=dtype, device=device))
-    op = Compose(ops)
+    op, mask_t = assemble(kind, psf_c, scene_shape, sensor, (oy, ox), m_k, mask, dtype, device)
     info = {"sensor": sensor, "field": (region.field_h, region.field_w),
-            "region": region.to_list(), "pad": grid, "downsample": d}
-    return ForwardModel(kind, op, scene_shape, meas_shape, mask_t, info)
+            "region": region.to_list(), "pad": op.ops[-1].out_shape[-2:], "downsample": d}
+    return ForwardModel(kind, op, scene_shape, (c, *sensor), mask_t, info)
 
 
 def embed_region(x: np.ndarray, region: Region) -> np.ndarray:
