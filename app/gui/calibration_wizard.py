@@ -70,6 +70,21 @@ def open_wizard(window: MainWindow) -> CalibrationWizard:
 def _stamp() -> str:
     return time.strftime("%Y%m%d-%H%M%S")
 
+def _save_result(page: Any, prefix: str, suffix: str) -> Path | None:
+    """Save ``page.result`` as ``<out>/<prefix>-<time><suffix>``; show the outcome on the page."""
+    if page.result is None:
+        return None
+    path = page.setup.out_path() / f"{prefix}-{_stamp()}{suffix}"
+    try:
+        page.saved_path = page.result.save(path)
+    except Exception as exc:  # shown in the wizard (disk full, permissions...), never a crash
+        page.box.saved.setText(f"not saved: {exc}")
+        return None
+    page.box.saved.setText(f"saved {page.saved_path}")
+    page.box.save.setEnabled(False)
+    return Path(page.saved_path)
+
+
 
 class _RunBox(QWidget):
     """Start / Cancel, a progress bar, the stage line, the latest image, a report."""
@@ -271,16 +286,8 @@ class PsfPage(QWizardPage):
 
     def save(self) -> Path | None:
         """Save the captured PSF into the output folder."""
-        if self.result is None:
+        if _save_result(self, "psf", ".tif") is None:
             return None
-        path = self.setup.out_path() / f"psf-{_stamp()}.tif"
-        try:
-            self.saved_path = self.result.save(path)
-        except Exception as exc:
-            self.box.saved.setText(f"not saved: {exc}")
-            return None
-        self.box.saved.setText(f"saved {self.saved_path}")
-        self.box.save.setEnabled(False)
         self.window_.settings.calibration_dir = str(self.setup.out_path())
         self.completeChanged.emit()
         return self.saved_path
@@ -393,17 +400,7 @@ class ShutterPage(QWizardPage):
 
     def save(self) -> Path | None:
         """Save the shutter function into the output folder."""
-        if self.result is None:
-            return None
-        path = self.setup.out_path() / f"shutter-{_stamp()}.npz"
-        try:
-            self.saved_path = self.result.save(path)
-        except Exception as exc:
-            self.box.saved.setText(f"not saved: {exc}")
-            return None
-        self.box.saved.setText(f"saved {self.saved_path}")
-        self.box.save.setEnabled(False)
-        return self.saved_path
+        return _save_result(self, "shutter", ".npz")
 
 
 class FinishPage(QWizardPage):

@@ -207,15 +207,11 @@ def create_job(
 
 def _pid_alive(pid: int) -> bool:
     child = _CHILDREN.get(pid)
-    if child is not None:
+    if child is not None:  # our own child: poll() also reaps it (kill(pid, 0) sees zombies)
         return child.poll() is None
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+    from recon.udn.jobs import pid_alive
+
+    return pid_alive(pid)
 
 
 def _launch(folder: Path, action: str, max_iter: int | None = None) -> subprocess.Popen[bytes]:

@@ -170,7 +170,7 @@ def request_cancel(run_dir: str | Path, *, send_signal: bool = False) -> str:
                        .encode())
     msg = f"cancel requested: the job in {rd} stops at its next iteration"
     pid = rec.get("pid")
-    if send_signal and isinstance(pid, int) and _pid_alive(pid, rec.get("host")):
+    if send_signal and isinstance(pid, int) and pid_alive(pid, rec.get("host")):
         os.kill(pid, signal.SIGTERM)
         msg += f" (SIGTERM sent to pid {pid})"
     return msg
@@ -348,7 +348,8 @@ def _read_record(run_dir: Path) -> dict[str, Any]:
     return rec
 
 
-def _pid_alive(pid: int, host: Any) -> bool:
+def pid_alive(pid: int, host: Any = None) -> bool:
+    """Whether process ``pid`` runs (False for a process recorded on another host)."""
     if host not in (None, platform.node()):
         return False
     try:
@@ -813,7 +814,7 @@ def resume_job(run_dir: str | Path, *, max_iter: int | None = None,
                          f"{rec.get('detail')}); fix the spec and start a new run")
     pid = rec.get("pid")
     if (rec.get("status") in ("running", "starting") and isinstance(pid, int)
-            and pid != os.getpid() and _pid_alive(pid, rec.get("host"))):
+            and pid != os.getpid() and pid_alive(pid, rec.get("host"))):
         raise ValueError(f"{rd}: the run is still running (pid {pid}); cancel it first")
     spec = {sec: {k: v for k, v in keys.items() if v is not None}
             for sec, keys in json.loads(json.dumps(rec["spec"])).items()}
@@ -888,7 +889,7 @@ def job_status(run_dir: str | Path) -> JobStatus:
     status = rec.get("status")
     pid = rec.get("pid")
     if status in ("running", "starting"):
-        alive = isinstance(pid, int) and _pid_alive(pid, rec.get("host"))
+        alive = isinstance(pid, int) and pid_alive(pid, rec.get("host"))
         state = "running" if alive else "interrupted"
     else:
         state = "finished"
