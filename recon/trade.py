@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -154,14 +155,24 @@ def _status_kb(key: str) -> int | None:
     return None
 
 
+@functools.cache
+def _libc() -> Any:
+    """The C library (found once: find_library runs ldconfig), or None."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:
+        return None
+
+
 def _reset_peak() -> int | None:
     """Return freed heap to the OS, reset the peak-RSS counter; return the RSS in kB.
 
     Without the trim, glibc keeps freed blocks mapped and a run that reuses them shows no
     growth. None where unsupported (not Linux/glibc).
     """
-    import ctypes
-    import ctypes.util
     import gc
     import threading
 
@@ -169,11 +180,10 @@ def _reset_peak() -> int | None:
     # (Qt) away from their thread and deadlock (seen with the app's trade panel).
     if threading.current_thread() is threading.main_thread():
         gc.collect()
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        libc.malloc_trim(0)
-    except (OSError, AttributeError):
+    libc = _libc()
+    if libc is None or not hasattr(libc, "malloc_trim"):
         return None
+    libc.malloc_trim(0)
     try:
         with open("/proc/self/clear_refs", "w") as fh:
             fh.write("5")
