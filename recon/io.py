@@ -52,6 +52,7 @@ __all__ = [
     "check_pair",
     "clip_nonneg",
     "contrast_stretch",
+    "downsample_masked",
     "load_false_color_weights",
     "load_image",
     "load_measurement",
@@ -355,6 +356,26 @@ def box_downsample(a: Array, factor: int) -> Array:
     cropped = arr[..., : h * f, : w * f]
     blocks = cropped.reshape(*arr.shape[:-2], h, f, w, f)
     return np.asarray(blocks.mean(axis=(-3, -1), dtype=np.float64), dtype=arr.dtype)
+
+
+def downsample_masked(meas: Array, mask: Array, factor: int) -> tuple[F32, F32]:
+    """Box-downsample a measurement (C, H, W) that has erased pixels (mask (H, W), 1 = measured).
+
+    A coarse pixel is the mean over its *measured* sub-pixels (erased pixels hold no data, so
+    averaging their zeros in would bias it) and counts as measured when any sub-pixel is.
+    Returns (measurement, mask), float32.
+    """
+    m = np.asarray(mask, dtype=np.float64)
+    b = np.asarray(meas, dtype=np.float64)
+    if m.shape != b.shape[-2:]:
+        raise ValueError(f"mask of shape {m.shape} does not match the measurement {b.shape}")
+    m = (m > 0.5).astype(np.float64)
+    if factor == 1:
+        return b.astype(np.float32), m.astype(np.float32)
+    count = box_downsample(m, factor)
+    total = box_downsample(b * m, factor)
+    out = np.where(count > 0, total / np.maximum(count, 1e-12), 0.0)
+    return out.astype(np.float32), (count > 0).astype(np.float32)
 
 
 def normalise(a: Array, mode: NormMode = "max") -> Array:

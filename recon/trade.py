@@ -35,7 +35,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from recon.io import box_downsample
+from recon.io import box_downsample, downsample_masked
 from recon.metrics import gain_fit, psnr, ssim
 from recon.models import build_model
 
@@ -205,20 +205,12 @@ def _peak_mb(base_kb: int | None) -> float | None:
 
 
 def _downsample_case(psf: F32, meas: F32, mask: F32, d: int) -> tuple[F32, F32, F32]:
-    """Box-downsample a masked measurement.
-
-    A coarse pixel is the mean over its measured sub-pixels, and counts as measured when any of
-    its sub-pixels is.
-    """
+    """Downsample PSF (renormalised to unit sum) and masked measurement by ``d``."""
     if d == 1:
         return psf, meas, mask
     psf_d = box_downsample(psf, d)
-    psf_d = psf_d / psf_d.sum()
-    count = box_downsample(mask[None], d)[0]
-    total = box_downsample(meas * mask[None], d)
-    meas_d = np.where(count > 0, total / np.maximum(count, 1e-12), 0.0)
-    return (psf_d.astype(np.float32), meas_d.astype(np.float32),
-            (count > 0).astype(np.float32))
+    meas_d, mask_d = downsample_masked(meas, mask, d)
+    return (psf_d / psf_d.sum()).astype(np.float32), meas_d, mask_d
 
 
 def _upsample(x: F32, shape: tuple[int, int]) -> F32:

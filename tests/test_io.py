@@ -513,3 +513,18 @@ def test_false_color_weights() -> None:
     np.testing.assert_allclose(w13[1], w65[1].reshape(13, 5).sum(axis=1), rtol=1e-6)
     with pytest.raises(ValueError, match="n_bands"):
         rio.load_false_color_weights(p, 0)
+
+
+def test_downsample_masked_ignores_erased_pixels():
+    from recon.io import downsample_masked
+
+    meas = np.array([[[4.0, 0.0, 1.0, 3.0], [0.0, 0.0, 5.0, 7.0]]], dtype=np.float32)
+    mask = np.array([[1, 0, 1, 1], [0, 0, 1, 1]], dtype=np.float32)
+    out, m = downsample_masked(meas, mask, 2)
+    # left block: one measured pixel (4) -> 4, not the box mean 1; right block: plain mean
+    np.testing.assert_allclose(out, [[[4.0, 4.0]]])
+    np.testing.assert_array_equal(m, [[1.0, 1.0]])
+    out, m = downsample_masked(meas, np.zeros((2, 4)), 2)
+    assert not m.any() and not out.any()
+    with pytest.raises(ValueError, match="does not match"):
+        downsample_masked(meas, np.ones((3, 4)), 2)

@@ -59,13 +59,37 @@ def load_problem(args: argparse.Namespace) -> dict[str, Any]:
 
     from drivers.timing import downsample_rows
     from recon.formats import file_hash
-    from recon.io import box_downsample, check_pair, load_measurement, load_psf, load_psf_stack
+    from recon.io import (
+        box_downsample,
+        check_pair,
+        downsample_masked,
+        load_measurement,
+        load_psf,
+        load_psf_stack,
+        normalise,
+    )
     from recon.models import build_model
 
     channels = "rgb" if args.rgb else "gray"
     dark = parse_dark(args.dark)
     psf_dark = parse_dark(args.psf_dark) if args.psf_dark is not None else dark
-    meas = load_measurement(args.meas, dark=dark, downsample=args.downsample, channels=channels)
+    raw_mask = None
+    if args.mask:
+        raw_mask = load_array(args.mask, "mask", key="mask").astype(np.float64)
+        if raw_mask.ndim == 3 and raw_mask.shape[0] == 1:
+            raw_mask = raw_mask[0]
+        if raw_mask.ndim != 2:
+            raise ValueError(f"mask {args.mask} must be a 2D (H, W) array, got shape "
+                             f"{raw_mask.shape}")
+    if raw_mask is None or args.downsample == 1:
+        meas = load_measurement(args.meas, dark=dark, downsample=args.downsample,
+                                channels=channels)
+    else:  # erased pixels must not be averaged into the coarse pixels
+        full = load_measurement(args.meas, dark=dark, channels=channels, normalise=None)
+        meas, _ = downsample_masked(full, raw_mask, args.downsample)
+        if not np.any(meas > 0):
+            raise ValueError(f"measurement file {args.meas} is all zero on its measured pixels")
+        meas = normalise(meas, "max").astype(np.float32)
     if args.model == "depth":
         if not args.psf_stack:
             raise ValueError("--model depth needs --psf-stack")
@@ -80,13 +104,9 @@ def load_problem(args: argparse.Namespace) -> dict[str, Any]:
         psf_files = [args.psf]
     sensor = (int(meas.shape[-2]), int(meas.shape[-1]))
     mask = None
-    if args.mask:
-        raw = load_array(args.mask, "mask", key="mask").astype(np.float64)
-        raw = raw.reshape(raw.shape[-2:]) if raw.ndim == 3 and raw.shape[0] == 1 else raw
-        if raw.ndim != 2:
-            raise ValueError(f"mask {args.mask} must be a 2D (H, W) array, got shape {raw.shape}")
-        # a downsampled pixel counts as measured only if all its sensor pixels were
-        mask = (box_downsample(raw > 0.5, args.downsample) >= 1.0).astype(np.float32)
+    if raw_mask is not None:
+        # a coarse pixel is measured when any of its sensor pixels is (see downsample_masked)
+        mask = (box_downsample(raw_mask > 0.5, args.downsample) > 0).astype(np.float32)
         if mask.shape != sensor:
             raise ValueError(f"mask {args.mask} has shape {mask.shape} after downsampling by "
                              f"{args.downsample}; the measurement has {sensor}")

@@ -59,18 +59,20 @@ def _cases(args: argparse.Namespace) -> list[Any]:
         return [Case("tutorial hand (real)", samples.tutorial_psf(),
                      samples.tutorial_measurement())]
     from app.commands._common import load_array, parse_dark
-    from recon.io import box_downsample, load_measurement, load_psf
+    from recon.io import downsample_masked, load_measurement, load_psf, normalise
 
     if not args.psf:
         raise ValueError("--meas needs --psf")
     dark = parse_dark(args.dark)
     psf = load_psf(args.psf, dark=dark, downsample=args.downsample)
-    meas = load_measurement(args.meas, dark=dark, downsample=args.downsample)
     mask = truth = None
     if args.mask:
         raw = load_array(args.mask, "mask", key="mask").astype(np.float64)
-        mask = (box_downsample(raw.reshape(raw.shape[-2:]) > 0.5, args.downsample) > 0
-                ).astype(np.float32)
+        full = load_measurement(args.meas, dark=dark, normalise=None)
+        meas, mask = downsample_masked(full, raw.reshape(raw.shape[-2:]), args.downsample)
+        meas = normalise(meas, "max").astype(np.float32)
+    else:
+        meas = load_measurement(args.meas, dark=dark, downsample=args.downsample)
     if args.truth:
         t = load_array(args.truth, "truth").astype(np.float32)
         truth = t.reshape(1, 1, *t.shape[-2:]) if t.ndim == 2 else t
