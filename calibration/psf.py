@@ -399,7 +399,7 @@ def _exposure_bounds(camera: Camera, settings: PsfSettings) -> tuple[float, floa
     lo, hi = 1.0, 10_000_000.0
     try:
         rng = camera.capabilities().exposure_range_us
-    except (CameraError, NotImplementedError):
+    except CameraError:
         rng = None
     if rng is not None:
         lo, hi = float(rng[0]), float(rng[1])

@@ -453,7 +453,7 @@ def measure_shutter(
         pattern = ReadoutPattern(pattern)
         try:
             sensor_rows = int(camera.capabilities().sensor_height)
-        except (CameraError, NotImplementedError):
+        except CameraError:
             sensor_rows = model.rows if model is not None else 0
         if model is None and (s.pulse_us is None or s.span_us is None):
             raise CalibrationError(

@@ -96,7 +96,7 @@ def camera_description(camera: Camera, frame: Frame | None = None) -> dict[str, 
         out.update(
             model=caps.model, sensor_width=caps.sensor_width, sensor_height=caps.sensor_height
         )
-    except (CameraError, NotImplementedError) as exc:
+    except CameraError as exc:
         _log.info("camera capabilities unavailable: %s", exc)
     if frame is not None:
         md = frame.metadata()
