@@ -60,7 +60,18 @@ OPERATOR_FACTORIES: dict[str, Factory] = {
     "model_depth": lambda dt: build_model("depth", _rng().random((3, 12, 10)), dtype=dt).op,
     "model_depth_erasures": lambda dt: build_model(
         "depth", _rng().random((3, 12, 10)), mask=_erasure(12, 10), dtype=dt).op,
+    "model_2d_region": lambda dt: _region_model("2d", dt),
+    "model_video_region": lambda dt: _region_model("video", dt),
 }
+
+
+def _region_model(kind: str, dt: torch.dtype) -> LinearOperator:
+    """The plan's model of an off-centre region of a 2x field (recon.plan.roi)."""
+    from recon.plan.roi import Region, build_region_model
+
+    region = Region(3, 13, 9, 6, 24, 20)
+    shutter = _shutter(12) if kind == "video" else None
+    return build_region_model(kind, _psf(), region, shutter=shutter, dtype=dt).op
 
 
 def make_operator(name: str, dtype: torch.dtype = torch.float64) -> LinearOperator:
