@@ -72,6 +72,21 @@ class TV:
             _fwd_diff_into(x, _AXES["k"], out[2], self.weight_k)
         return out
 
+    def diffs(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """The differences of :meth:`grad` as new tensors, differentiable by autograd.
+
+        Same values as :meth:`grad` (zero last entry along each axis); use this where x
+        requires grad (the UDN's TV penalty), :meth:`grad` in the solvers' hot loops.
+        """
+        out = []
+        dims = [_AXES["y"], _AXES["x"]] + ([_AXES["k"]] if self.n_dirs(x) > 2 else [])
+        for dim in dims:
+            d = torch.diff(x, dim=dim)
+            pad = torch.zeros_like(x.narrow(dim, 0, 1))
+            d = torch.cat([d, pad], dim=dim)
+            out.append(d * self.weight_k if dim == _AXES["k"] else d)
+        return out
+
     def grad_adj(self, p: list[torch.Tensor], out: torch.Tensor | None = None) -> torch.Tensor:
         """Adjoint of :meth:`grad` (into ``out`` if given)."""
         if out is None:

@@ -429,7 +429,7 @@ class UDNRunner:
         return (ax * self.b * w).sum() / den
 
     def _tv_penalty(self, x: torch.Tensor) -> torch.Tensor:
-        g = self.tv.grad(x)
+        g = self.tv.diffs(x)
         if self.tv.isotropic:
             total = torch.sqrt(g[0] * g[0] + g[1] * g[1] + 1e-12).sum()
         else:
