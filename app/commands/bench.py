@@ -1,4 +1,4 @@
-"""``lenslesscam bench fista|udn``: benchmarks that print a table."""
+"""``lenslesscam bench NAME``: benchmarks that print a table (see BENCHMARKS)."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ BENCHMARKS = {
     "preview": "benchmarks.bench_preview",
     "plan": "benchmarks.plan_cases",
     "udn-video": "benchmarks.udn_video",
+    "udn-vs-fista": "benchmarks.udn_vs_fista",
 }
 
 

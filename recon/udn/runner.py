@@ -86,6 +86,10 @@ class UDNConfig:
         tv_isotropic, tv_weight_k: the TV variant (see :class:`recon.tv.TV`).
         ema: decay of the output's exponential moving average (0: the last output).
         gain: initial output gain; None fits it by least squares to the first output.
+        headroom: factor on the least-squares gain (ignored when ``gain`` is given). The first
+            output is a sigmoid near 0.5, so the plain fit lets the scene reach only about
+            twice its mean level; highlights of natural scenes need more (the gain is learnable
+            but moves slowly), see docs/udn-vs-fista.md.
         seed: seeds z, the weights, the held-out pixels and the noise.
         max_iter: iteration limit.
         time_limit_s: wall-time limit in seconds (None: none).
@@ -111,6 +115,7 @@ class UDNConfig:
     tv_weight_k: float = 0.0
     ema: float = 0.99
     gain: float | None = None
+    headroom: float = 1.0
     seed: int = 0
     max_iter: int = 3000
     time_limit_s: float | None = None
@@ -151,6 +156,7 @@ class UDNConfig:
             raise ValueError(f"divergence_factor must be > 1, got {self.divergence_factor!r}")
         if self.gain is not None:
             _pos("gain", self.gain)
+        _pos("headroom", self.headroom)
         if self.time_limit_s is not None:
             _pos("time_limit_s", self.time_limit_s)
         for name in ("max_iter", "patience", "min_iter", "max_backoffs", "snapshot_every"):
@@ -362,7 +368,7 @@ class UDNRunner:
         self.tv = TV(isotropic=cfg.tv_isotropic, weight_k=cfg.tv_weight_k)
 
         if cfg.gain is None:
-            self.G.set_gain(self._fit_gain())
+            self.G.set_gain(self._fit_gain() * cfg.headroom)
         else:
             self.G.set_gain(cfg.gain)
         self.initial_gain = self.G.gain

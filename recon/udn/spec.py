@@ -126,6 +126,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "tv_weight_k": Key((float,), _UDN.tv_weight_k, "TV weight along k (3D TV)"),
         "ema": Key((float,), _UDN.ema, "decay of the output's moving average"),
         "gain": Key((str, float), "auto", "initial output gain, or 'auto' (least squares)"),
+        "headroom": Key((float,), _UDN.headroom, "factor on the 'auto' gain (room for "
+                        "highlights)"),
         "seed": Key((int,), _UDN.seed, "seed of z, weights, held-out pixels and noise",
                     minimum=0),
         "lr_backoff": Key((float,), _UDN.lr_backoff, "learning-rate factor at a divergence"),
@@ -333,6 +335,7 @@ def udn_config(spec: Mapping[str, Any]) -> UDNConfig:
     return UDNConfig(
         lr=o["lr"], reg_noise=o["reg_noise"], loss=o["loss"], tv_weight=o["tv_weight"],
         tv_isotropic=o["tv_isotropic"], tv_weight_k=o["tv_weight_k"], ema=o["ema"], gain=gain,
+        headroom=o["headroom"],
         seed=o["seed"], lr_backoff=o["lr_backoff"], divergence_factor=o["divergence_factor"],
         max_backoffs=o["max_backoffs"], snapshot_every=o["snapshot_every"],
         max_iter=s["max_iter"], time_limit_s=s["time_limit_s"], holdout=s["holdout"],

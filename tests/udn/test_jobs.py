@@ -344,3 +344,13 @@ def test_recon_udn_one_shot(tiny_data, tmp_path, capsys):
     assert cli_main([*argv[:-2], "--write-spec", str(spec_file)]) == 0
     capsys.readouterr()
     assert run_job(spec_file, tmp_path / "from_spec").iterations == 6
+
+
+def test_spec_headroom_reaches_the_runner_config(tiny_data, tmp_path):
+    from recon.udn.spec import load_spec, udn_config
+
+    spec = load_spec(write_spec(tiny_data, "h.toml", optimizer={"headroom": 2.5}))
+    assert udn_config(spec).headroom == 2.5
+    assert udn_config(load_spec(write_spec(tiny_data, "d.toml"))).headroom == 1.0
+    with pytest.raises((SpecError, ValueError), match="headroom"):
+        udn_config(load_spec(write_spec(tiny_data, "bad.toml", optimizer={"headroom": -1.0})))

@@ -259,3 +259,14 @@ def test_tv_diffs_match_the_in_place_differences():
     tv = TV(weight_k=0.7)
     for a, b in zip(tv.diffs(x), tv.grad(x), strict=True):
         assert torch.equal(a, b)
+
+
+def test_headroom_scales_the_fitted_gain_only():
+    r1, _ = make_runner(max_iter=5, seed=2)
+    r3, _ = make_runner(max_iter=5, seed=2, headroom=3.0)
+    assert r3.initial_gain == pytest.approx(3.0 * r1.initial_gain, rel=1e-6)
+    rg, _ = make_runner(max_iter=5, seed=2, gain=0.7, headroom=3.0)  # an explicit gain wins
+    assert rg.initial_gain == pytest.approx(0.7, rel=1e-6)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="headroom"):
+            UDNConfig(headroom=bad)
