@@ -51,6 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--skip", type=int, default=0, help="UDN skip channels (0)")
     p.add_argument("--headroom", type=float, default=3.0,
                    help="factor on the UDN's initial least-squares gain (3)")
+    p.add_argument("--tv-weight", type=float, default=0.0, help="UDN TV loss weight (0)")
     p.add_argument("--holdout", type=float, default=0.1, help="UDN held-out fraction (0.1)")
     p.add_argument("--eval-every", type=int, default=100, help="UDN checkpoints (100)")
     p.add_argument("--fista-iters", type=int, default=500)
@@ -146,7 +147,7 @@ def udn_member(task: dict[str, Any]) -> dict[str, Any]:
                         skip_channels=task["skip"])
     cfg = UDNConfig(max_iter=task["iters"], holdout=task["holdout"], patience=10**9,
                     min_iter=0, lr=0.01, reg_noise=0.05, ema=0.99, seed=task["seed"],
-                    headroom=task["headroom"])
+                    headroom=task["headroom"], tv_weight=task["tv_weight"])
     runner = UDNRunner(model, sim.meas, network=net, config=cfg)
     checkpoints: dict[int, Any] = {}
     walls: dict[int, float] = {}
@@ -170,7 +171,7 @@ def run_udn(sims: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
     import numpy as np
 
     base = {k: getattr(args, k) for k in ("scale", "erasure", "noise", "iters", "channels",
-                                          "scales", "skip", "headroom", "holdout",
+                                          "scales", "skip", "headroom", "tv_weight", "holdout",
                                           "eval_every", "threads", "device")}
     tasks = [dict(base, scene=n, seed=s) for n in sims for s in range(args.seeds)]
     if args.jobs > 1:
@@ -277,15 +278,16 @@ def run(args: argparse.Namespace) -> int:
             f"({', '.join(names)}) as grayscale truth, Gaussian noise {args.noise:g}, "
             f"{args.erasure:.0%} of the pixels erased ({u0['fitted_pixels'] + u0['heldout_pixels']}"
             f" measured of {h * w}). PSNR after a least-squares gain fit. "
-            + ("1/16 scale because the 1/8-scale runs are too slow for a CPU (about 4x the "
-               "time per iteration). " if args.scale == 16 else "")
+            + ("1/16 scale because a 1/8-scale run (4x the pixels) does not fit a CPU budget "
+               "(docs/udn.md)." if args.scale == 16 else "")
             + "\n\n"
             f"- FISTA-TV: tau {fista['tau']:g} and {fista['iterations']} iterations, both chosen "
             f"on the ground truth to maximise the mean PSNR (tau grid "
             f"{', '.join(f'{t:g}' for t in TAUS)}; checkpoints "
             f"{', '.join(map(str, FISTA_CHECKPOINTS))}).\n"
             f"- UDN: {args.scales} scales x {args.channels} channels, skip channels "
-            f"{args.skip}, output gain headroom {args.headroom:g}, lr 0.01, input noise 0.05, "
+            f"{args.skip}, output gain headroom {args.headroom:g}, TV weight {args.tv_weight:g}, "
+            "lr 0.01, input noise 0.05, "
             f"EMA 0.99; {args.seeds} seeds averaged, each holding out "
             f"{u0['heldout_pixels']} of the measured pixels (its own). The same configuration "
             "for every scene.\n"

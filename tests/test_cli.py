@@ -142,7 +142,7 @@ def test_downsampled_masked_measurement_is_not_biased_by_erased_pixels(tmp_path,
     args = ["recon", "fista", "--psf", str(s / "psf.npy"), "--meas", str(s / "meas.npy"),
             "--mask", str(s / "mask.npy"), "--tau", "3e-5", "--iters", "100"]
     assert _run(capsys, *args, "--downsample", "2", "--out", str(tmp_path / "d2.tif"))[0] == 0
-    x, meta = read_reconstruction(tmp_path / "d2.tif")
+    x, _meta = read_reconstruction(tmp_path / "d2.tif")
     assert x.shape == (1, 1, 75, 100)
     truth = np.load(s / "truth.npy")[0, 0].reshape(75, 2, 100, 2).mean(axis=(1, 3))
     from recon.metrics import gain_fit, psnr
