@@ -17,12 +17,13 @@ EXIT_CANCELLED = 3
 
 def register(sub: Any) -> None:
     """Add ``jobs`` and its actions."""
-    p = sub.add_parser("jobs", help="overnight UDN jobs: run, resume, status, cancel")
+    p = sub.add_parser("jobs", help="overnight UDN jobs: run, resume, status, cancel, combine")
     act = p.add_subparsers(dest="action", metavar="ACTION", required=True)
 
     r = act.add_parser("run", help="run a job spec (TOML) into a new run folder")
     r.add_argument("spec", help="job spec file (TOML)")
     r.add_argument("--out", required=True, help="run folder to create")
+    r.add_argument("--seed", type=int, help="override optimizer.seed (runs for an ensemble)")
     _common_run_args(r)
     r.set_defaults(func=cmd_run)
 
@@ -43,6 +44,14 @@ def register(sub: Any) -> None:
     c.add_argument("--signal", action="store_true",
                    help="also send SIGTERM to the job's process")
     c.set_defaults(func=cmd_cancel)
+
+    e = act.add_parser("combine", help="average finished runs of one problem with different "
+                                       "seeds (an ensemble)")
+    e.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run folders (two or more)")
+    e.add_argument("--out", required=True, help="reconstruction TIFF to write")
+    e.add_argument("--estimate", choices=["best", "final"], default="best",
+                   help="which estimate of each run: best (held-out choice, default) or final")
+    e.set_defaults(func=cmd_combine)
 
 
 def _common_run_args(p: argparse.ArgumentParser) -> None:
@@ -95,7 +104,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     total = _spec_max_iter(args.spec)
     return run_with_progress(
         lambda progress, cancel: run_job(args.spec, args.out, progress=progress, cancel=cancel,
-                                         max_memory=mm), args, total, args.out)
+                                         max_memory=mm, seed=args.seed), args, total, args.out)
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
@@ -140,4 +149,19 @@ def cmd_cancel(args: argparse.Namespace) -> int:
     from recon.udn.jobs import request_cancel
 
     print(request_cancel(args.run_dir, send_signal=args.signal))
+    return 0
+
+
+def cmd_combine(args: argparse.Namespace) -> int:
+    """``jobs combine``."""
+    from recon.udn.ensemble import combine_runs
+
+    res = combine_runs(args.run_dirs, args.out, estimate=args.estimate)
+    for m in res.members:
+        print(f"  seed {m['seed']:>4}  {args.estimate} at iteration {m['iteration']}  "
+              f"({m['finish_reason']})  {m['run_dir']}")
+    line = f"ensemble of {len(res.members)} runs -> {res.paths[0]}"
+    if res.scores is not None:
+        line += f"  (PSNR {res.scores['psnr']:.2f} dB, SSIM {res.scores['ssim']:.3f} vs truth)"
+    print(line)
     return 0

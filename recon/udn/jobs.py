@@ -162,7 +162,7 @@ def request_cancel(run_dir: str | Path, *, send_signal: bool = False) -> str:
     if the run is not running.
     """
     rd = Path(run_dir)
-    rec = _read_record(rd)
+    rec = read_record(rd)
     if rec.get("status") != "running":
         raise ValueError(f"{rd}: the run is not running (finish reason "
                          f"{rec.get('finish_reason')})")
@@ -212,7 +212,8 @@ class _Problem:
     inputs: dict[str, Any]
 
 
-def _load_raw(path: str, where: str) -> npt.NDArray[Any]:
+def load_input(path: str, where: str) -> npt.NDArray[Any]:
+    """A job's input file as an array; errors name the spec key (``where``)."""
     from recon.io import load_image
 
     try:
@@ -268,7 +269,7 @@ def _load_problem(spec: Mapping[str, Any], device: torch.device) -> _Problem:
               "measurement": _describe_input(d["measurement"], meas)}
     mask = None
     if d["mask"] is not None:
-        raw = _load_raw(d["mask"], "data.mask").astype(np.float64)
+        raw = load_input(d["mask"], "data.mask").astype(np.float64)
         if raw.ndim == 3 and raw.shape[0] == 1:
             raw = raw[0]
         if raw.ndim != 2:
@@ -284,7 +285,7 @@ def _load_problem(spec: Mapping[str, Any], device: torch.device) -> _Problem:
         inputs["mask"] = _describe_input(d["mask"], mask)
     shutter = filters = None
     if kind == "video":
-        raw = _load_raw(d["shutter"], "data.shutter").astype(np.float64)
+        raw = load_input(d["shutter"], "data.shutter").astype(np.float64)
         if raw.ndim != 2:
             raise ValueError(f"data.shutter must be a (K, rows) array, got shape {raw.shape}")
         if raw.shape[1] == h:
@@ -298,7 +299,7 @@ def _load_problem(spec: Mapping[str, Any], device: torch.device) -> _Problem:
                              f"rows: expected (K, {h}){full}")
         inputs["shutter"] = _describe_input(d["shutter"], shutter)
     if kind == "spectral":
-        raw = _load_raw(d["filters"], "data.filters").astype(np.float64)
+        raw = load_input(d["filters"], "data.filters").astype(np.float64)
         if raw.ndim != 3:
             raise ValueError(f"data.filters must be a (K, H, W) array, got shape {raw.shape}")
         if raw.shape[1:] == sensor:
@@ -319,7 +320,7 @@ def _load_problem(spec: Mapping[str, Any], device: torch.device) -> _Problem:
                         shutter=shutter, filters=filters, field=field, device=device)
     truth = None
     if d["truth"] is not None:
-        truth = _load_raw(d["truth"], "data.truth").astype(np.float32)
+        truth = load_input(d["truth"], "data.truth").astype(np.float32)
         if truth.shape != tuple(model.scene_shape):
             raise ValueError(f"data.truth has shape {truth.shape}; the scene is "
                              f"{tuple(model.scene_shape)} (C, K, H, W)")
@@ -332,7 +333,9 @@ def _load_problem(spec: Mapping[str, Any], device: torch.device) -> _Problem:
 # --------------------------------------------------------------------------------------------
 
 
-def _read_record(run_dir: Path) -> dict[str, Any]:
+def read_record(run_dir: str | Path) -> dict[str, Any]:
+    """The run record (``run.json``) of a run folder, checked for format and version."""
+    run_dir = Path(run_dir)
     p = run_dir / RECORD_FILE
     if not p.is_file():
         raise FileNotFoundError(f"{run_dir}: no UDN run here ({RECORD_FILE} not found)")
@@ -736,7 +739,7 @@ def _finalise(job: _Job, session: dict[str, Any], t0: float) -> None:
 
 def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: Progress = None,
             cancel: Cancel = None, max_memory: int | None = None,
-            spec_text: str | None = None) -> JobOutcome:
+            spec_text: str | None = None, seed: int | None = None) -> JobOutcome:
     """Run the job of ``spec_path`` into a new run folder ``run_dir``.
 
     Args:
@@ -746,6 +749,8 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: Progress = 
         cancel: a threading.Event or a callable; when set / True the job stops cleanly.
         max_memory: refuse runs estimated above this many bytes (overrides the spec).
         spec_text: the spec's text if it is not to be read from ``spec_path``.
+        seed: overrides ``optimizer.seed`` (runs of one spec for an ensemble, see
+            :mod:`recon.udn.ensemble`); recorded under ``overrides``.
 
     Returns the outcome; on failure the run record says ``failed`` with the error, and the
     exception is raised again.
@@ -786,6 +791,11 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: Progress = 
             raw = tomllib.loads(spec_text)
         except tomllib.TOMLDecodeError as exc:
             raise SpecError(f"{sp}: not valid TOML: {exc}") from None
+        if seed is not None:
+            opt = raw.setdefault("optimizer", {})
+            if isinstance(opt, dict):
+                opt["seed"] = seed
+            record["overrides"] = {"optimizer.seed": seed}
         record["spec"] = normalise_spec(raw, sp.parent, source=str(sp))
         job.spec = record["spec"]
         record["spec_hash"] = _spec_hash(record["spec"])
@@ -808,7 +818,7 @@ def resume_job(run_dir: str | Path, *, max_iter: int | None = None,
     run whose process is still alive, and inputs whose files changed since the run started.
     """
     rd = Path(run_dir)
-    rec = _read_record(rd)
+    rec = read_record(rd)
     if rec.get("spec") is None:
         raise ValueError(f"{rd}: the run never started (its spec was invalid: "
                          f"{rec.get('detail')}); fix the spec and start a new run")
@@ -883,7 +893,7 @@ class JobStatus:
 def job_status(run_dir: str | Path) -> JobStatus:
     """Read the state of a run folder (running, interrupted, finished)."""
     rd = Path(run_dir)
-    rec = _read_record(rd)
+    rec = read_record(rd)
     prog = rec.get("progress") or {}
     spec = rec.get("spec") or {}
     status = rec.get("status")

@@ -1,0 +1,93 @@
+"""Ensembles of UDN runs: ``jobs run --seed`` and ``jobs combine`` (recon.udn.ensemble)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from app.cli import main as cli_main
+from recon.io import read_reconstruction
+from recon.metrics import gain_fit, psnr
+from recon.udn.ensemble import combine_runs
+from recon.udn.jobs import run_job
+from tests.udn.conftest import write_spec
+
+
+@pytest.fixture
+def three_runs(tiny_data, tmp_path):
+    """Runs of one spec with seeds 0, 1, 2 (the third one through the CLI)."""
+    spec = write_spec(tiny_data, stopping={"max_iter": 60, "patience": 1000})
+    runs = [tmp_path / f"s{s}" for s in range(3)]
+    for s in (0, 1):
+        run_job(spec, runs[s], seed=s)
+    assert cli_main(["jobs", "run", str(spec), "--out", str(runs[2]), "--seed", "2",
+                     "--quiet"]) == 0
+    return spec, runs
+
+
+def test_combine_averages_the_members_and_records_them(three_runs, tiny_data, tmp_path, capsys):
+    _spec, runs = three_runs
+    recs = [json.loads((r / "run.json").read_text()) for r in runs]
+    assert [r["spec"]["optimizer"]["seed"] for r in recs] == [0, 1, 2]
+    assert recs[2]["overrides"] == {"optimizer.seed": 2}
+    bests = [read_reconstruction(r / "best.tif")[0] for r in runs]
+    assert not np.array_equal(bests[0], bests[1])  # the seeds differ
+
+    out = tmp_path / "ens.tif"
+    res = combine_runs(runs, out)
+    x, meta = read_reconstruction(out)
+    np.testing.assert_allclose(x, np.mean(bests, axis=0), rtol=1e-6, atol=1e-7)
+    assert meta["method"] == "udn-ensemble" and meta["estimate"] == "best"
+    assert [m["seed"] for m in meta["members"]] == [0, 1, 2]
+    assert [m["iteration"] for m in meta["members"]] == [r["results"]["best_iteration"]
+                                                        for r in recs]
+    truth = np.load(tiny_data / "truth.npy")
+    assert res.scores is not None
+    assert res.scores["psnr"] == pytest.approx(psnr(truth, gain_fit(truth, x)[0]), abs=1e-4)
+    assert (tmp_path / "ens.png").is_file()
+
+    assert cli_main(["jobs", "combine", *map(str, runs[:2]), "--estimate", "final", "--out",
+                     str(tmp_path / "ens2.tif")]) == 0
+    printed = capsys.readouterr().out
+    assert "ensemble of 2 runs" in printed and "PSNR" in printed
+    x2, meta2 = read_reconstruction(tmp_path / "ens2.tif")
+    finals = [read_reconstruction(r / "final.tif")[0] for r in runs[:2]]
+    np.testing.assert_allclose(x2, np.mean(finals, axis=0), rtol=1e-6, atol=1e-7)
+    assert meta2["estimate"] == "final"
+
+
+def test_combine_refuses_what_is_not_one_problem(three_runs, tiny_data, tmp_path, capsys):
+    spec, runs = three_runs
+    out = tmp_path / "never.tif"
+    with pytest.raises(ValueError, match="at least two"):
+        combine_runs(runs[:1], out)
+    with pytest.raises(ValueError, match="named twice"):
+        combine_runs([runs[0], runs[0]], out)
+    same_seed = tmp_path / "again0"
+    run_job(spec, same_seed, seed=0)
+    with pytest.raises(ValueError, match="both ran with seed 0"):
+        combine_runs([runs[0], same_seed], out)
+    # a run of another measurement
+    other = tiny_data.parent / "other"
+    other.mkdir()
+    for name in ("psf", "mask", "truth"):
+        (other / f"{name}.npy").write_bytes((tiny_data / f"{name}.npy").read_bytes())
+    meas = np.load(tiny_data / "meas.npy")
+    np.save(other / "meas.npy", meas * 1.01)
+    run_job(write_spec(other, stopping={"max_iter": 10}), tmp_path / "other_run", seed=5)
+    with pytest.raises(ValueError, match=r"other data .*data\.measurement"):
+        combine_runs([runs[0], tmp_path / "other_run"], out)
+    # a run that never finished (no results) and a folder that holds no run
+    rec = json.loads((runs[1] / "run.json").read_text())
+    del rec["results"]
+    rec["status"], rec["finish_reason"] = "running", None
+    (runs[1] / "run.json").write_text(json.dumps(rec))
+    with pytest.raises(ValueError, match="no best estimate yet"):
+        combine_runs([runs[0], runs[1]], out)
+    with pytest.raises(FileNotFoundError, match="no UDN run here"):
+        combine_runs([runs[0], tmp_path], out)
+    assert not out.exists()
+    assert cli_main(["jobs", "combine", str(runs[0]), str(runs[1]), "--out", str(out)]) != 0
+    assert "no best estimate yet" in capsys.readouterr().err
