@@ -43,6 +43,7 @@ __all__ = [
     "JobQueue",
     "JobView",
     "cancel_job",
+    "combine_jobs",
     "create_job",
     "default_sections",
     "discover_jobs",
@@ -356,6 +357,26 @@ def discover_jobs(jobs_dir: str | Path) -> list[JobView]:
         if v is not None:
             out.append(v)
     return out
+
+
+def combine_jobs(views: list[JobView], jobs_dir: str | Path) -> Any:
+    """Average the best estimates of finished jobs of one measurement (an ensemble).
+
+    Writes ``jobs_dir/ensembles/<time>-<name>.tif`` (+ preview) through
+    :func:`recon.udn.ensemble.combine_runs`, which refuses jobs of other data or the same seed;
+    returns its :class:`~recon.udn.ensemble.EnsembleResult`.
+    """
+    from recon.udn.ensemble import combine_runs
+
+    not_done = [v.name for v in views if "best" not in v.results]
+    if not_done:
+        raise ValueError(f"not finished (no best estimate yet): {', '.join(not_done)}")
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    out_dir = Path(jobs_dir) / "ensembles"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    name = views[0].name if views else "ensemble"
+    out = out_dir / f"{stamp}-{_slug(name)}-x{len(views)}.tif"
+    return combine_runs([v.run_dir for v in views], out)
 
 
 def read_loss(folder: str | Path) -> tuple[npt.NDArray[np.float64], ...]:

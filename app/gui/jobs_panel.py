@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtCore import Qt, QTimer, QUrl, Signal
+from PySide6.QtCore import QItemSelectionModel, Qt, QTimer, QUrl, Signal
 from PySide6.QtGui import QDesktopServices
 from PySide6.QtWidgets import (
     QComboBox,
@@ -42,6 +42,7 @@ from app.gui.jobs_core import (
     JobQueue,
     JobView,
     cancel_job,
+    combine_jobs,
     create_job,
     estimate_job_memory,
     queue_resume,
@@ -112,6 +113,12 @@ class NewJobDialog(QDialog):
         self.channels = QSpinBox()
         self.channels.setRange(1, 512)
         self.channels.setValue(32)
+        self.seeds = QSpinBox()
+        self.seeds.setRange(1, 16)
+        self.seeds.setValue(1)
+        self.seeds.setToolTip("Queue this many jobs with seeds 0, 1, ...; select them when they "
+                              "have finished and press Combine for their average (an ensemble: "
+                              "better where the data say least, e.g. many erased pixels)")
         self.device = QComboBox()
         self.device.addItems(["auto", "cpu"])
         try:
@@ -143,6 +150,7 @@ class NewJobDialog(QDialog):
         form.addRow("Time limit", self.time_limit)
         form.addRow("Network scales", self.scales)
         form.addRow("Channels", self.channels)
+        form.addRow("Seeds (ensemble)", self.seeds)
         form.addRow("Device", self.device)
         form.addRow("CPU threads", self.threads)
         form.addRow("Precision", self.precision)
@@ -245,12 +253,15 @@ class JobsPanel(QWidget):
         self.resume_button = QPushButton("Resume")
         self.open_button = QPushButton("Open results")
         self.folder_button = QPushButton("Open folder")
+        self.combine_button = QPushButton("Combine")
+        self.combine_button.setToolTip("Average the best estimates of the selected finished "
+                                       "jobs (same measurement, different seeds)")
         self.folder_label = QLabel(f"jobs folder: {jobs_dir}")
         self.folder_label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         self.message = _MessageLabel()
         bar = QHBoxLayout()
         for b in (self.new_button, self.cancel_button, self.resume_button, self.open_button,
-                  self.folder_button):
+                  self.combine_button, self.folder_button):
             bar.addWidget(b)
         bar.addStretch(1)
         bar.addWidget(self.folder_label)
@@ -258,7 +269,7 @@ class JobsPanel(QWidget):
         self.table = QTableWidget(0, len(_COLUMNS))
         self.table.setHorizontalHeaderLabels(list(_COLUMNS))
         self.table.setSelectionBehavior(QTableWidget.SelectionBehavior.SelectRows)
-        self.table.setSelectionMode(QTableWidget.SelectionMode.SingleSelection)
+        self.table.setSelectionMode(QTableWidget.SelectionMode.ExtendedSelection)
         self.table.setEditTriggers(QTableWidget.EditTrigger.NoEditTriggers)
         self.table.horizontalHeader().setSectionResizeMode(0, QHeaderView.ResizeMode.Stretch)
         self.table.verticalHeader().setVisible(False)
@@ -296,6 +307,7 @@ class JobsPanel(QWidget):
         self.resume_button.clicked.connect(self.resume_selected)
         self.open_button.clicked.connect(self.open_selected)
         self.folder_button.clicked.connect(self.open_folder)
+        self.combine_button.clicked.connect(self.combine_selected)
         self.table.itemSelectionChanged.connect(self._selection_changed)
         self.timer = QTimer(self)
         self.timer.setInterval(int(poll_ms))
@@ -317,8 +329,7 @@ class JobsPanel(QWidget):
         except Exception as exc:  # a broken folder must not break the window
             self.message.setText(f"jobs folder: {exc}")
             return
-        selected = self.selected()
-        keep = selected.folder if selected is not None else None
+        keep = {v.folder for v in self.selected_all()}
         self.views = views
         self.table.setRowCount(len(views))
         for row, v in enumerate(views):
@@ -344,21 +355,34 @@ class JobsPanel(QWidget):
                 self.table.setCellWidget(row, 3, bar)
             bar.setValue(int(1000 * v.fraction))
             bar.setFormat(f"{100 * v.fraction:.0f}%")
-        if keep is not None:
-            for row, v in enumerate(views):
-                if v.folder == keep:
-                    self.table.selectRow(row)
+        if keep:
+            self._select_folders(keep)
         elif views and self.table.currentRow() < 0:
             self.table.selectRow(len(views) - 1)
         self._show_details()
 
     def selected(self) -> JobView | None:
-        """The selected job."""
-        rows = self.table.selectionModel().selectedRows() if self.table.selectionModel() else []
-        if not rows:
-            return None
-        r = rows[0].row()
-        return self.views[r] if 0 <= r < len(self.views) else None
+        """The selected job (the first one when several are selected)."""
+        views = self.selected_all()
+        return views[0] if views else None
+
+    def selected_all(self) -> list[JobView]:
+        """Every selected job, in table order."""
+        model = self.table.selectionModel()
+        rows = sorted(i.row() for i in model.selectedRows()) if model is not None else []
+        return [self.views[r] for r in rows if 0 <= r < len(self.views)]
+
+    def _select_folders(self, folders: set[Path]) -> None:
+        model = self.table.selectionModel()
+        flags = (QItemSelectionModel.SelectionFlag.Select
+                 | QItemSelectionModel.SelectionFlag.Rows)
+        current = {v.folder for v in self.selected_all()}
+        if current == folders:
+            return
+        model.clearSelection()
+        for row, v in enumerate(self.views):
+            if v.folder in folders:
+                model.select(self.table.model().index(row, 0), flags)
 
     def _selection_changed(self) -> None:
         self._shown_preview = None
@@ -370,6 +394,8 @@ class JobsPanel(QWidget):
                                                                     "running", "held"))
         self.resume_button.setEnabled(v is not None and v.can_resume)
         self.open_button.setEnabled(v is not None and bool(v.results))
+        done = [x for x in self.selected_all() if "best" in x.results]
+        self.combine_button.setEnabled(len(done) >= 2)
         if v is None:
             self.details.setText("")
             return
@@ -413,11 +439,15 @@ class JobsPanel(QWidget):
 
     def _create_from_dialog(self, dlg: NewJobDialog, frame: Any, psf: Any) -> None:
         self.create_job(frame, psf, dlg.name.text() or "udn", int(dlg.downsample.value()),
-                        dlg.sections())
+                        dlg.sections(), seeds=int(dlg.seeds.value()))
 
     def create_job(self, frame: Any, psf: Any, name: str, downsample: int,
-                   sections: dict[str, dict[str, Any]]) -> Path | None:
-        """Write and queue a job for ``frame`` with ``psf``; returns its folder."""
+                   sections: dict[str, dict[str, Any]], seeds: int = 1) -> Path | None:
+        """Write and queue a job for ``frame`` with ``psf``; returns its (first) folder.
+
+        ``seeds`` > 1 queues that many jobs with ``optimizer.seed`` 0, 1, ... (named
+        ``NAME-sN``), for :meth:`combine_selected`; they run one after another.
+        """
         w = self.window_
         if frame.shape != psf.shape:
             self.message.setText(
@@ -434,20 +464,43 @@ class JobsPanel(QWidget):
             dark = float(np.partition(flat, k)[k])
         meta = {"frame": frame.metadata(), "psf_source": w.psf_source,
                 "psf_path": w.settings.psf_path or None, "dark": dark}
-        try:
-            folder = create_job(self.queue.jobs_dir, name, frame.pixels, psf,
-                                downsample=downsample, dark=dark, sections=sections,
-                                measurement_metadata=meta)
-        except Exception as exc:
-            self.message.setText(f"cannot create the job: {exc}")
+        folders: list[Path] = []
+        for seed in range(max(1, int(seeds))):
+            secs = {k: dict(v) for k, v in sections.items()}
+            if seeds > 1:
+                secs.setdefault("optimizer", {})["seed"] = seed
+            try:
+                folders.append(create_job(self.queue.jobs_dir,
+                                          f"{name}-s{seed}" if seeds > 1 else name,
+                                          frame.pixels, psf, downsample=downsample, dark=dark,
+                                          sections=secs, measurement_metadata=meta))
+            except Exception as exc:
+                self.message.setText(f"cannot create the job: {exc}")
+                break
+        if not folders:
             return None
-        self.message.setText(f"queued {folder.name}")
+        self.message.setText(f"queued {folders[0].name}" if len(folders) == 1 else
+                             f"queued {len(folders)} jobs (seeds 0-{len(folders) - 1}): "
+                             "combine them when they have finished")
         self.refresh()
-        for row, v in enumerate(self.views):
-            if v.folder == folder:
-                self.table.selectRow(row)
-        self.job_created.emit(folder)
-        return folder
+        self._select_folders(set(folders))
+        for folder in folders:
+            self.job_created.emit(folder)
+        return folders[0]
+
+    def combine_selected(self) -> Any:
+        """Average the selected finished jobs' best estimates; says where the result is."""
+        views = self.selected_all()
+        try:
+            res = combine_jobs(views, self.queue.jobs_dir)
+        except Exception as exc:
+            self.message.setText(f"cannot combine: {exc}")
+            return None
+        text = f"ensemble of {len(views)} jobs written to {res.paths[0]}"
+        if res.scores is not None:
+            text += f" (PSNR {res.scores['psnr']:.2f} dB against the truth)"
+        self.message.setText(text)
+        return res
 
     def cancel_selected(self) -> None:
         """Cancel the selected job (withdraw it, or stop its run at the next iteration)."""

@@ -98,3 +98,42 @@ def test_job_survives_closing_the_window_and_is_found_again(make_window: Any,
     assert p2.views[0].pid != pid
     p2.cancel_button.click()
     qtbot.waitUntil(lambda: p2.views[0].state == "finished", timeout=20_000)
+
+
+def test_seeds_queue_an_ensemble_that_combines(live_window: Any, qtbot: Any) -> None:
+    """Seeds 3 queues three jobs (seeds 0-2, one after another); Combine averages them."""
+    import numpy as np
+
+    from recon.io import read_reconstruction
+
+    panel = live_window.jobs_panel
+    dlg = panel.new_job_dialog()
+    assert dlg is not None
+    _tiny(dlg, 20)
+    dlg.seeds.setValue(3)
+    dlg.accept()
+    qtbot.waitUntil(lambda: len(panel.views) == 3, timeout=5_000)
+    assert sorted(v.name for v in panel.views) == ["tiny-s0", "tiny-s1", "tiny-s2"]
+    assert len(panel.selected_all()) == 3  # the new jobs are selected ...
+    assert not panel.combine_button.isEnabled()  # ... but none has finished yet
+    qtbot.waitUntil(lambda: all(v.state == "finished" for v in panel.views), timeout=120_000)
+    panel.refresh()
+    assert len(panel.selected_all()) == 3  # the selection survives the polling
+    qtbot.waitUntil(lambda: panel.combine_button.isEnabled(), timeout=5_000)
+    panel.combine_button.click()
+    msg = panel.message.text()
+    assert "ensemble of 3 jobs written to" in msg, msg
+    out = sorted((panel.queue.jobs_dir / "ensembles").glob("*.tif"))
+    assert len(out) == 1
+    x, meta = read_reconstruction(out[0])
+    assert sorted(m["seed"] for m in meta["members"]) == [0, 1, 2]
+    bests = [read_reconstruction(v.run_dir / "best.tif")[0] for v in panel.views]
+    np.testing.assert_allclose(x, np.mean(bests, axis=0), rtol=1e-6, atol=1e-7)
+    assert len(panel.views) == 3  # the ensembles folder is not taken for a job
+
+    # one finished job alone cannot be combined; the core refuses it too
+    panel._select_folders({panel.views[0].folder})
+    panel._show_details()
+    assert not panel.combine_button.isEnabled()
+    panel.combine_selected()
+    assert "cannot combine: an ensemble needs at least two runs" in panel.message.text()
