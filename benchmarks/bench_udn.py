@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 CASES: dict[str, dict[str, Any]] = {
+    "2d-75x100": {"model": "2d", "shape": (75, 100), "k": 1, "variant": "2d"},
     "2d-150x200": {"model": "2d", "shape": (150, 200), "k": 1, "variant": "2d"},
     "2d-256x256": {"model": "2d", "shape": (256, 256), "k": 1, "variant": "2d"},
     "video-128x128x16": {"model": "video", "shape": (128, 128), "k": 16, "variant": "frames"},

@@ -216,6 +216,9 @@ def run(args: argparse.Namespace) -> int:
     """Run both methods on the scenes and print / write the table."""
     import torch
 
+    if not 0 < args.holdout < 1:
+        raise SystemExit(f"--holdout must be in (0, 1) (the held-out choice needs held-out "
+                         f"pixels), got {args.holdout}")
     torch.set_num_threads(args.threads)
     t_all = time.perf_counter()
     psf, sims = make_data(args.scale, args.scenes, args.erasure, args.noise)

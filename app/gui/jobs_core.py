@@ -376,6 +376,10 @@ def combine_jobs(views: list[JobView], jobs_dir: str | Path) -> Any:
     out_dir.mkdir(parents=True, exist_ok=True)
     name = views[0].name if views else "ensemble"
     out = out_dir / f"{stamp}-{_slug(name)}-x{len(views)}.tif"
+    n = 1
+    while out.exists():
+        n += 1
+        out = out_dir / f"{stamp}-{_slug(name)}-x{len(views)}-{n}.tif"
     return combine_runs([v.run_dir for v in views], out)
 
 

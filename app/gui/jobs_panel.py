@@ -394,8 +394,9 @@ class JobsPanel(QWidget):
                                                                     "running", "held"))
         self.resume_button.setEnabled(v is not None and v.can_resume)
         self.open_button.setEnabled(v is not None and bool(v.results))
-        done = [x for x in self.selected_all() if "best" in x.results]
-        self.combine_button.setEnabled(len(done) >= 2)
+        chosen = self.selected_all()
+        self.combine_button.setEnabled(len(chosen) >= 2
+                                       and all("best" in x.results for x in chosen))
         if v is None:
             self.details.setText("")
             return
@@ -465,6 +466,7 @@ class JobsPanel(QWidget):
         meta = {"frame": frame.metadata(), "psf_source": w.psf_source,
                 "psf_path": w.settings.psf_path or None, "dark": dark}
         folders: list[Path] = []
+        error = ""
         for seed in range(max(1, int(seeds))):
             secs = {k: dict(v) for k, v in sections.items()}
             if seeds > 1:
@@ -475,13 +477,15 @@ class JobsPanel(QWidget):
                                           frame.pixels, psf, downsample=downsample, dark=dark,
                                           sections=secs, measurement_metadata=meta))
             except Exception as exc:
-                self.message.setText(f"cannot create the job: {exc}")
+                error = f"cannot create the job{f' for seed {seed}' if seeds > 1 else ''}: {exc}"
                 break
         if not folders:
+            self.message.setText(error)
             return None
-        self.message.setText(f"queued {folders[0].name}" if len(folders) == 1 else
-                             f"queued {len(folders)} jobs (seeds 0-{len(folders) - 1}): "
-                             "combine them when they have finished")
+        text = (f"queued {folders[0].name}" if len(folders) == 1 else
+                f"queued {len(folders)} jobs (seeds 0-{len(folders) - 1}): combine them when "
+                "they have finished")
+        self.message.setText(text + (f"; {error}" if error else ""))
         self.refresh()
         self._select_folders(set(folders))
         for folder in folders:

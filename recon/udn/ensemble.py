@@ -60,10 +60,14 @@ def _member(run_dir: Path, estimate: Estimate) -> tuple[dict[str, Any], F32, dic
 
 
 def _inputs_key(rec: dict[str, Any]) -> dict[str, Any]:
-    """The inputs by content: file hashes (array hashes where there is no file)."""
+    """The inputs by content: file hashes and the hashes of the arrays as processed.
+
+    The array hashes come after dark subtraction, downsampling and normalisation, so runs of
+    the same files read with other settings differ.
+    """
     out: dict[str, Any] = {}
     for name, info in (rec.get("inputs") or {}).items():
-        out[name] = info.get("file_hash") or info.get("array_hash")
+        out[name] = (info.get("file_hash"), info.get("array_hash"))
     return out
 
 

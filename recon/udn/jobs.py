@@ -765,7 +765,10 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: Progress = 
             raise FileNotFoundError(f"job spec not found: {sp}")
         spec_text = sp.read_text(encoding="utf-8")
     rd.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(rd / SPEC_FILE, spec_text.encode("utf-8"))
+    copy = spec_text if seed is None else (
+        f"# run with 'jobs run --seed {seed}': optimizer.seed = {seed} overrides this file "
+        "(run.json: overrides)\n" + spec_text)
+    atomic_write_bytes(rd / SPEC_FILE, copy.encode("utf-8"))
     record: dict[str, Any] = {
         "format": RUN_RECORD_FORMAT,
         "format_version": FORMAT_VERSION,

@@ -28,10 +28,12 @@ def three_runs(tiny_data, tmp_path):
 
 
 def test_combine_averages_the_members_and_records_them(three_runs, tiny_data, tmp_path, capsys):
-    _spec, runs = three_runs
+    spec, runs = three_runs
     recs = [json.loads((r / "run.json").read_text()) for r in runs]
     assert [r["spec"]["optimizer"]["seed"] for r in recs] == [0, 1, 2]
     assert recs[2]["overrides"] == {"optimizer.seed": 2}
+    copy = (runs[2] / "job.toml").read_text()
+    assert copy.startswith("# run with 'jobs run --seed 2'") and copy.endswith(spec.read_text())
     bests = [read_reconstruction(r / "best.tif")[0] for r in runs]
     assert not np.array_equal(bests[0], bests[1])  # the seeds differ
 
@@ -79,6 +81,12 @@ def test_combine_refuses_what_is_not_one_problem(three_runs, tiny_data, tmp_path
     run_job(write_spec(other, stopping={"max_iter": 10}), tmp_path / "other_run", seed=5)
     with pytest.raises(ValueError, match=r"other data .*data\.measurement"):
         combine_runs([runs[0], tmp_path / "other_run"], out)
+    # the same files read with another dark level are other data too
+    dark = write_spec(tiny_data, "dark.toml", stopping={"max_iter": 10},
+                      data={"dark": 0.01, "psf_dark": 0.0})
+    run_job(dark, tmp_path / "dark_run", seed=6)
+    with pytest.raises(ValueError, match=r"other data .*data\.measurement"):
+        combine_runs([runs[0], tmp_path / "dark_run"], out)
     # a run that never finished (no results) and a folder that holds no run
     rec = json.loads((runs[1] / "run.json").read_text())
     del rec["results"]

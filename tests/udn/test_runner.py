@@ -255,10 +255,17 @@ def test_tv_weight_enters_the_loss_and_smooths_the_output():
 def test_tv_diffs_match_the_in_place_differences():
     from recon.tv import TV
 
-    x = torch.rand(1, 3, 5, 6, dtype=torch.float64)
-    tv = TV(weight_k=0.7)
-    for a, b in zip(tv.diffs(x), tv.grad(x), strict=True):
-        assert torch.equal(a, b)
+    for shape, wk in (((1, 3, 5, 6), 0.7), ((2, 1, 4, 1), 0.7), ((1, 4, 3, 5), 0.0)):
+        x = torch.rand(*shape, dtype=torch.float64, requires_grad=True)
+        tv = TV(weight_k=wk)
+        d = tv.diffs(x)
+        assert len(d) == tv.n_dirs(x)
+        for a, b in zip(d, tv.grad(x.detach()), strict=True):
+            assert torch.equal(a.detach(), b)
+        # autograd through diffs is the adjoint of the differences
+        p = [torch.rand_like(a) for a in d]
+        (g,) = torch.autograd.grad(sum((a * q).sum() for a, q in zip(d, p, strict=True)), x)
+        torch.testing.assert_close(g, tv.grad_adj(p))
 
 
 def test_headroom_scales_the_fitted_gain_only():
