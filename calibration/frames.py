@@ -10,6 +10,7 @@ that names the stage and the frame.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -77,12 +78,15 @@ def acquire_frames(
     timeout_s: float = 5.0,
     settle: int = 0,
     fractions: tuple[float, float] = (0.0, 1.0),
+    check: Callable[[], None] | None = None,
 ) -> Steps[FrameStats]:
     """Acquire ``n`` frames (after ``settle`` dropped ones) and return their statistics.
 
     Yields a :class:`Progress` (stage ``stage``) per frame, its fraction going from
     ``fractions[0]`` to ``fractions[1]``. ``what`` names the frames in messages
-    ("dark frame", "PSF frame"). The acquisition is stopped however the step ends.
+    ("dark frame", "PSF frame"). ``check`` (for example: the light source still answers) runs
+    after every frame and raises to stop the step, so a vanished source is noticed within one
+    frame time. The acquisition is stopped however the step ends.
     """
     if int(n) != n or n < 1:
         raise ValueError(f"number of frames must be an integer >= 1, got {n!r}")
@@ -117,6 +121,8 @@ def acquire_frames(
                     f"within {timeout_s:g} s), then run the calibration again; nothing was saved",
                     stage=stage,
                 ) from exc
+            if check is not None:
+                check()
             if i < settle:
                 continue
             px = np.asarray(frame.pixels)

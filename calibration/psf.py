@@ -33,6 +33,7 @@ from calibration.darks import capture_darks, hot_pixels, repair_pixels
 from calibration.frames import FrameStats, acquire_frames
 from calibration.sources import (
     camera_description,
+    source_alive,
     source_identity,
     source_off,
     source_off_quietly,
@@ -442,6 +443,7 @@ def _auto_exposure(
     start_us: float,
     fractions: tuple[float, float],
     source_intensity: float | None = None,
+    check: Callable[[], None] | None = None,
 ) -> Steps[tuple[float, list[dict[str, Any]]]]:
     """Find the exposure whose brightest PSF pixels reach the target; returns (us, log)."""
     lo, hi = _exposure_bounds(camera, settings)
@@ -467,6 +469,7 @@ def _auto_exposure(
             timeout_s=settings.frame_timeout_s,
             settle=settings.settle_frames,
             fractions=(frac_done, frac_done),
+            check=check,
         )
         full = stats.full_scale
         peak_raw = float(stats.mean[good].max()) if good.any() else float(stats.mean.max())
@@ -583,7 +586,14 @@ def capture_psf(
         exposure = start_us
         if s.auto_exposure:
             exposure, ae_log = yield from _auto_exposure(
-                camera, s, dark0, hot, start_us, (0.2, 0.4), source.intensity
+                camera,
+                s,
+                dark0,
+                hot,
+                start_us,
+                (0.2, 0.4),
+                source.intensity,
+                check=source_alive(source, stage="exposure"),
             )
         light = yield from acquire_frames(
             camera,
@@ -593,6 +603,7 @@ def capture_psf(
             timeout_s=s.frame_timeout_s,
             settle=s.settle_frames,
             fractions=(0.4, 0.75),
+            check=source_alive(source, stage="frames"),
         )
         source_off(source, stage="darks")
         light_on = False

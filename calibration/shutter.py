@@ -35,6 +35,7 @@ from calibration.darks import capture_darks
 from calibration.frames import acquire_frames
 from calibration.sources import (
     camera_description,
+    source_alive,
     source_call,
     source_identity,
     source_off,
@@ -508,6 +509,7 @@ def measure_shutter(
                 timeout_s=s.frame_timeout_s,
                 settle=s.settle_frames,
                 fractions=(frac, frac),
+                check=source_alive(source, stage="scan"),
             )
             responses[i] = (stats.mean - dark.mean).sum(axis=1)
             yield Progress(

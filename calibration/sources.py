@@ -18,6 +18,7 @@ from drivers.lightsource import LightSource, LightSourceError
 
 __all__ = [
     "camera_description",
+    "source_alive",
     "source_call",
     "source_identity",
     "source_off",
@@ -81,6 +82,20 @@ def source_off_quietly(source: LightSource | None) -> None:
         source.off()
     except Exception as exc:  # the original error is what the user must see
         _log.warning("could not switch the point source off: %s", exc)
+
+
+def source_alive(source: LightSource, *, stage: str) -> Callable[[], None]:
+    """A per-frame check for :func:`calibration.frames.acquire_frames`: the source still answers.
+
+    While the light must stay on, a source that died (its firmware, cable or port) would leave
+    the camera looking at a stale scene; querying its state after each frame turns that into a
+    :class:`CalibrationError` within one frame time.
+    """
+
+    def check() -> None:
+        source_call(source, "report its state", source.status, stage=stage)
+
+    return check
 
 
 def source_identity(source: LightSource, *, stage: str) -> str:

@@ -50,10 +50,12 @@ from drivers.camera import (
 from drivers.timing import ReadoutPattern, SensorTiming, ShutterMode
 
 __all__ = [
+    "DEMO_PRODUCERS",
     "GenICamCamera",
     "GenICamDeviceInfo",
     "find_producers",
     "gentl_cache_dir",
+    "is_demo_producer",
     "list_genicam_devices",
 ]
 
@@ -96,8 +98,19 @@ def find_producers(
     include_cache: bool = True,
     include_package: bool = True,
 ) -> list[Path]:
-    """GenTL producer files (``*.cti``) found in the places listed in the module docstring."""
+    """GenTL producer files (``*.cti``) found in the places listed in the module docstring.
+
+    A path in ``extra`` is the user's explicit choice: one that does not exist, or that is
+    neither a ``.cti`` file nor a folder holding one, raises ``FileNotFoundError`` naming it
+    (the places searched by default are skipped quietly when empty).
+    """
     candidates: list[Path] = [Path(p) for p in extra]
+    for c in candidates:
+        if not c.exists():
+            raise FileNotFoundError(f"GenTL producer {str(c)!r} does not exist")
+        if next(_cti_in(c), None) is None:
+            what = "folder holds no .cti file" if c.is_dir() else "file is not a .cti producer"
+            raise FileNotFoundError(f"GenTL producer {str(c)!r}: the {what}")
     if use_environment:
         for var in ("GENICAM_GENTL64_PATH", "LENSLESSCAM_GENTL_PATH"):
             candidates += [Path(p) for p in os.environ.get(var, "").split(os.pathsep) if p]
@@ -121,6 +134,21 @@ def find_producers(
                 seen.add(key)
                 found.append(cti)
     return found
+
+
+#: File names of GenTL producers that ship demo cameras, not hardware.
+DEMO_PRODUCERS = frozenset({"viky.cti", "TLSimu.cti"})
+
+
+def is_demo_producer(path: str | os.PathLike[str]) -> bool:
+    """A demo producer (:data:`DEMO_PRODUCERS`) or one in this project's cache (the tests')."""
+    p = Path(path)
+    if p.name in DEMO_PRODUCERS:
+        return True
+    try:
+        return p.resolve().is_relative_to(gentl_cache_dir().resolve())
+    except OSError:
+        return False
 
 
 @dataclass(frozen=True)

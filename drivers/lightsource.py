@@ -50,6 +50,23 @@ _log = logging.getLogger(__name__)
 MAX_TIME_US = 10_000_000.0
 
 
+def _port_errors() -> tuple[type[BaseException], ...]:
+    """Every exception a vanished port can raise: pyserial's, OS errors, and ``termios.error``.
+
+    ``termios.error`` (raised by ``reset_input_buffer``/``flush`` on a PTY whose other end died)
+    is not an ``OSError``; unless it is mapped here it escapes as a raw error and the port is
+    never dropped.
+    """
+    import serial
+
+    errors: tuple[type[BaseException], ...] = (serial.SerialException, OSError)
+    try:
+        import termios
+    except ImportError:  # Windows: no termios
+        return errors
+    return (*errors, termios.error)
+
+
 class LightSourceError(RuntimeError):
     """A light source could not do what was asked (the message says which and why)."""
 
@@ -237,7 +254,7 @@ class SerialPointSource:
                 )
             elif not self._port.is_open:
                 self._port.open()
-        except (serial.SerialException, OSError, ValueError) as exc:
+        except (*_port_errors(), ValueError) as exc:
             self._port = None if self._url is not None else self._port
             raise LightSourceDisconnected(f"cannot open {self.describe()}: {exc}") from exc
 
@@ -282,8 +299,7 @@ class SerialPointSource:
         return self._transact(line, idempotent=idempotent)
 
     def _transact(self, command: str, *, idempotent: bool = True) -> str:
-        import serial
-
+        port_errors = _port_errors()
         if "\n" in command or "\r" in command or not command.isascii():
             raise ValueError(f"invalid command {command!r}")
         with self._lock:
@@ -312,7 +328,7 @@ class SerialPointSource:
                     )
                 except LightSourceError:
                     raise
-                except (serial.SerialException, OSError) as exc:
+                except port_errors as exc:
                     self._drop_port()
                     raise LightSourceDisconnected(
                         f"{self.describe()}: port vanished during '{command}': {exc}"

@@ -276,3 +276,37 @@ def test_quality_report_flags_no_signal(tmp_path: Path):
 
     with pytest.raises(CalibrationError, match="no PSF signal above the dark noise"):
         check_quality(q, PsfSettings(), exposure_us=100.0)
+
+
+def test_source_killed_mid_capture_stops_within_one_frame(
+    make_camera, source, firmware, true_psf, tmp_path
+):
+    """The firmware dies while the light must stay on: the very next frame ends the capture."""
+    render = render_frames(true_psf)
+    lit_frames = [0]
+
+    def kill_after_two_lit_frames(frames, shutter):
+        out = render(frames, shutter)
+        if source.is_on:
+            lit_frames[0] += 1
+            if lit_frames[0] == 2:
+                firmware.kill()
+        return out
+
+    cam = make_camera(renderer=kill_after_two_lit_frames)
+    settings = PsfSettings(
+        n_frames=20,
+        n_darks=2,
+        intensity=1.0,
+        auto_exposure=False,
+        exposure_us=500.0,
+        settle_frames=0,
+        frame_timeout_s=2.0,
+    )
+    out = tmp_path / "psf.tif"
+    with pytest.raises(CalibrationError, match="point source failed to report its state") as info:
+        Workflow(capture_psf(cam, source, settings, out=out)).run()
+    assert lit_frames[0] <= 3  # noticed within one frame of the kill, not after all 20
+    assert "port vanished" in str(info.value) and "nothing was saved" in str(info.value)
+    assert not out.exists()
+    assert not source.is_open  # the driver dropped the dead port

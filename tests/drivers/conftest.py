@@ -1,83 +1,53 @@
 """Fixtures for the driver tests: GenTL producers, recorded frames, simulated point sources.
 
 ``TLSimu.cti`` ships only in the ``genicam==1.5.0`` wheel; installing that version would
-replace 1.6.0, so the session fixture downloads the wheel with pip (no install) and extracts
-the producer and its one library into ``~/.cache/lenslesscam/gentl/genicam-1.5.0`` (reused
-afterwards; ``LENSLESSCAM_TLSIMU_CTI`` points at another copy).
+replace 1.6.0, so the project's install step (``python .ci/fetch_tlsimu.py``, run by
+``.ci/run``) extracts the producer into ``<repo>/.gl/genicam-1.5.0``. The tests never download
+anything: without that folder (or ``LENSLESSCAM_TLSIMU_CTI`` pointing at another copy) the
+TLSimu tests skip and name the command.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import shutil
-import subprocess
 import sys
-import tempfile
-import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from drivers.genicam import find_producers, gentl_cache_dir
+from drivers.genicam import find_producers
 from drivers.pointsource_sim import SimulatedSource, spawn_simulated_source
 
-TLSIMU_FILES = ("TLSimu.cti", "libVirtualFG.so")
+REPO = Path(__file__).resolve().parents[2]
 
 
-def _extract_tlsimu(wheel: Path, dest: Path) -> None:
-    """Extract the producer files from the wheel into ``dest`` atomically (rename a folder)."""
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=".tlsimu-", dir=dest.parent))
-    try:
-        with zipfile.ZipFile(wheel) as zf:
-            for name in zf.namelist():
-                base = name.rsplit("/", 1)[-1]
-                if base in TLSIMU_FILES:
-                    (tmp / base).write_bytes(zf.read(name))
-        missing = [f for f in TLSIMU_FILES if not (tmp / f).exists()]
-        if missing:
-            raise RuntimeError(f"{wheel.name} lacks {missing}")
-        try:
-            tmp.rename(dest)
-        except OSError:
-            if not (dest / "TLSimu.cti").exists():  # someone else won the race if it exists
-                raise
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-
-
-def _find_tlsimu() -> Path:
+def _find_tlsimu() -> Path | None:
     env = os.environ.get("LENSLESSCAM_TLSIMU_CTI")
     if env:
         return Path(env)
-    dest = gentl_cache_dir() / "genicam-1.5.0"
-    if (dest / "TLSimu.cti").exists():
-        return dest / "TLSimu.cti"
+    cand = REPO / ".gl" / "genicam-1.5.0" / "TLSimu.cti"
+    if cand.exists():
+        return cand
     for p in sys.path:  # a genicam 1.5.0 installed somewhere else
         cand = Path(p) / "genicam" / "TLSimu.cti"
         if cand.exists():
             return cand
-    with tempfile.TemporaryDirectory() as d:
-        cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:"]
-        cmd += ["--disable-pip-version-check", "genicam==1.5.0", "-d", d]
-        r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-        if r.returncode != 0:
-            raise RuntimeError(f"pip download genicam==1.5.0 failed:\n{r.stdout}\n{r.stderr}")
-        wheels = sorted(Path(d).glob("genicam-1.5.0-*.whl"))
-        if not wheels:
-            raise RuntimeError(f"pip download left no genicam 1.5.0 wheel in {d}")
-        _extract_tlsimu(wheels[0], dest)
-    return dest / "TLSimu.cti"
+    return None
 
 
 @pytest.fixture(scope="session")
 def tlsimu_cti() -> Path:
-    """Path of TLSimu.cti (downloaded and cached on first use)."""
+    """Path of TLSimu.cti, installed by the install step (skip, naming it, when absent)."""
     path = _find_tlsimu()
-    assert path.exists(), path
+    if path is None:
+        pytest.skip(
+            "TLSimu.cti (genicam 1.5.0's simulated camera) is not installed: run "
+            "`python .ci/fetch_tlsimu.py` (the CI install step does)"
+        )
+    assert path.exists(), f"LENSLESSCAM_TLSIMU_CTI points at a missing file: {path}"
     return path
 
 

@@ -101,3 +101,22 @@ def test_the_real_cli_registers_devices_and_snap(monkeypatch: pytest.MonkeyPatch
     ns = parser.parse_args(["snap", "--camera", "sim", "--exposure", "2ms", "--out", "x.tif"])
     assert ns.func.__module__ == "app.commands.devices" and ns.exposure == 2000.0
     assert parser.parse_args(["devices", "--json"]).func.__module__ == "app.commands.devices"
+
+
+@pytest.mark.parametrize("command", ["devices", "snap"])
+def test_bad_producer_path_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    """An explicit --producer that is missing, or holds no .cti, is an error naming it."""
+    not_cti = tmp_path / "notes.txt"
+    not_cti.write_text("x")
+    extra = ["--camera", "genicam:0", "--out", str(tmp_path / "f.tif")] if command == "snap" else []
+    for bad, says in (
+        (tmp_path / "missing.cti", "does not exist"),
+        (not_cti, "is not a .cti producer"),
+        (tmp_path, "holds no .cti file"),
+    ):
+        assert app.cli.main([command, *extra, "--producer", str(bad)]) == 2
+        err = capsys.readouterr().err
+        assert str(bad) in err and says in err and "Traceback" not in err
+    assert not (tmp_path / "f.tif").exists()

@@ -102,3 +102,19 @@ def test_unanswered_command_is_retried(sources: SourceFactory) -> None:
         dev.command("DEBUG SILENT 1")
         with pytest.raises(LightSourceTimeout):
             dev.command("RESET")  # not idempotent: no retry
+
+
+def test_simulator_killed_between_commands_is_a_disconnect(sources: SourceFactory) -> None:
+    """A PTY whose firmware died raises termios.error (not an OSError) in pyserial: it must
+    still become LightSourceDisconnected, and the dead port must be dropped."""
+    src = sources.start()
+    dev = SerialPointSource(str(sources.link), timeout_s=1.0)
+    with dev:
+        dev.on()
+        src.kill()
+        with pytest.raises(LightSourceDisconnected, match="port vanished during 'OFF'"):
+            dev.off()
+        assert not dev.is_open and not dev.in_sync
+        with pytest.raises(LightSourceDisconnected, match="not connected"):
+            dev.status()
+        _restart_and_recover(sources, dev)
