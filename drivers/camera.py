@@ -28,6 +28,7 @@ import collections
 import dataclasses
 import logging
 import math
+import numbers
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -725,6 +726,87 @@ class FrameStreamer:
 # base class
 
 
+# --------------------------------------------------------------------------------------------
+# settings: one validation for every backend
+
+
+def _real(value: Any, name: str, device: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{device}: {name} must be a real number, got {type(value).__name__}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"{device}: {name} must be finite, got {value!r}")
+    return v
+
+
+def _in_range(v: float, rng: tuple[float, float] | None, name: str, unit: str, dev: str) -> None:
+    if rng is not None and not (rng[0] <= v <= rng[1]):
+        raise ValueError(f"{dev}: {name} {v:g}{unit} outside [{rng[0]:g}, {rng[1]:g}]{unit}")
+
+
+def _validate_setting(cam: CameraBase, name: str, value: Any) -> Any:
+    """Check ``value`` for setting ``name`` against the camera's declared capabilities."""
+    dev = cam.describe()
+    if name in ("exposure_us", "frame_rate_hz", "line_time_us"):
+        v = _real(value, name, dev)
+        if v <= 0:
+            raise ValueError(f"{dev}: {name} must be > 0, got {value!r}")
+        if name == "exposure_us":
+            _in_range(v, cam.capabilities().exposure_range_us, "exposure", " us", dev)
+        elif name == "frame_rate_hz":
+            _in_range(v, cam.capabilities().frame_rate_range_hz, "frame rate", " Hz", dev)
+        return v
+    if name == "gain":
+        v = _real(value, name, dev)
+        _in_range(v, cam.capabilities().gain_range, "gain", "", dev)
+        return v
+    if name == "trigger_delay_us":
+        v = _real(value, name, dev)
+        if v < 0:
+            raise ValueError(f"{dev}: trigger_delay_us must be >= 0, got {value!r}")
+        return v
+    if name == "binning":
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+            raise ValueError(f"{dev}: binning must be an integer >= 1, got {value!r}")
+        caps = cam.capabilities()  # an unsupported feature is the backend's FeatureNotAvailable
+        factors = caps.binning_factors
+        if caps.supports(Feature.BINNING) and int(value) not in factors:
+            raise ValueError(f"{dev}: binning {value!r} not in {factors}")
+        return int(value)
+    if name == "roi":
+        if not isinstance(value, Roi):
+            raise TypeError(f"{dev}: roi must be a Roi, got {type(value).__name__}")
+        caps = cam.capabilities()
+        if value.x + value.width > caps.sensor_width or value.y + value.height > caps.sensor_height:
+            raise ValueError(
+                f"{dev}: ROI {value} outside the {caps.sensor_width}x{caps.sensor_height} sensor"
+            )
+        return value
+    if name == "pixel_format":
+        if not isinstance(value, str):
+            raise TypeError(f"{dev}: pixel format must be a string, got {type(value).__name__}")
+        return value
+    if name == "shutter_mode":
+        return ShutterMode(value)
+    if name == "readout_pattern":
+        return ReadoutPattern(value)
+    if name == "trigger_mode":
+        return TriggerMode(value)
+    raise AssertionError(f"no validation rule for {name}")  # a new setting needs a rule
+
+
+def _setting(name: str, doc: str) -> Any:
+    """Public camera property: ``_get_<name>`` reads; a set validates, then ``_do_set_<name>``."""
+
+    def fget(self: CameraBase) -> Any:
+        return getattr(self, f"_get_{name}")()
+
+    def fset(self: CameraBase, value: Any) -> None:
+        getattr(self, f"_do_set_{name}")(_validate_setting(self, name, value))
+
+    return property(fget, fset, doc=doc)
+
+
 class CameraBase:
     """Hardware-independent part of every backend.
 
@@ -835,53 +917,54 @@ class CameraBase:
         """Features, formats, ranges."""
         raise NotImplementedError  # abstract: every backend implements it
 
-    # -- features: defaults say "not available" ------------------------------------------------
+    # -- features ------------------------------------------------------------------------------
+    # Every public setter validates once here, for all backends (type, finite, sign, and the
+    # ranges and choices that ``capabilities()`` declares), then calls the backend's
+    # ``_do_set_<name>``; the getter calls ``_get_<name>``. The defaults say "not available".
 
-    @property
-    def exposure_us(self) -> float:
-        """Exposure time in microseconds."""
+    exposure_us = _setting("exposure_us", "Exposure time in microseconds.")
+    gain = _setting("gain", "Gain (device units).")
+    roi = _setting("roi", "Region of interest in unbinned sensor pixels.")
+    binning = _setting("binning", "Symmetric binning factor (1 where the device cannot bin).")
+    pixel_format = _setting("pixel_format", "Pixel format name.")
+    shutter_mode = _setting("shutter_mode", "Global, rolling or dual rolling.")
+    readout_pattern = _setting("readout_pattern", "Row order of the rolling shutter.")
+    line_time_us = _setting("line_time_us", "Row-to-row delay in microseconds.")
+    trigger_delay_us = _setting(
+        "trigger_delay_us", "Delay from trigger to first row start, in microseconds."
+    )
+    trigger_mode = _setting("trigger_mode", "Free-run unless the backend has a software trigger.")
+    frame_rate_hz = _setting("frame_rate_hz", "Free-run frame rate in hertz.")
+
+    def _get_exposure_us(self) -> float:
         raise self._unavailable(Feature.EXPOSURE)
 
-    @exposure_us.setter
-    def exposure_us(self, value: float) -> None:
+    def _do_set_exposure_us(self, value: float) -> None:
         raise self._unavailable(Feature.EXPOSURE)
 
-    @property
-    def gain(self) -> float:
-        """Gain (device units)."""
+    def _get_gain(self) -> float:
         raise self._unavailable(Feature.GAIN)
 
-    @gain.setter
-    def gain(self, value: float) -> None:
+    def _do_set_gain(self, value: float) -> None:
         raise self._unavailable(Feature.GAIN)
 
-    @property
-    def roi(self) -> Roi:
-        """Region of interest in unbinned sensor pixels."""
+    def _get_roi(self) -> Roi:
         raise self._unavailable(Feature.ROI)
 
-    @roi.setter
-    def roi(self, value: Roi) -> None:
+    def _do_set_roi(self, value: Roi) -> None:
         raise self._unavailable(Feature.ROI)
 
-    @property
-    def binning(self) -> int:
-        """Symmetric binning factor (1 where the device cannot bin)."""
+    def _get_binning(self) -> int:
         return 1
 
-    @binning.setter
-    def binning(self, value: int) -> None:
-        if value == 1:
-            return
-        raise self._unavailable(Feature.BINNING)
+    def _do_set_binning(self, value: int) -> None:
+        if value != 1:
+            raise self._unavailable(Feature.BINNING)
 
-    @property
-    def pixel_format(self) -> str:
-        """Pixel format name."""
+    def _get_pixel_format(self) -> str:
         raise self._unavailable(Feature.PIXEL_FORMAT)
 
-    @pixel_format.setter
-    def pixel_format(self, value: str) -> None:
+    def _do_set_pixel_format(self, value: str) -> None:
         raise self._unavailable(Feature.PIXEL_FORMAT)
 
     @property
@@ -889,60 +972,41 @@ class CameraBase:
         """Significant bits per pixel."""
         return bit_depth_of(self.pixel_format)
 
-    @property
-    def shutter_mode(self) -> ShutterMode:
-        """Global, rolling or dual rolling."""
+    def _get_shutter_mode(self) -> ShutterMode:
         raise self._unavailable(Feature.SHUTTER_MODE)
 
-    @shutter_mode.setter
-    def shutter_mode(self, value: ShutterMode) -> None:
+    def _do_set_shutter_mode(self, value: ShutterMode) -> None:
         raise self._unavailable(Feature.SHUTTER_MODE)
 
-    @property
-    def readout_pattern(self) -> ReadoutPattern:
-        """Row order of the rolling shutter."""
+    def _get_readout_pattern(self) -> ReadoutPattern:
         raise self._unavailable(Feature.READOUT_PATTERN)
 
-    @readout_pattern.setter
-    def readout_pattern(self, value: ReadoutPattern) -> None:
+    def _do_set_readout_pattern(self, value: ReadoutPattern) -> None:
         raise self._unavailable(Feature.READOUT_PATTERN)
 
-    @property
-    def line_time_us(self) -> float:
-        """Row-to-row delay in microseconds."""
+    def _get_line_time_us(self) -> float:
         raise self._unavailable(Feature.LINE_TIME)
 
-    @line_time_us.setter
-    def line_time_us(self, value: float) -> None:
+    def _do_set_line_time_us(self, value: float) -> None:
         raise self._unavailable(Feature.LINE_TIME)
 
-    @property
-    def trigger_delay_us(self) -> float:
-        """Delay from trigger to first row start, in microseconds."""
+    def _get_trigger_delay_us(self) -> float:
         raise self._unavailable(Feature.TRIGGER_DELAY)
 
-    @trigger_delay_us.setter
-    def trigger_delay_us(self, value: float) -> None:
+    def _do_set_trigger_delay_us(self, value: float) -> None:
         raise self._unavailable(Feature.TRIGGER_DELAY)
 
-    @property
-    def trigger_mode(self) -> TriggerMode:
-        """Free-run unless the backend supports a software trigger."""
+    def _get_trigger_mode(self) -> TriggerMode:
         return TriggerMode.FREE_RUN
 
-    @trigger_mode.setter
-    def trigger_mode(self, value: TriggerMode) -> None:
-        if TriggerMode(value) is TriggerMode.FREE_RUN:
-            return
-        raise self._unavailable(Feature.TRIGGER_SOFTWARE)
+    def _do_set_trigger_mode(self, value: TriggerMode) -> None:
+        if value is not TriggerMode.FREE_RUN:
+            raise self._unavailable(Feature.TRIGGER_SOFTWARE)
 
-    @property
-    def frame_rate_hz(self) -> float:
-        """Free-run frame rate in hertz."""
+    def _get_frame_rate_hz(self) -> float:
         raise self._unavailable(Feature.FRAME_RATE)
 
-    @frame_rate_hz.setter
-    def frame_rate_hz(self, value: float) -> None:
+    def _do_set_frame_rate_hz(self, value: float) -> None:
         raise self._unavailable(Feature.FRAME_RATE)
 
     @property

@@ -281,6 +281,7 @@ class GenICamCamera(CameraBase):
         else:
             self._producers = find_producers()
         self._index = int(index)
+        self._warned_nodes: set[tuple[str, str]] = set()
         if line_time_us is not None and not (math.isfinite(line_time_us) and line_time_us > 0):
             raise ValueError(f"line_time_us must be > 0, got {line_time_us!r}")
         self._line_time_decl = line_time_us
@@ -348,8 +349,7 @@ class GenICamCamera(CameraBase):
                     pf.value = name
                     break
         if self._node("TriggerSelector") is not None:
-            with contextlib.suppress(Exception):
-                self._nm.TriggerSelector.value = "FrameStart"
+            self._try_node_write("TriggerSelector", "FrameStart", "frame-start trigger")
         if self._node("TriggerMode") is not None:
             self._nm.TriggerMode.value = "Off"
         self._trigger_mode = TriggerMode.FREE_RUN
@@ -524,41 +524,49 @@ class GenICamCamera(CameraBase):
 
     # -- features ------------------------------------------------------------------------------
 
-    @property
-    def exposure_us(self) -> float:
+    def _get_exposure_us(self) -> float:
         """SFNC ExposureTime (microseconds)."""
         return float(self._get(Feature.EXPOSURE, "ExposureTime"))
 
-    @exposure_us.setter
-    def exposure_us(self, value: float) -> None:
+    def _try_node_write(self, node: str, value: Any, purpose: str) -> None:
+        """Best-effort write of a helper node; a refusal is logged once with its reason.
+
+        Devices differ in which helper nodes (auto modes, enables, selectors) are writable;
+        the main write that follows reports the real failure if the helper mattered.
+        """
+        try:
+            getattr(self._nm, node).value = value
+        except Exception as exc:  # genicam raises its own exception types for refused writes
+            key = (node, str(value))
+            if key not in self._warned_nodes:
+                self._warned_nodes.add(key)
+                _log.warning(
+                    "%s: could not set %s=%r for %s: %s", self.describe(), node, value, purpose, exc
+                )
+
+    def _do_set_exposure_us(self, value: float) -> None:
         with self._lock:
             if self._has("ExposureAuto"):
-                with contextlib.suppress(Exception):
-                    self._nm.ExposureAuto.value = "Off"
+                self._try_node_write("ExposureAuto", "Off", "a manual exposure")
             self._set(Feature.EXPOSURE, "ExposureTime", float(value))
 
-    @property
-    def gain(self) -> float:
+    def _get_gain(self) -> float:
         """SFNC Gain (device units, usually dB)."""
         return float(self._get(Feature.GAIN, "Gain"))
 
-    @gain.setter
-    def gain(self, value: float) -> None:
+    def _do_set_gain(self, value: float) -> None:
         with self._lock:
             if self._has("GainAuto"):
-                with contextlib.suppress(Exception):
-                    self._nm.GainAuto.value = "Off"
+                self._try_node_write("GainAuto", "Off", "a manual gain")
             self._set(Feature.GAIN, "Gain", float(value))
 
-    @property
-    def binning(self) -> int:
+    def _get_binning(self) -> int:
         """SFNC BinningHorizontal (1 without binning nodes)."""
         with self._lock:
             node = self._node("BinningHorizontal")
             return 1 if node is None or not self._readable(node) else int(node.value)
 
-    @binning.setter
-    def binning(self, value: int) -> None:
+    def _do_set_binning(self, value: int) -> None:
         self._require_idle("change binning")
         with self._lock:
             if value == 1 and self._node("BinningHorizontal") is None:
@@ -567,8 +575,7 @@ class GenICamCamera(CameraBase):
             self._set(Feature.BINNING, "BinningHorizontal", int(value))
             self._set(Feature.BINNING, "BinningVertical", int(value))
 
-    @property
-    def roi(self) -> Roi:
+    def _get_roi(self) -> Roi:
         """Width/Height/OffsetX/OffsetY (in unbinned pixels)."""
         with self._lock:
             b = self.binning
@@ -580,8 +587,7 @@ class GenICamCamera(CameraBase):
             y = int(oy.value) if oy is not None and self._readable(oy) else 0
             return Roi(x * b, y * b, w * b, h * b)
 
-    @roi.setter
-    def roi(self, value: Roi) -> None:
+    def _do_set_roi(self, value: Roi) -> None:
         self._require_idle("change the ROI")
         with self._lock:
             self._require(Feature.ROI, "Width", write=True)
@@ -602,13 +608,11 @@ class GenICamCamera(CameraBase):
             if value.y:
                 self._set(Feature.ROI, "OffsetY", value.y // b)
 
-    @property
-    def pixel_format(self) -> str:
+    def _get_pixel_format(self) -> str:
         """SFNC PixelFormat."""
         return str(self._get(Feature.PIXEL_FORMAT, "PixelFormat"))
 
-    @pixel_format.setter
-    def pixel_format(self, value: str) -> None:
+    def _do_set_pixel_format(self, value: str) -> None:
         self._require_idle("change the pixel format")
         if value not in _MONO_FORMATS:
             raise ValueError(f"pixel format {value!r} not supported; use one of {_MONO_FORMATS}")
@@ -627,8 +631,7 @@ class GenICamCamera(CameraBase):
         """Bits of the current pixel format."""
         return bit_depth_of(self.pixel_format)
 
-    @property
-    def shutter_mode(self) -> ShutterMode:
+    def _get_shutter_mode(self) -> ShutterMode:
         """SFNC SensorShutterMode (Global, GlobalReset -> global; Rolling)."""
         v = str(self._get(Feature.SHUTTER_MODE, "SensorShutterMode"))
         if v not in _SHUTTER_FROM_SFNC:
@@ -641,8 +644,7 @@ class GenICamCamera(CameraBase):
             return ShutterMode.DUAL_ROLLING
         return mode
 
-    @shutter_mode.setter
-    def shutter_mode(self, value: ShutterMode) -> None:
+    def _do_set_shutter_mode(self, value: ShutterMode) -> None:
         mode = ShutterMode(value)
         if mode is ShutterMode.DUAL_ROLLING:
             raise self._unavailable(
@@ -650,8 +652,7 @@ class GenICamCamera(CameraBase):
             )
         self._set(Feature.SHUTTER_MODE, "SensorShutterMode", _SFNC_FROM_SHUTTER[mode])
 
-    @property
-    def readout_pattern(self) -> ReadoutPattern:
+    def _get_readout_pattern(self) -> ReadoutPattern:
         """Declared readout pattern (``readout_pattern=`` at construction)."""
         if self._pattern_decl is None:
             raise self._unavailable(
@@ -659,12 +660,10 @@ class GenICamCamera(CameraBase):
             )
         return self._pattern_decl
 
-    @readout_pattern.setter
-    def readout_pattern(self, value: ReadoutPattern) -> None:
+    def _do_set_readout_pattern(self, value: ReadoutPattern) -> None:
         raise self._unavailable(Feature.READOUT_PATTERN, "a property of the sensor, not settable")
 
-    @property
-    def line_time_us(self) -> float:
+    def _get_line_time_us(self) -> float:
         """Declared line time (``line_time_us=`` at construction)."""
         if self._line_time_decl is None:
             raise self._unavailable(
@@ -672,26 +671,21 @@ class GenICamCamera(CameraBase):
             )
         return self._line_time_decl
 
-    @line_time_us.setter
-    def line_time_us(self, value: float) -> None:
+    def _do_set_line_time_us(self, value: float) -> None:
         raise self._unavailable(Feature.LINE_TIME, "a property of the sensor, not settable")
 
-    @property
-    def trigger_delay_us(self) -> float:
+    def _get_trigger_delay_us(self) -> float:
         """SFNC TriggerDelay (microseconds)."""
         return float(self._get(Feature.TRIGGER_DELAY, "TriggerDelay"))
 
-    @trigger_delay_us.setter
-    def trigger_delay_us(self, value: float) -> None:
+    def _do_set_trigger_delay_us(self, value: float) -> None:
         self._set(Feature.TRIGGER_DELAY, "TriggerDelay", float(value))
 
-    @property
-    def trigger_mode(self) -> TriggerMode:
+    def _get_trigger_mode(self) -> TriggerMode:
         """Free-run (TriggerMode Off) or software (TriggerMode On, TriggerSource Software)."""
         return self._trigger_mode
 
-    @trigger_mode.setter
-    def trigger_mode(self, value: TriggerMode) -> None:
+    def _do_set_trigger_mode(self, value: TriggerMode) -> None:
         mode = TriggerMode(value)
         self._require_idle("change the trigger mode")
         with self._lock:
@@ -711,17 +705,14 @@ class GenICamCamera(CameraBase):
             )
             self._trigger_mode = mode
 
-    @property
-    def frame_rate_hz(self) -> float:
+    def _get_frame_rate_hz(self) -> float:
         """SFNC AcquisitionFrameRate."""
         return float(self._get(Feature.FRAME_RATE, "AcquisitionFrameRate"))
 
-    @frame_rate_hz.setter
-    def frame_rate_hz(self, value: float) -> None:
+    def _do_set_frame_rate_hz(self, value: float) -> None:
         with self._lock:
             if self._has("AcquisitionFrameRateEnable"):
-                with contextlib.suppress(Exception):
-                    self._nm.AcquisitionFrameRateEnable.value = True
+                self._try_node_write("AcquisitionFrameRateEnable", True, "a paced frame rate")
             self._set(Feature.FRAME_RATE, "AcquisitionFrameRate", float(value))
 
     @property
@@ -770,8 +761,10 @@ class GenICamCamera(CameraBase):
                 pixels = comp.data.reshape(h, w).copy()  # owned: the buffer goes back
                 device_id = int(buffer.frame_id)
                 extra: dict[str, Any] = {"device_frame_id": device_id, "model": self._model}
-                with contextlib.suppress(Exception):
+                try:
                     extra["device_timestamp_ns"] = int(buffer.timestamp_ns)
+                except Exception as exc:  # optional buffer info some producers lack
+                    _log.debug("%s: no buffer timestamp (%s)", self.describe(), exc)
         except TimeoutException:
             raise CameraTimeout(f"{self.describe()}: no frame within {timeout_s:.3g} s") from None
         frame_id = self._frame_id_of(device_id)

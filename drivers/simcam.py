@@ -524,56 +524,38 @@ class SimulatedCamera(CameraBase):
     def _check_settable(self, what: str) -> None:
         self._require_idle(f"change {what}")
 
-    @property
-    def exposure_us(self) -> float:
+    def _get_exposure_us(self) -> float:
         """Exposure in microseconds (whole line times)."""
         return self._timing().exposure_us
 
-    @exposure_us.setter
-    def exposure_us(self, value: float) -> None:
-        v = _positive(value, "exposure_us")
-        if not (self._line_time_us <= v <= 10_000_000.0):
-            raise ValueError(
-                f"exposure {v} us outside [{self._line_time_us}, 1e7] us of {self.describe()}"
-            )
-        with self._lock:
-            self._exposure_req_us = v
+    def _do_set_exposure_us(self, value: float) -> None:
+        with self._lock:  # validated against capabilities() by the base class
+            self._exposure_req_us = value
 
-    @property
-    def gain(self) -> float:
+    def _get_gain(self) -> float:
         """Linear gain factor (1 maps the full well to the top code)."""
         return self._gain
 
-    @gain.setter
-    def gain(self, value: float) -> None:
-        v = _positive(value, "gain")
-        if not (1.0 <= v <= 64.0):
-            raise ValueError(f"gain {v} outside [1, 64] of {self.describe()}")
+    def _do_set_gain(self, value: float) -> None:
         with self._lock:
-            self._gain = v
+            self._gain = value
 
-    @property
-    def roi(self) -> Roi:
+    def _get_roi(self) -> Roi:
         """ROI in unbinned sensor pixels."""
         return self._roi
 
-    @roi.setter
-    def roi(self, value: Roi) -> None:
+    def _do_set_roi(self, value: Roi) -> None:
         self._check_settable("the ROI")
-        if value.x + value.width > self._width or value.y + value.height > self._height:
-            raise ValueError(f"ROI {value} outside the {self._width}x{self._height} sensor")
         if value.width % self._binning or value.height % self._binning:
             raise ValueError(f"ROI {value} not divisible by binning {self._binning}")
         with self._lock:
             self._roi = value
 
-    @property
-    def binning(self) -> int:
+    def _get_binning(self) -> int:
         """Symmetric binning (sums electrons)."""
         return self._binning
 
-    @binning.setter
-    def binning(self, value: int) -> None:
+    def _do_set_binning(self, value: int) -> None:
         self._check_settable("binning")
         if value not in _BINNINGS:
             raise ValueError(f"binning {value!r} not in {_BINNINGS}")
@@ -582,13 +564,11 @@ class SimulatedCamera(CameraBase):
         with self._lock:
             self._binning = int(value)
 
-    @property
-    def pixel_format(self) -> str:
+    def _get_pixel_format(self) -> str:
         """Mono8, Mono12 or Mono16."""
         return self._pixel_format
 
-    @pixel_format.setter
-    def pixel_format(self, value: str) -> None:
+    def _do_set_pixel_format(self, value: str) -> None:
         self._check_settable("the pixel format")
         if value not in _PIXEL_FORMATS:
             raise ValueError(f"pixel format {value!r} not in {_PIXEL_FORMATS}")
@@ -600,13 +580,11 @@ class SimulatedCamera(CameraBase):
         """Bits of the pixel format."""
         return bit_depth_of(self._pixel_format)
 
-    @property
-    def shutter_mode(self) -> ShutterMode:
+    def _get_shutter_mode(self) -> ShutterMode:
         """Implied by the readout pattern."""
         return self._timing().mode
 
-    @shutter_mode.setter
-    def shutter_mode(self, value: ShutterMode) -> None:
+    def _do_set_shutter_mode(self, value: ShutterMode) -> None:
         mode = ShutterMode(value)
         if mode is ShutterMode.GLOBAL:
             self.readout_pattern = ReadoutPattern.GLOBAL
@@ -615,62 +593,47 @@ class SimulatedCamera(CameraBase):
         elif self._pattern not in (ReadoutPattern.OUTSIDE_IN, ReadoutPattern.CENTRE_OUT):
             self.readout_pattern = ReadoutPattern.OUTSIDE_IN
 
-    @property
-    def readout_pattern(self) -> ReadoutPattern:
+    def _get_readout_pattern(self) -> ReadoutPattern:
         """Row order."""
         return self._pattern
 
-    @readout_pattern.setter
-    def readout_pattern(self, value: ReadoutPattern) -> None:
+    def _do_set_readout_pattern(self, value: ReadoutPattern) -> None:
         p = ReadoutPattern(value)
         with self._lock:
             self._pattern = p
 
-    @property
-    def line_time_us(self) -> float:
+    def _get_line_time_us(self) -> float:
         """Row-to-row delay."""
         return self._line_time_us
 
-    @line_time_us.setter
-    def line_time_us(self, value: float) -> None:
-        v = _positive(value, "line_time_us")
+    def _do_set_line_time_us(self, value: float) -> None:
         with self._lock:
-            self._line_time_us = v
-            self._exposure_req_us = max(self._exposure_req_us, v)
+            self._line_time_us = value
+            self._exposure_req_us = max(self._exposure_req_us, value)
 
-    @property
-    def trigger_delay_us(self) -> float:
+    def _get_trigger_delay_us(self) -> float:
         """Delay from trigger to the first row's start."""
         return self._trigger_delay_us
 
-    @trigger_delay_us.setter
-    def trigger_delay_us(self, value: float) -> None:
-        v = _non_negative(value, "trigger_delay_us")
+    def _do_set_trigger_delay_us(self, value: float) -> None:
         with self._lock:
-            self._trigger_delay_us = v
+            self._trigger_delay_us = value
 
-    @property
-    def trigger_mode(self) -> TriggerMode:
+    def _get_trigger_mode(self) -> TriggerMode:
         """Free-run or software (the simulation behaves the same: each frame is triggered)."""
         return self._trigger_mode
 
-    @trigger_mode.setter
-    def trigger_mode(self, value: TriggerMode) -> None:
+    def _do_set_trigger_mode(self, value: TriggerMode) -> None:
         with self._lock:
-            self._trigger_mode = TriggerMode(value)
+            self._trigger_mode = value
 
-    @property
-    def frame_rate_hz(self) -> float:
+    def _get_frame_rate_hz(self) -> float:
         """Frame rate when paced (the exposure can make it slower)."""
         return self._frame_rate_hz
 
-    @frame_rate_hz.setter
-    def frame_rate_hz(self, value: float) -> None:
-        v = _positive(value, "frame_rate_hz")
-        if not (0.1 <= v <= 100_000.0):
-            raise ValueError(f"frame rate {v} Hz outside [0.1, 1e5] of {self.describe()}")
+    def _do_set_frame_rate_hz(self, value: float) -> None:
         with self._lock:
-            self._frame_rate_hz = v
+            self._frame_rate_hz = value
 
     def _timing(self) -> SensorTiming:
         return SensorTiming.from_exposure_us(

@@ -315,20 +315,17 @@ class V4L2Camera(CameraBase):
             return f"Mono{self._declared_bits}"
         return "Mono16" if self._dtype == np.uint16 else "Mono8"
 
-    @property
-    def pixel_format(self) -> str:
+    def _get_pixel_format(self) -> str:
         """Mono8 or Mono16 (or Mono<bits> when ``bit_depth`` was declared)."""
         self._require_open()
         return self._pixel_format()
 
-    @pixel_format.setter
-    def pixel_format(self, value: str) -> None:
+    def _do_set_pixel_format(self, value: str) -> None:
         if value == self.pixel_format:
             return
         raise self._unavailable(Feature.PIXEL_FORMAT, "fixed by the FOURCC chosen at construction")
 
-    @property
-    def exposure_us(self) -> float:
+    def _get_exposure_us(self) -> float:
         """Exposure (V4L2 exposure_absolute x 100 us)."""
         import cv2
 
@@ -338,8 +335,7 @@ class V4L2Camera(CameraBase):
         with self._lock:
             return float(self._cap.get(cv2.CAP_PROP_EXPOSURE)) * 100.0
 
-    @exposure_us.setter
-    def exposure_us(self, value: float) -> None:
+    def _do_set_exposure_us(self, value: float) -> None:
         if self._is_file:
             raise self._unavailable(Feature.EXPOSURE, "a recorded file has no exposure control")
         self._require_open()
@@ -348,8 +344,7 @@ class V4L2Camera(CameraBase):
         with self._lock:
             self._set_exposure(float(value))
 
-    @property
-    def gain(self) -> float:
+    def _get_gain(self) -> float:
         """CAP_PROP_GAIN (device units)."""
         import cv2
 
@@ -359,8 +354,7 @@ class V4L2Camera(CameraBase):
         with self._lock:
             return float(self._cap.get(cv2.CAP_PROP_GAIN))
 
-    @gain.setter
-    def gain(self, value: float) -> None:
+    def _do_set_gain(self, value: float) -> None:
         import cv2
 
         if self._is_file:
@@ -369,8 +363,7 @@ class V4L2Camera(CameraBase):
         with self._lock:
             self._checked_set("gain", cv2.CAP_PROP_GAIN, float(value))
 
-    @property
-    def frame_rate_hz(self) -> float:
+    def _get_frame_rate_hz(self) -> float:
         """Device fps; for files the pacing rate (0: as fast as possible)."""
         import cv2
 
@@ -380,8 +373,7 @@ class V4L2Camera(CameraBase):
         with self._lock:
             return float(self._cap.get(cv2.CAP_PROP_FPS))
 
-    @frame_rate_hz.setter
-    def frame_rate_hz(self, value: float) -> None:
+    def _do_set_frame_rate_hz(self, value: float) -> None:
         import cv2
 
         self._require_open()
