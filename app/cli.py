@@ -11,7 +11,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 from collections.abc import Sequence
+from typing import Any
+
+from app.commands._options import NONNEG_INT
 
 #: Subcommand modules, in the order ``--help`` lists them.
 COMMAND_MODULES: tuple[str, ...] = (
@@ -21,12 +25,17 @@ COMMAND_MODULES: tuple[str, ...] = (
     "app.commands.plan",
     "app.commands.trade",
     "app.commands.jobs",
+    "app.commands.batch",
     "app.commands.metrics",
     "app.commands.bench",
     "app.commands.devices",
     "app.commands.calibrate",
     "app.commands.gui",
 )
+
+
+#: Commands that never run torch: they skip the thread policy (and torch's import time).
+NO_TORCH_COMMANDS = frozenset({"devices", "snap", "metrics"})
 
 
 class CliError(Exception):
@@ -40,6 +49,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Lensless compressive camera: capture, calibrate, reconstruct.",
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
+    parser.add_argument(
+        "--threads", dest="global_threads", type=NONNEG_INT, default=None, metavar="N",
+        help="torch CPU threads for this command (default: chosen from the free cores and the "
+        "load, recon.threads; 0 = choose)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(sub)
@@ -58,15 +71,58 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    saved_show = warnings.showwarning
+    warnings.showwarning = _show_warning
     try:
+        if args.command not in NO_TORCH_COMMANDS or args.global_threads is not None:
+            from recon.threads import apply_threads
+
+            # an OMP_NUM_THREADS that is not a number is a one-line error too
+            args.thread_choice = apply_threads(args.global_threads)
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("lenslesscam: interrupted", file=sys.stderr)
         return 130
+    except MemoryError as exc:
+        # recon.memory.ProblemTooLarge (the estimate says it will not fit) or a real failure
+        print(f"lenslesscam {args.command}: error: {_one_line(exc) or 'out of memory'}",
+              file=sys.stderr)
+        return 2
+    except RuntimeError as exc:
+        if not is_allocation_failure(exc):
+            raise
+        print(f"lenslesscam {args.command}: error: out of memory: {_one_line(exc)} (the "
+              "estimate said it would fit; downsample, use a smaller --field or float32)",
+              file=sys.stderr)
+        return 2
     except (CliError, ValueError, FileNotFoundError, OSError) as exc:
         # Errors from the library carry a message naming the problem; show it without a trace.
         print(f"lenslesscam {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        warnings.showwarning = saved_show
+
+
+def _show_warning(message: Warning | str, category: type[Warning], filename: str,
+                  lineno: int, file: Any = None, line: str | None = None) -> None:
+    """Warnings on the command line: one line each on stderr, no source location."""
+    print(f"lenslesscam: warning: {message}", file=sys.stderr)
+
+
+#: Texts of torch's allocation failures (CPU allocator, CUDA caching allocator, MPS).
+ALLOCATION_FAILURE_TEXTS = ("not enough memory", "DefaultCPUAllocator", "out of memory",
+                            "can't allocate memory")
+
+
+def is_allocation_failure(exc: BaseException) -> bool:
+    """True for torch's "could not allocate" errors (a RuntimeError, not a MemoryError)."""
+    text = str(exc)
+    return any(t.lower() in text.lower() for t in ALLOCATION_FAILURE_TEXTS)
+
+
+def _one_line(exc: BaseException) -> str:
+    """The first non-empty line of an exception's message."""
+    return next((ln.strip() for ln in str(exc).splitlines() if ln.strip()), "")
 
 
 if __name__ == "__main__":

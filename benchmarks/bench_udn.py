@@ -22,6 +22,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from app.commands._options import NONNEG_INT, POSITIVE_INT
+
 CASES: dict[str, dict[str, Any]] = {
     "2d-75x100": {"model": "2d", "shape": (75, 100), "k": 1, "variant": "2d"},
     "2d-150x200": {"model": "2d", "shape": (150, 200), "k": 1, "variant": "2d"},
@@ -38,14 +40,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                                   "video-128x128x16"],
                    choices=list(CASES), help="which cases")
     p.add_argument("--with-3d", action="store_true", help="add the 3D-network video case")
-    p.add_argument("--channels", type=int, default=128, help="network channels (128)")
-    p.add_argument("--scales", type=int, default=5, help="network scales (5)")
-    p.add_argument("--iters", type=int, default=5, help="timed iterations per case (5)")
-    p.add_argument("--warmup", type=int, default=2, help="untimed iterations first (2)")
+    p.add_argument("--channels", type=POSITIVE_INT, default=128, help="network channels (128)")
+    p.add_argument("--scales", type=POSITIVE_INT, default=5, help="network scales (5)")
+    p.add_argument("--iters", type=POSITIVE_INT, default=5, help="timed iterations per case (5)")
+    p.add_argument("--warmup", type=NONNEG_INT, default=2, help="untimed iterations first (2)")
     p.add_argument("--precision", nargs="+", default=["float32", "bf16"],
-                   choices=["float32", "bf16"])
-    p.add_argument("--compile", nargs="+", default=["off", "on"], choices=["off", "on"])
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
+                   choices=["float32", "bf16"], help="network precision: float32 or bf16")
+    p.add_argument("--compile", nargs="+", default=["off", "on"], choices=["off", "on"],
+                   help="torch.compile the network")
+    p.add_argument("--threads", type=NONNEG_INT, default=0, help="torch threads (0: torch default)")
     p.add_argument("--grad-checkpoint", action="store_true", help="gradient checkpointing")
     p.add_argument("--json", help="also write the rows as JSON here")
     p.add_argument("--case-json", help=argparse.SUPPRESS)  # internal: run one case, print JSON
@@ -83,12 +86,12 @@ def run_one(name: str, precision: str, compiled: bool, args: argparse.Namespace)
     """Time one configuration in this process."""
     import torch
 
+    from recon.threads import apply_threads
     from recon.udn.memory import estimate_memory
     from recon.udn.network import NetworkConfig
     from recon.udn.runner import UDNConfig, UDNRunner, resolve_device
 
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
+    apply_threads(args.threads)  # 0: the thread policy chooses
     device = resolve_device(args.device)
     case = CASES[name]
     _load_kernels(precision, device)  # library code pages count in the baseline, not the run

@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from app.commands._options import NONNEG_INT, POSITIVE_INT
+
 #: The shutter: line time 10 us, exposure ``E`` lines with E = rows // 4 + 1.
 LINE_US = 10.0
 PEAK_E = 20_000.0
@@ -330,9 +332,9 @@ def run_all(h: int, w: int, iters: int = 300, seed: int = 0,
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of ``lenslesscam bench plan``."""
     p.add_argument("--size", default="96x128", help="sensor HxW (default 96x128)")
-    p.add_argument("--iters", type=int, default=300, help="FISTA iteration limit (300)")
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    p.add_argument("--seed", type=int, default=0, help="camera noise and CV seed")
+    p.add_argument("--iters", type=POSITIVE_INT, default=300, help="FISTA iteration limit (300)")
+    p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (default 1)")
+    p.add_argument("--seed", type=NONNEG_INT, default=0, help="camera noise and CV seed")
     p.add_argument("--cases", default=",".join(CASES),
                    help=f"comma-separated cases (default all: {','.join(CASES)})")
     p.add_argument("--markdown", action="store_true", help="print a Markdown table")
@@ -357,9 +359,10 @@ def _table(rows: list[dict[str, Any]], markdown: bool) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run every case and print the table."""
-    import torch
 
-    torch.set_num_threads(args.threads)
+    from recon.threads import apply_threads
+
+    apply_threads(args.threads)
     h, w = (int(v) for v in args.size.lower().split("x"))
     if h < 32 or w < 32:
         raise ValueError("--size must be at least 32x32")

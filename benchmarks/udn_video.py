@@ -26,6 +26,8 @@ import sys
 import time
 from typing import Any
 
+from app.commands._options import FINITE, FRACTION, NONNEG, POSITIVE, POSITIVE_INT, integer
+
 TAUS = (1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3)
 WEIGHT_K = 1.0
 
@@ -34,22 +36,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options."""
     p.add_argument("--scale", type=int, choices=[8, 16, 32], default=16,
                    help="1/8 (150x200), 1/16 (75x100) or 1/32 (37x50) of the sensor (16)")
-    p.add_argument("--frames", type=int, default=16, help="K frames, 2..32 (16)")
-    p.add_argument("--noise", type=float, default=0.01)
-    p.add_argument("--motion", type=float, nargs=2, default=(0.06, 0.12), metavar=("DY", "DX"),
+    p.add_argument("--frames", type=integer(2, 32), default=16, help="K frames, 2..32 (16)")
+    p.add_argument("--noise", type=NONNEG, default=0.01,
+                   help="Gaussian noise sigma, max = 1 (0.01)")
+    p.add_argument("--motion", type=FINITE, nargs=2, default=(0.06, 0.12), metavar=("DY", "DX"),
                    help="total translation over the K frames, as fractions of H and W")
-    p.add_argument("--iters", type=int, default=3000, help="UDN iteration limit (3000)")
-    p.add_argument("--time-limit", type=float, default=110.0,
+    p.add_argument("--iters", type=POSITIVE_INT, default=3000, help="UDN iteration limit (3000)")
+    p.add_argument("--time-limit", type=POSITIVE, default=110.0,
                    help="wall-time limit of each UDN run in seconds (110)")
-    p.add_argument("--channels", type=int, nargs=2, default=(64, 16), metavar=("FRAMES", "3D"),
+    p.add_argument("--channels", type=POSITIVE_INT, nargs=2, default=(64, 16),
+                   metavar=("FRAMES", "3D"),
                    help="UDN channels of the frames and the 3D network (64 16)")
-    p.add_argument("--scales", type=int, nargs=2, default=(5, 4), metavar=("FRAMES", "3D"),
+    p.add_argument("--scales", type=POSITIVE_INT, nargs=2, default=(5, 4), metavar=("FRAMES", "3D"),
                    help="UDN scales of the frames and the 3D network (5 4)")
-    p.add_argument("--holdout", type=float, default=0.05, help="UDN held-out fraction")
-    p.add_argument("--patience", type=int, default=300, help="UDN early-stopping patience (300)")
-    p.add_argument("--fista-iters", type=int, default=500)
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--holdout", type=FRACTION, default=0.05, help="UDN held-out fraction")
+    p.add_argument("--patience", type=POSITIVE_INT, default=300,
+                   help="UDN early-stopping patience (300)")
+    p.add_argument("--fista-iters", type=POSITIVE_INT, default=500,
+                   help="FISTA iterations per tau (500)")
+    p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads per process (1)")
+    p.add_argument("--device", default="cpu", help="torch device of the UDN runs (auto, cpu, cuda)")
     p.add_argument("--scenes", nargs="+", default=None, help="subset of the lensed scenes")
     p.add_argument("--out", default=None, help="write the Markdown here")
 
@@ -184,12 +190,13 @@ def run_udn(psf: Any, shutter: Any, sim: Any, variant: str, args: argparse.Names
 def run(args: argparse.Namespace) -> int:
     """Simulate, reconstruct with the three methods, print / write the table."""
     import numpy as np
-    import torch
 
     if not 2 <= args.frames <= 32:
         print("--frames must be between 2 and 32", file=sys.stderr)
         return 2
-    torch.set_num_threads(args.threads)
+    from recon.threads import apply_threads
+
+    apply_threads(args.threads)
     t_all = time.perf_counter()
     psf, shutter, sims, timing = make_cases(args.scale, args.frames, tuple(args.motion),
                                             args.noise, args.scenes)

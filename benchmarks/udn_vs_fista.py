@@ -34,6 +34,8 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
+from app.commands._options import FRACTION, NONNEG, NONNEG_INT, POSITIVE, POSITIVE_INT
+
 TAUS = (1e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3)
 FISTA_CHECKPOINTS = (50, 100, 200, 300, 500)
 
@@ -42,23 +44,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options."""
     p.add_argument("--scale", type=int, choices=[8, 16], default=16,
                    help="1/8 (150x200) or 1/16 (75x100) of the sensor (16)")
-    p.add_argument("--erasure", type=float, default=0.99)
-    p.add_argument("--noise", type=float, default=0.01)
-    p.add_argument("--iters", type=int, default=2000, help="UDN iterations per seed (2000)")
-    p.add_argument("--seeds", type=int, default=4, help="UDN ensemble size (4)")
-    p.add_argument("--channels", type=int, default=64, help="UDN channels (64)")
-    p.add_argument("--scales", type=int, default=5, help="UDN scales (5)")
-    p.add_argument("--skip", type=int, default=0, help="UDN skip channels (0)")
-    p.add_argument("--headroom", type=float, default=3.0,
+    p.add_argument("--erasure", type=FRACTION, default=0.99,
+                   help="fraction of erased pixels (0.99)")
+    p.add_argument("--noise", type=NONNEG, default=0.01,
+                   help="Gaussian noise sigma, max = 1 (0.01)")
+    p.add_argument("--iters", type=POSITIVE_INT, default=2000,
+                   help="UDN iterations per seed (2000)")
+    p.add_argument("--seeds", type=POSITIVE_INT, default=4, help="UDN ensemble size (4)")
+    p.add_argument("--channels", type=POSITIVE_INT, default=64, help="UDN channels (64)")
+    p.add_argument("--scales", type=POSITIVE_INT, default=5, help="UDN scales (5)")
+    p.add_argument("--skip", type=NONNEG_INT, default=0, help="UDN skip channels (0)")
+    p.add_argument("--headroom", type=POSITIVE, default=3.0,
                    help="factor on the UDN's initial least-squares gain (3)")
-    p.add_argument("--tv-weight", type=float, default=0.0, help="UDN TV loss weight (0)")
-    p.add_argument("--holdout", type=float, default=0.1, help="UDN held-out fraction (0.1)")
-    p.add_argument("--eval-every", type=int, default=100, help="UDN checkpoints (100)")
-    p.add_argument("--fista-iters", type=int, default=500)
-    p.add_argument("--threads", type=int, default=1, help="torch threads per process (1)")
-    p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1),
+    p.add_argument("--tv-weight", type=NONNEG, default=0.0, help="UDN TV loss weight (0)")
+    p.add_argument("--lr", type=POSITIVE, default=0.01, help="UDN learning rate (0.01)")
+    p.add_argument("--ema", type=FRACTION, default=0.99, help="UDN EMA decay (0.99)")
+    p.add_argument("--holdout", type=FRACTION, default=0.1, help="UDN held-out fraction (0.1)")
+    p.add_argument("--eval-every", type=POSITIVE_INT, default=100, help="UDN checkpoints (100)")
+    p.add_argument("--fista-iters", type=POSITIVE_INT, default=500,
+                   help="FISTA iterations per tau (500)")
+    p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads per process (1)")
+    p.add_argument("--jobs", type=POSITIVE_INT, default=min(2, os.cpu_count() or 1),
                    help="UDN runs in parallel processes (2)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help="torch device of the UDN runs (auto, cpu, cuda)")
     p.add_argument("--scenes", nargs="+", default=None, help="subset of the lensed scenes")
     p.add_argument("--out", default=None, help="write the Markdown here")
 
@@ -132,13 +140,13 @@ def udn_member(task: dict[str, Any]) -> dict[str, Any]:
 
     Runs in a worker process; rebuilds the (seeded, deterministic) simulation itself.
     """
-    import torch
 
     from recon.models import build_model
+    from recon.threads import apply_threads
     from recon.udn.network import NetworkConfig
     from recon.udn.runner import UDNConfig, UDNRunner, resolve_device
 
-    torch.set_num_threads(task["threads"])
+    apply_threads(task["threads"])
     psf, sims = make_data(task["scale"], [task["scene"]], task["erasure"], task["noise"])
     sim = sims[task["scene"]]
     device = resolve_device(task["device"])
@@ -146,7 +154,8 @@ def udn_member(task: dict[str, Any]) -> dict[str, Any]:
     net = NetworkConfig(scales=task["scales"], channels=task["channels"],
                         skip_channels=task["skip"])
     cfg = UDNConfig(max_iter=task["iters"], holdout=task["holdout"], patience=10**9,
-                    min_iter=0, lr=0.01, reg_noise=0.05, ema=0.99, seed=task["seed"],
+                    min_iter=0, lr=task["lr"], reg_noise=0.05, ema=task["ema"],
+                    seed=task["seed"],
                     headroom=task["headroom"], tv_weight=task["tv_weight"])
     runner = UDNRunner(model, sim.meas, network=net, config=cfg)
     checkpoints: dict[int, Any] = {}
@@ -172,7 +181,7 @@ def run_udn(sims: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
 
     base = {k: getattr(args, k) for k in ("scale", "erasure", "noise", "iters", "channels",
                                           "scales", "skip", "headroom", "tv_weight", "holdout",
-                                          "eval_every", "threads", "device")}
+                                          "lr", "ema", "eval_every", "threads", "device")}
     tasks = [dict(base, scene=n, seed=s) for n in sims for s in range(args.seeds)]
     if args.jobs > 1:
         import multiprocessing
@@ -214,12 +223,13 @@ def pick_iteration(udn: dict[str, Any]) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Run both methods on the scenes and print / write the table."""
-    import torch
 
     if not 0 < args.holdout < 1:
         raise SystemExit(f"--holdout must be in (0, 1) (the held-out choice needs held-out "
                          f"pixels), got {args.holdout}")
-    torch.set_num_threads(args.threads)
+    from recon.threads import apply_threads
+
+    apply_threads(args.threads)
     t_all = time.perf_counter()
     psf, sims = make_data(args.scale, args.scenes, args.erasure, args.noise)
     fista = run_fista(psf, sims, args.fista_iters)
@@ -290,8 +300,8 @@ def run(args: argparse.Namespace) -> int:
             f"{', '.join(map(str, FISTA_CHECKPOINTS))}).\n"
             f"- UDN: {args.scales} scales x {args.channels} channels, skip channels "
             f"{args.skip}, output gain headroom {args.headroom:g}, TV weight {args.tv_weight:g}, "
-            "lr 0.01, input noise 0.05, "
-            f"EMA 0.99; {args.seeds} seeds averaged, each holding out "
+            f"lr {args.lr:g}, input noise 0.05, "
+            f"EMA {args.ema:g}; {args.seeds} seeds averaged, each holding out "
             f"{u0['heldout_pixels']} of the measured pixels (its own). The same configuration "
             "for every scene.\n"
             f"  - *same rule as FISTA*: the iteration count that maximises the mean PSNR over "

@@ -48,10 +48,10 @@ from drivers.lightsource import LightSource
 from drivers.timing import (
     ReadoutPattern,
     SensorTiming,
-    downsample_rows,
     row_start_lines,
     shutter_function,
 )
+from recon.preprocess import downsample_rows
 
 __all__ = [
     "ShutterFunction",

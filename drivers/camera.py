@@ -249,7 +249,8 @@ class Frame:
     read-only). Shape is ``(roi.height // binning, roi.width // binning)``.
 
     ``timing`` describes the *full sensor* (all rows); the shutter function of this frame is
-    ``downsample_rows(shutter_function(timing, w)[:, roi.y : roi.y + roi.height], binning)``.
+    ``recon.preprocess.downsample_rows(shutter_function(timing, w)[:, roi.y : roi.y +
+    roi.height], binning)``.
     ``timestamp`` is host time (``time.time()``) when the frame reached the driver;
     device timestamps, when there are any, go into ``extra``. ``exposure_us`` and ``gain``
     are ``None`` when the device cannot report them.

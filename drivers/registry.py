@@ -25,6 +25,7 @@ class CameraInfo:
     spec: str
     backend: str
     description: str
+    demo: bool = False  # a demo producer's or simulated camera, not hardware
 
 
 @dataclass(frozen=True)
@@ -76,12 +77,14 @@ def list_cameras(*, genicam_producers: list[str] | None = None) -> list[CameraIn
 
     A backend whose discovery fails is logged and skipped.
     """
-    out = [CameraInfo("sim", "sim", "Simulated camera (renders a scene; no hardware)")]
+    out = [CameraInfo("sim", "sim", "Simulated camera (renders a scene; no hardware)",
+                      demo=True)]
     try:
-        from drivers.genicam import list_genicam_devices
+        from drivers.genicam import is_demo_producer, list_genicam_devices
 
         for d in list_genicam_devices(genicam_producers):
-            out.append(CameraInfo(d.spec, "genicam", f"{d.display_name or d.model} [{d.producer}]"))
+            out.append(CameraInfo(d.spec, "genicam", f"{d.display_name or d.model} [{d.producer}]",
+                                  demo=is_demo_producer(d.producer)))
     except Exception as exc:  # a broken producer must not hide the other cameras
         _log.warning("GenICam discovery failed: %s", exc)
     try:

@@ -31,7 +31,6 @@ __all__ = [
     "SensorTiming",
     "ShutterMode",
     "bin_time",
-    "downsample_rows",
     "row_start_lines",
     "shutter_function",
 ]
@@ -201,19 +200,3 @@ def bin_time(shutter: np.ndarray, factor: int) -> np.ndarray:
     padded = np.zeros((k_new * factor, m.shape[1]), dtype=np.float64)
     padded[:k] = m
     return padded.reshape(k_new, factor, m.shape[1]).mean(axis=1)
-
-
-def downsample_rows(shutter: np.ndarray, factor: int) -> np.ndarray:
-    """Average ``factor`` consecutive rows (to match a measurement box-downsampled by factor).
-
-    Trailing rows that do not fill a block are dropped, as box downsampling drops them.
-    """
-    m = np.asarray(shutter, dtype=np.float64)
-    if m.ndim != 2:
-        raise ValueError(f"shutter must be (K, rows), got shape {m.shape}")
-    if int(factor) != factor or factor < 1:
-        raise ValueError(f"factor must be an integer >= 1, got {factor!r}")
-    rows = (m.shape[1] // factor) * factor
-    if rows == 0:
-        raise ValueError(f"cannot downsample {m.shape[1]} rows by {factor}")
-    return m[:, :rows].reshape(m.shape[0], rows // factor, factor).mean(axis=2)

@@ -15,7 +15,7 @@ import json
 import os
 import platform
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import IO, Any
 
@@ -27,10 +27,14 @@ __all__ = [
     "atomic_write",
     "atomic_write_bytes",
     "atomic_write_json",
+    "check_outputs",
     "file_hash",
+    "fsync_dir",
+    "is_temp_name",
     "json_default",
     "provenance",
     "software_version",
+    "temp_files",
 ]
 
 #: Version of the on-disk formats written by this release (bumped on incompatible changes).
@@ -96,10 +100,42 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[A
             os.fsync(fh.fileno())
         os.chmod(tmp, _umask_mode())
         os.replace(tmp, target)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        _name_target(exc, target)
         raise
+
+
+def is_temp_name(name: str) -> bool:
+    """Whether ``name`` is a temporary file of :func:`atomic_open` / :func:`atomic_write`.
+
+    Their names are ``.<target name>.<random>.tmp`` and ``.<target stem>.<random>.tmp<suffix>``;
+    one left behind means a process died while writing (the target is intact).
+    """
+    return name.startswith(".") and ".tmp" in name and len(name) > 5
+
+
+def temp_files(folder: str | os.PathLike[str]) -> list[Path]:
+    """Temporary files of interrupted atomic writes directly in ``folder`` (sorted)."""
+    d = Path(folder)
+    if not d.is_dir():
+        return []
+    return sorted(p for p in d.iterdir() if is_temp_name(p.name) and p.is_file())
+
+
+def fsync_dir(folder: str | os.PathLike[str]) -> None:
+    """Make renames in ``folder`` durable (a no-op where directories cannot be opened)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def atomic_write(path: str | os.PathLike[str], writer: Callable[[Path], None]) -> Path:
@@ -121,11 +157,19 @@ def atomic_write(path: str | os.PathLike[str], writer: Callable[[Path], None]) -
             os.fsync(fh.fileno())
         os.chmod(tmp, _umask_mode())
         os.replace(tmp, target)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+        _name_target(exc, target)
         raise
     return target
+
+
+def _name_target(exc: BaseException, target: Path) -> None:
+    """Give an OSError raised by a write (``fh.write`` names no file) the file it was for."""
+    if (isinstance(exc, OSError) and exc.filename is None and exc.errno is not None
+            and exc.strerror):  # (an OSError built from a message alone would print badly)
+        exc.filename = str(target)
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
@@ -177,3 +221,33 @@ def file_hash(path: str | os.PathLike[str]) -> str:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()[:16]
+
+
+def check_outputs(
+    outputs: Iterable[str | os.PathLike[str]],
+    inputs: Mapping[str, str | os.PathLike[str] | None] | None = None,
+    *,
+    overwrite: bool = False,
+) -> None:
+    """Refuse, before anything is computed, writes that would lose data.
+
+    ``outputs`` are the files a command is about to write; ``inputs`` maps an input's name (the
+    option, e.g. ``--meas``) to its path (None: not given). An output that is the same file as
+    an input (same resolved path, or ``os.path.samefile`` for links) is always refused; an
+    output that exists already is refused unless ``overwrite``. Raises :class:`FileExistsError`
+    with a one-line message naming the file and what to do.
+    """
+    named = [(k, Path(v)) for k, v in (inputs or {}).items() if v is not None]
+    for out in (Path(o) for o in outputs):
+        for key, src in named:
+            same = out.resolve() == src.resolve()
+            if not same and out.exists() and src.exists():
+                with contextlib.suppress(OSError):
+                    same = os.path.samefile(out, src)
+            if same:
+                raise FileExistsError(
+                    f"refusing to write {out}: it is the input {key} of this command "
+                    "(choose another output name)")
+        if out.exists() and not overwrite:
+            raise FileExistsError(
+                f"{out} exists: pass --overwrite to replace it, or choose another output")

@@ -14,7 +14,10 @@ Conventions, stated once:
   (population) variances;
 - MS-SSIM follows Wang et al. 2003: 5 scales, weights (0.0448, 0.2856, 0.3001, 0.2363,
   0.1333), 2x2 mean downsampling between scales; negative contrast-structure terms are clipped
-  at 0 (as TensorFlow does) so the fractional powers stay defined.
+  at 0 (as TensorFlow does) so the fractional powers stay defined. An image smaller than
+  176 px (what 5 scales of the 11 px window need) is scored with fewer scales, the first n
+  weights renormalised to sum 1 (:func:`ms_ssim_scales`); reports say how many were used
+  (``ms_ssim_scales``), since scores with different scale counts are not comparable.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ __all__ = [
     "metrics_report",
     "ms_ssim",
     "ms_ssim_min_size",
+    "ms_ssim_scales",
     "mse",
     "per_frame",
     "psnr",
@@ -166,22 +170,43 @@ def ms_ssim_min_size(scales: int = len(MS_SSIM_WEIGHTS)) -> int:
     return int(SSIM_WIN * 2 ** (scales - 1))
 
 
+def ms_ssim_scales(shape: tuple[int, ...], most: int = len(MS_SSIM_WEIGHTS)) -> int:
+    """The most scales (at most ``most``, at least 2) an image of ``shape`` allows; 0: none.
+
+    Scale j needs the 11 px window on an image halved j - 1 times: 176 px for 5 scales, 88 for
+    4, 44 for 3, 22 for 2. Below 22 px there is no multi-scale score (use SSIM).
+    """
+    side = min(int(shape[-2]), int(shape[-1]))
+    for n in range(min(most, len(MS_SSIM_WEIGHTS)), 1, -1):
+        if side >= ms_ssim_min_size(n):
+            return n
+    return 0
+
+
 def _half(a: F64) -> F64:
     h, w = a.shape[-2] // 2, a.shape[-1] // 2
     b = a[..., : 2 * h, : 2 * w].reshape(*a.shape[:-2], h, 2, w, 2)
     return np.asarray(b.mean(axis=(-3, -1)))
 
 
-def ms_ssim(ref: Array, est: Array, data_range: float | None = None) -> float:
-    """Multi-scale SSIM (Wang et al. 2003), 5 scales, averaged over 2D slices.
+def ms_ssim(ref: Array, est: Array, data_range: float | None = None,
+            scales: int = len(MS_SSIM_WEIGHTS)) -> float:
+    """Multi-scale SSIM (Wang et al. 2003), ``scales`` scales (5), averaged over 2D slices.
 
-    ``prod_j cs_j ** w_j`` over the first four scales times ``(l * cs) ** w_5`` at the
-    coarsest, with the standard weights; each slice is scored separately and the scores are
-    averaged. Raises ValueError when an image is smaller than :func:`ms_ssim_min_size` (176)
-    in height or width.
+    ``prod_j cs_j ** w_j`` over the first ``scales - 1`` scales times ``(l * cs) ** w_n`` at
+    the coarsest, with the standard weights (the first ``scales`` of them renormalised to sum 1
+    when ``scales < 5``); each slice is scored separately and the scores are averaged. Raises
+    ValueError when an image is smaller than :func:`ms_ssim_min_size` of ``scales`` (176 for
+    5) in height or width.
     """
     r, e = _check(ref, est, min_ndim=2)
-    n = len(MS_SSIM_WEIGHTS)
+    n = int(scales)
+    if not 2 <= n <= len(MS_SSIM_WEIGHTS):
+        raise ValueError(f"MS-SSIM scales must be 2..{len(MS_SSIM_WEIGHTS)}, got {scales!r}")
+    weights = MS_SSIM_WEIGHTS[:n]
+    if n < len(MS_SSIM_WEIGHTS):
+        total = sum(weights)
+        weights = tuple(w / total for w in weights)
     _check_size(
         r.shape,
         ms_ssim_min_size(n),
@@ -191,7 +216,7 @@ def ms_ssim(ref: Array, est: Array, data_range: float | None = None) -> float:
     r2 = r.reshape(-1, r.shape[-2], r.shape[-1])
     e2 = e.reshape(-1, e.shape[-2], e.shape[-1])
     score = np.ones(r2.shape[0], dtype=np.float64)
-    for j, w in enumerate(MS_SSIM_WEIGHTS):
+    for j, w in enumerate(weights):
         full, cs = _ssim_terms(r2, e2, L)
         term = (full if j == n - 1 else cs).mean(axis=(-2, -1))
         score *= np.maximum(term, 0.0) ** w
@@ -270,8 +295,9 @@ def metrics_report(
 ) -> dict[str, Any]:
     """All standard scores of ``est`` against ``ref`` as a JSON-ready dict.
 
-    Keys: ``mse``, ``psnr``, ``ssim``, ``ms_ssim`` (``None`` with ``ms_ssim_note`` saying why
-    when the image is too small), ``gain`` (1.0 without a fit), ``gain_fit`` (whether ``est``
+    Keys: ``mse``, ``psnr``, ``ssim``, ``ms_ssim`` with ``ms_ssim_scales`` (fewer than 5 for
+    images under 176 px, with ``ms_ssim_note``; ``None`` and 0 below 22 px), ``gain`` (1.0
+    without a fit), ``gain_fit`` (whether ``est``
     was scaled by the least-squares gain before scoring), ``data_range`` and
     ``data_range_source``, ``shape``. ``psnr`` is ``inf`` for identical arrays.
     """
@@ -291,14 +317,22 @@ def metrics_report(
             f"not computed, image {r.shape[-2]}x{r.shape[-1]} smaller than the "
             f"{SSIM_WIN}x{SSIM_WIN} window"
         )
-    need = ms_ssim_min_size()
-    if min(r.shape[-2:]) >= need:
-        report["ms_ssim"] = ms_ssim(r, e, L)
-    else:
-        report["ms_ssim"] = None
+    n = ms_ssim_scales(r.shape)
+    full_n = len(MS_SSIM_WEIGHTS)
+    report["ms_ssim"] = ms_ssim(r, e, L, scales=n) if n else None
+    report["ms_ssim_scales"] = n
+    if n == 0:
+        need = ms_ssim_min_size(2)
         report["ms_ssim_note"] = (
             f"not computed, image {r.shape[-2]}x{r.shape[-1]} smaller than {need}x{need} "
-            f"({len(MS_SSIM_WEIGHTS)} scales)"
+            "(2 scales)"
+        )
+    elif n < full_n:
+        need = ms_ssim_min_size(full_n)
+        report["ms_ssim_note"] = (
+            f"{n} scales, not {full_n}: image {r.shape[-2]}x{r.shape[-1]} smaller than "
+            f"{need}x{need}; weights of the first {n} renormalised (compare only with "
+            f"{n}-scale scores)"
         )
     report.update(
         {

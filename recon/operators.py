@@ -165,14 +165,26 @@ class Compose(LinearOperator):
                 )
         super().__init__(flat[-1].in_shape, flat[0].out_shape, flat[0].dtype, flat[0].device)
         self.ops = flat
+        # the same maps, with each Crop right after a Conv2D done in one pruned pass
+        steps: list[LinearOperator] = []
+        i = 0
+        while i < len(flat):
+            if (i + 1 < len(flat) and isinstance(flat[i], Crop)
+                    and isinstance(flat[i + 1], Conv2D)):
+                steps.append(_CropConv(flat[i], flat[i + 1]))  # type: ignore[arg-type]
+                i += 2
+            else:
+                steps.append(flat[i])
+                i += 1
+        self._steps = steps
 
     def apply(self, x: torch.Tensor) -> torch.Tensor:
-        for op in reversed(self.ops):
+        for op in reversed(self._steps):
             x = op.apply(x)
         return x
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
-        for op in self.ops:
+        for op in self._steps:
             y = op.adjoint(y)
         return y
 
@@ -247,15 +259,22 @@ class Conv2D(LinearOperator):
         self.hf_conj = self.hf.conj()
 
     def apply(self, x: torch.Tensor) -> torch.Tensor:
-        xf = _rfft2(x, s=self.pad)
+        # the rfft2 of the zero-padded input, pruned: the row transforms run only on the
+        # input's rows (the padding rows are zero), then the column transforms on all
+        py, px = self.pad
+        xf = cast(torch.Tensor, torch.fft.fft(torch.fft.rfft(x, n=px, dim=-1), n=py, dim=-2))
         xf.mul_(self.hf)
         return _irfft2(xf, s=self.pad)
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
         yf = _rfft2(y)
         yf.mul_(self.hf_conj)
-        out = _irfft2(yf, s=self.pad)
-        return out[..., : self.in_shape[2], : self.in_shape[3]]
+        # the irfft2 pruned to the rows the crop to the input keeps: the column transforms on
+        # all, the row transforms only on the kept rows
+        hs, ws = self.in_shape[2], self.in_shape[3]
+        t = torch.fft.ifft(yf, dim=-2)[..., :hs, :]
+        out = cast(torch.Tensor, torch.fft.irfft(t, n=self.pad[1], dim=-1))
+        return out[..., :ws]
 
 
 class StackConvSum(LinearOperator):
@@ -302,6 +321,50 @@ class Crop(LinearOperator):
         out = y.new_zeros(y.shape[:-2] + self.in_shape[-2:])
         out[..., self.sl[0], self.sl[1]] = y
         return out
+
+
+class _CropConv(LinearOperator):
+    """``Crop @ Conv2D`` in one pass (used inside :class:`Compose`): the same map, cheaper FFTs.
+
+    Forward: the row transforms of the padded scene run only on the scene's rows, the inverse
+    ones only on the rows the crop keeps. Adjoint: the window is not zero-padded into the grid;
+    its transform is that of the window at the origin times the phase of the crop offset
+    (folded into the conjugate transfer function once), and the inverse row transforms run only
+    on the scene's rows. About 3/4 of the row-transform work of the unfused pair.
+    """
+
+    def __init__(self, crop: Crop, conv: Conv2D) -> None:
+        super().__init__(conv.in_shape, crop.out_shape, conv.dtype, conv.device)
+        self.crop, self.conv = crop, conv
+        self._hf_conj_shift: torch.Tensor | None = None
+
+    def _shifted(self) -> torch.Tensor:
+        if self._hf_conj_shift is None:
+            py, px = self.conv.pad
+            oy, ox = self.crop.sl[0].start, self.crop.sl[1].start
+            real = torch.float64
+            ky = torch.arange(py, dtype=real, device=self.device)[:, None]
+            kx = torch.arange(px // 2 + 1, dtype=real, device=self.device)[None, :]
+            angle = -2.0 * math.pi * (ky * oy / py + kx * ox / px)
+            phase = torch.polar(torch.ones_like(angle), angle).to(self.conv.hf_conj.dtype)
+            self._hf_conj_shift = self.conv.hf_conj * phase
+        return self._hf_conj_shift
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        py, px = self.conv.pad
+        xf = cast(torch.Tensor, torch.fft.fft(torch.fft.rfft(x, n=px, dim=-1), n=py, dim=-2))
+        xf.mul_(self.conv.hf)
+        sy, sx = self.crop.sl
+        t = torch.fft.ifft(xf, dim=-2)[..., sy, :]
+        return cast(torch.Tensor, torch.fft.irfft(t, n=px, dim=-1))[..., sx]
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        py, px = self.conv.pad
+        yf = cast(torch.Tensor, torch.fft.fft(torch.fft.rfft(y, n=px, dim=-1), n=py, dim=-2))
+        yf.mul_(self._shifted())
+        hs, ws = self.conv.in_shape[2], self.conv.in_shape[3]
+        t = torch.fft.ifft(yf, dim=-2)[..., :hs, :]
+        return cast(torch.Tensor, torch.fft.irfft(t, n=px, dim=-1))[..., :ws]
 
 
 class Mask(LinearOperator):

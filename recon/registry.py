@@ -11,9 +11,10 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from drivers.timing import ReadoutPattern, SensorTiming, downsample_rows
+from drivers.timing import ReadoutPattern, SensorTiming
 from recon.models import build_model
 from recon.operators import Compose, Conv2D, Crop, LinearOperator, Mask, StackConvSum, SumK
+from recon.preprocess import downsample_rows
 
 __all__ = ["OPERATOR_FACTORIES", "make_operator"]
 

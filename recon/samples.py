@@ -26,6 +26,8 @@ __all__ = [
     "DEPTH_AXIAL_BIN",
     "DEPTH_DARK",
     "DEPTH_DOWNSAMPLE",
+    "DLMD_DOWNSAMPLE",
+    "DLMD_PAIR",
     "LENSED_SCENES",
     "SAMPLES_DIR",
     "TUTORIAL_DOWNSAMPLE",
@@ -33,6 +35,7 @@ __all__ = [
     "depth_measurement",
     "depth_planes",
     "depth_psf_stack",
+    "dlmd_pair_paths",
     "false_color_calib_path",
     "lensed_scene",
     "lensed_scene_names",
@@ -61,12 +64,20 @@ DEPTH_AXIAL_BIN = 2
 #: Camera bias of ``example_raw.png`` (DiffuserCam_settings.m: ``image_bias = 100``).
 DEPTH_DARK = 100.0
 
+#: The real measurement / lensed-truth pair of the DiffuserCam Lensless MirFlickr dataset that
+#: is bundled (butterfly), with the dataset's effective PSF, and its lateral downsampling.
+DLMD_PAIR = "im65"
+DLMD_DOWNSAMPLE = 4
+
 _FILES = {
     "tutorial_psf": "tutorial_psf.npy",
     "tutorial_measurement": "tutorial_hand.npy",
     "depth": "depth_usaf.npz",
     "false_color_calib": "false_color_calib.mat",
     "manifest": "samples.json",
+    "dlmd_measurement": f"dlmd_{DLMD_PAIR}_diffuser.npy",
+    "dlmd_truth": f"dlmd_{DLMD_PAIR}_lensed.npy",
+    "dlmd_psf": "dlmd_psf_padded_bgr.npy",
     **{f"lensed_{n}": f"lensed_{n}.npy" for n in LENSED_SCENES},
 }
 
@@ -168,6 +179,20 @@ def depth_planes() -> list[tuple[int, ...]]:
     with np.load(sample_path("depth"), allow_pickle=False) as z:
         planes = np.asarray(z["planes"])
     return [tuple(int(v) for v in row) for row in planes]
+
+
+def dlmd_pair_paths() -> dict[str, Path]:
+    """The bundled real pair, in the dataset's layout: ``measurement``, ``truth``, ``psf``.
+
+    All (H, W, 3) float16, BGR and stored upside-down like the dataset's files, box-downsampled
+    by :data:`DLMD_DOWNSAMPLE`: measurement and truth 67x120 (the sensor-size field; the first
+    and last of the 270 rows dropped), the PSF 134x240 on the padded grid (exactly twice the
+    sensor, its zero shift at the centre; rows 2..537 of 540 kept), scaled to max 1 (the
+    dataset's per-channel gains kept). Read them like the full files (flip nothing between
+    them), for example with ``recon.problem.ProblemSpec(..., color="rgb",
+    channel_order="bgr", flip_rows=True)``.
+    """
+    return {k: sample_path(f"dlmd_{k}") for k in ("measurement", "truth", "psf")}
 
 
 def depth_measurement(normalise: rio.NormMode | None = "max") -> F32:
@@ -309,6 +334,25 @@ def build_samples(
 
     written.append(atomic_write(out / _FILES["false_color_calib"], _copy))
 
+    # One real pair of the DiffuserCam Lensless MirFlickr dataset, in the dataset's layout.
+    # 270 rows are not a multiple of 4: keep 268 (rows 1..268) of measurement and truth and
+    # the matching 536 of the padded PSF (rows 2..537), so the PSF stays exactly twice the
+    # sensor with its zero shift at the centre, as in the dataset
+    d = DLMD_DOWNSAMPLE
+    dl: dict[str, npt.NDArray[Any]] = {}
+    for key, rel in (("measurement", f"dlmd/diffuser_{DLMD_PAIR}.npy"),
+                     ("truth", f"dlmd/lensed_{DLMD_PAIR}.npy"),
+                     ("psf", "dlmd/psf_estimated_padded_bgr.npy")):
+        chw = rio.to_channel_first(rio.load_image(_src(rel)), "hwc").astype(np.float32)
+        h = chw.shape[1]
+        keep = h - h % (2 * d) if key == "psf" else h - h % d
+        r0 = (h - keep) // 2
+        small = rio.box_downsample(chw[:, r0:r0 + keep], d)
+        if key == "psf":
+            small = small / small.max()
+        dl[key] = np.ascontiguousarray(np.moveaxis(small, 0, -1)).astype(np.float16)
+        written.append(_save_npy(out / _FILES[f"dlmd_{key}"], dl[key]))
+
     manifest: dict[str, Any] = {
         "format": "lenslesscam.samples",
         "format_version": FORMAT_VERSION,
@@ -341,6 +385,16 @@ def build_samples(
             "psf_dtype": "float16",
             "meas_shape": list(meas.shape),
             "planes": planes.tolist(),
+        },
+        "dlmd": {
+            "pair": DLMD_PAIR,
+            "downsample": d,
+            "layout": "(H, W, 3) BGR, stored upside-down, as the dataset; PSF on the padded "
+            "grid (zero shift at its centre), measurement and truth on the sensor-size field",
+            "processing": "central rows kept so that d divides them (measurement, truth: rows "
+            "1..268 of 270; PSF: rows 2..537 of 540, twice the sensor, zero shift at the "
+            "centre), box mean over dxd blocks, float16; PSF scaled to max 1 first",
+            "shapes": {k: list(v.shape) for k, v in dl.items()},
         },
         "files": {p.name: {"bytes": p.stat().st_size, "sha256_16": file_hash(p)} for p in written},
     }

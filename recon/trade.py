@@ -35,9 +35,9 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from recon.io import box_downsample, downsample_masked
 from recon.metrics import gain_fit, psnr, ssim
 from recon.models import build_model
+from recon.preprocess import box_downsample, downsample_masked
 
 __all__ = [
     "Case",
@@ -125,7 +125,8 @@ def default_grid(quick: bool = False, with_udn: bool = True) -> list[Config]:
     FISTA-TV (tau x iterations), ADMM-TV, UDN (iterations, width, precision), float32 and
     float64, downsampling.
     """
-    taus = (1e-5, 1e-4, 1e-3) if quick else (1e-5, 3e-5, 1e-4, 3e-4, 1e-3)
+    # the best tau spans 1e-7 .. 1e-3 over erasures and noise (docs/simulation-protocol.md)
+    taus = (1e-7, 1e-5, 1e-3) if quick else (1e-7, 1e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 1e-2)
     its = (30, 100, 300) if quick else (25, 50, 100, 200, 500)
     grid = [Config("fista", t, its) for t in taus]
     grid += [Config("admm", t, its) for t in taus]
@@ -286,7 +287,9 @@ def run_trade(
         raise ValueError(f"case {case.name}: only {idx.size} measured pixels; the held-out "
                          "proxy needs at least 20")
     rng = np.random.default_rng(seed)
-    n_hold = max(1, round(holdout * idx.size))
+    # at least 200 held-out pixels while that leaves three quarters to fit (as recon.autotau):
+    # 5 % of a 99 %-erased measurement is too few to rank settings
+    n_hold = max(1, round(holdout * idx.size), min(200, idx.size // 4))
     hold = np.zeros(h * w, bool)
     hold[rng.choice(idx, n_hold, replace=False)] = True
     hold = hold.reshape(h, w)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -126,63 +127,125 @@ class TV:
 class TVProx:
     """prox of g * TV + indicator(x >= 0) by warm-started FGP (see module docstring).
 
-    Work buffers are allocated once per shape and reused, so an inner iteration is about
-    fifteen in-place tensor operations and no allocation.
+    The duals of all directions live in one stacked tensor (n_dirs, C, K, H, W), so the dual
+    update, the projection and the momentum are one tensor operation each, and every shifted
+    view the iteration uses is made once per shape, not per iteration: an inner iteration is
+    twelve in-place tensor operations (2D) and allocates nothing.
+
+    The duals' last entry along their own axis is always 0 (the gradient buffer's is never
+    written, and the projection and momentum keep zeros), so ``D^T p`` is ``-sum(p)`` plus the
+    duals shifted by one, written straight into the primal update.
     """
 
     def __init__(self, tv: TV, nonneg: bool = True) -> None:
         self.tv = tv
         self.nonneg = nonneg
-        self._p: list[torch.Tensor] | None = None
-        self._shape: tuple[int, ...] | None = None
+        self._p: torch.Tensor | None = None
+        self._key: tuple[Any, ...] | None = None
 
     def reset(self) -> None:
         """Forget the warm-start dual."""
         self._p = None
-        self._shape = None
+        self._key = None
 
     def _buffers(self, z: torch.Tensor) -> None:
-        if self._shape == tuple(z.shape) and self._p is not None and self._p[0].dtype == z.dtype:
+        key = (tuple(z.shape), z.dtype, z.device)
+        if self._key == key and self._p is not None:
             return
         n = self.tv.n_dirs(z)
-        self._p = [torch.zeros_like(z) for _ in range(n)]
-        self._r = [torch.zeros_like(z) for _ in range(n)]
-        self._g = [torch.zeros_like(z) for _ in range(n)]
+        self._p = z.new_zeros((n, *z.shape))
+        self._r = z.new_zeros((n, *z.shape))
+        self._g = z.new_zeros((n, *z.shape))  # last entries stay 0 (see the class docstring)
         self._x = torch.empty_like(z)
-        self._adj = torch.empty_like(z)
-        self._work = torch.empty_like(z)
-        self._shape = tuple(z.shape)
+        self._s = torch.empty_like(z)
+        self._n = torch.empty_like(z)
+        ay, ax, ak = _AXES["y"], _AXES["x"], _AXES["k"]
+        self._dims = [ay, ax, ak][:n]
+        self._shift = {id(t): self._shift_views(t) for t in (self._p, self._r)}
+        g = self._g
+        self._gviews = [g[i].narrow(d, 0, z.shape[d] - 1) for i, d in enumerate(self._dims)]
+        self._xviews = self._diff_views(self._x)
+        self._key = key
 
-    def _primal(self, z: torch.Tensor, gamma: float, p: list[torch.Tensor],
-                out: torch.Tensor) -> torch.Tensor:
-        torch.add(z, self.tv.grad_adj(p, out=self._adj), alpha=-gamma, out=out)
+    def _shift_views(self, q: torch.Tensor) -> list[torch.Tensor]:
+        """q[i] without its last entry along its axis (the source of the shifted D^T term)."""
+        return [q[i].narrow(d, 0, q.shape[d + 1] - 1) for i, d in enumerate(self._dims)]
+
+    def _diff_views(self, x: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """(x from 1 on, x up to n-1) along each axis: forward differences and shifts."""
+        return [(x.narrow(d, 1, x.shape[d] - 1), x.narrow(d, 0, x.shape[d] - 1))
+                for d in self._dims]
+
+    def _primal(self, z: torch.Tensor, gamma: float, q: torch.Tensor, out: torch.Tensor,
+                out_views: list[tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
+        """Set out = P_C(z - gamma D^T q) = P_C(z + gamma sum(w q) - gamma shifted(w q))."""
+        w = self.tv.weight_k
+        s = self._s
+        if q.shape[0] == 2:
+            torch.add(q[0], q[1], out=s)
+        else:
+            torch.add(q[0], q[1], out=s).add_(q[2], alpha=w)
+        torch.add(z, s, alpha=gamma, out=out)
+        src = self._shift[id(q)] if id(q) in self._shift else self._shift_views(q)
+        for i, (hi, _lo) in enumerate(out_views):
+            hi.sub_(src[i], alpha=gamma * (w if i == 2 else 1.0))
         if self.nonneg:
             out.clamp_(min=0.0)
         return out
 
-    def __call__(self, z: torch.Tensor, gamma: float, iters: int = 5) -> torch.Tensor:
-        """Return argmin_x 0.5 ||x - z||^2 + gamma TV(x) (+ x >= 0)."""
+    def _grad_into_g(self, views: list[tuple[torch.Tensor, torch.Tensor]]) -> None:
+        w = self.tv.weight_k
+        for i, (hi, lo) in enumerate(views):
+            torch.sub(hi, lo, out=self._gviews[i])
+            if i == 2 and w != 1.0:
+                self._gviews[i].mul_(w)
+
+    def _project(self, r: torch.Tensor) -> None:
+        if self.tv.isotropic:
+            torch.hypot(r[0], r[1], out=self._n).clamp_(min=1.0)
+            r[:2].div_(self._n)
+            if r.shape[0] > 2:
+                r[2].clamp_(-1.0, 1.0)
+        else:
+            r.clamp_(-1.0, 1.0)
+
+    def __call__(self, z: torch.Tensor, gamma: float, iters: int = 5,
+                 out: torch.Tensor | None = None) -> torch.Tensor:
+        """Return argmin_x 0.5 ||x - z||^2 + gamma TV(x) (+ x >= 0) (into ``out`` if given)."""
         if gamma <= 0:
-            return z.clamp(min=0.0) if self.nonneg else z.clone()
+            if out is None:
+                return z.clamp(min=0.0) if self.nonneg else z.clone()
+            return torch.clamp(z, min=0.0, out=out) if self.nonneg else out.copy_(z)
         self._buffers(z)
-        p, r, g = self._p, self._r, self._g
+        p, r = self._p, self._r
         assert p is not None  # set by _buffers
-        for ri, pi in zip(r, p, strict=True):
-            ri.copy_(pi)
+        r.copy_(p)
         t = 1.0
         step = 1.0 / (gamma * self.tv.lipschitz)
         for _ in range(iters):
-            x = self._primal(z, gamma, r, self._x)
-            self.tv.grad(x, out=g)
-            for ri, gi in zip(r, g, strict=True):
-                ri.add_(gi, alpha=step)
-            self.tv.project(r, work=self._work)  # r now holds p_new
+            self._primal(z, gamma, r, self._x, self._xviews)
+            self._grad_into_g(self._xviews)
+            r.add_(self._g, alpha=step)
+            self._project(r)  # r now holds p_new
             t_new = (1.0 + math.sqrt(1.0 + 4.0 * t * t)) / 2.0
-            beta = (t - 1.0) / t_new
-            for ri, pi in zip(r, p, strict=True):
-                # p <- p_new; r <- p_new + beta (p_new - p_old)  (lerp from p_old by 1 + beta)
-                pi.lerp_(ri, 1.0 + beta)
+            # p <- p_new; r <- p_new + beta (p_new - p_old)  (lerp from p_old by 1 + beta)
+            p.lerp_(r, 1.0 + (t - 1.0) / t_new)
             p, r = r, p  # now p holds p_new and r the extrapolated point
             t = t_new
         self._p, self._r = p, r
-        return self._primal(z, gamma, p, torch.empty_like(z))
+        if out is None:
+            out = torch.empty_like(z)
+        return self._primal(z, gamma, p, out, self._diff_views(out))
+
+    def value(self, x: torch.Tensor) -> float:
+        """TV(x), as :meth:`TV.value`, computed in this prox's buffers (no allocation)."""
+        self._buffers(x)
+        self._grad_into_g(self._diff_views(x))
+        g = self._g
+        if self.tv.isotropic:
+            total = torch.hypot(g[0], g[1], out=self._n).sum()
+        else:
+            total = g[:2].abs().sum()
+        if g.shape[0] > 2:
+            total = total + g[2].abs().sum()
+        return float(total)

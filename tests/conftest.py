@@ -9,9 +9,19 @@ import pytest
 def _one_torch_thread():
     """One torch thread: on a 2-core machine that is also running simulators and subprocesses,
     2 threads can be many times slower than 1 (measured: up to 50x). Benchmarks set their own."""
+    import os
+
     import torch
 
     before = torch.get_num_threads()
     torch.set_num_threads(1)
+    # commands called in-process (app.cli.main) apply recon.threads' policy, which honours
+    # OMP_NUM_THREADS: keep them at one thread too
+    env_before = os.environ.get("OMP_NUM_THREADS")
+    os.environ["OMP_NUM_THREADS"] = "1"
     yield
     torch.set_num_threads(before)
+    if env_before is None:
+        os.environ.pop("OMP_NUM_THREADS", None)
+    else:
+        os.environ["OMP_NUM_THREADS"] = env_before

@@ -7,9 +7,10 @@ import pytest
 import torch
 
 from recon.admm import Admm
-from recon.fista import Fista, NumericalError, StopReason
+from recon.fista import Fista
 from recon.models import build_model
 from recon.simulate import simulate, synthetic_psf
+from recon.stepwise import NumericalError, StopReason
 from recon.tv import TV
 
 

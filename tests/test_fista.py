@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from recon.fista import Fista, NumericalError, StopReason
+from recon.fista import Fista
 from recon.models import build_model
 from recon.simulate import simulate, synthetic_psf
+from recon.stepwise import NumericalError, StopReason
 from recon.tv import TV
 
 
@@ -53,7 +54,8 @@ def test_recovers_scene_and_objective_never_increases():
     m = build_model("2d", psf, mask=None)
     truth = _scene(32, 40)[None, None]
     sim = simulate(m, truth, noise=0.01, seed=3)
-    solver = Fista(m.op, torch.as_tensor(sim.meas), tau=2e-4, max_iter=300, tol=0)
+    solver = Fista(m.op, torch.as_tensor(sim.meas), tau=2e-4, max_iter=300, tol=0,
+                   restart="monotone")  # the monotone rule: objectives never increase
     objs = [s.objective for s in solver.steps()]
     assert all(b <= a for a, b in itertools.pairwise(objs))
     assert solver.x.dtype == torch.float32
@@ -79,7 +81,8 @@ def test_monotone_and_stable_on_masked_models(kind):
     else:
         m = build_model("depth", np.stack([synthetic_psf((h, w), seed=s) for s in range(3)]))
     b = torch.as_tensor(rng.random(m.meas_shape), dtype=torch.float32)
-    solver = Fista(m.op, b, tau=1e-3, tv=TV(weight_k=0.5), max_iter=400, tol=0)
+    solver = Fista(m.op, b, tau=1e-3, tv=TV(weight_k=0.5), max_iter=400, tol=0,
+                   restart="monotone")
     objs = [s.objective for s in solver.steps()]
     assert all(math.isfinite(o) for o in objs)
     assert all(b2 <= a for a, b2 in itertools.pairwise(objs))

@@ -54,8 +54,10 @@ def _slow_ssim(x: np.ndarray, y: np.ndarray, L: float) -> float:
     return float(_slow_maps(x, y, L)[0].mean())
 
 
-def _slow_ms_ssim(x: np.ndarray, y: np.ndarray, L: float) -> float:
-    weights = [0.0448, 0.2856, 0.3001, 0.2363, 0.1333]
+def _slow_ms_ssim(x: np.ndarray, y: np.ndarray, L: float, n: int = 5) -> float:
+    weights = [0.0448, 0.2856, 0.3001, 0.2363, 0.1333][:n]
+    if n < 5:  # the published 5 weights are used as they are (they sum to 1.0001)
+        weights = [w / sum(weights) for w in weights]
     out = 1.0
     for j, wj in enumerate(weights):
         s_map, cs_map = _slow_maps(x, y, L)
@@ -145,6 +147,19 @@ def test_ms_ssim_matches_direct_and_properties() -> None:
         M.ms_ssim(np.ones((150, 200)), np.ones((150, 200)))
 
 
+def test_ms_ssim_fewer_scales_for_small_images() -> None:
+    assert [M.ms_ssim_scales((s, 200)) for s in (176, 175, 88, 87, 44, 22, 21)] == [
+        5, 4, 4, 3, 3, 2, 0]
+    x = _smooth_image(100, 120)
+    y = x + 0.05 * RNG.standard_normal(x.shape)
+    L = float(x.max() - x.min())
+    # the first 4 weights renormalised to sum 1, checked against the direct loop
+    assert M.ms_ssim(x, y, scales=4) == pytest.approx(_slow_ms_ssim(x, y, L, n=4), rel=1e-10)
+    assert M.ms_ssim(x, x, scales=4) == pytest.approx(1.0, abs=1e-12)
+    with pytest.raises(ValueError, match=r"scales must be 2\.\.5"):
+        M.ms_ssim(x, y, scales=1)
+
+
 # ------------------------------------------------------------------------------------------
 # gain fit, per frame, spectral
 # ------------------------------------------------------------------------------------------
@@ -212,8 +227,13 @@ def test_metrics_report_small_image() -> None:
     est = 0.5 * ref
     rep = M.metrics_report(ref, est, gain_fit=False)
     assert rep["gain_fit"] is False and rep["gain"] == 1.0
-    assert rep["ms_ssim"] is None
-    assert rep["ms_ssim_note"].startswith("not computed, image 150x200 smaller than 176x176")
+    # 150 px is too small for 5 scales (176), enough for 4 (88): scored, and the count is said
+    assert rep["ms_ssim_scales"] == 4
+    assert rep["ms_ssim"] == pytest.approx(M.ms_ssim(ref, est, scales=4))
+    assert rep["ms_ssim_note"].startswith("4 scales, not 5: image 150x200 smaller than 176x176")
+    tiny = M.metrics_report(ref[..., :20, :20], est[..., :20, :20])
+    assert tiny["ms_ssim"] is None and tiny["ms_ssim_scales"] == 0
+    assert tiny["ms_ssim_note"].startswith("not computed, image 20x20 smaller than 22x22")
     assert rep["data_range_source"] == "ref.max() - ref.min()"
     assert rep["psnr"] == pytest.approx(M.psnr(ref, est))
     fitted = M.metrics_report(ref, est, gain_fit=True)
@@ -276,7 +296,9 @@ def test_cli_metrics_json(
     out = json.loads(capsys.readouterr().out)
     assert {"mse", "psnr", "ssim", "ms_ssim", "gain", "gain_fit"} <= set(out)
     assert out["gain_fit"] is True and out["gain"] == pytest.approx(2.0)
-    assert out["psnr"] == "inf" and out["ms_ssim"] is None
+    # 30x40 allows 2 scales; identical after the gain fit
+    assert out["psnr"] == "inf" and out["ms_ssim_scales"] == 2
+    assert out["ms_ssim"] == pytest.approx(1.0, abs=1e-12)  # float64 rounding only
 
     assert (
         cli_main(["metrics", "--ref", str(tmp_path / "gt.png"), "--est", str(tmp_path / "est.tif")])

@@ -60,7 +60,8 @@ def test_held_out_pixels_are_hidden_from_the_reconstruction():
     # find the held-out pixels the same way run_trade does, and corrupt them
     measured = np.flatnonzero(case.mask > 0)
     rng = np.random.default_rng(3)
-    hold = rng.choice(measured, max(1, round(0.05 * measured.size)), replace=False)
+    n_hold = max(1, round(0.05 * measured.size), min(200, measured.size // 4))
+    hold = rng.choice(measured, n_hold, replace=False)
     bad = case.meas.copy().reshape(1, -1)
     bad[0, hold] += 5.0
     second = next(run_trade(Case("tiny", case.psf, bad.reshape(case.meas.shape), case.mask,

@@ -10,10 +10,13 @@ BENCHMARKS = {
     "fista": "benchmarks.bench_fista",
     "udn": "benchmarks.bench_udn",
     "protocol": "benchmarks.sim_protocol",
+    "time-to-quality": "benchmarks.time_to_quality",
     "preview": "benchmarks.bench_preview",
     "plan": "benchmarks.plan_cases",
     "udn-video": "benchmarks.udn_video",
     "udn-vs-fista": "benchmarks.udn_vs_fista",
+    "real-pairs": "benchmarks.real_pairs",
+    "batch": "benchmarks.bench_batch",
 }
 
 
@@ -26,6 +29,8 @@ def register(sub: Any) -> None:
             mod = importlib.import_module(module)
         except ImportError:
             continue
-        q = which.add_parser(name, help=(mod.__doc__ or "").strip().splitlines()[0])
+        # argparse %-formats help strings: a "99%" in a docstring must reach it as "99%%"
+        summary = (mod.__doc__ or "").strip().splitlines()[0].replace("%", "%%")
+        q = which.add_parser(name, help=summary, description=summary)
         mod.add_arguments(q)
         q.set_defaults(func=mod.run)

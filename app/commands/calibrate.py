@@ -19,6 +19,17 @@ from pathlib import Path
 from typing import Any
 
 from app.commands._common import ProgressBar, parse_duration_us
+from app.commands._options import (
+    FINITE,
+    NONNEG,
+    NONNEG_INT,
+    POSITIVE,
+    POSITIVE_INT,
+    UNIT,
+    add_overwrite_option,
+    check_command_outputs,
+    finite_float,
+)
 
 
 def _common(p: argparse.ArgumentParser, *, source: bool, source_required: bool) -> None:
@@ -31,17 +42,18 @@ def _common(p: argparse.ArgumentParser, *, source: bool, source_required: bool) 
             help="point source: 'sim' (simulated firmware on a PTY) or a serial port path",
         )
         g.add_argument(
-            "--intensity", type=float, default=1.0, help="source intensity 0..1 (default 1)"
+            "--intensity", type=UNIT, default=1.0, help="source intensity 0..1 (default 1)"
         )
     g.add_argument("--exposure", help="exposure (10ms, 250us, 0.5s); default the camera's")
-    g.add_argument("--gain", type=float, default=None, help="camera gain (device units)")
-    g.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for a frame")
-    g.add_argument("--settle", type=int, default=1, help="frames dropped after each change")
+    g.add_argument("--gain", type=FINITE, default=None, help="camera gain (device units)")
+    g.add_argument("--timeout", type=POSITIVE, default=5.0, help="seconds to wait for a frame")
+    g.add_argument("--settle", type=NONNEG_INT, default=1, help="frames dropped after each change")
     s = p.add_argument_group("simulated camera (--camera sim)")
     s.add_argument("--sim-size", help="sensor HxW (default: the --sim-psf's, else 64x80)")
     s.add_argument("--sim-psf", help="PSF file the simulator renders with (default synthetic)")
-    s.add_argument("--sim-flux", type=float, default=5e6, help="point source e-/ms (sim)")
-    s.add_argument("--sim-seed", type=int, default=0)
+    s.add_argument("--sim-flux", type=POSITIVE, default=5e6, help="point source e-/ms (sim)")
+    s.add_argument("--sim-seed", type=NONNEG_INT, default=0,
+                   help="seed of the simulated camera's noise (0)")
 
 
 def register(sub: Any) -> None:
@@ -53,6 +65,7 @@ def register(sub: Any) -> None:
     _common(psf, source=True, source_required=True)
     _psf_options(psf)
     psf.add_argument("--out", required=True, help="calibration file (.tif)")
+    add_overwrite_option(psf)
     psf.set_defaults(func=run_psf)
 
     depth = csub.add_parser("depth", help="capture a PSF stack over a series of positions")
@@ -65,31 +78,37 @@ def register(sub: Any) -> None:
         "--no-prompt", action="store_true", help="do not wait for Enter before each position"
     )
     depth.add_argument("--out", required=True, help="stack file (.tif)")
+    add_overwrite_option(depth)
     depth.set_defaults(func=run_depth)
 
     darks = csub.add_parser("darks", help="dark frames and hot/dead pixel maps")
     _common(darks, source=True, source_required=False)
-    darks.add_argument("--frames", type=int, default=16, help="dark frames to average")
+    darks.add_argument("--frames", type=POSITIVE_INT, default=16, help="dark frames to average")
     darks.add_argument(
-        "--flats", type=int, default=0, help="flat frames to average (dead pixels); 0: none"
+        "--flats", type=NONNEG_INT, default=0, help="flat frames to average (dead pixels); 0: none"
     )
-    darks.add_argument("--hot-sigma", type=float, default=6.0)
-    darks.add_argument("--dead-fraction", type=float, default=0.5)
+    darks.add_argument("--hot-sigma", type=POSITIVE, default=6.0,
+                       help="a pixel is hot this many sigmas above the dark median (6)")
+    darks.add_argument("--dead-fraction", type=UNIT, default=0.5,
+                       help="a pixel is dead below this fraction of the flat median (0.5)")
     darks.add_argument("--no-prompt", action="store_true", help="do not wait for Enter")
     darks.add_argument("--out", required=True, help="pixel-maps file (.npz)")
+    add_overwrite_option(darks)
     darks.set_defaults(func=run_darks)
 
     sh = csub.add_parser(
         "shutter", help="shutter function from the timing, or measured with --source"
     )
     _common(sh, source=True, source_required=False)
-    sh.add_argument("--bin-lines", type=int, default=1, help="time bin width in lines")
-    sh.add_argument("--downsample", type=int, default=1, help="row downsampling factor")
+    sh.add_argument("--bin-lines", type=POSITIVE_INT, default=1, help="time bin width in lines")
+    sh.add_argument("--downsample", type=POSITIVE_INT, default=1, help="row downsampling factor")
     sh.add_argument("--pulse", help="strobe pulse length (default one line time)")
     sh.add_argument("--step", help="delay step (default half the pulse)")
     sh.add_argument("--span", help="last delay (default 1.25 x frame time)")
-    sh.add_argument("--frames-per-delay", type=int, default=1)
+    sh.add_argument("--frames-per-delay", type=POSITIVE_INT, default=1,
+                    help="frames averaged at each strobe delay (1)")
     sh.add_argument("--out", required=True, help="shutter file (.npz)")
+    add_overwrite_option(sh)
     sh.set_defaults(func=run_shutter)
 
     fc = csub.add_parser("filters", help="validate, normalise and save a filter cube")
@@ -98,19 +117,24 @@ def register(sub: Any) -> None:
     where = fc.add_mutually_exclusive_group(required=True)
     where.add_argument("--sensor", help="sensor size HxW")
     where.add_argument("--like", help="a PSF or calibration file of the sensor's size")
-    fc.add_argument("--layout", choices=("auto", "khw", "hwk"), default="auto")
-    fc.add_argument("--normalise", choices=("max", "none"), default="max")
-    fc.add_argument("--downsample", type=int, default=1)
+    fc.add_argument("--layout", choices=("auto", "khw", "hwk"), default="auto",
+                    help="axis order of the cube: auto, khw or hwk")
+    fc.add_argument("--normalise", choices=("max", "none"), default="max",
+                    help="scale each filter to max 1, or keep the values (none)")
+    fc.add_argument("--downsample", type=POSITIVE_INT, default=1,
+                    help="box downsampling factor of the cube (default 1)")
     fc.add_argument("--out", required=True, help="filter-cube file (.tif)")
+    add_overwrite_option(fc)
     fc.set_defaults(func=run_filters)
 
 
 def _psf_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("PSF capture")
-    g.add_argument("--frames", type=int, default=16, help="PSF frames to average")
-    g.add_argument("--darks", type=int, default=16, help="dark frames to average")
+    g.add_argument("--frames", type=POSITIVE_INT, default=16, help="PSF frames to average")
+    g.add_argument("--darks", type=POSITIVE_INT, default=16, help="dark frames to average")
     g.add_argument("--no-auto-exposure", action="store_true", help="keep the exposure")
-    g.add_argument("--target", type=float, default=0.75, help="target peak (fraction)")
+    g.add_argument("--target", type=finite_float(0, 1, lo_open=True), default=0.75,
+                   help="target peak (fraction)")
     g.add_argument(
         "--max-exposure", default="1s", help="longest exposure auto-exposure may use (1s)"
     )
@@ -118,8 +142,9 @@ def _psf_options(p: argparse.ArgumentParser) -> None:
         "--centre", default="none", help="'none', 'centroid' or ROW,COL moved to the centre"
     )
     g.add_argument("--shape", help="crop/pad the PSF to HxW")
-    g.add_argument("--max-offcentre", type=float, default=0.25, help="fraction of the sensor")
-    g.add_argument("--min-snr", type=float, default=10.0)
+    g.add_argument("--max-offcentre", type=UNIT, default=0.25, help="fraction of the sensor")
+    g.add_argument("--min-snr", type=NONNEG, default=10.0,
+                   help="refuse a PSF whose peak SNR is below this (10)")
     g.add_argument("--pixel-maps", help="pixel-maps file whose bad pixels are repaired too")
 
 
@@ -251,6 +276,7 @@ def _bad_pixels(args: argparse.Namespace) -> Any:
 
 def run_psf(args: argparse.Namespace) -> int:
     """Capture and save a PSF calibration."""
+    check_command_outputs(args, [args.out])
     from calibration.psf import capture_psf
     from calibration.workflow import Workflow
 
@@ -268,6 +294,7 @@ def run_psf(args: argparse.Namespace) -> int:
 
 def run_depth(args: argparse.Namespace) -> int:
     """Capture and save a depth PSF stack."""
+    check_command_outputs(args, [args.out])
     from calibration.psf import capture_depth_stack
     from calibration.workflow import Workflow
 
@@ -303,6 +330,7 @@ def run_depth(args: argparse.Namespace) -> int:
 
 def run_darks(args: argparse.Namespace) -> int:
     """Capture darks (and flats) and save the pixel maps."""
+    check_command_outputs(args, [args.out])
     from calibration.darks import calibrate_pixel_maps
     from calibration.workflow import Workflow
 
@@ -346,6 +374,7 @@ def run_darks(args: argparse.Namespace) -> int:
 
 def run_shutter(args: argparse.Namespace) -> int:
     """Shutter function from the camera's timing, or measured by strobing the source."""
+    check_command_outputs(args, [args.out])
     from calibration.shutter import ShutterSettings, measure_shutter, shutter_for_frame
     from calibration.workflow import Workflow
 
@@ -390,6 +419,7 @@ def run_shutter(args: argparse.Namespace) -> int:
 
 def run_filters(args: argparse.Namespace) -> int:
     """Validate, normalise and save a filter cube."""
+    check_command_outputs(args, [args.out])
     from calibration.filters import load_filter_cube
 
     if args.sensor:

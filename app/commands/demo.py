@@ -7,9 +7,12 @@ import json
 import os
 import shutil
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from app.commands._options import NONNEG, POSITIVE_INT, add_overwrite_option, check_command_outputs
 
 
 def register(sub: Any) -> None:
@@ -17,10 +20,14 @@ def register(sub: Any) -> None:
     p = sub.add_parser("demo", help="reconstruct a bundled real measurement (hand, or 3D USAF)")
     p.add_argument("--scene", choices=["hand", "depth"], default="hand",
                    help="hand: DiffuserCam-Tutorial 2D; depth: DiffuserCam 3D USAF target")
-    p.add_argument("--out", default="lenslesscam-demo", help="output folder")
-    p.add_argument("--tau", type=float, default=None, help="TV weight (1e-3 hand, 3e-3 depth)")
-    p.add_argument("--iters", type=int, default=None, help="iterations (300 hand, 500 depth)")
+    p.add_argument("--out", default=None,
+                   help="output folder (default: the user's data folder, "
+                   "$XDG_DATA_HOME/lenslesscam/demo; printed on use)")
+    p.add_argument("--tau", type=NONNEG, default=None, help="TV weight (1e-3 hand, 3e-3 depth)")
+    p.add_argument("--iters", type=POSITIVE_INT, default=None,
+                   help="iterations (300 hand, 500 depth)")
     p.add_argument("--open", action="store_true", help="open the preview in an image viewer")
+    add_overwrite_option(p)
     p.set_defaults(func=run)
 
 
@@ -32,6 +39,15 @@ DEPTH_PLANES = slice(2, 10)
 
 def run(args: argparse.Namespace) -> int:
     """FISTA-TV on a bundled real measurement; writes TIFF + PNG previews."""
+    from app.locations import default_demo_dir
+    from recon.io import reconstruction_paths
+
+    if args.out is None:
+        args.out = str(default_demo_dir())
+        print(f"demo: writing to {args.out} (--out DIR to choose another folder)",
+              file=sys.stderr)
+    name, kind = ("usaf3d.tif", "depth") if args.scene == "depth" else ("hand.tif", "image")
+    check_command_outputs(args, reconstruction_paths(Path(args.out) / name, kind))
     if args.scene == "depth":
         return run_depth(args)
     return run_hand(args)
@@ -60,7 +76,8 @@ def run_depth(args: argparse.Namespace) -> int:
     planes = samples.depth_planes()[DEPTH_PLANES]
     meta = {"method": "fista-tv", "model": "depth", "parameters": solver.params,
             "iterations": res.iterations, "stop_reason": res.reason.value,
-            "wall_time_s": round(wall, 3), "original_planes": [list(p) for p in planes],
+            "wall_time_s": round(wall, 3), "threads": _threads(args),
+            "original_planes": [list(p) for p in planes],
             "inputs": {"psf_stack": "sample:depth_psf_stack", "meas": "sample:depth_measurement"},
             "source": "DiffuserCam 3D example (Waller Lab, BSD-3-Clause), 1/2 scale"}
     paths = save_reconstruction(Path(args.out) / "usaf3d.tif", res.x.numpy(), meta, kind="depth")
@@ -68,6 +85,16 @@ def run_depth(args: argparse.Namespace) -> int:
                       "wall_time_s": round(wall, 2)}))
     _maybe_open(args, paths[-1])
     return 0
+
+
+def _threads(args: argparse.Namespace) -> str:
+    """The torch thread count and why (``--threads`` or recon.threads' choice)."""
+    choice = getattr(args, "thread_choice", None)
+    if choice is not None:
+        return str(choice)
+    import torch
+
+    return f"{torch.get_num_threads()} torch thread(s)"
 
 
 def _maybe_open(args: argparse.Namespace, path: Path) -> None:
@@ -101,8 +128,8 @@ def run_hand(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     meta = {"method": "fista-tv", "model": "2d", "parameters": solver.params,
             "iterations": res.iterations, "stop_reason": res.reason.value,
-            "wall_time_s": round(wall, 3), "inputs": {"psf": "sample:tutorial_psf",
-                                                       "meas": "sample:tutorial_measurement"},
+            "wall_time_s": round(wall, 3), "threads": _threads(args),
+            "inputs": {"psf": "sample:tutorial_psf", "meas": "sample:tutorial_measurement"},
             "source": "DiffuserCam-Tutorial (Waller Lab, BSD-3-Clause), 1/8 scale"}
     paths = save_reconstruction(Path(args.out) / "hand.tif", res.x.numpy(), meta, kind="image")
     print(json.dumps({"out": [str(p) for p in paths], "iterations": res.iterations,

@@ -19,6 +19,13 @@ import json
 import re
 from typing import Any
 
+from app.commands._options import (
+    FINITE,
+    POSITIVE,
+    add_overwrite_option,
+    check_command_outputs,
+)
+
 __all__ = ["parse_duration_us", "register"]
 
 _UNITS_US = {"us": 1.0, "µs": 1.0, "ms": 1000.0, "s": 1_000_000.0}
@@ -58,13 +65,14 @@ def register(subparsers: Any) -> None:
         "--camera", default="sim", help="sim | genicam[:N] | v4l2[:N|:PATH] (default sim)"
     )
     s.add_argument("--exposure", type=parse_duration_us, help="exposure, e.g. 10ms")
-    s.add_argument("--gain", type=float, help="gain (device units)")
-    s.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the frame")
+    s.add_argument("--gain", type=FINITE, help="gain (device units)")
+    s.add_argument("--timeout", type=POSITIVE, default=5.0, help="seconds to wait for the frame")
     s.add_argument("--light-state", help="sim only: state file of a simulated point source")
     s.add_argument(
         "--producer", action="append", default=[], metavar="CTI", help="extra GenTL producer"
     )
     s.add_argument("--out", required=True, help="output TIFF file")
+    add_overwrite_option(s)
     s.set_defaults(func=_snap)
 
 
@@ -109,6 +117,7 @@ def _snap(args: argparse.Namespace) -> int:
     from drivers.camera import CameraError
     from drivers.registry import open_camera
 
+    check_command_outputs(args, [args.out])  # before the camera is opened
     kwargs: dict[str, Any] = {}
     name = args.camera.partition(":")[0].lower()
     if name == "sim":

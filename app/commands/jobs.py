@@ -1,7 +1,8 @@
 """``lenslesscam jobs run|resume|status|cancel``: overnight UDN jobs in run folders.
 
 Exit codes of ``run`` and ``resume``: 0 completed or stopped early, 3 cancelled (SIGTERM,
-SIGINT, ``jobs cancel``), 2 failed (the run record says why).
+SIGINT, ``jobs cancel``), 2 failed (the run record says why) or refused (the folder is in use
+by another process, no usable checkpoint without ``--restart``, ...), with one line on stderr.
 """
 
 from __future__ import annotations
@@ -11,6 +12,14 @@ import json
 import sys
 from pathlib import Path
 from typing import Any
+
+from app.commands._options import (
+    NONNEG_INT,
+    POSITIVE,
+    POSITIVE_INT,
+    add_overwrite_option,
+    check_command_outputs,
+)
 
 EXIT_CANCELLED = 3
 
@@ -23,14 +32,16 @@ def register(sub: Any) -> None:
     r = act.add_parser("run", help="run a job spec (TOML) into a new run folder")
     r.add_argument("spec", help="job spec file (TOML)")
     r.add_argument("--out", required=True, help="run folder to create")
-    r.add_argument("--seed", type=int, help="override optimizer.seed (runs for an ensemble)")
+    r.add_argument("--seed", type=NONNEG_INT, help="override optimizer.seed (runs for an ensemble)")
     _common_run_args(r)
     r.set_defaults(func=cmd_run)
 
     s = act.add_parser("resume", help="continue a run from its last checkpoint")
     s.add_argument("run_dir", help="run folder")
-    s.add_argument("--max-iter", type=int, help="raise the iteration limit")
-    s.add_argument("--time-limit", type=float, help="raise the wall-time limit (seconds)")
+    s.add_argument("--max-iter", type=POSITIVE_INT, help="raise the iteration limit")
+    s.add_argument("--time-limit", type=POSITIVE, help="raise the wall-time limit (seconds)")
+    s.add_argument("--restart", action="store_true",
+                   help="begin again from iteration 0 (needed when no checkpoint is usable)")
     _common_run_args(s)
     s.set_defaults(func=cmd_resume)
 
@@ -51,6 +62,7 @@ def register(sub: Any) -> None:
     e.add_argument("--out", required=True, help="reconstruction TIFF to write")
     e.add_argument("--estimate", choices=["best", "final"], default="best",
                    help="which estimate of each run: best (held-out choice, default) or final")
+    add_overwrite_option(e)
     e.set_defaults(func=cmd_combine)
 
 
@@ -114,10 +126,15 @@ def cmd_resume(args: argparse.Namespace) -> int:
 
     mm = parse_bytes(args.max_memory) if args.max_memory else None
     total = args.max_iter or job_status(args.run_dir).max_iter
+
+    def notice(line: str) -> None:
+        print(f"lenslesscam jobs resume: note: {line}", file=sys.stderr)
+
     return run_with_progress(
         lambda progress, cancel: resume_job(args.run_dir, max_iter=args.max_iter,
                                             time_limit_s=args.time_limit, progress=progress,
-                                            cancel=cancel, max_memory=mm), args, total,
+                                            cancel=cancel, max_memory=mm, restart=args.restart,
+                                            notice=notice), args, total,
         args.run_dir)
 
 
@@ -154,8 +171,10 @@ def cmd_cancel(args: argparse.Namespace) -> int:
 
 def cmd_combine(args: argparse.Namespace) -> int:
     """``jobs combine``."""
+    from recon.io import reconstruction_paths
     from recon.udn.ensemble import combine_runs
 
+    check_command_outputs(args, reconstruction_paths(args.out, "image"))  # TIFF and its PNG
     res = combine_runs(args.run_dirs, args.out, estimate=args.estimate)
     for m in res.members:
         print(f"  seed {m['seed']:>4}  {args.estimate} at iteration {m['iteration']}  "

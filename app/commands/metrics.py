@@ -7,6 +7,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from app.commands._options import POSITIVE
+
 
 def register(subparsers: Any) -> None:
     """Add the ``metrics`` subcommand."""
@@ -14,9 +16,12 @@ def register(subparsers: Any) -> None:
         "metrics",
         help="score an estimate against a reference (MSE, PSNR, SSIM, MS-SSIM) as JSON",
         description=(
-            "Compare EST with the reference GT and print JSON: mse, psnr, ssim, ms_ssim, gain, "
-            "gain_fit. Files: a lenslesscam reconstruction TIFF (C, K, H, W), any TIFF, PNG, "
-            "NPY, NPZ or MAT image. data_range defaults to ref.max() - ref.min()."
+            "Compare EST with the reference GT and print JSON: mse, psnr, ssim, ms_ssim (with "
+            "the number of scales used), gain, gain_fit; for spectral results (a spectral "
+            "reconstruction TIFF, or --spectral) also spectral_cosine_distance (mean 1 - cos "
+            "of the spectral angle) and spectral_angle_deg. Files: a lenslesscam "
+            "reconstruction TIFF (C, K, H, W), any TIFF, PNG, NPY, NPZ or MAT image. "
+            "data_range defaults to ref.max() - ref.min()."
         ),
     )
     p.add_argument("--ref", required=True, type=Path, metavar="GT", help="reference file")
@@ -28,17 +33,20 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument(
         "--data-range",
-        type=float,
+        type=POSITIVE,
         default=None,
         metavar="L",
         help="dynamic range L for PSNR/SSIM (default: range of the reference)",
     )
     p.add_argument("--key", default=None, help="variable name inside NPZ/MAT files")
+    p.add_argument("--spectral", action="store_true",
+                   help="K is the spectral axis: also report the spectral cosine (automatic "
+                   "for spectral reconstruction TIFFs)")
     p.set_defaults(func=run)
 
 
-def _load(path: Path, key: str | None) -> Any:
-    """Load as (C, K, H, W) float64: our TIFF directly, other files by layout."""
+def _load(path: Path, key: str | None) -> tuple[Any, str | None]:
+    """Load as (C, K, H, W) float64 and the reconstruction kind (None: not our TIFF)."""
     import numpy as np
 
     from recon import io as rio
@@ -46,8 +54,8 @@ def _load(path: Path, key: str | None) -> Any:
 
     if path.suffix.lower() in (".tif", ".tiff"):
         try:
-            arr, _ = rio.read_reconstruction(path)
-            return arr.astype(np.float64)
+            arr, meta = rio.read_reconstruction(path)
+            return arr.astype(np.float64), meta.get("kind")
         except FormatError:
             pass  # a plain TIFF: read it as an image below
     a = np.asarray(rio.load_image(path, key=key))
@@ -55,15 +63,15 @@ def _load(path: Path, key: str | None) -> Any:
         raise ValueError(f"{path}: not a numeric image (dtype {a.dtype})")
     a = a.astype(np.float64)
     if a.ndim == 2:
-        return a[np.newaxis, np.newaxis]
+        return a[np.newaxis, np.newaxis], None
     if a.ndim == 3:
         if a.shape[0] in (1, 3) and a.shape[2] not in (3, 4):
-            return a[:, np.newaxis]  # (C, H, W)
+            return a[:, np.newaxis], None  # (C, H, W)
         if a.shape[2] in (3, 4):
-            return np.moveaxis(a[..., :3], -1, 0)[:, np.newaxis]  # (H, W, C) colour
-        return a[np.newaxis]  # (K, H, W) stack
+            return np.moveaxis(a[..., :3], -1, 0)[:, np.newaxis], None  # (H, W, C) colour
+        return a[np.newaxis], None  # (K, H, W) stack
     if a.ndim == 4:
-        return a
+        return a, None
     raise ValueError(f"{path}: cannot interpret an image of shape {a.shape}")
 
 
@@ -77,10 +85,12 @@ def run(args: argparse.Namespace) -> int:
     """Load both files, compute :func:`recon.metrics.metrics_report`, print it as JSON."""
     import json
 
-    from recon.metrics import metrics_report
+    import numpy as np
 
-    ref = _load(args.ref, args.key)
-    est = _load(args.est, args.key)
+    from recon.metrics import metrics_report, spectral_cosine_distance
+
+    ref, ref_kind = _load(args.ref, args.key)
+    est, est_kind = _load(args.est, args.key)
     if ref.shape != est.shape:
         raise ValueError(
             f"shapes differ: ref {args.ref} is {tuple(ref.shape)} (C, K, H, W), est {args.est} "
@@ -88,5 +98,14 @@ def run(args: argparse.Namespace) -> int:
         )
     report = metrics_report(ref, est, gain_fit=args.gain_fit, data_range=args.data_range)
     report = {"ref": str(args.ref), "est": str(args.est), **report}
+    if args.spectral or "spectral" in (ref_kind, est_kind):
+        if ref.shape[1] < 2:
+            raise ValueError(f"a spectral score needs K >= 2 bands, got shape {ref.shape}")
+        dist = spectral_cosine_distance(ref, est, axis=1)  # scale-free: no gain fit needed
+        report["spectral_cosine_distance"] = dist
+        report["spectral_angle_deg"] = float(np.degrees(np.arccos(np.clip(1 - dist, -1, 1))))
+        report["spectral_note"] = ("mean over pixels of 1 - cos(angle between the spectra "
+                                   "along K); spectral_angle_deg is the angle of that mean "
+                                   "cosine; pixels with an all-zero spectrum are left out")
     print(json.dumps({k: _jsonable(v) for k, v in report.items()}, indent=2))
     return 0

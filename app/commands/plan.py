@@ -15,7 +15,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from app.commands._common import ProgressBar, load_array, parse_dark, parse_field
+from app.commands._common import ProgressBar
+from app.commands._inputs import add_layout_arguments, problem_spec
+from app.commands._options import (
+    NONNEG_INT,
+    add_overwrite_option,
+    check_command_outputs,
+)
+from app.commands._tau import tau_type
 
 _UNITS = {"ms": 1e-3, "s": 1.0, "sec": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0, "": 1.0}
 
@@ -67,10 +74,13 @@ def add_plan_inputs(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dark", help="dark level: a number, 'auto' or a dark-frame file")
     p.add_argument("--psf-dark", help="dark level of the PSF (default: same as --dark)")
     p.add_argument("--rgb", action="store_true", help="colour measurement and PSF")
-    p.add_argument("--tau", type=float, default=None, help="TV weight (default 1e-3)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the held-out pixels")
+    p.add_argument("--tau", type=tau_type, default=None, metavar="TAU|auto",
+                   help="TV weight of a FISTA-TV plan; 'auto' (default) chooses it and the "
+                   "iterations from held-out measured pixels (recon.autotau)")
+    p.add_argument("--seed", type=NONNEG_INT, default=0, help="seed of the held-out pixels")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a plan field (repeatable), e.g. --set model=video --set k=8")
+    add_layout_arguments(p)
 
 
 def register(sub: Any) -> None:
@@ -81,6 +91,7 @@ def register(sub: Any) -> None:
     p.add_argument("--out", help="also save the plan as JSON here (for recon auto --plan)")
     p.add_argument("--no-probe", action="store_true",
                    help="do not time the planned model (no time estimate)")
+    add_overwrite_option(p)
     p.set_defaults(func=run_plan)
 
 
@@ -92,34 +103,31 @@ def register_auto(methods: Any) -> None:
     p.add_argument("--out", required=True, help="output TIFF (previews are written beside it)")
     p.add_argument("--float64", action="store_true", help="compute in float64")
     p.add_argument("--quiet", action="store_true", help="do not print the plan to stderr")
+    add_overwrite_option(p)
     p.set_defaults(func=run_auto)
 
 
 def load_inputs(args: argparse.Namespace) -> dict[str, Any]:
-    """Load measurement, PSF (or stack), shutter / timing and mask named on the command line."""
+    """Load measurement, PSF (or stack), shutter / timing and mask named on the command line.
+
+    Through :func:`recon.problem.load_problem` at full resolution (the plan chooses the
+    downsampling, with the same mask rule); the shutter through its one reader.
+    """
     import numpy as np
 
-    from recon.io import load_measurement, load_psf, load_psf_stack
+    from recon.problem import load_problem, read_shutter
 
-    channels = "rgb" if args.rgb else "gray"
-    dark = parse_dark(args.dark)
-    psf_dark = parse_dark(args.psf_dark) if args.psf_dark is not None else dark
-    meas = load_measurement(args.meas, dark=dark, channels=channels)
-    sensor = (int(meas.shape[-2]), int(meas.shape[-1]))
-    psf = stack = None
-    if args.psf_stack:
-        stack = load_psf_stack(args.psf_stack, dark=psf_dark)
-        if stack.shape[1:] != sensor:
-            raise ValueError(f"PSF stack {stack.shape} does not match the measurement {sensor}")
-    elif args.psf:
-        psf = load_psf(args.psf, dark=psf_dark, channels=channels)
-        if psf.shape[1:] != sensor:
-            raise ValueError(f"PSF {psf.shape} does not match the measurement {meas.shape}")
-    else:
+    if not (args.psf or args.psf_stack):
         raise ValueError("give --psf (or --psf-stack for a depth measurement)")
+    depth = bool(args.psf_stack)
+    spec = problem_spec(args, model="depth" if depth else "2d", downsample=1, shutter=None,
+                        filters=None, truth=None)
+    prob = load_problem(spec)
     shutter = None
     if args.shutter:
-        shutter = load_array(args.shutter, "shutter", key="shutter").astype(np.float64)
+        shutter, _ = read_shutter(args.shutter)
+        if spec.flip_rows:
+            shutter = np.ascontiguousarray(shutter[:, ::-1])
     timing = None
     if args.timing:
         path = Path(args.timing)
@@ -131,15 +139,14 @@ def load_inputs(args: argparse.Namespace) -> dict[str, Any]:
             raise ValueError(f"{args.timing}: expected a JSON object with the timing fields")
     if shutter is not None and timing is not None:
         raise ValueError("give --shutter or --timing, not both")
-    mask = None
-    if args.mask:
-        raw = load_array(args.mask, "mask", key="mask").astype(np.float64)
-        raw = raw.reshape(raw.shape[-2:]) if raw.ndim == 3 and raw.shape[0] == 1 else raw
-        if raw.shape != sensor:
-            raise ValueError(f"mask {raw.shape} does not match the measurement {sensor}")
-        mask = (raw > 0.5).astype(np.float32)
-    return {"meas": meas, "psf": psf, "stack": stack, "shutter": shutter, "timing": timing,
-            "mask": mask, "sensor": sensor}
+    if prob.metadata["psf_grid"] == "padded" and (shutter is not None or timing is not None):
+        raise ValueError("plan: a padded-grid PSF is not supported with a shutter or timing; "
+                         "give the PSF on the sensor grid")
+    sensor = (int(prob.meas.shape[-2]), int(prob.meas.shape[-1]))
+    return {"meas": prob.meas, "psf": None if depth else prob.psf,
+            "stack": prob.psf if depth else None, "shutter": shutter, "timing": timing,
+            "mask": prob.mask, "sensor": sensor,
+            "field": tuple(int(n) for n in prob.model.scene_shape[2:]), "problem": prob}
 
 
 def _make(args: argparse.Namespace, inputs: dict[str, Any], probe: bool = True) -> Any:
@@ -152,14 +159,67 @@ def _make(args: argparse.Namespace, inputs: dict[str, Any], probe: bool = True) 
     plan = make_plan(
         inputs["psf"], inputs["meas"], shutter=inputs["shutter"], timing=inputs["timing"],
         psf_stack=inputs["stack"], mask=inputs["mask"],
-        field=parse_field(args.field, inputs["sensor"]),
+        field=inputs["field"],
         budget_s=parse_budget(args.budget),
         tau=args.tau if args.tau is not None else DEFAULT_TAU, seed=args.seed, probe=probe,
         progress=progress)
     if getattr(args, "trade", None):
         plan = plan_from_trade(plan, args.trade)
     overrides = parse_overrides(args.set)
-    return plan.override(**overrides) if overrides else plan
+    plan = plan.override(**overrides) if overrides else plan
+    if (args.tau is None and not getattr(args, "trade", None) and plan.method == "fista-tv"
+            and "tau" not in overrides):
+        plan = auto_tau_plan(plan, inputs)
+    return plan
+
+
+def auto_tau_plan(plan: Any, inputs: dict[str, Any]) -> Any:
+    """The plan with tau and iterations chosen from held-out pixels on its own model.
+
+    The measurement is prepared as :func:`recon.plan.execute` does (scaled, downsampled with
+    the one mask rule); tau is searched on the solver's scale and stored per full-resolution
+    pixel as the plan defines it (x downsample; x K for a video's per-frame weight).
+    """
+    import dataclasses
+
+    import numpy as np
+    import torch
+
+    from recon.autotau import AUTO_MAX_ITER, choose_tau
+    from recon.io import box_downsample, downsample_masked
+    from recon.plan.analysis import video_tv
+    from recon.plan.planner import _scaled_meas, base_shutter, planned_model
+    from recon.tv import TV
+
+    b = _scaled_meas(inputs["meas"])
+    base, _ = base_shutter(inputs["shutter"], inputs["timing"], plan.sensor[0])
+    model = planned_model(plan, inputs["psf"], shutter=base, psf_stack=inputs["stack"],
+                          mask=inputs["mask"])
+    if inputs["mask"] is None:
+        b_d = box_downsample(b, plan.downsample)
+    else:
+        b_d, _ = downsample_masked(b, np.asarray(inputs["mask"], dtype=np.float32),
+                                   plan.downsample)
+    per_frame = plan.k if plan.model == "video" else 1
+    if plan.model == "video":
+        tv = video_tv(plan.k, 1.0, plan.lambda_t)[1]
+    elif plan.model == "depth":
+        tv = TV(weight_k=plan.tv_depth)
+    else:
+        tv = TV()
+    limit = plan.iterations if plan.budget_s is not None else AUTO_MAX_ITER
+    choice = choose_tau(model, torch.as_tensor(b_d, dtype=torch.float32), tv=tv,
+                        max_iter=max(limit, 1), min_iter=min(100, max(limit, 1)),
+                        tau_range=(1e-7 / per_frame, 1e-2 / per_frame))
+    tau = choice.tau * per_frame * plan.downsample
+    iterations = min(choice.iterations, limit)
+    why = (f"chosen from held-out measured pixels ({choice.heldout_pixels} pixels, "
+           f"{len(choice.curve)} values of tau tried in {choice.cost_s:.1f} s; recon.autotau)")
+    new = plan.override(tau=tau, iterations=iterations)
+    reasons = {**new.reasons, "tau": why, "iterations": why,
+               "method": f"{new.reasons.get('method', '')}; iterations {why}"}
+    # chosen by the planner, not set by the user
+    return dataclasses.replace(new, reasons=reasons, overridden=plan.overridden)
 
 
 def plan_from_trade(plan: Any, trade_csv: str) -> Any:
@@ -193,6 +253,8 @@ def run_plan(args: argparse.Namespace) -> int:
     """Print (and optionally save) the plan."""
     from recon.formats import atomic_write_json
 
+    if args.out:
+        check_command_outputs(args, [args.out])
     inputs = load_inputs(args)
     plan = _make(args, inputs, probe=not args.no_probe)
     if args.out:
@@ -208,21 +270,26 @@ def run_auto(args: argparse.Namespace) -> int:
     """Plan (or load a plan), run it and save the reconstruction with the plan in its metadata."""
     import torch
 
-    from recon.formats import file_hash
-    from recon.io import save_reconstruction
+    from recon.io import reconstruction_paths, save_reconstruction
     from recon.plan import Plan, execute
 
+    check_command_outputs(args, reconstruction_paths(args.out, "image"))
     inputs = load_inputs(args)
     if args.plan:
         path = Path(args.plan)
         if not path.is_file():
             raise FileNotFoundError(f"plan file not found: {args.plan}")
-        plan = Plan.from_json(json.loads(path.read_text()))
+        try:
+            plan = Plan.from_json(json.loads(path.read_text(encoding="utf-8")))
+        except ValueError as exc:  # bad JSON, not UTF-8, a missing or wrong-typed field
+            raise ValueError(f"plan file {args.plan}: {exc}") from None
         overrides = parse_overrides(args.set)
         if overrides:
             plan = plan.override(**overrides)
     else:
         plan = _make(args, inputs)
+    kind = {"2d": "image", "video": "video", "depth": "depth"}[plan.model]
+    check_command_outputs(args, reconstruction_paths(args.out, kind))  # the plan's previews
     if not args.quiet:
         print(plan.describe(), file=sys.stderr)
     bar = ProgressBar(max(plan.iterations, 1), f"recon auto ({plan.model}, K={plan.k})")
@@ -234,11 +301,11 @@ def run_auto(args: argparse.Namespace) -> int:
                   timing=inputs["timing"], psf_stack=inputs["stack"], mask=inputs["mask"],
                   dtype=torch.float64 if args.float64 else torch.float32, callback=on_step)
     bar.close()
-    kind = {"2d": "image", "video": "video", "depth": "depth"}[plan.model]
     meta = res.metadata()
     meta["inputs"] = {"psf": args.psf or args.psf_stack, "meas": args.meas,
                       "shutter": args.shutter, "timing": args.timing, "mask": args.mask}
-    meta["input_hashes"] = {"meas": file_hash(args.meas)}
+    meta["input_hashes"] = {k: v for k, v in inputs["problem"].hashes.items() if v is not None}
+    meta["preprocessing"] = inputs["problem"].metadata
     paths = save_reconstruction(args.out, res.x, meta, kind=kind)
     summary = {"out": [str(p) for p in paths], "model": plan.model, "k": plan.k,
                "region": list(plan.region), "downsample": plan.downsample,

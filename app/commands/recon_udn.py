@@ -9,10 +9,19 @@ an overnight job later.
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from pathlib import Path
 from typing import Any
+
+from app.commands._options import (
+    FRACTION,
+    NONNEG,
+    NONNEG_INT,
+    POSITIVE,
+    POSITIVE_INT,
+    add_overwrite_option,
+    check_command_outputs,
+)
 
 
 def register_udn(methods: Any) -> None:
@@ -24,84 +33,63 @@ def register_udn(methods: Any) -> None:
     g = u.add_argument_group("network")
     g.add_argument("--variant", choices=["auto", "2d", "frames", "3d"], default="auto",
                    help="2d, frames (K as channels), 3d, auto (2d for K=1 else frames)")
-    g.add_argument("--scales", type=int, default=5, help="levels (default 5)")
-    g.add_argument("--net-channels", type=int, default=128, help="channels (default 128)")
-    g.add_argument("--skip-channels", type=int, default=4, help="skip channels (default 4)")
-    g.add_argument("--input-channels", type=int, default=32, help="channels of z (32)")
+    g.add_argument("--scales", type=POSITIVE_INT, default=5, help="levels (default 5)")
+    g.add_argument("--net-channels", type=POSITIVE_INT, default=32, help="channels (default 32)")
+    g.add_argument("--skip-channels", type=NONNEG_INT, default=4, help="skip channels (default 4)")
+    g.add_argument("--input-channels", type=POSITIVE_INT, default=32, help="channels of z (32)")
     g.add_argument("--grad-checkpoint", action="store_true", help="gradient checkpointing")
     o = u.add_argument_group("optimiser and stopping")
-    o.add_argument("--iters", type=int, default=3000, help="iteration limit (default 3000)")
-    o.add_argument("--time-limit", type=float, help="wall-time limit in seconds")
-    o.add_argument("--lr", type=float, default=0.01, help="Adam learning rate (0.01)")
-    o.add_argument("--reg-noise", type=float, default=0.05, help="input noise std (0.05)")
-    o.add_argument("--loss", choices=["mse", "scale_invariant"], default="mse")
-    o.add_argument("--tv-weight", type=float, default=0.0, help="TV weight (0)")
-    o.add_argument("--ema", type=float, default=0.99, help="output EMA decay (0.99)")
-    o.add_argument("--holdout", type=float, default=0.05,
+    o.add_argument("--iters", type=POSITIVE_INT, default=3000,
+                   help="iteration limit (default 3000)")
+    o.add_argument("--time-limit", type=POSITIVE, help="wall-time limit in seconds")
+    o.add_argument("--lr", type=POSITIVE, default=0.03, help="Adam learning rate (0.03)")
+    o.add_argument("--reg-noise", type=NONNEG, default=0.05, help="input noise std (0.05)")
+    o.add_argument("--loss", choices=["mse", "scale_invariant"], default="mse",
+                   help="data term: mse, or scale_invariant (fits a gain first)")
+    o.add_argument("--tv-weight", type=NONNEG, default=0.0, help="TV weight (0)")
+    o.add_argument("--ema", type=FRACTION, default=0.9, help="output EMA decay (0.9)")
+    o.add_argument("--holdout", type=FRACTION, default=0.05,
                    help="held-out fraction of measured pixels for early stopping (0.05)")
-    o.add_argument("--patience", type=int, default=500, help="early-stopping patience (500)")
-    o.add_argument("--seed", type=int, default=0)
+    o.add_argument("--patience", type=POSITIVE_INT, default=500,
+                   help="early-stopping patience (500)")
+    o.add_argument("--seed", type=NONNEG_INT, default=0,
+                   help="seed of the network input and weights (0)")
     o.add_argument("--truth", help="ground-truth scene (C,K,H,W) to score the result")
     d = u.add_argument_group("device and output")
     d.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N, mps")
-    d.add_argument("--precision", choices=["float32", "bf16"], default="float32")
+    d.add_argument("--precision", choices=["float32", "bf16"], default="float32",
+                   help="network precision: float32 or bf16 (autocast)")
     d.add_argument("--compile", action="store_true", help="torch.compile the network")
-    d.add_argument("--channels-last", action="store_true")
-    d.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
+    d.add_argument("--channels-last", action="store_true",
+                   help="channels-last memory format for the network")
+    d.add_argument("--threads", type=NONNEG_INT, default=0, help="torch CPU threads (0: default)")
     d.add_argument("--max-memory", help="refuse runs estimated above this (e.g. 2GB)")
-    d.add_argument("--checkpoint-every", type=int, default=500)
-    d.add_argument("--preview-every", type=int, default=100)
+    d.add_argument("--checkpoint-every", type=POSITIVE_INT, default=500,
+                   help="iterations between checkpoints (500)")
+    d.add_argument("--preview-every", type=POSITIVE_INT, default=100,
+                   help="iterations between preview images (100)")
     d.add_argument("--name", default="", help="a name for the run")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.add_argument("--write-spec", metavar="FILE",
                    help="only write the job spec (TOML) to FILE and exit")
     u.add_argument("--out", help="run folder to create (required unless --write-spec)")
+    add_overwrite_option(u)  # for --write-spec; a run folder that holds a run is always refused
     u.set_defaults(func=run_udn)
 
 
-def _path(value: str | None) -> str | None:
-    return None if value is None else str(Path(value).expanduser().resolve())
-
-
-def _dark(value: str | None) -> Any:
-    if value is None or value == "auto":
-        return value
-    try:
-        return float(value)
-    except ValueError:
-        return _path(value)
-
-
 def build_spec(args: argparse.Namespace) -> dict[str, Any]:
-    """The job spec (as a dict of TOML tables) that the command line describes."""
+    """The job spec (as a dict of TOML tables) that the command line describes.
+
+    Its ``[data]`` table is the command line's :class:`recon.problem.ProblemSpec`.
+    """
+    from app.commands._inputs import problem_spec
+
     if getattr(args, "float64", False):
         raise ValueError("--float64 is not available for UDN (the network runs in float32 or "
                          "bf16)")
-    if args.model == "depth":
-        if not args.psf_stack:
-            raise ValueError("--model depth needs --psf-stack")
-        psf = _path(args.psf_stack)
-    else:
-        if not args.psf:
-            raise ValueError(f"--model {args.model} needs --psf")
-        psf = _path(args.psf)
-    if args.field in ("sensor", "full"):
-        field: Any = args.field
-    else:
-        m = re.fullmatch(r"(\d+)x(\d+)", args.field or "")
-        if not m:
-            raise ValueError(f"--field must be 'sensor', 'full' or HxW, got {args.field!r}")
-        field = [int(m.group(1)), int(m.group(2))]
     spec: dict[str, Any] = {
         "job": {"name": args.name},
-        "data": {
-            "model": args.model, "psf": psf, "measurement": _path(args.meas),
-            "mask": _path(args.mask), "shutter": _path(args.shutter),
-            "filters": _path(args.filters), "truth": _path(args.truth),
-            "downsample": args.downsample, "dark": _dark(args.dark),
-            "psf_dark": _dark(args.psf_dark), "color": "rgb" if args.rgb else "gray",
-            "field": field,
-        },
+        "data": problem_spec(args).to_data_section(),
         "network": {
             "variant": args.variant, "scales": args.scales, "channels": args.net_channels,
             "skip_channels": args.skip_channels, "input_channels": args.input_channels,
@@ -127,9 +115,11 @@ def run_udn(args: argparse.Namespace) -> int:
     from recon.udn.spec import normalise_spec, spec_to_toml
 
     spec = build_spec(args)
-    text = spec_to_toml(spec)
-    normalise_spec(spec_from_toml(text), Path.cwd(), source="command line")  # fail early
+    clean = {sec: {k: v for k, v in keys.items() if v is not None} for sec, keys in spec.items()}
+    normalise_spec(clean, Path.cwd(), source="command line")  # fail early, before any file
+    text = spec_to_toml(spec)  # written once, as RUN_DIR/job.toml (or --write-spec)
     if args.write_spec:
+        check_command_outputs(args, [args.write_spec])
         from recon.formats import atomic_write_bytes
 
         atomic_write_bytes(args.write_spec, text.encode("utf-8"))
@@ -143,10 +133,3 @@ def run_udn(args: argparse.Namespace) -> int:
         lambda progress, cancel: run_job(out / "job.toml", out, progress=progress,
                                          cancel=cancel, spec_text=text),
         args, args.iters, str(out))
-
-
-def spec_from_toml(text: str) -> dict[str, Any]:
-    """Parse TOML text (helper for round-trip checks)."""
-    import tomllib
-
-    return tomllib.loads(text)

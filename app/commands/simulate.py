@@ -1,56 +1,107 @@
-"""``lenslesscam simulate``: a measurement of a known scene through a forward model."""
+"""``lenslesscam simulate``: a measurement of a known scene through a forward model.
+
+``--model 2d`` (default), ``video`` (rolling shutter, ``--shutter`` M (K, rows)) or ``spectral``
+(filter array, ``--filters`` (K, H, W)): the same forward models the solvers invert
+(:func:`recon.models.build_model`) and the same noise / erasure chain
+(:func:`recon.simulate.simulate`); no separate simulation path.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
 from app.commands._common import parse_dark
+from app.commands._options import (
+    BITS,
+    FRACTION,
+    NONNEG,
+    NONNEG_INT,
+    POSITIVE,
+    POSITIVE_INT,
+    add_overwrite_option,
+    check_command_outputs,
+)
+
+#: Files written into ``--out`` (``shutter`` / ``filters`` only for those models).
+OUTPUT_NAMES = ("meas", "truth", "psf", "mask", "shutter", "filters")
 
 
 def register(sub: Any) -> None:
     """Add ``simulate``."""
     p = sub.add_parser("simulate", help="simulate a measurement of a scene with a PSF")
+    p.add_argument("--model", choices=["2d", "video", "spectral"], default="2d",
+                   help="forward model: 2d, video (needs --shutter) or spectral (needs "
+                   "--filters)")
     p.add_argument("--psf", required=True, help="PSF file ('sample:tutorial' for the bundled one)")
     p.add_argument("--scene", required=True,
                    help="scene image, or sample:NAME for a bundled lensed scene "
-                   "(im408, im740, im65)")
-    p.add_argument("--erasure", type=float, default=0.0, help="fraction of erased pixels")
-    p.add_argument("--noise", type=float, default=0.0, help="Gaussian noise sigma (max = 1)")
-    p.add_argument("--photons", type=float, default=None, help="Poisson: photons at max 1")
-    p.add_argument("--bits", type=int, default=None, help="quantise to this many bits")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--downsample", type=int, default=1, help="box downsampling of the PSF")
+                   "(im408, im740, im65); video/spectral: a (K, H, W) stack or one image "
+                   "(the same in every frame / band)")
+    p.add_argument("--shutter", help="video: shutter function M (K, rows) (.npy/.npz/.tif)")
+    p.add_argument("--filters", help="spectral: filter cube (K, H, W) (.npy/.npz/.mat/.tif)")
+    p.add_argument("--erasure", type=FRACTION, default=0.0,
+                   help="fraction of erased pixels, 0 <= f < 1 (default 0)")
+    p.add_argument("--noise", type=NONNEG, default=0.0,
+                   help="Gaussian noise sigma, >= 0, measurement max = 1 (default 0)")
+    p.add_argument("--photons", type=POSITIVE, default=None,
+                   help="Poisson noise: photons at value 1, > 0 (default none)")
+    p.add_argument("--bits", type=BITS, default=None, help="quantise to this many bits (1..32)")
+    p.add_argument("--seed", type=NONNEG_INT, default=0,
+                   help="seed of the noise and the erasures (default 0)")
+    p.add_argument("--downsample", type=POSITIVE_INT, default=1,
+                   help="box downsampling of the PSF (and of the shutter / filters)")
     p.add_argument("--dark", help="dark level of the PSF file: a number, 'auto' or a file")
     p.add_argument("--out", required=True, help="output folder")
+    add_overwrite_option(p)
     p.set_defaults(func=run)
 
 
-def load_scene(spec: str, shape: tuple[int, int]) -> Any:
-    """A grayscale scene (1, 1, H, W) in [0, 1] of the sensor's shape."""
+def _resize(img: Any, shape: tuple[int, int]) -> Any:
     import cv2
+    import numpy as np
+
+    if img.shape == shape:
+        return np.asarray(img, dtype=np.float32)
+    return cv2.resize(np.ascontiguousarray(img, dtype=np.float32), (shape[1], shape[0]),
+                      interpolation=cv2.INTER_AREA)
+
+
+def load_scene(spec: str, shape: tuple[int, int], k: int = 1) -> Any:
+    """A grayscale scene (1, K, H, W) in [0, 1] of the sensor's shape.
+
+    A 2D image (or an (H, W, 3) colour one, made gray) is the same in each of the K frames;
+    a stack (K', H, W) must have K' = K.
+    """
     import numpy as np
 
     from recon import samples
     from recon.io import load_image, to_channel_first, to_gray
 
     if spec.startswith("sample:"):
-        scene = samples.lensed_scene(spec.split(":", 1)[1])[0, 0]
+        frames = samples.lensed_scene(spec.split(":", 1)[1])[0, :1]
     else:
         raw = np.asarray(load_image(spec), dtype=np.float64)
-        if raw.ndim not in (2, 3):
-            raise ValueError(f"scene {spec} must be an image (H, W) or (H, W, 3), got {raw.shape}")
-        scene = to_gray(to_channel_first(raw))[0]
-        if not np.isfinite(scene).all():
+        if raw.ndim == 3 and raw.shape[-1] not in (3, 4):
+            frames = raw  # a (K, H, W) stack
+        elif raw.ndim in (2, 3):
+            frames = to_gray(to_channel_first(raw))
+        else:
+            raise ValueError(f"scene {spec} must be an image (H, W) or (H, W, 3), or a stack "
+                             f"(K, H, W); got shape {raw.shape}")
+        if not np.isfinite(frames).all():
             raise ValueError(f"scene {spec} contains NaN or inf values")
-        top = float(scene.max())
-        scene = scene / top if top > 0 else scene
-    if scene.shape != shape:
-        scene = cv2.resize(np.ascontiguousarray(scene, dtype=np.float32), (shape[1], shape[0]),
-                           interpolation=cv2.INTER_AREA)
-    return np.asarray(scene, dtype=np.float32)[None, None]
+        top = float(frames.max())
+        frames = frames / top if top > 0 else frames
+    if frames.shape[0] not in (1, k):
+        raise ValueError(f"scene {spec} has {frames.shape[0]} frames; the model has K = {k}")
+    out = np.stack([_resize(f, shape) for f in frames])
+    if out.shape[0] == 1 and k > 1:
+        out = np.repeat(out, k, axis=0)
+    return np.asarray(out, dtype=np.float32)[None]
 
 
 def load_psf_spec(spec: str, downsample: int, dark: Any) -> Any:
@@ -61,7 +112,37 @@ def load_psf_spec(spec: str, downsample: int, dark: Any) -> Any:
     if spec == "sample:tutorial":
         psf = samples.tutorial_psf()
         return normalise(box_downsample(psf, downsample), "sum") if downsample > 1 else psf
+    from recon.io import load_image
+    from recon.psfcheck import check_psf
+
+    check_psf(load_image(spec), warn=True, name=f"PSF file {spec}")  # constant or saturated
     return load_psf(spec, dark=dark, downsample=downsample)
+
+
+def _model_inputs(args: argparse.Namespace, sensor: tuple[int, int]) -> dict[str, Any]:
+    """The shutter (video) or filter cube (spectral), downsampled to the sensor."""
+    from recon.io import box_downsample, downsample_rows
+    from recon.problem import read_filters, read_shutter
+
+    if args.model != "video" and args.shutter:
+        raise ValueError("--shutter is only for --model video")
+    if args.model != "spectral" and args.filters:
+        raise ValueError("--filters is only for --model spectral")
+    if args.model == "video":
+        if not args.shutter:
+            raise ValueError("--model video needs --shutter (a (K, rows) shutter function)")
+        m, _ = read_shutter(args.shutter)  # the one shutter reader (calibration .npz too)
+        if m.ndim == 2 and args.downsample > 1 and m.shape[1] != sensor[0]:
+            m = downsample_rows(m, args.downsample)
+        return {"shutter": m}
+    if args.model == "spectral":
+        if not args.filters:
+            raise ValueError("--model spectral needs --filters (a (K, H, W) filter cube)")
+        f = read_filters(args.filters)
+        if f.ndim == 3 and args.downsample > 1 and f.shape[1:] != sensor:
+            f = box_downsample(f, args.downsample)
+        return {"filters": f}
+    return {}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -78,23 +159,34 @@ def run(args: argparse.Namespace) -> int:
     from recon.models import build_model
     from recon.simulate import simulate
 
+    out = Path(args.out)
+    check_command_outputs(args, [out / f"{n}.npy" for n in OUTPUT_NAMES]
+                          + [out / "simulation.json"])
     psf = load_psf_spec(args.psf, args.downsample, parse_dark(args.dark))
-    scene = load_scene(args.scene, (int(psf.shape[-2]), int(psf.shape[-1])))
-    model = build_model("2d", psf)
+    sensor = (int(psf.shape[-2]), int(psf.shape[-1]))
+    extra = _model_inputs(args, sensor)
+    model = build_model(args.model, psf, **extra)
+    scene = load_scene(args.scene, sensor, k=model.k)
+    if scene.shape != model.scene_shape:
+        raise ValueError(f"scene {args.scene} gives {scene.shape}, the model needs "
+                         f"{model.scene_shape}")
     sim = simulate(model, scene, erasure=args.erasure, noise=args.noise, photons=args.photons,
                    bits=args.bits, seed=args.seed)
-    out = Path(args.out)
     files = {"meas": sim.meas, "truth": sim.truth, "psf": psf,
              "mask": sim.mask if sim.mask is not None else np.ones(sim.meas.shape[-2:], np.float32)}
+    files.update({k: np.asarray(v, dtype=np.float32) for k, v in extra.items()})
     for name, arr in files.items():
         atomic_write(out / f"{name}.npy", lambda p, a=arr: np.save(p, a, allow_pickle=False))
     meta = {"format": "lenslesscam.simulation", "format_version": FORMAT_VERSION,
-            "provenance": provenance(), "psf": args.psf, "scene": args.scene,
+            "provenance": provenance(), "model": args.model, "psf": args.psf,
+            "scene": args.scene, "shutter": args.shutter, "filters": args.filters,
             "downsample": args.downsample, "params": sim.params, "scale": sim.scale,
             "saturated_pixels": sim.saturated,
             "hashes": {k: array_hash(v) for k, v in files.items()},
             "files": {k: f"{k}.npy" for k in files}}
     atomic_write_json(out / "simulation.json", meta)
-    print(json.dumps({"out": str(out), "shape": list(sim.meas.shape),
-                      "erased": int((files["mask"] == 0).sum())}))
+    print(json.dumps({"out": str(out), "model": args.model, "shape": list(sim.meas.shape),
+                      "k": model.k, "erased": int((files["mask"] == 0).sum())}))
+    if sim.mask is not None and not (files["mask"] > 0).any():
+        print("simulate: warning: every pixel is erased", file=sys.stderr)
     return 0

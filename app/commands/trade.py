@@ -10,9 +10,20 @@ import time
 from pathlib import Path
 from typing import Any
 
+from app.commands._options import (
+    NONNEG_INT,
+    POSITIVE_INT,
+    add_overwrite_option,
+    check_command_outputs,
+)
+
 PROTOCOL_SCENES = ("im408", "im740", "im65")
 PROTOCOL_ERASURES = (0.9, 0.99)
 QUALITY_LABEL = {"psnr": "PSNR vs truth (dB)", "heldout_psnr": "held-out prediction (dB)"}
+
+
+#: What ``trade`` writes into ``--out``.
+TRADE_FILES = ("trade.csv", "trade.md", "trade_pareto.png")
 
 
 def register(sub: Any) -> None:
@@ -28,17 +39,22 @@ def register(sub: Any) -> None:
     p.add_argument("--mask", help="erasure mask (1 = measured)")
     p.add_argument("--truth", help="ground truth (C,1,H,W) or (H,W), if known")
     p.add_argument("--dark", help="dark level for the measurement and PSF files")
-    p.add_argument("--downsample", type=int, default=1)
+    from app.commands._inputs import add_layout_arguments
+
+    add_layout_arguments(p)
+    p.add_argument("--downsample", type=POSITIVE_INT, default=1,
+                   help="box downsampling factor (default 1)")
     p.add_argument("--quick", action="store_true", help="a small grid")
     p.add_argument("--no-udn", action="store_true", help="leave the UDN out of the grid")
     p.add_argument("--budgets", default="0.5,2,10,60", help="time budgets in seconds")
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--threads", type=NONNEG_INT, default=0,
+                   help="torch threads (default 0: chosen from cores and load, recon.threads)")
     p.add_argument("--out", required=True, help="output folder (CSV, Markdown, PNG)")
+    add_overwrite_option(p)
     p.set_defaults(func=run)
 
 
 def _cases(args: argparse.Namespace) -> list[Any]:
-    import numpy as np
 
     from recon import samples
     from recon.models import build_model
@@ -58,32 +74,20 @@ def _cases(args: argparse.Namespace) -> list[Any]:
     if args.sample == "tutorial":
         return [Case("tutorial hand (real)", samples.tutorial_psf(),
                      samples.tutorial_measurement())]
-    from app.commands._common import load_array, parse_dark
-    from recon.io import downsample_masked, load_measurement, load_psf, normalise
+    from app.commands._inputs import problem_spec
+    from recon.problem import load_problem
 
     if not args.psf:
         raise ValueError("--meas needs --psf")
-    dark = parse_dark(args.dark)
-    psf = load_psf(args.psf, dark=dark, downsample=args.downsample)
-    mask = truth = None
-    if args.mask:
-        raw = load_array(args.mask, "mask", key="mask").astype(np.float64)
-        full = load_measurement(args.meas, dark=dark, normalise=None)
-        meas, mask = downsample_masked(full, raw.reshape(raw.shape[-2:]), args.downsample)
-        meas = normalise(meas, "max").astype(np.float32)
-    else:
-        meas = load_measurement(args.meas, dark=dark, downsample=args.downsample)
-    if args.truth:
-        t = load_array(args.truth, "truth").astype(np.float32)
-        truth = t.reshape(1, 1, *t.shape[-2:]) if t.ndim == 2 else t
+    prob = load_problem(problem_spec(args, model="2d"))
+    psf, meas, mask, truth = prob.psf, prob.meas, prob.mask, prob.truth
     return [Case(Path(args.meas).stem, psf, meas, mask, truth)]
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the grid on each case; write trade.csv, trade.md and trade_pareto.png."""
-    import torch
-
     from recon.formats import atomic_write_bytes
+    from recon.threads import apply_threads
     from recon.trade import (
         best_for_budgets,
         default_grid,
@@ -92,7 +96,8 @@ def run(args: argparse.Namespace) -> int:
         run_trade,
     )
 
-    torch.set_num_threads(args.threads)
+    check_command_outputs(args, [Path(args.out) / n for n in TRADE_FILES])
+    threads = apply_threads(args.threads)
     budgets = [float(b) for b in args.budgets.split(",")]
     grid = default_grid(quick=args.quick, with_udn=not args.no_udn)
     out = Path(args.out)
@@ -116,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
     atomic_write_bytes(out / "trade.csv", buf.getvalue().encode())
     # Markdown
     md = [f"# Speed/accuracy trade\n\nProduced by `lenslesscam trade {' '.join(sys.argv[2:])}` "
-          f"in {time.perf_counter() - t_all:.0f} s, torch threads = {args.threads}. Wall time "
+          f"in {time.perf_counter() - t_all:.0f} s, {threads.reason}. Wall time "
           "is the time to reach the iteration count (one run per setting, scored at several "
           "counts); peak memory is the run's peak resident memory above its start.\n"]
     for case in cases:

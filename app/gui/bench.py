@@ -15,8 +15,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import shutil
+import sys
 import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -71,21 +74,62 @@ class PortChoice:
     label: str
 
 
-def list_camera_choices() -> list[CameraChoice]:
-    """The simulated camera first, then every GenICam and V4L2 device found."""
+_producer_lines_seen: set[str] = set()
+
+
+@contextlib.contextmanager
+def _producer_output_logged_once() -> Iterator[None]:
+    """Catch what GenTL producers print on stderr (C code) and log each line once per process.
+
+    A producer prints the same "does not implement ..." lines at every discovery; they are
+    logged at the first one and dropped after. Other stderr output is passed on.
+    """
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr to redirect
+        yield
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            text = tmp.read().decode("utf-8", "replace")
+    for line in text.splitlines():
+        if not line.strip():
+            continue
+        if line.startswith("GenTL producer"):
+            if line not in _producer_lines_seen:
+                _producer_lines_seen.add(line)
+                _log.warning("%s", line)
+        else:
+            sys.stderr.write(line + "\n")
+
+
+def list_camera_choices(show_demo: bool = False) -> list[CameraChoice]:
+    """Hardware cameras first, then the simulated camera; demo cameras only on request.
+
+    Demo cameras (the GenTL demo producers' and the test suite's cached simulator,
+    :attr:`drivers.registry.CameraInfo.demo`) are listed after the others when ``show_demo``.
+    """
     try:
         from drivers.registry import list_cameras
 
-        infos = list_cameras()
+        with _producer_output_logged_once():
+            infos = list_cameras()
     except Exception as exc:  # discovery must never stop the app from starting
         _log.warning("camera discovery failed: %s", exc)
         infos = []
-    out = [CameraChoice(SIM_CAMERA, "sim", "Simulated camera (bundled scene, tutorial PSF)")]
-    for info in infos:
-        if info.spec == SIM_CAMERA:
-            continue
-        out.append(CameraChoice(info.spec, info.backend, f"{info.spec}: {info.description}"))
-    return out
+    real = [CameraChoice(i.spec, i.backend, f"{i.spec}: {i.description}")
+            for i in infos if i.spec != SIM_CAMERA and not i.demo]
+    demo = [CameraChoice(i.spec, i.backend, f"{i.spec}: {i.description} (demo)")
+            for i in infos if i.spec != SIM_CAMERA and i.demo]
+    sim = CameraChoice(SIM_CAMERA, "sim", "Simulated camera (bundled scene, tutorial PSF)")
+    return [*real, sim, *(demo if show_demo else [])]
 
 
 def list_port_choices() -> list[PortChoice]:

@@ -5,7 +5,8 @@ The wizard runs the workflows of :mod:`calibration` (generators of
 :meth:`MainWindow.run_camera_workflow`, which pauses the live view for the duration. Each event
 updates a progress bar, a stage line and the latest frame; Cancel takes effect at the next
 event (the workflow switches the source off and saves nothing). When a capture ends the
-quality report and the PSF are shown, and Save writes the calibration file (atomically, through
+quality report (formatted lines) and the PSF (auto-levelled: the darks shown during the
+capture set no levels) are shown, and Save writes the calibration file (atomically, through
 :mod:`recon.calibfile`). On Finish the new PSF can become the live preview's PSF.
 
 With the simulated bench the scene is hidden while the wizard captures (a PSF is taken with
@@ -19,12 +20,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from PySide6.QtCore import Qt
-from PySide6.QtGui import QAction
+import pyqtgraph as pg
+from PySide6.QtCore import QRectF, Qt
+from PySide6.QtGui import QFontDatabase
 from PySide6.QtWidgets import (
     QCheckBox,
-    QComboBox,
-    QDoubleSpinBox,
     QFileDialog,
     QFormLayout,
     QHBoxLayout,
@@ -33,38 +33,20 @@ from PySide6.QtWidgets import (
     QPlainTextEdit,
     QProgressBar,
     QPushButton,
-    QSpinBox,
     QVBoxLayout,
     QWidget,
     QWizard,
     QWizardPage,
 )
 
+from app.devices_state import LightState
 from app.gui.image_view import ImagePanel
+from app.gui.widgets import ComboBox, DoubleSpinBox, SpinBox
 
 if TYPE_CHECKING:
     from app.gui.main_window import MainWindow
 
-__all__ = ["CalibrationWizard", "add_calibration_action"]
-
-
-def add_calibration_action(window: MainWindow) -> None:
-    """Add "Calibration wizard…" to the window's Tools menu."""
-    act = QAction("Calibration wizard…", window)
-    act.triggered.connect(lambda: open_wizard(window))
-    window.tools_menu.addAction(act)
-    window.calibration_action = act
-
-
-def open_wizard(window: MainWindow) -> CalibrationWizard:
-    """Show the (single) wizard of ``window``."""
-    wiz = getattr(window, "calibration_wizard", None)
-    if wiz is None or not wiz.isVisible():
-        wiz = CalibrationWizard(window)
-        window.calibration_wizard = wiz
-    wiz.show()
-    wiz.raise_()
-    return wiz
+__all__ = ["CalibrationWizard"]
 
 
 def _stamp() -> str:
@@ -101,10 +83,21 @@ class _RunBox(QWidget):
         self.stage = QLabel("not started")
         self.stage.setWordWrap(True)
         self.image = ImagePanel(title)
-        self.image.setMinimumHeight(220)
+        self.image.setMinimumHeight(200)
+        # a result with physical axes (the shutter function: time across, rows down)
+        self.plot = pg.PlotWidget()
+        self.plot.setMinimumHeight(200)
+        self.plot.getViewBox().invertY(True)
+        self.plot_image = pg.ImageItem()
+        self.plot.addItem(self.plot_image)
+        self.plot_bar = pg.ColorBarItem(values=(0.0, 1.0), colorMap=pg.colormap.get("viridis"),
+                                        label="exposed fraction")
+        self.plot_bar.setImageItem(self.plot_image, insert_in=self.plot.getPlotItem())
+        self.plot.setVisible(False)
         self.report = QPlainTextEdit()
         self.report.setReadOnly(True)
-        self.report.setMaximumHeight(110)
+        self.report.setMaximumHeight(150)
+        self.report.setFont(QFontDatabase.systemFont(QFontDatabase.SystemFont.FixedFont))
         self.saved = QLabel("")
         self.saved.setWordWrap(True)
         row = QHBoxLayout()
@@ -117,6 +110,7 @@ class _RunBox(QWidget):
         lay.addWidget(self.progress)
         lay.addWidget(self.stage)
         lay.addWidget(self.image, 1)
+        lay.addWidget(self.plot, 1)
         lay.addWidget(self.report)
         lay.addWidget(self.saved)
 
@@ -126,6 +120,29 @@ class _RunBox(QWidget):
         if on:
             self.save.setEnabled(False)
             self.saved.setText("")
+            self.image.setVisible(True)
+            self.plot.setVisible(False)
+
+    def show_result_image(self, image: np.ndarray) -> None:
+        """Show a result image with levels from its own values (min to max)."""
+        self.image.setVisible(True)
+        self.plot.setVisible(False)
+        self.image.set_image(np.asarray(image, dtype=np.float32))
+        self.image.autoscale()
+
+    def show_axes_image(self, image: np.ndarray, *, x: tuple[float, float],
+                        y: tuple[float, float], x_label: str, y_label: str) -> None:
+        """Show ``image`` (rows, cols) on axes: columns span ``x``, rows span ``y``."""
+        img = np.asarray(image, dtype=np.float32)
+        self.plot_image.setImage(img, autoLevels=False)
+        hi = float(img.max()) if img.size else 1.0
+        self.plot_bar.setLevels((0.0, hi if hi > 0 else 1.0))
+        self.plot_image.setRect(QRectF(x[0], y[0], x[1] - x[0], y[1] - y[0]))
+        self.plot.setLabel("bottom", x_label)
+        self.plot.setLabel("left", y_label)
+        self.plot.autoRange(padding=0.0)
+        self.image.setVisible(False)
+        self.plot.setVisible(True)
 
     def show_progress(self, p: Any) -> None:
         self.progress.setValue(int(1000 * min(max(p.fraction, 0.0), 1.0)))
@@ -150,15 +167,15 @@ class SetupPage(QWizardPage):
         self.out_dir = QLineEdit(default_out)
         browse = QPushButton("Browse…")
         browse.clicked.connect(self._browse)
-        self.n_frames = QSpinBox()
+        self.n_frames = SpinBox()
         self.n_frames.setRange(1, 1000)
         self.n_frames.setValue(16)
-        self.n_darks = QSpinBox()
+        self.n_darks = SpinBox()
         self.n_darks.setRange(1, 1000)
         self.n_darks.setValue(16)
         self.auto_exposure = QCheckBox("auto-exposure (peak at 75% of full scale)")
         self.auto_exposure.setChecked(True)
-        self.intensity = QDoubleSpinBox()
+        self.intensity = DoubleSpinBox()
         self.intensity.setRange(0.0, 1.0)
         self.intensity.setSingleStep(0.1)
         self.intensity.setValue(1.0)
@@ -188,8 +205,8 @@ class SetupPage(QWizardPage):
 
     def _refresh(self) -> None:
         w = self.window_
-        cam_ok = w.bench.camera is not None and w.camera_state in ("live", "stopped")
-        light_ok = w.light_state == "connected"
+        cam_ok = w.bench.camera is not None and w.camera_state.ready
+        light_ok = w.light_state is LightState.CONNECTED
         self.hide_scene.setVisible(w.bench.is_simulated)
         lines = [
             f"Camera: {'ready' if cam_ok else 'not ready'} ({w.camera_state})",
@@ -202,8 +219,8 @@ class SetupPage(QWizardPage):
 
     def isComplete(self) -> bool:
         w = self.window_
-        return (w.bench.camera is not None and w.camera_state in ("live", "stopped")
-                and w.light_state == "connected")
+        return (w.bench.camera is not None and w.camera_state.ready
+                and w.light_state is LightState.CONNECTED)
 
     def out_path(self) -> Path:
         """The chosen output folder."""
@@ -262,15 +279,8 @@ class PsfPage(QWizardPage):
         self.result = result
         self.box.running(False)
         self.box.save.setEnabled(True)
-        q = result.quality
-        self.box.report.setPlainText(
-            f"{q.summary()}\n"
-            f"exposure {result.exposure_us:.0f} us, gain {result.gain}, "
-            f"{result.metadata.get('frames_averaged')} frames, "
-            f"{result.metadata.get('darks_averaged')} darks averaged\n"
-            f"autocorrelation FWHM {q.autocorr_fwhm_px[0]:.2f} x {q.autocorr_fwhm_px[1]:.2f} px"
-        )
-        self.box.image.set_image(np.asarray(result.psf, dtype=np.float32))
+        self.box.report.setPlainText(psf_report(result))
+        self.box.show_result_image(result.psf)
         self.box.stage.setText("done: review the PSF and the report, then Save")
         self.completeChanged.emit()
 
@@ -306,18 +316,18 @@ class ShutterPage(QWizardPage):
         self.setTitle("Shutter function")
         self.setSubTitle("From the camera's timing model (instant), or measured by strobing "
                          "the point source at increasing delays. Optional: Next skips it.")
-        self.method = QComboBox()
+        self.method = ComboBox()
         self.method.addItem("from the timing model", "timing")
         self.method.addItem("measured (strobe scan)", "measured")
-        self.bin_lines = QSpinBox()
+        self.bin_lines = SpinBox()
         self.bin_lines.setRange(1, 100_000)
         self.bin_lines.setValue(100)
         self.bin_lines.setToolTip("Width of one time bin in line times")
-        self.pulse = QDoubleSpinBox()
+        self.pulse = DoubleSpinBox()
         self.pulse.setRange(0.0, 1e6)
         self.pulse.setSpecialValueText("auto")
         self.pulse.setSuffix(" µs")
-        self.step = QDoubleSpinBox()
+        self.step = DoubleSpinBox()
         self.step.setRange(0.0, 1e6)
         self.step.setSpecialValueText("auto")
         self.step.setSuffix(" µs")
@@ -385,13 +395,11 @@ class ShutterPage(QWizardPage):
         self.box.running(False)
         self.box.save.setEnabled(True)
         m = np.asarray(sf.shutter, dtype=np.float32)
-        self.box.image.set_image(m.T.copy())  # rows down, time bins across
-        text = (f"{m.shape[0]} time bins of {sf.bin_lines} lines ({sf.bin_us:.1f} µs), "
-                f"{m.shape[1]} rows, method {sf.method}; timing {sf.timing.to_dict()}")
-        if sf.measurement is not None:
-            text += "\n" + sf.measurement.summary()
-        self.box.report.setPlainText(text)
-        self.box.stage.setText("done: review, then Save (image: rows down, time bins across)")
+        k, rows = m.shape
+        self.box.show_axes_image(m.T.copy(), x=(0.0, k * float(sf.bin_us)), y=(0.0, float(rows)),
+                                 x_label="time after the trigger (µs)", y_label="sensor row")
+        self.box.report.setPlainText(shutter_report(sf))
+        self.box.stage.setText("done: review, then Save (rows down, time across)")
 
     def _failed(self, exc: BaseException) -> None:
         self.box.running(False)
@@ -440,7 +448,7 @@ class CalibrationWizard(QWizard):
         self.setWindowTitle("Calibration wizard")
         self.setWizardStyle(QWizard.WizardStyle.ClassicStyle)
         self.setModal(False)
-        self.resize(720, 760)
+        self.resize(720, 700)
         self.setup_page = SetupPage(window)
         self.psf_page = PsfPage(window, self.setup_page)
         self.shutter_page = ShutterPage(window, self.setup_page)
@@ -460,3 +468,46 @@ class CalibrationWizard(QWizard):
             name = page.saved_path.name if page.saved_path else "captured"
             self.window_.use_psf(page.result.normalised(), f"calibration {name}",
                                  str(page.saved_path or ""))
+
+
+def psf_report(result: Any) -> str:
+    """The PSF capture's quality report as lines for people."""
+    q = result.quality
+    md = result.metadata
+    gain = "–" if result.gain is None else f"{result.gain:g}"
+    return "\n".join([
+        f"peak            {q.peak_adu:.4g} ADU ({100 * q.peak_fraction:.0f} % of full scale)",
+        f"saturated       {q.saturated_pixels} px",
+        f"noise / SNR     {q.noise_adu:.3g} ADU / {q.snr:.3g}",
+        f"support         {q.support_pixels} px ({100 * q.support_fraction:.1f} % of the "
+        "sensor)",
+        f"resolution      {q.resolution_px:.2f} px (autocorrelation FWHM "
+        f"{q.autocorr_fwhm_px[0]:.2f} x {q.autocorr_fwhm_px[1]:.2f} px)",
+        f"centroid offset ({q.offset_px[0]:+.1f}, {q.offset_px[1]:+.1f}) px from the centre",
+        f"exposure, gain  {result.exposure_us / 1000:.3f} ms, {gain}",
+        f"frames          {md.get('frames_averaged')} PSF, {md.get('darks_averaged')} dark "
+        "(averaged)",
+    ])
+
+
+def shutter_report(sf: Any) -> str:
+    """The shutter function's description as lines for people."""
+    k, rows = np.asarray(sf.shutter).shape
+    t = sf.timing
+    lines = [
+        f"time bins       {k} of {sf.bin_lines} lines ({sf.bin_us:.1f} µs each)",
+        f"rows            {rows}",
+        f"method          {sf.method}",
+    ]
+    if t is not None:
+        pattern = getattr(t.pattern, "value", t.pattern)
+        lines += [
+            f"line time       {t.line_time_us:.4g} µs",
+            f"exposure        {t.exposure_lines} lines ({t.exposure_lines * t.line_time_us:.4g} "
+            "µs)",
+            f"readout         {pattern}, trigger delay {t.trigger_delay_us:.4g} µs",
+            f"frame time      {t.frame_time_us / 1000:.3f} ms",
+        ]
+    if sf.measurement is not None:
+        lines.append(f"measured        {sf.measurement.summary()}")
+    return "\n".join(lines)

@@ -2,17 +2,35 @@
 
 Levels stay fixed between frames (no auto-levels per frame: it costs time and makes the live
 view flicker); :meth:`ImagePanel.autoscale` sets them from the current image on demand, and the
-first image of a new shape is autoscaled once. Pixels at or above ``saturation_level`` are
-painted red by a second image item on top. An optional rectangular ROI reports its statistics.
+first image of a new shape is autoscaled once; the *auto levels* option rescales every image
+(continuous auto-levels, for a live frame whose brightness changes). Pixels at or above
+``saturation_level`` are painted red by a second image item on top. An optional rectangular ROI
+reports its statistics. The pixel under the mouse (position and value) is shown in the header;
+a right click opens the image menu (autoscale, export the view as PNG, save the data as TIFF).
+The footer and header lines never widen the window: long text is cut, not laid out wider.
 """
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import numpy.typing as npt
 import pyqtgraph as pg
-from PySide6.QtCore import Qt, Signal
-from PySide6.QtWidgets import QCheckBox, QHBoxLayout, QLabel, QPushButton, QVBoxLayout, QWidget
+from PySide6.QtCore import QPoint, QPointF, Qt, Signal
+from PySide6.QtWidgets import (
+    QCheckBox,
+    QFileDialog,
+    QHBoxLayout,
+    QLabel,
+    QMenu,
+    QPushButton,
+    QVBoxLayout,
+    QWidget,
+)
+
+from app.gui.widgets import never_wider
 
 __all__ = ["ImagePanel", "configure_pyqtgraph"]
 
@@ -59,14 +77,19 @@ class ImagePanel(QWidget):
         self.auto_levels = QCheckBox("auto levels")
         self.auto_levels.setToolTip("Rescale the levels at every image")
         self.auto_levels.setVisible(auto_levels_option)
+        self.cursor_label = QLabel("")
+        self.cursor_label.setObjectName("cursor")
+        never_wider(self.cursor_label)
         head = QHBoxLayout()
         head.addWidget(self.title)
-        head.addStretch(1)
+        head.addWidget(self.cursor_label, 1)
         head.addWidget(self.auto_levels)
         head.addWidget(self.autoscale_button)
 
         self.graphics = pg.GraphicsLayoutWidget()
-        self.graphics.setMinimumSize(160, 140)
+        self.graphics.setMinimumSize(120, 100)
+        self.graphics.setContextMenuPolicy(Qt.ContextMenuPolicy.CustomContextMenu)
+        self.graphics.customContextMenuRequested.connect(self._context_menu)
         self.view = self.graphics.addViewBox(lockAspect=True, invertY=True, enableMenu=False)
         self.item = pg.ImageItem()
         self.view.addItem(self.item)
@@ -90,8 +113,11 @@ class ImagePanel(QWidget):
         self.footer = QLabel("–")
         self.footer.setObjectName("footer")
         self.footer.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.footer.setWordWrap(True)  # readouts wrap at " · " instead of being cut
+        never_wider(self.footer)
         self.message = QLabel("")
         self.message.setWordWrap(True)
+        never_wider(self.message)
         self.message.setStyleSheet("color: #b00;")
         self.message.setVisible(False)
 
@@ -101,6 +127,8 @@ class ImagePanel(QWidget):
         lay.addWidget(self.graphics, 1)
         lay.addWidget(self.message)
         lay.addWidget(self.footer)
+        self.graphics.scene().sigMouseMoved.connect(self._mouse_moved)
+        self.cursor: tuple[int, int, float] | None = None
 
     # -- images --------------------------------------------------------------------------------
 
@@ -175,6 +203,87 @@ class ImagePanel(QWidget):
         self.message.setText(text)
         self.message.setVisible(bool(text))
 
+    # -- cursor and context menu --------------------------------------------------------------
+
+    def pixel_at(self, scene_pos: QPointF) -> tuple[int, int, float] | None:
+        """(x, y, value) of the image pixel at a scene position, None outside the image."""
+        img = self._image
+        if img is None:
+            return None
+        p = self.view.mapSceneToView(scene_pos)
+        x, y = int(np.floor(p.x())), int(np.floor(p.y()))
+        if not (0 <= y < img.shape[0] and 0 <= x < img.shape[1]):
+            return None
+        return x, y, float(np.asarray(img[y, x]).mean())
+
+    def _mouse_moved(self, scene_pos: QPointF) -> None:
+        self.cursor = self.pixel_at(scene_pos)
+        if self.cursor is None:
+            self.cursor_label.setText("")
+            return
+        x, y, v = self.cursor
+        self.cursor_label.setText(f"x {x}  y {y}  value {v:.6g}")
+
+    def _context_menu(self, pos: QPoint) -> None:
+        self.context_menu().exec(self.graphics.mapToGlobal(pos))
+
+    def context_menu(self) -> QMenu:
+        """The image menu: autoscale, reset the zoom, export the view, save the data."""
+        menu = QMenu(self)
+        menu.addAction("Autoscale levels", self.autoscale)
+        menu.addAction("Reset zoom", lambda: self.view.autoRange(padding=0.0))
+        menu.addSeparator()
+        menu.addAction("Export view as PNG…", self._ask_export_view)
+        act = menu.addAction("Save image data as TIFF…", self._ask_save_data)
+        act.setEnabled(self._image is not None)
+        return menu
+
+    def export_view(self, path: str | Path) -> Path:
+        """Save what the panel shows (image, levels, overlays) as a PNG."""
+        from recon.formats import atomic_write
+
+        def write(tmp: Path) -> None:
+            if not self.graphics.grab().save(str(tmp), "PNG"):
+                raise OSError(f"cannot write {path}")
+
+        return atomic_write(path, write)
+
+    def save_data(self, path: str | Path) -> Path:
+        """Save the image's values (float32 or the camera's codes) as a TIFF, atomically."""
+        if self._image is None:
+            raise ValueError("no image to save")
+        import tifffile
+
+        from recon.formats import atomic_write, provenance
+
+        data = np.ascontiguousarray(self._image)
+        meta = json.dumps({"format": "lenslesscam-view", "format_version": 1,
+                           "panel": self.objectName(), "levels": list(self.levels),
+                           "provenance": provenance()}, default=str)
+
+        def write(tmp: Path) -> None:
+            tifffile.imwrite(tmp, data, photometric="minisblack", description=meta,
+                             metadata=None)
+
+        return atomic_write(path, write)
+
+    def _ask_export_view(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Export view", "view.png", "PNG (*.png)")
+        if path:
+            try:
+                self.export_view(path)
+            except OSError as exc:
+                self.set_message(str(exc))
+
+    def _ask_save_data(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Save image data", "image.tif",
+                                              "TIFF (*.tif)")
+        if path:
+            try:
+                self.save_data(path)
+            except (OSError, ValueError) as exc:
+                self.set_message(str(exc))
+
     # -- ROI -----------------------------------------------------------------------------------
 
     def set_roi_visible(self, visible: bool) -> None:
@@ -208,3 +317,4 @@ class ImagePanel(QWidget):
         r = self.roi_rect()
         if r is not None:
             self.roi_changed.emit(*r)
+

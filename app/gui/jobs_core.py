@@ -21,9 +21,9 @@ finished.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import datetime as _dt
+import enum
 import json
 import os
 import re
@@ -40,6 +40,7 @@ import numpy.typing as npt
 __all__ = [
     "APP_JOB_FILE",
     "APP_JOB_FORMAT",
+    "AppJobState",
     "JobQueue",
     "JobView",
     "cancel_job",
@@ -156,6 +157,7 @@ def create_job(
     import shutil
 
     from recon.formats import atomic_write, atomic_write_bytes, atomic_write_json
+    from recon.problem import ProblemSpec
     from recon.udn.spec import load_spec, spec_to_toml
 
     meas = np.asarray(measurement)
@@ -176,13 +178,15 @@ def create_job(
         atomic_write(inputs / "psf.npy", lambda t: np.save(t, p / p.sum(dtype=np.float64)))
         atomic_write_json(inputs / "measurement.json", dict(measurement_metadata or {}))
         secs = {sec: dict(v) for sec, v in (sections or default_sections()).items()}
-        data: dict[str, Any] = {"model": "2d", "psf": "inputs/psf.npy",
-                                "measurement": "inputs/measurement.npy",
-                                "downsample": int(downsample), "dark": dark, "psf_dark": 0.0}
         if shutter is not None:
             atomic_write(inputs / "shutter.npy",
                          lambda t: np.save(t, np.asarray(shutter, dtype=np.float32)))
-            data.update(model="video", shutter="inputs/shutter.npy")
+        # the job's [data] table is a ProblemSpec (loaded by recon.problem.load_problem)
+        data = ProblemSpec(meas="inputs/measurement.npy", psf="inputs/psf.npy",
+                           model="2d" if shutter is None else "video",
+                           shutter=None if shutter is None else "inputs/shutter.npy",
+                           downsample=int(downsample), dark=dark,
+                           psf_dark=0.0).to_data_section()
         spec = {"job": {"name": name}, "data": data, **secs}
         atomic_write_bytes(folder / SPEC, spec_to_toml(spec).encode("utf-8"))
         full = load_spec(folder / SPEC)
@@ -239,6 +243,38 @@ def _launch(folder: Path, action: str, max_iter: int | None = None) -> subproces
     return proc
 
 
+class AppJobState(enum.StrEnum):
+    """Where an app job stands.
+
+    The run record's states (:class:`recon.udn.state.JobState`, the same strings) and the app
+    queue's own: held, withdrawn, launched, failed to start.
+    """
+
+    QUEUED = "queued"
+    HELD = "held"
+    WITHDRAWN = "withdrawn"
+    LAUNCHED = "launched"
+    STARTING = "starting"
+    RUNNING = "running"
+    INTERRUPTED = "interrupted"
+    FINISHED = "finished"
+    FAILED_TO_START = "failed to start"
+
+    @classmethod
+    def read(cls, text: object) -> AppJobState:
+        """The state named ``text`` (an unknown word from a newer version: ``QUEUED``)."""
+        try:
+            return cls(str(text))
+        except ValueError:
+            return cls.QUEUED
+
+    @property
+    def cancellable(self) -> bool:
+        """Whether Cancel applies (withdraw it, or stop its process)."""
+        return self in (AppJobState.QUEUED, AppJobState.STARTING, AppJobState.RUNNING,
+                        AppJobState.HELD)
+
+
 @dataclass
 class JobView:
     """What the panel shows about one job (read from its folder)."""
@@ -246,7 +282,7 @@ class JobView:
     folder: Path
     name: str
     device: str
-    state: str  # queued, starting, running, interrupted, finished, withdrawn, failed to start
+    state: AppJobState
     finish_reason: str | None = None
     detail: str | None = None
     iteration: int = 0
@@ -270,7 +306,7 @@ class JobView:
     @property
     def active(self) -> bool:
         """Whether a process of this job runs (or is being started)."""
-        return self.state in ("starting", "running")
+        return self.state in (AppJobState.STARTING, AppJobState.RUNNING)
 
     @property
     def run_dir(self) -> Path:
@@ -280,10 +316,11 @@ class JobView:
     @property
     def can_resume(self) -> bool:
         """An interrupted or cancelled run (with iterations left) can continue."""
-        if self.state == "interrupted":
+        if self.state is AppJobState.INTERRUPTED:
             return True
-        return self.state == "finished" and self.finish_reason in ("cancelled", "failed") and (
-            (self.run_dir / "checkpoint.pt").is_file())
+        return (self.state is AppJobState.FINISHED
+                and self.finish_reason in ("cancelled", "failed")
+                and (self.run_dir / "checkpoint.pt").is_file())
 
 
 def job_view(folder: str | Path) -> JobView | None:
@@ -293,14 +330,15 @@ def job_view(folder: str | Path) -> JobView | None:
     if entry is None or entry.get("format") != APP_JOB_FORMAT:
         return None
     v = JobView(folder=f, name=str(entry.get("name", f.name)),
-                device=str(entry.get("device", "?")), state=str(entry.get("state", "queued")),
+                device=str(entry.get("device", "?")),
+                state=AppJobState.read(entry.get("state", "queued")),
                 memory=dict(entry.get("memory") or {}),
                 created_utc=str(entry.get("created_utc", "")))
     launches = entry.get("launches") or []
     last = launches[-1] if launches else None
     record = f / RUN_DIR / "run.json"
-    if v.state in ("queued", "held", "withdrawn"):
-        if v.state == "queued" and last is not None and record.is_file():
+    if v.state in (AppJobState.QUEUED, AppJobState.HELD, AppJobState.WITHDRAWN):
+        if v.state is AppJobState.QUEUED and last is not None and record.is_file():
             pass  # a resume waits in the queue: show the run's numbers
         else:
             return v
@@ -316,14 +354,15 @@ def job_view(folder: str | Path) -> JobView | None:
         v.eta_s, v.elapsed_s, v.pid = st.eta_s, st.elapsed_s, st.pid
         v.finish_reason, v.detail = st.finish_reason, st.detail
         v.last_preview = Path(st.last_preview) if st.last_preview else None
-        if v.state != "queued":
-            v.state = st.state
-            if st.state == "running" and st.pid is not None and not _pid_alive(st.pid):
-                v.state = "interrupted"
+        if v.state is not AppJobState.QUEUED:
+            v.state = AppJobState.read(st.state)
+            if (v.state is AppJobState.RUNNING and st.pid is not None
+                    and not _pid_alive(st.pid)):
+                v.state = AppJobState.INTERRUPTED
             # a resume launched but not yet re-registered in the record
-            if (st.state != "running" and last is not None and last.get("action") == "resume"
-                    and _pid_alive(int(last["pid"]))):
-                v.state = "starting"
+            if (st.state != AppJobState.RUNNING and last is not None
+                    and last.get("action") == "resume" and _pid_alive(int(last["pid"]))):
+                v.state = AppJobState.STARTING
         rec = _read_json(record) or {}
         for which in ("final", "best"):
             r = (rec.get("results") or {}).get(which)
@@ -331,9 +370,9 @@ def job_view(folder: str | Path) -> JobView | None:
                 v.results[which] = f / RUN_DIR / r
         return v
     if last is not None and _pid_alive(int(last["pid"])):
-        v.state = "starting"
+        v.state = AppJobState.STARTING
     elif last is not None:
-        v.state = "failed to start"
+        v.state = AppJobState.FAILED_TO_START
         v.detail = _log_tail(f)
     return v
 
@@ -407,8 +446,8 @@ def cancel_job(folder: str | Path) -> str:
     """Cancel a job: withdraw it from the queue, or ask its running process to stop."""
     f = Path(folder)
     entry = _read_json(f / APP_JOB_FILE) or {}
-    if entry.get("state") in ("queued", "held"):
-        entry["state"] = "withdrawn"
+    if entry.get("state") in (AppJobState.QUEUED, AppJobState.HELD):
+        entry["state"] = AppJobState.WITHDRAWN.value
         _write_entry(f, entry)
         return f"{f.name}: withdrawn from the queue"
     from recon.udn.jobs import request_cancel
@@ -440,18 +479,18 @@ class JobQueue:
         views = discover_jobs(self.jobs_dir)
         busy = {v.device for v in views if v.active}
         for v in views:
-            if v.state != "queued" or v.device in busy:
+            if v.state is not AppJobState.QUEUED or v.device in busy:
                 continue
             entry = _read_json(v.folder / APP_JOB_FILE) or {}
             action = str(entry.get("action", "run"))
             try:
                 proc = _launch(v.folder, action, entry.get("max_iter"))
             except OSError as exc:
-                entry["state"] = "failed to start"
+                entry["state"] = AppJobState.FAILED_TO_START.value
                 entry["error"] = str(exc)
                 _write_entry(v.folder, entry)
                 continue
-            entry["state"] = "launched"
+            entry["state"] = AppJobState.LAUNCHED.value
             entry.setdefault("launches", []).append(
                 {"pid": proc.pid, "action": action, "utc": _now()})
             _write_entry(v.folder, entry)
@@ -465,16 +504,3 @@ class JobQueue:
     def children() -> list[int]:
         """Pids of job processes this app process started and that still run."""
         return [pid for pid, p in _CHILDREN.items() if p.poll() is None]
-
-
-def stop_children_for_tests() -> None:
-    """Terminate and reap every job process this process started (tests only)."""
-    for pid, proc in list(_CHILDREN.items()):
-        if proc.poll() is None:
-            proc.terminate()
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            proc.wait(20)
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        _CHILDREN.pop(pid, None)

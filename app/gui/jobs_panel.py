@@ -9,27 +9,26 @@ own processes, so closing the window leaves them running; a new window finds the
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import pyqtgraph as pg
 from PySide6.QtCore import QItemSelectionModel, Qt, QTimer, QUrl, Signal
 from PySide6.QtGui import QDesktopServices
 from PySide6.QtWidgets import (
-    QComboBox,
     QDialog,
     QDialogButtonBox,
-    QDockWidget,
-    QDoubleSpinBox,
     QFormLayout,
     QHBoxLayout,
     QHeaderView,
     QLabel,
     QLineEdit,
+    QPlainTextEdit,
     QProgressBar,
     QPushButton,
-    QSpinBox,
     QSplitter,
     QTableWidget,
     QTableWidgetItem,
@@ -39,6 +38,7 @@ from PySide6.QtWidgets import (
 
 from app.gui.image_view import ImagePanel
 from app.gui.jobs_core import (
+    AppJobState,
     JobQueue,
     JobView,
     cancel_job,
@@ -48,29 +48,25 @@ from app.gui.jobs_core import (
     queue_resume,
     read_loss,
 )
-from app.gui.settings import default_jobs_dir
+from app.gui.widgets import ComboBox, DoubleSpinBox, SpinBox, never_wider
 
-if TYPE_CHECKING:
-    from app.gui.main_window import MainWindow
-
-__all__ = ["JobsPanel", "NewJobDialog", "ResultDialog", "add_jobs_dock"]
+__all__ = ["JobsPanel", "Measurement", "NewJobDialog", "ResultDialog"]
 
 _COLUMNS = ("Job", "Device", "State", "Progress", "ETA", "Iteration", "Loss")
 
 
-def add_jobs_dock(window: MainWindow) -> None:
-    """Put a :class:`JobsPanel` in a bottom dock of ``window``."""
-    panel = JobsPanel(window)
-    dock = QDockWidget("UDN jobs", window)
-    dock.setObjectName("jobs-dock")
-    dock.setWidget(panel)
-    window.addDockWidget(Qt.DockWidgetArea.BottomDockWidgetArea, dock)
-    window.jobs_panel = panel
-    window.jobs_dock = dock
-    act = dock.toggleViewAction()
-    act.setText("UDN jobs panel")
-    window.tools_menu.addAction(act)
-    window._close_hooks = [*getattr(window, "_close_hooks", []), panel.stop]
+@dataclass(frozen=True)
+class Measurement:
+    """What a new job (or a trade) starts from: the newest frame and the preview's PSF.
+
+    ``dark``: the preview's dark level (None: auto, the 1st percentile of the frame).
+    """
+
+    frame: Any
+    psf: Any
+    psf_source: str = ""
+    psf_path: str = ""
+    dark: float | None = None
 
 
 def _hms(s: float | None) -> str:
@@ -96,30 +92,67 @@ class NewJobDialog(QDialog):
         super().__init__(parent)
         self.setWindowTitle("New UDN job")
         self.sensor = sensor
+        from recon.udn.spec import SCHEMA
+
+        def default(section: str, key: str) -> Any:
+            return SCHEMA[section][key].default
+
         self.name = QLineEdit(name)
-        self.downsample = QSpinBox()
+        self.downsample = SpinBox()
         self.downsample.setRange(1, 64)
         self.downsample.setValue(2)
-        self.max_iter = QSpinBox()
+        self.downsample.setToolTip("Box downsampling of frame and PSF (the job's [data] "
+                                   "downsample); the memory estimate follows it")
+        self.max_iter = SpinBox()
         self.max_iter.setRange(1, 10_000_000)
-        self.max_iter.setValue(3000)
-        self.time_limit = QDoubleSpinBox()
+        self.max_iter.setValue(int(default("stopping", "max_iter")))
+        self.time_limit = DoubleSpinBox()
         self.time_limit.setRange(0.0, 240.0)
         self.time_limit.setSuffix(" h")
         self.time_limit.setSpecialValueText("none")
-        self.scales = QSpinBox()
+        self.scales = SpinBox()
         self.scales.setRange(1, 8)
-        self.scales.setValue(4)
-        self.channels = QSpinBox()
+        self.scales.setValue(int(default("network", "scales")))
+        self.channels = SpinBox()
         self.channels.setRange(1, 512)
-        self.channels.setValue(32)
-        self.seeds = QSpinBox()
+        self.channels.setValue(int(default("network", "channels")))
+        self.lr = DoubleSpinBox()
+        self.lr.setDecimals(5)
+        self.lr.setRange(1e-5, 0.1)
+        self.lr.setSingleStep(0.001)
+        self.lr.setValue(float(default("optimizer", "lr")))
+        self.lr.setToolTip(SCHEMA["optimizer"]["lr"].help)
+        self.tv_weight = DoubleSpinBox()
+        self.tv_weight.setDecimals(6)
+        self.tv_weight.setRange(0.0, 1.0)
+        self.tv_weight.setSingleStep(1e-4)
+        self.tv_weight.setValue(float(default("optimizer", "tv_weight")))
+        self.tv_weight.setToolTip(SCHEMA["optimizer"]["tv_weight"].help)
+        self.headroom = DoubleSpinBox()
+        self.headroom.setDecimals(2)
+        self.headroom.setRange(0.1, 10.0)
+        self.headroom.setSingleStep(0.1)
+        self.headroom.setValue(float(default("optimizer", "headroom")))
+        self.headroom.setToolTip("Output gain: the least-squares gain times this factor "
+                                 "(> 1 leaves room for highlights; "
+                                 + SCHEMA["optimizer"]["headroom"].help + ")")
+        self.holdout = DoubleSpinBox()
+        self.holdout.setDecimals(3)
+        self.holdout.setRange(0.0, 0.5)
+        self.holdout.setSingleStep(0.01)
+        self.holdout.setValue(float(default("stopping", "holdout")))
+        self.holdout.setToolTip(SCHEMA["stopping"]["holdout"].help)
+        self.patience = SpinBox()
+        self.patience.setRange(1, 10_000_000)
+        self.patience.setValue(int(default("stopping", "patience")))
+        self.patience.setToolTip(SCHEMA["stopping"]["patience"].help)
+        self.seeds = SpinBox()
         self.seeds.setRange(1, 16)
         self.seeds.setValue(1)
         self.seeds.setToolTip("Queue this many jobs with seeds 0, 1, ...; select them when they "
                               "have finished and press Combine for their average (an ensemble: "
                               "better where the data say least, e.g. many erased pixels)")
-        self.device = QComboBox()
+        self.device = ComboBox()
         self.device.addItems(["auto", "cpu"])
         try:
             import torch
@@ -128,18 +161,20 @@ class NewJobDialog(QDialog):
                 self.device.addItem(f"cuda:{i}")
         except Exception:  # no torch CUDA: CPU only
             pass
-        self.threads = QSpinBox()
+        self.device.setCurrentText(str(default("device", "device")))
+        self.threads = SpinBox()
         self.threads.setRange(0, 256)
-        self.threads.setValue(1)
+        self.threads.setValue(int(default("device", "threads")))
         self.threads.setSpecialValueText("torch default")
-        self.precision = QComboBox()
-        self.precision.addItems(["float32", "bf16"])
-        self.checkpoint_every = QSpinBox()
+        self.precision = ComboBox()
+        self.precision.addItems(list(SCHEMA["device"]["precision"].choices or ("float32",)))
+        self.precision.setCurrentText(str(default("device", "precision")))
+        self.checkpoint_every = SpinBox()
         self.checkpoint_every.setRange(1, 1_000_000)
-        self.checkpoint_every.setValue(200)
-        self.preview_every = QSpinBox()
+        self.checkpoint_every.setValue(int(default("output", "checkpoint_every")))
+        self.preview_every = SpinBox()
         self.preview_every.setRange(0, 1_000_000)
-        self.preview_every.setValue(50)
+        self.preview_every.setValue(int(default("output", "preview_every")))
         self.memory = QLabel("")
         self.memory.setWordWrap(True)
         form = QFormLayout(self)
@@ -150,6 +185,11 @@ class NewJobDialog(QDialog):
         form.addRow("Time limit", self.time_limit)
         form.addRow("Network scales", self.scales)
         form.addRow("Channels", self.channels)
+        form.addRow("Learning rate", self.lr)
+        form.addRow("TV weight", self.tv_weight)
+        form.addRow("Gain headroom", self.headroom)
+        form.addRow("Held-out fraction", self.holdout)
+        form.addRow("Patience", self.patience)
         form.addRow("Seeds (ensemble)", self.seeds)
         form.addRow("Device", self.device)
         form.addRow("CPU threads", self.threads)
@@ -172,12 +212,16 @@ class NewJobDialog(QDialog):
     def sections(self) -> dict[str, dict[str, Any]]:
         """Spec sections from the controls."""
         stopping: dict[str, Any] = {"max_iter": int(self.max_iter.value()),
-                                    "patience": max(500, int(self.max_iter.value()) // 4)}
+                                    "patience": int(self.patience.value()),
+                                    "holdout": float(self.holdout.value())}
         if self.time_limit.value() > 0:
             stopping["time_limit_s"] = float(self.time_limit.value()) * 3600.0
         return {
             "network": {"scales": int(self.scales.value()),
                         "channels": int(self.channels.value())},
+            "optimizer": {"lr": float(self.lr.value()),
+                          "tv_weight": float(self.tv_weight.value()),
+                          "headroom": float(self.headroom.value())},
             "stopping": stopping,
             "device": {"device": self.device.currentText(), "threads": int(self.threads.value()),
                        "precision": self.precision.currentText()},
@@ -214,8 +258,10 @@ class ResultDialog(QDialog):
         from recon.io import read_reconstruction
 
         self.setWindowTitle(f"Result: {view.name}")
-        self.resize(900, 520)
-        lay = QHBoxLayout(self)
+        self.resize(900, 600)
+        outer = QVBoxLayout(self)
+        lay = QHBoxLayout()
+        outer.addLayout(lay, 1)
         self.panels: dict[str, ImagePanel] = {}
         self.meta: dict[str, dict[str, Any]] = {}
         for which in ("best", "final"):
@@ -232,6 +278,31 @@ class ResultDialog(QDialog):
             lay.addWidget(panel)
         if not self.panels:
             lay.addWidget(QLabel("this job has no result yet"))
+        self.metadata = QPlainTextEdit(format_metadata(self.meta))
+        self.metadata.setReadOnly(True)
+        self.metadata.setMaximumHeight(200)
+        outer.addWidget(self.metadata)
+
+
+def format_metadata(meta: dict[str, dict[str, Any]]) -> str:
+    """The results' metadata as indented ``key: value`` lines (nested keys indented)."""
+    lines: list[str] = []
+
+    def walk(d: Any, indent: int) -> None:
+        for k, v in d.items():
+            if isinstance(v, dict) and v:
+                lines.append(f"{'  ' * indent}{k}:")
+                walk(v, indent + 1)
+            else:
+                text = f"{v:.6g}" if isinstance(v, float) else str(v)
+                if len(text) > 160:
+                    text = text[:157] + "..."
+                lines.append(f"{'  ' * indent}{k}: {text}")
+
+    for which, m in meta.items():
+        lines.append(f"[{which}]")
+        walk(m, 1)
+    return "\n".join(lines)
 
 
 class JobsPanel(QWidget):
@@ -239,11 +310,16 @@ class JobsPanel(QWidget):
 
     job_created = Signal(object)
 
-    def __init__(self, window: MainWindow, poll_ms: int = 1000) -> None:
-        super().__init__(window)
-        self.window_ = window
-        jobs_dir = window.settings.jobs_dir or str(default_jobs_dir())
-        window.settings.jobs_dir = jobs_dir
+    def __init__(
+        self,
+        jobs_dir: str | Path,
+        current: Callable[[], Measurement | None],
+        parent: QWidget | None = None,
+        poll_ms: int = 1000,
+    ) -> None:
+        """``current()`` gives the measurement and PSF a new job starts from (None: none)."""
+        super().__init__(parent)
+        self._current = current
         self.queue = JobQueue(jobs_dir)
         self.views: list[JobView] = []
         self.result_dialog: ResultDialog | None = None
@@ -257,21 +333,26 @@ class JobsPanel(QWidget):
         self.combine_button.setToolTip("Average the best estimates of the selected finished "
                                        "jobs (same measurement, different seeds)")
         self.folder_label = QLabel(f"jobs folder: {jobs_dir}")
+        self.folder_label.setToolTip(str(jobs_dir))
+        never_wider(self.folder_label)
         self.folder_label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         self.message = _MessageLabel()
         bar = QHBoxLayout()
         for b in (self.new_button, self.cancel_button, self.resume_button, self.open_button,
                   self.combine_button, self.folder_button):
             bar.addWidget(b)
-        bar.addStretch(1)
-        bar.addWidget(self.folder_label)
+        self.folder_label.setAlignment(Qt.AlignmentFlag.AlignRight
+                                       | Qt.AlignmentFlag.AlignVCenter)
+        bar.addWidget(self.folder_label, 1)
 
         self.table = QTableWidget(0, len(_COLUMNS))
         self.table.setHorizontalHeaderLabels(list(_COLUMNS))
         self.table.setSelectionBehavior(QTableWidget.SelectionBehavior.SelectRows)
         self.table.setSelectionMode(QTableWidget.SelectionMode.ExtendedSelection)
         self.table.setEditTriggers(QTableWidget.EditTrigger.NoEditTriggers)
-        self.table.horizontalHeader().setSectionResizeMode(0, QHeaderView.ResizeMode.Stretch)
+        header = self.table.horizontalHeader()
+        header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+        header.setSectionResizeMode(0, QHeaderView.ResizeMode.Stretch)  # the name gets the rest
         self.table.verticalHeader().setVisible(False)
         self.loss_plot = pg.PlotWidget()
         self.loss_plot.setLabel("left", "log10")
@@ -333,7 +414,8 @@ class JobsPanel(QWidget):
         self.views = views
         self.table.setRowCount(len(views))
         for row, v in enumerate(views):
-            state = v.state if v.state != "finished" else f"finished: {v.finish_reason}"
+            state = (f"finished: {v.finish_reason}" if v.state is AppJobState.FINISHED
+                     else v.state.value)
             cells = (v.name, v.device, state, None, _hms(v.eta_s),
                      f"{v.iteration}" + (f" / {v.max_iter}" if v.max_iter else ""),
                      "–" if v.loss is None else f"{v.loss:.4g}")
@@ -390,8 +472,7 @@ class JobsPanel(QWidget):
 
     def _show_details(self) -> None:
         v = self.selected()
-        self.cancel_button.setEnabled(v is not None and v.state in ("queued", "starting",
-                                                                    "running", "held"))
+        self.cancel_button.setEnabled(v is not None and v.state.cancellable)
         self.resume_button.setEnabled(v is not None and v.can_resume)
         self.open_button.setEnabled(v is not None and bool(v.results))
         chosen = self.selected_all()
@@ -423,48 +504,47 @@ class JobsPanel(QWidget):
 
     def new_job_dialog(self) -> NewJobDialog | None:
         """Ask for the settings of a job on the newest frame and the preview's PSF."""
-        w = self.window_
-        frame = w.last_frame
-        psf = w.engine.psf
-        if frame is None or psf is None:
+        m = self._current()
+        frame = None if m is None else m.frame
+        psf = None if m is None else m.psf
+        if m is None or frame is None or psf is None:
             self.message.setText("a job needs a measurement (a live or snapped frame) and a PSF "
                                  "(the simulated bench's, a loaded one or a calibration)")
             return None
         src = (f"measurement: frame {frame.frame_id} ({frame.shape[1]}x{frame.shape[0]}, "
-               f"{frame.backend}); PSF: {w.psf_source or 'current'}")
+               f"{frame.backend}); PSF: {m.psf_source or 'current'}")
         dlg = NewJobDialog(frame.shape, src, self)
         self.dialog = dlg
-        dlg.accepted.connect(lambda: self._create_from_dialog(dlg, frame, psf))
+        dlg.accepted.connect(lambda: self._create_from_dialog(dlg, m))
         dlg.show()
         return dlg
 
-    def _create_from_dialog(self, dlg: NewJobDialog, frame: Any, psf: Any) -> None:
-        self.create_job(frame, psf, dlg.name.text() or "udn", int(dlg.downsample.value()),
+    def _create_from_dialog(self, dlg: NewJobDialog, m: Measurement) -> None:
+        self.create_job(m, dlg.name.text() or "udn", int(dlg.downsample.value()),
                         dlg.sections(), seeds=int(dlg.seeds.value()))
 
-    def create_job(self, frame: Any, psf: Any, name: str, downsample: int,
+    def create_job(self, m: Measurement, name: str, downsample: int,
                    sections: dict[str, dict[str, Any]], seeds: int = 1) -> Path | None:
-        """Write and queue a job for ``frame`` with ``psf``; returns its (first) folder.
+        """Write and queue a job for ``m``'s frame and PSF; returns its (first) folder.
 
         ``seeds`` > 1 queues that many jobs with ``optimizer.seed`` 0, 1, ... (named
         ``NAME-sN``), for :meth:`combine_selected`; they run one after another.
         """
-        w = self.window_
+        frame, psf = m.frame, m.psf
         if frame.shape != psf.shape:
             self.message.setText(
                 f"the frame ({frame.shape}) and the PSF ({psf.shape}) differ in size: use a "
                 "full-sensor frame")
             return None
-        s = w.engine.settings
         dark: float | str
-        if s.dark is not None:
-            dark = float(s.dark)
+        if m.dark is not None:
+            dark = float(m.dark)
         else:
             flat = np.asarray(frame.pixels, dtype=np.float32).ravel()
             k = flat.size // 100
             dark = float(np.partition(flat, k)[k])
-        meta = {"frame": frame.metadata(), "psf_source": w.psf_source,
-                "psf_path": w.settings.psf_path or None, "dark": dark}
+        meta = {"frame": frame.metadata(), "psf_source": m.psf_source,
+                "psf_path": m.psf_path or None, "dark": dark}
         folders: list[Path] = []
         error = ""
         for seed in range(max(1, int(seeds))):

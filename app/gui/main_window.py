@@ -8,7 +8,13 @@ sees the newest frame.
 
 Device loss: an error from the live stream (the camera timing out) or from the point source
 (its port gone) is shown in the window's banner and the device panel, and a reconnect is tried
-every ``reconnect_interval_ms`` until it works or the user disconnects.
+every ``reconnect_interval_ms`` until it works or the user disconnects. The states and the
+reconnection rules live in :class:`app.devices_state.DeviceStates` (no Qt); the window does the
+device work and reports the outcomes there.
+
+Layout: the images in the centre; Controls (left), UDN jobs and the speed/accuracy trade
+(bottom, tabbed) are docks that can be closed, moved, floated or tabbed (View menu). Footers
+and status lines never widen the window: it fits a 1366x768 screen with every dock shown.
 """
 
 from __future__ import annotations
@@ -30,9 +36,11 @@ from PySide6.QtWidgets import (
     QMainWindow,
     QScrollArea,
     QSplitter,
+    QVBoxLayout,
     QWidget,
 )
 
+from app.devices_state import CameraState, DeviceStates, LightAction, LightState
 from app.gui.bench import (
     SIM_CAMERA,
     SIM_PORT,
@@ -44,6 +52,7 @@ from app.gui.bench import (
     list_port_choices,
 )
 from app.gui.image_view import ImagePanel, configure_pyqtgraph
+from app.gui.jobs_panel import JobsPanel, Measurement
 from app.gui.panels import (
     CameraControls,
     DevicePanel,
@@ -53,11 +62,16 @@ from app.gui.panels import (
 )
 from app.gui.preview_engine import PreviewEngine, PreviewResult, PreviewSettings
 from app.gui.settings import AppSettings, default_jobs_dir, save_settings
+from app.gui.trade_panel import TradePanel
+from app.gui.widgets import never_wider
 from app.gui.workers import PreviewWorker, TaskQueue
 
-__all__ = ["MainWindow", "WorkflowHandle", "load_psf_any"]
+__all__ = ["SATURATED_SKIP_FRACTION", "MainWindow", "WorkflowHandle", "load_psf_any"]
 
 _log = logging.getLogger(__name__)
+
+#: A frame with at least this fraction of its pixels at the top code is not reconstructed.
+SATURATED_SKIP_FRACTION = 0.5
 
 
 def _describe(exc: BaseException) -> str:
@@ -136,6 +150,8 @@ class MainWindow(QMainWindow):
         bench: the devices (default: a new :class:`~app.gui.bench.Bench`, simulated bench).
         autoconnect: connect the camera (and point source) from the settings at start.
         reconnect_interval_ms: time between reconnect attempts after a device is lost.
+        light_check_interval_ms: time between checks of the point source.
+        jobs_poll_ms: how often the jobs panel reads the jobs folder (and starts queued jobs).
 
     """
 
@@ -154,6 +170,7 @@ class MainWindow(QMainWindow):
         autoconnect: bool = True,
         reconnect_interval_ms: int = 1000,
         light_check_interval_ms: int = 2000,
+        jobs_poll_ms: int = 1000,
     ) -> None:
         super().__init__()
         configure_pyqtgraph()
@@ -163,17 +180,19 @@ class MainWindow(QMainWindow):
         self._save_on_close = save_settings_on_close
         self.bench = bench or Bench(SimConfig(scene=self.settings.sim_scene))
         self.reconnect_interval_ms = int(reconnect_interval_ms)
+        self._jobs_poll_ms = int(jobs_poll_ms)
 
         self.camera_queue = TaskQueue("camera", self)
         self.light_queue = TaskQueue("light", self)
 
-        # state
-        self.camera_state = "disconnected"  # connecting | live | stopped | reconfiguring | lost
-        self.light_state = "disconnected"  # connecting | connected | lost
+        # state (Qt-free; its listeners re-emit the changes as Qt signals)
+        self.devices = DeviceStates()
+        self.devices.on_camera_change(self.camera_state_changed.emit)
+        self.devices.on_light_change(self.light_state_changed.emit)
         self.last_frame: Any = None
         self.frames_shown = 0
         self.previews_shown = 0
-        self.reconnect_attempts = 0
+        self.frames_skipped_saturated = 0
         self.last_error = ""
         self._bit_depth: int | None = None
         self._display_rate = _Rate()
@@ -181,7 +200,6 @@ class MainWindow(QMainWindow):
         self._preview_rate = _Rate()
         self._latency_ms: collections.deque[float] = collections.deque(maxlen=30)
         self._preview_latency_ms: collections.deque[float] = collections.deque(maxlen=30)
-        self._closing = False
         self.psf_source = ""
 
         # widgets
@@ -193,7 +211,9 @@ class MainWindow(QMainWindow):
             " border: 1px solid #ff8182; }"
         )
         self.banner.setVisible(False)
-        self.raw_panel = ImagePanel("Raw frame", with_roi=True, with_saturation=True)
+        never_wider(self.banner)
+        self.raw_panel = ImagePanel("Raw frame", with_roi=True, with_saturation=True,
+                                    auto_levels_option=True)
         self.preview_panel = ImagePanel("Reconstruction preview", auto_levels_option=True)
         self.preview_panel.auto_levels.setChecked(True)
         split = QSplitter(Qt.Orientation.Horizontal)
@@ -201,8 +221,6 @@ class MainWindow(QMainWindow):
         split.addWidget(self.preview_panel)
         split.setSizes([1, 1])
         central = QWidget()
-        from PySide6.QtWidgets import QVBoxLayout
-
         lay = QVBoxLayout(central)
         lay.setContentsMargins(2, 2, 2, 2)
         lay.addWidget(self.banner)
@@ -222,10 +240,9 @@ class MainWindow(QMainWindow):
         self.controls_dock = QDockWidget("Controls", self)
         self.controls_dock.setObjectName("controls-dock")
         self.controls_dock.setWidget(scroll)
-        self.controls_dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable
-                                       | QDockWidget.DockWidgetFeature.DockWidgetFloatable)
         self.addDockWidget(Qt.DockWidgetArea.LeftDockWidgetArea, self.controls_dock)
         self.status_label = QLabel("")
+        never_wider(self.status_label)
         self.statusBar().addWidget(self.status_label, 1)
 
         # preview
@@ -259,8 +276,9 @@ class MainWindow(QMainWindow):
 
         self._connect_signals()
         self._build_menu()
-        self._build_extra_docks()
+        self._build_docks()
         self.device_panel.set_scene(self.settings.sim_scene)
+        self.device_panel.show_demo.setChecked(self.settings.show_demo_cameras)
         # discovery may block (GenTL producers): the lists fill in from the worker
         self.device_panel.set_cameras(
             [CameraChoice(SIM_CAMERA, "sim", "Simulated camera (bundled scene, tutorial PSF)")],
@@ -281,6 +299,7 @@ class MainWindow(QMainWindow):
     def _connect_signals(self) -> None:
         dp = self.device_panel
         dp.refresh_requested.connect(self.refresh_devices)
+        dp.show_demo_changed.connect(self._show_demo_changed)
         dp.connect_camera_requested.connect(self.connect_camera)
         dp.disconnect_camera_requested.connect(self.disconnect_camera)
         dp.scene_changed.connect(self.set_scene)
@@ -316,32 +335,89 @@ class MainWindow(QMainWindow):
         act.setShortcut("Ctrl+Q")
         act.triggered.connect(self.close)
         m.addAction(act)
+        self.view_menu = self.menuBar().addMenu("&View")
         self.tools_menu = self.menuBar().addMenu("&Tools")
         self.toolbar = self.addToolBar("Main")
         self.toolbar.setObjectName("main-toolbar")
         self.toolbar.addAction(m.actions()[0])
+        self.calibration_action = QAction("Calibration wizard…", self)
+        self.calibration_action.triggered.connect(self.open_calibration_wizard)
+        self.tools_menu.addAction(self.calibration_action)
+        self.toolbar.addAction(self.calibration_action)
+        self.calibration_wizard: Any = None
 
-    def _build_extra_docks(self) -> None:
-        """Calibration wizard launcher and the UDN jobs panel (when their modules load)."""
-        try:
-            from app.gui.calibration_wizard import add_calibration_action
+    def _build_docks(self) -> None:
+        """UDN jobs and the speed/accuracy trade: bottom docks, tabbed; the View menu."""
+        if not self.settings.jobs_dir:
+            self.settings.jobs_dir = str(default_jobs_dir())
+        self.jobs_panel = JobsPanel(self.settings.jobs_dir, self.current_measurement, self,
+                                    poll_ms=self._jobs_poll_ms)
+        self.jobs_dock = self._dock("UDN jobs", "jobs-dock", self.jobs_panel)
+        self.trade_panel = TradePanel(self.current_measurement, self.set_preview_tau, self)
+        self.trade_dock = self._dock("Speed / accuracy trade", "trade-dock", self.trade_panel)
+        self.addDockWidget(Qt.DockWidgetArea.BottomDockWidgetArea, self.jobs_dock)
+        self.addDockWidget(Qt.DockWidgetArea.BottomDockWidgetArea, self.trade_dock)
+        self.tabifyDockWidget(self.jobs_dock, self.trade_dock)
+        self.jobs_dock.raise_()
+        self.trade_dock.hide()
+        for dock, text in ((self.controls_dock, "Controls"), (self.jobs_dock, "UDN jobs panel"),
+                           (self.trade_dock, "Speed/accuracy trade panel")):
+            act = dock.toggleViewAction()
+            act.setText(text)
+            self.view_menu.addAction(act)
+        act = QAction("New UDN job…", self)
+        act.triggered.connect(self.jobs_panel.new_job_dialog)
+        self.toolbar.addAction(act)
 
-            add_calibration_action(self)
-            self.toolbar.addAction(self.calibration_action)
-        except ImportError as exc:
-            _log.info("calibration wizard unavailable: %s", exc)
-        try:
-            from app.gui.jobs_panel import add_jobs_dock
+    def _dock(self, title: str, name: str, widget: QWidget) -> QDockWidget:
+        dock = QDockWidget(title, self)
+        dock.setObjectName(name)
+        dock.setWidget(widget)
+        return dock
 
-            add_jobs_dock(self)
-            act = QAction("New UDN job…", self)
-            act.triggered.connect(self.jobs_panel.new_job_dialog)
-            self.toolbar.addAction(act)
-        except ImportError as exc:
-            _log.info("jobs panel unavailable: %s", exc)
-        from app.gui.trade_panel import add_trade_dock
+    def open_calibration_wizard(self) -> Any:
+        """Show the (single, non-modal) calibration wizard."""
+        from app.gui.calibration_wizard import CalibrationWizard
 
-        add_trade_dock(self)
+        wiz = self.calibration_wizard
+        if wiz is None or not wiz.isVisible():
+            wiz = CalibrationWizard(self)
+            self.calibration_wizard = wiz
+        wiz.show()
+        wiz.raise_()
+        return wiz
+
+    def current_measurement(self) -> Measurement | None:
+        """The newest frame with the preview's PSF and dark level (for jobs and the trade)."""
+        if self.last_frame is None:
+            return None
+        return Measurement(self.last_frame, self.engine.psf, self.psf_source,
+                           self.settings.psf_path, self.engine.settings.dark)
+
+    def set_preview_tau(self, tau: float) -> None:
+        """Use ``tau`` in the preview (controls and engine)."""
+        import dataclasses
+
+        s = dataclasses.replace(self.preview_controls.settings(), tau=float(tau))
+        self.preview_controls.set_settings(s)
+        self.set_preview_settings(s)
+
+    # -- states ----------------------------------------------------------------------------
+
+    @property
+    def camera_state(self) -> CameraState:
+        """The camera's state (:class:`~app.devices_state.CameraState`, a str-Enum)."""
+        return self.devices.camera
+
+    @property
+    def light_state(self) -> LightState:
+        """The point source's state (:class:`~app.devices_state.LightState`, a str-Enum)."""
+        return self.devices.light
+
+    @property
+    def reconnect_attempts(self) -> int:
+        """Reconnect attempts since the camera was lost."""
+        return self.devices.reconnect_attempts
 
     # -- messages ------------------------------------------------------------------------------
 
@@ -354,25 +430,28 @@ class MainWindow(QMainWindow):
     def _status(self, text: str) -> None:
         self.status_label.setText(text)
 
-    def _set_camera_state(self, state: str, text: str = "", kind: str = "off") -> None:
-        self.camera_state = state
-        set_status(self.device_panel.camera_status, text or state, kind)
-        connected = state in ("live", "stopped", "reconfiguring")
-        self.camera_controls.set_connected(connected)
-        self.device_panel.set_camera_connected(state != "disconnected", self.bench.is_simulated)
-        self.camera_controls.set_live(state == "live")
-        if state == "live":
+    def _set_camera_state(self, state: CameraState | str, text: str = "",
+                          kind: str = "off") -> None:
+        st = CameraState(state)
+        set_status(self.device_panel.camera_status, text or st.value, kind)
+        self.camera_controls.set_connected(st.connected)
+        self.device_panel.set_camera_connected(st is not CameraState.DISCONNECTED,
+                                               self.bench.is_simulated)
+        self.camera_controls.set_live(st is CameraState.LIVE)
+        if st is CameraState.LIVE:
             self.poll_timer.start()
         else:
             self.poll_timer.stop()
-        self.camera_state_changed.emit(state)
+        self.devices.set_camera(st)
 
     # -- camera --------------------------------------------------------------------------------
 
     def refresh_devices(self) -> None:
         """List cameras and serial ports again (on the camera worker: discovery may block)."""
+        show_demo = self.device_panel.show_demo.isChecked()
+
         def work() -> tuple[Any, Any]:
-            return list_camera_choices(), list_port_choices()
+            return list_camera_choices(show_demo), list_port_choices()
 
         def done(r: tuple[Any, Any]) -> None:
             cams = list(r[0])
@@ -387,6 +466,10 @@ class MainWindow(QMainWindow):
 
         self.camera_queue.submit(work, name="refresh", on_done=done,
                                  on_error=lambda e: self.show_error(f"refresh: {_describe(e)}"))
+
+    def _show_demo_changed(self, on: bool) -> None:
+        self.settings.show_demo_cameras = on
+        self.refresh_devices()
 
     def connect_camera(self, spec: str) -> None:
         """Open camera ``spec`` (closing the current one), apply the settings, start live."""
@@ -415,7 +498,8 @@ class MainWindow(QMainWindow):
             self.settings.camera = spec
             self._camera_values(values, ranges)
             desc = values.get("model") or spec
-            self._set_camera_state("live", f"{spec}: {desc} – live", "ok")
+            self._camera_name = f"{spec}: {desc}"
+            self._set_camera_state("live", f"{self._camera_name} – live", "ok")
             self.show_error("")
             self._configure_psf_for_camera()
 
@@ -427,7 +511,12 @@ class MainWindow(QMainWindow):
         self.camera_queue.submit(work, name=f"connect {spec}", on_done=done, on_error=failed)
 
     def _camera_values(self, values: dict[str, Any], ranges: dict[str, Any]) -> None:
+        """Show what the camera reports, and remember those (not the asked) values."""
         self.camera_controls.show_values(values, ranges)
+        for name in ("exposure_us", "gain", "frame_rate_hz", "shutter_mode"):
+            v = values.get(name)
+            if v is not None:
+                setattr(self.settings, name, str(v) if name == "shutter_mode" else float(v))
         bd = values.get("bit_depth")
         self._bit_depth = int(bd) if bd else None
         self.raw_panel.saturation_level = (1 << self._bit_depth) - 1 if self._bit_depth else None
@@ -479,7 +568,8 @@ class MainWindow(QMainWindow):
 
         def done(_r: Any) -> None:
             self._set_camera_state("live" if on else "stopped",
-                                   "live" if on else "stopped (not streaming)", "ok")
+                                   f"{self._camera_name} – "
+                                   + ("live" if on else "stopped (not streaming)"), "ok")
 
         self.camera_queue.submit(work, name="live", on_done=done, on_error=self._camera_failed)
 
@@ -488,8 +578,6 @@ class MainWindow(QMainWindow):
         cam = self.bench.camera
         if cam is None or value is None:
             return
-        if name in ("exposure_us", "gain", "frame_rate_hz", "shutter_mode"):
-            setattr(self.settings, name, value)
 
         def work() -> tuple[dict[str, Any], dict[str, Any]]:
             setattr(cam, name, value)
@@ -545,7 +633,7 @@ class MainWindow(QMainWindow):
         cam = self.bench.camera
         if cam is None:
             return
-        was_live = self.camera_state == "live"
+        was_live = self.camera_state is CameraState.LIVE
         self._set_camera_state("reconfiguring", f"setting {what}…", "busy")
 
         def work() -> tuple[dict[str, Any], dict[str, Any]]:
@@ -575,7 +663,7 @@ class MainWindow(QMainWindow):
     # -- live view -----------------------------------------------------------------------------
 
     def _poll(self) -> None:
-        if self.camera_state != "live":
+        if self.camera_state is not CameraState.LIVE:
             return
         cam = self.bench.camera
         if cam is None:
@@ -597,13 +685,27 @@ class MainWindow(QMainWindow):
         self._camera_rate.tick(frame.timestamp)
         self.frames_shown += 1
         if self.preview_controls.enabled.isChecked() and self.engine.has_psf:
-            self.preview_worker.submit(frame)
+            n = frame.pixels.size
+            sat = self.raw_panel.saturated
+            if self.raw_panel.saturation_level is not None and n and (
+                    sat >= SATURATED_SKIP_FRACTION * n):
+                self.frames_skipped_saturated += 1
+                self.preview_panel.set_message(
+                    f"frame saturated ({100.0 * sat / n:.0f} % of the pixels at full scale): "
+                    "not reconstructed – lower the exposure, gain or source intensity")
+            else:
+                if sat:
+                    self.preview_panel.set_message(
+                        f"warning: {sat} saturated pixel(s) in the frame")
+                elif self.preview_panel.message.text().startswith("warning:"):
+                    self.preview_panel.set_message("")
+                self.preview_worker.submit(frame)
         self.frame_shown.emit(frame)
 
     def _update_readouts(self) -> None:
         parts: list[str] = []
         cam = self.bench.camera
-        if self.camera_state == "live" and cam is not None:
+        if self.camera_state is CameraState.LIVE and cam is not None:
             try:
                 stats = cam.stream_stats()
                 dropped = stats.dropped
@@ -629,29 +731,26 @@ class MainWindow(QMainWindow):
             plat = float(np.median(self._preview_latency_ms))
             self.preview_panel.footer.setText(
                 f"preview {self._preview_rate.rate():.1f}/s · latency {plat:.0f} ms · "
-                f"stale dropped {ps.dropped} · {self.engine.settings.iters_per_frame} it/frame"
-                f" · {self._last_preview_info}"
+                f"stale dropped {ps.dropped} · {self._last_preview_info}"
             )
 
     _last_preview_info = ""
+    _camera_name = "camera"
 
     # -- loss and reconnection ----------------------------------------------------------------
 
     def _camera_lost(self, exc: BaseException) -> None:
-        if self.camera_state in ("disconnected", "lost") or self._closing:
+        if not self.devices.camera_failed():
             return
-        self.poll_timer.stop()
-        self.reconnect_attempts = 0
         msg = f"Camera lost: {_describe(exc)} – reconnecting…"
-        self._set_camera_state("lost", msg, "error")
+        self._set_camera_state(CameraState.LOST, msg, "error")
         self.show_error(msg)
         self.reconnect_timer.start()
 
     def _try_reconnect_camera(self) -> None:
-        if self.camera_state != "lost" or self._closing:
+        n = self.devices.next_reconnect()
+        if n is None:
             return
-        self.reconnect_attempts += 1
-        n = self.reconnect_attempts
         bench = self.bench
 
         def work() -> tuple[dict[str, Any], dict[str, Any]]:
@@ -665,15 +764,16 @@ class MainWindow(QMainWindow):
             return _read_camera(cam)
 
         def done(r: tuple[dict[str, Any], dict[str, Any]]) -> None:
-            if self.camera_state != "lost":
+            if self.camera_state is not CameraState.LOST:
                 return
             self._camera_values(*r)
-            self._set_camera_state("live", f"reconnected after {n} attempt(s) – live", "ok")
+            self._set_camera_state(CameraState.LIVE, f"reconnected after {n} attempt(s) – live",
+                                   "ok")
             self.show_error("")
             self._status(f"camera reconnected after {n} attempt(s)")
 
         def failed(exc: BaseException) -> None:
-            if self.camera_state != "lost":
+            if not self.devices.reconnect_result(False):
                 return
             msg = f"Camera lost: {_describe(exc)} – reconnect attempt {n} failed, retrying…"
             set_status(self.device_panel.camera_status, msg, "error")
@@ -684,15 +784,15 @@ class MainWindow(QMainWindow):
 
     # -- point source --------------------------------------------------------------------------
 
-    def _set_light_state(self, state: str, text: str, kind: str) -> None:
-        self.light_state = state
+    def _set_light_state(self, state: LightState | str, text: str, kind: str) -> None:
+        st = LightState(state)
         set_status(self.device_panel.light_status, text, kind)
-        self.device_panel.set_light_connected(state == "connected")
-        if state in ("connected", "lost"):
+        self.device_panel.set_light_connected(st is LightState.CONNECTED)
+        if st.watched:
             self.light_timer.start()
         else:
             self.light_timer.stop()
-        self.light_state_changed.emit(state)
+        self.devices.set_light(st)
 
     def connect_light(self, port: str) -> None:
         """Connect the point source on ``port`` (``sim``: spawn the simulated firmware)."""
@@ -762,15 +862,16 @@ class MainWindow(QMainWindow):
 
     def _light_status(self, st: Any) -> None:
         self.device_panel.show_light_state(st.is_on, st.intensity)
-        if self.light_state == "lost":
-            self._set_light_state("connected", f"reconnected: {st.identity}", "ok")
+        if self.light_state is LightState.LOST:
+            self._set_light_state(LightState.CONNECTED, f"reconnected: {st.identity}", "ok")
             self.show_error("")
 
     def _check_light(self) -> None:
-        if self.light_queue.busy or self.light_state not in ("connected", "lost"):
+        action = self.devices.light_check(self.light_queue.busy)
+        if action is LightAction.NOTHING:
             return
         bench = self.bench
-        if self.light_state == "lost":
+        if action is LightAction.RECONNECT:
             self.light_queue.submit(lambda: (bench.reconnect_light(), bench.check_light())[1],
                                     name="reconnect light", on_done=self._light_status,
                                     on_error=self._light_still_lost)
@@ -779,15 +880,15 @@ class MainWindow(QMainWindow):
                                     on_done=self._light_status, on_error=self._light_lost)
 
     def _light_lost(self, exc: BaseException) -> None:
-        if self.light_state not in ("connected", "lost"):
+        if not self.light_state.watched:
             self.show_error(f"Point source: {_describe(exc)}")
             return
         msg = f"Point source lost: {_describe(exc)} – reconnecting…"
-        self._set_light_state("lost", msg, "error")
+        self._set_light_state(LightState.LOST, msg, "error")
         self.show_error(msg)
 
     def _light_still_lost(self, exc: BaseException) -> None:
-        if self.light_state == "lost":
+        if self.light_state is LightState.LOST:
             msg = f"Point source lost: {_describe(exc)} – retrying…"
             set_status(self.device_panel.light_status, msg, "error")
             self.show_error(msg)
@@ -805,10 +906,15 @@ class MainWindow(QMainWindow):
             self.preview_panel.set_message("preview off")
 
     def _on_preview(self, res: PreviewResult) -> None:
+        note = self.preview_panel.message.text()
         self.preview_panel.set_image(res.image, res.levels)
+        if note.startswith("warning:"):
+            self.preview_panel.set_message(note)
         self._preview_rate.tick()
         self._preview_latency_ms.append(res.latency_s * 1000.0)
-        self._last_preview_info = f"{res.shape[1]}x{res.shape[0]} · residual {res.residual:.3f}"
+        self._last_preview_info = (f"{res.shape[1]}x{res.shape[0]} · {res.iterations} it/frame"
+                                   f"{' (rate-limited)' if res.note else ''} · residual "
+                                   f"{res.residual:.3f}")
         self.previews_shown += 1
         self.preview_shown.emit(res)
 
@@ -866,12 +972,12 @@ class MainWindow(QMainWindow):
 
         handle = WorkflowHandle()
         cam, light = self.bench.camera, self.bench.light
-        if cam is None or self.camera_state not in ("live", "stopped"):
+        if cam is None or not self.camera_state.ready:
             exc = RuntimeError(f"the camera is not ready ({self.camera_state})")
             if on_error is not None:
                 on_error(exc)
             return handle
-        was_live = self.camera_state == "live"
+        was_live = self.camera_state is CameraState.LIVE
         wf = Workflow(make_steps(cam, light), name)  # nothing runs until iterated
         handle.workflow = wf
         hide = hide_scene and self.bench.is_simulated
@@ -893,9 +999,13 @@ class MainWindow(QMainWindow):
                         cam.start_live()
 
         def resume() -> None:
-            if self.camera_state == "calibrating":
+            if self.camera_state is CameraState.CALIBRATING:
                 self._set_camera_state("live" if was_live else "stopped",
-                                       "live" if was_live else "stopped", "ok")
+                                       f"{self._camera_name} – "
+                                       + ("live" if was_live else "stopped"), "ok")
+            # a workflow changes settings (auto-exposure): show what the camera runs at now
+            self.camera_queue.submit(lambda: _read_camera(cam), name="read back",
+                                     on_done=lambda r: self._camera_values(*r))
 
         def done(result: Any) -> None:
             resume()
@@ -915,7 +1025,9 @@ class MainWindow(QMainWindow):
 
     def save_dir(self) -> Path:
         """Folder for snapshots."""
-        return Path(self.settings.save_dir or (Path.home() / "lenslesscam-snaps"))
+        from app.locations import default_snaps_dir
+
+        return Path(self.settings.save_dir or default_snaps_dir())
 
     def snap_and_save(self, path: str | Path | None = None) -> None:
         """Save the newest frame (live) or snap one (stopped), with its metadata."""
@@ -925,7 +1037,7 @@ class MainWindow(QMainWindow):
         from app.gui.snapshots import save_frame
 
         cam = self.bench.camera
-        frame = self.last_frame if self.camera_state == "live" else None
+        frame = self.last_frame if self.camera_state is CameraState.LIVE else None
         if frame is None and cam is None:
             self.show_error("Snap: no camera connected")
             return
@@ -961,16 +1073,21 @@ class MainWindow(QMainWindow):
             with contextlib.suppress(Exception):
                 self.restoreGeometry(QByteArray.fromBase64(g.encode("ascii")))
         else:
-            self.resize(1400, 800)
+            # a comfortable size, within the screen's free area (a 1366x768 laptop included)
+            screen = self.screen()
+            avail = screen.availableGeometry() if screen is not None else None
+            w, h = 1400, 860
+            if avail is not None and avail.width() > 0:
+                w, h = min(w, avail.width()), min(h, avail.height())
+            self.resize(w, h)
         st = self.settings.window_state
         restored = False
         if st:
             with contextlib.suppress(Exception):
                 restored = bool(self.restoreState(QByteArray.fromBase64(st.encode("ascii"))))
-        dock = getattr(self, "jobs_dock", None)
-        if not restored and dock is not None:
+        if not restored:
             # the images get the height; the jobs panel a strip at the bottom
-            self.resizeDocks([dock], [240], Qt.Orientation.Vertical)
+            self.resizeDocks([self.jobs_dock], [220], Qt.Orientation.Vertical)
 
     def collect_settings(self) -> AppSettings:
         """Current settings (window geometry included)."""
@@ -986,7 +1103,10 @@ class MainWindow(QMainWindow):
 
     def closeEvent(self, event: QCloseEvent) -> None:
         """Save the settings, stop the workers, close the devices (jobs keep running)."""
-        self._closing = True
+        if self.devices.closing:
+            super().closeEvent(event)
+            return
+        self.devices.closing = True
         for t in (self.poll_timer, self.reconnect_timer, self.light_timer, self.readout_timer):
             t.stop()
         if self._save_on_close:
@@ -994,10 +1114,10 @@ class MainWindow(QMainWindow):
                 save_settings(self.collect_settings(), self._settings_path)
             except OSError as exc:
                 _log.error("saving the settings: %s", exc)
-        hook = getattr(self, "_close_hooks", [])
-        for fn in hook:
-            with contextlib.suppress(Exception):
-                fn()
+        self.jobs_panel.stop()
+        self.trade_panel.stop()
+        if self.calibration_wizard is not None:
+            self.calibration_wizard.close()
         self.preview_worker.stop()
         self.camera_queue.shutdown()
         self.light_queue.shutdown()

@@ -22,13 +22,13 @@ from PySide6.QtWidgets import (
     QHBoxLayout,
     QLabel,
     QPushButton,
-    QSpinBox,
     QVBoxLayout,
     QWidget,
 )
 
 from app.gui.bench import SCENES, CameraChoice, PortChoice
 from app.gui.preview_engine import MODELS, PreviewSettings
+from app.gui.widgets import ComboBox, DoubleSpinBox, SpinBox, double_spin
 
 __all__ = ["CameraControls", "DevicePanel", "PreviewControls", "set_status"]
 
@@ -46,6 +46,7 @@ class DevicePanel(QGroupBox):
     """Camera and point-source choice, connect / disconnect, their status and errors."""
 
     refresh_requested = Signal()
+    show_demo_changed = Signal(bool)
     connect_camera_requested = Signal(str)
     disconnect_camera_requested = Signal()
     scene_changed = Signal(str)
@@ -56,22 +57,25 @@ class DevicePanel(QGroupBox):
 
     def __init__(self, parent: QWidget | None = None) -> None:
         super().__init__("Devices", parent)
-        self.camera_combo = QComboBox()
+        self.camera_combo = ComboBox()
         self.camera_combo.setMinimumContentsLength(18)
         self.camera_combo.setSizeAdjustPolicy(
             QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon
         )
         self.refresh_button = QPushButton("Refresh")
         self.refresh_button.setToolTip("Look for cameras and serial ports again")
+        self.show_demo = QCheckBox("list demo cameras")
+        self.show_demo.setToolTip("Also list the demo GenTL producers' cameras (viky, TLSimu) "
+                                  "and the test suite's cached simulator")
         self.camera_connect = QPushButton("Connect")
         self.camera_disconnect = QPushButton("Disconnect")
         self.camera_status = QLabel("not connected")
         self.camera_status.setWordWrap(True)
-        self.scene_combo = QComboBox()
+        self.scene_combo = ComboBox()
         for key, label in SCENES.items():
             self.scene_combo.addItem(label, key)
 
-        self.port_combo = QComboBox()
+        self.port_combo = ComboBox()
         self.port_combo.setEditable(True)
         self.port_combo.setToolTip("Serial port of the point source (or type a path / URL)")
         self.light_connect = QPushButton("Connect")
@@ -79,7 +83,7 @@ class DevicePanel(QGroupBox):
         self.light_status = QLabel("not connected")
         self.light_status.setWordWrap(True)
         self.light_on = QCheckBox("on")
-        self.intensity = QDoubleSpinBox()
+        self.intensity = DoubleSpinBox()
         self.intensity.setRange(0.0, 1.0)
         self.intensity.setSingleStep(0.05)
         self.intensity.setDecimals(2)
@@ -91,6 +95,7 @@ class DevicePanel(QGroupBox):
         row.addWidget(self.camera_combo, 1)
         row.addWidget(self.refresh_button)
         form.addRow("Camera", row)
+        form.addRow("", self.show_demo)
         row = QHBoxLayout()
         row.addWidget(self.camera_connect)
         row.addWidget(self.camera_disconnect)
@@ -110,6 +115,7 @@ class DevicePanel(QGroupBox):
         form.addRow("Light", row)
 
         self.refresh_button.clicked.connect(self.refresh_requested)
+        self.show_demo.toggled.connect(self.show_demo_changed)
         self.camera_connect.clicked.connect(self._connect_camera)
         self.camera_disconnect.clicked.connect(self.disconnect_camera_requested)
         self.scene_combo.currentIndexChanged.connect(
@@ -190,19 +196,10 @@ class DevicePanel(QGroupBox):
         """Reflect the source's confirmed state."""
         with QSignalBlocker(self.light_on):
             self.light_on.setChecked(bool(on))
-        if intensity is not None:
+        # an off source may report intensity 0: keep the level it will be switched on at
+        if intensity is not None and (on or intensity > 0):
             with QSignalBlocker(self.intensity):
                 self.intensity.setValue(float(intensity))
-
-
-def _spin(lo: float, hi: float, decimals: int, step: float, suffix: str) -> QDoubleSpinBox:
-    s = QDoubleSpinBox()
-    s.setRange(lo, hi)
-    s.setDecimals(decimals)
-    s.setSingleStep(step)
-    s.setSuffix(suffix)
-    s.setKeyboardTracking(False)
-    return s
 
 
 class CameraControls(QGroupBox):
@@ -233,17 +230,17 @@ class CameraControls(QGroupBox):
 
         self.live = QPushButton("Live")
         self.live.setCheckable(True)
-        self.exposure = _spin(0.001, 10_000.0, 3, 1.0, " ms")
-        self.gain = _spin(0.0, 64.0, 2, 0.5, "")
-        self.shutter_mode = QComboBox()
+        self.exposure = double_spin(0.001, 10_000.0, 3, 1.0, " ms")
+        self.gain = double_spin(0.0, 64.0, 2, 0.5, "")
+        self.shutter_mode = ComboBox()
         for m in ShutterMode:
             self.shutter_mode.addItem(m.value, m.value)
-        self.readout_pattern = QComboBox()
+        self.readout_pattern = ComboBox()
         for p in ReadoutPattern:
             self.readout_pattern.addItem(p.value, p.value)
-        self.line_time = _spin(0.01, 1000.0, 2, 1.0, " µs")
-        self.trigger_delay = _spin(0.0, 1e6, 1, 10.0, " µs")
-        self.frame_rate = _spin(0.1, 1000.0, 1, 1.0, " Hz")
+        self.line_time = double_spin(0.01, 1000.0, 2, 1.0, " µs")
+        self.trigger_delay = double_spin(0.0, 1e6, 1, 10.0, " µs")
+        self.frame_rate = double_spin(0.1, 1000.0, 1, 1.0, " Hz")
         self.show_roi = QCheckBox("show ROI")
         self.roi_apply = QPushButton("Set camera ROI")
         self.roi_reset = QPushButton("Full sensor")
@@ -361,27 +358,27 @@ class PreviewControls(QGroupBox):
         super().__init__("Live reconstruction preview", parent)
         self.enabled = QCheckBox("preview on")
         self.enabled.setChecked(True)
-        self.model = QComboBox()
+        self.model = ComboBox()
         for m in MODELS:
             self.model.addItem({"2d": "2D (FISTA-TV)", "video": "video (dual shutter)"}[m], m)
-        self.tau = QDoubleSpinBox()
+        self.tau = DoubleSpinBox()
         self.tau.setDecimals(5)
         self.tau.setRange(0.0, 1.0)
         self.tau.setSingleStep(0.0005)
         self.tau.setKeyboardTracking(False)
-        self.iters = QSpinBox()
+        self.iters = SpinBox()
         self.iters.setRange(1, 200)
         self.iters.setKeyboardTracking(False)
-        self.downsample = QSpinBox()
+        self.downsample = SpinBox()
         self.downsample.setRange(1, 16)
         self.downsample.setKeyboardTracking(False)
-        self.dark = QDoubleSpinBox()
+        self.dark = DoubleSpinBox()
         self.dark.setRange(-1.0, 65535.0)
         self.dark.setDecimals(0)
         self.dark.setSpecialValueText("auto")
         self.dark.setKeyboardTracking(False)
         self.dark.setToolTip("Dark level in camera codes (auto: the 1st percentile of the frame)")
-        self.bins = QSpinBox()
+        self.bins = SpinBox()
         self.bins.setRange(2, 32)
         self.bins.setKeyboardTracking(False)
         self.psf_label = QLabel("PSF: none")

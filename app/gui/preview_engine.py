@@ -55,6 +55,11 @@ __all__ = [
 
 F32 = npt.NDArray[np.float32]
 
+#: tau auto re-estimates when the measurement changes by more than this (relative L2)
+AUTO_RETUNE = 0.25
+#: iteration limit of the preview's tau search (a few seconds at 256^2 on one core)
+AUTO_ITERS = 100
+
 #: Preview models the engine knows.
 MODELS: tuple[str, ...] = ("2d", "video")
 
@@ -70,14 +75,25 @@ class PreviewSettings:
     Attributes:
         model: ``2d`` or ``video``.
         tau: TV weight (on the measurement scaled to max 1).
-        iters_per_frame: FISTA iterations per frame (warm-started).
+        iters_per_frame: FISTA iterations per frame (warm-started); the most per frame when
+            ``target_fps`` is set.
         downsample: box-downsampling factor of frame and PSF.
         prox_iters: inner TV-prox iterations per FISTA step.
         dark: dark level in camera codes, or ``None`` for auto (the 1st percentile).
         video_bins: number of time bins of the ``video`` model.
-        threads: torch intra-op threads (process-wide; 0 leaves torch's setting). One thread
-            is the default: a preview is small, and on a few cores more threads only fight
-            the camera and GUI threads for them.
+        threads: torch intra-op threads (process-wide); 0 (the default) lets the thread
+            policy (:mod:`recon.threads`) choose from the free cores, once when the preview
+            starts or this setting changes: on a busy machine more threads only fight the
+            camera and GUI threads.
+        target_fps: the display rate to hold: a frame stops iterating (after at least one
+            iteration) when one more would make its preview take longer than
+            1 / ``target_fps``; the result says how many it ran. 0 always runs
+            ``iters_per_frame``.
+        tau_auto: choose tau from the frame itself (:mod:`recon.autotau`, held-out pixels)
+            on a background thread, again only when the geometry or PSF changes or the
+            scene changes (the measurement moves by more than ``AUTO_RETUNE`` relative to
+            the one the estimate was made on), never every frame; ``tau`` serves until the
+            first estimate arrives.
 
     """
 
@@ -88,7 +104,9 @@ class PreviewSettings:
     prox_iters: int = 2
     dark: float | None = None
     video_bins: int = 4
-    threads: int = 1
+    threads: int = 0
+    target_fps: float = 15.0
+    tau_auto: bool = False
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
@@ -101,8 +119,12 @@ class PreviewSettings:
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
         if int(self.threads) != self.threads or self.threads < 0:
             raise ValueError(f"threads must be an integer >= 0, got {self.threads!r}")
+        if not (math.isfinite(self.target_fps) and self.target_fps >= 0):
+            raise ValueError(f"target_fps must be a number >= 0, got {self.target_fps!r}")
         if self.dark is not None and not math.isfinite(self.dark):
             raise ValueError(f"dark must be a finite number or None, got {self.dark!r}")
+        if not isinstance(self.tau_auto, bool):
+            raise ValueError(f"tau_auto must be true or false, got {self.tau_auto!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-JSON form."""
@@ -122,6 +144,8 @@ class PreviewResult:
     ``image`` is (H, W) float32 (the ``video`` model: its bins side by side); ``levels`` are
     display levels (0 and the 99.5th percentile). ``latency_s`` runs from the frame's host
     timestamp to the end of the computation; ``compute_s`` is the engine's own time.
+    ``iterations`` is what this frame ran: fewer than ``settings.iters_per_frame`` when the
+    display rate (``settings.target_fps``) could not hold them; ``note`` then says so.
     """
 
     image: F32
@@ -137,6 +161,10 @@ class PreviewResult:
     settings: PreviewSettings
     shape: tuple[int, int]
     done_time: float = field(default=0.0)
+    note: str = ""
+    threads: str = ""
+    tau: float = math.nan
+    tau_note: str = ""
 
 
 @dataclass(frozen=True)
@@ -147,26 +175,6 @@ class _Geometry:
     downsample: int
     video_bins: int
     timing_key: tuple[Any, ...] | None
-
-
-class _StreamingFista(Fista):
-    """FISTA whose measurement can be replaced between steps (a new frame).
-
-    The iterate, the momentum and the TV prox's dual carry over, so on a scene that changes
-    slowly the preview converges as if it had one long run; when the new data make a step
-    raise the objective, FISTA's adaptive restart resets the momentum.
-    """
-
-    def set_measurement(self, b: torch.Tensor) -> None:
-        """Use ``b`` (same shape) from the next step on."""
-        if tuple(b.shape) != tuple(self.b.shape):
-            raise ValueError(f"measurement shape {tuple(b.shape)} != {tuple(self.b.shape)}")
-        self.b = b.to(dtype=self.op.dtype, device=self.op.device)
-        # recon.fista.Fista has no public way to swap b; these are its own fields
-        self._b_norm = max(float(torch.linalg.vector_norm(self.b)), 1e-30)
-        self.objective = self._objective(self.Ax, self.x)[0]
-        self._stalls = 0
-        self.reason = None
 
 
 def _box(a: npt.NDArray[Any], f: int) -> F32:
@@ -201,9 +209,20 @@ class PreviewEngine:
         self._lipschitz = 0.0
         self._mask: Any = None
         self._x: Any = None
-        self._solver: _StreamingFista | None = None
+        self._solver: Fista | None = None
         self._solver_key: tuple[float, int] | None = None
         self._total_iters = 0
+        self._threads_set: int | None = None
+        self._threads_reason = ""
+        self._iter_s: float | None = None  # recent seconds per FISTA iteration
+        # tau auto: model recipe for the estimating thread, its result and what it was for
+        self._build_args: tuple[str, dict[str, Any]] | None = None
+        self._auto_thread: threading.Thread | None = None
+        self._auto_gen = 0
+        self._auto_tau: float | None = None
+        self._auto_ref: F32 | None = None
+        self._auto_note = ""
+        self._tail_s = 0.0  # recent seconds from the last iteration to the result
         if psf is not None:
             self._psf = self._check_psf(psf)
 
@@ -257,6 +276,14 @@ class PreviewEngine:
         with self._lock:
             self._geometry = None
 
+    def stop_auto(self, timeout_s: float = 10.0) -> None:
+        """Cancel a running tau auto estimate and wait for its thread."""
+        with self._lock:
+            self._auto_gen += 1
+            thread = self._auto_thread
+        if thread is not None:
+            thread.join(timeout_s)
+
     # -- processing ----------------------------------------------------------------------------
 
     def _apply_pending(self) -> PreviewSettings:
@@ -297,8 +324,11 @@ class PreviewEngine:
         """
         t0 = time.perf_counter()
         s = self._apply_pending()
-        if s.threads and torch.get_num_threads() != s.threads:
-            torch.set_num_threads(int(s.threads))
+        if self._threads_set != s.threads:
+            from recon.threads import apply_threads
+
+            self._threads_reason = apply_threads(s.threads).reason
+            self._threads_set = s.threads
         if self._psf is None:
             raise PreviewError("no PSF: load or calibrate one to see a reconstruction")
         frame = np.asarray(pixels)
@@ -323,39 +353,61 @@ class PreviewEngine:
         geo = _Geometry(s.model, (int(frame.shape[0]), int(frame.shape[1])), roi,
                         int(s.downsample), int(s.video_bins), timing_key)
         warm = geo == self._geometry and self._x is not None
+        build_s = 0.0  # a one-off model build does not count against the display rate
         if geo != self._geometry:
+            t_build = time.perf_counter()
             self._build(geo, sensor_psf, binning, timing)
+            build_s = time.perf_counter() - t_build
         b = self._measurement(frame, s, roi, binning, (ph, pw))
         bt = torch.from_numpy(b)[None]
         solver = self._solver
-        key = (s.tau, s.prox_iters)
+        tau = self._auto_update(b, s) if s.tau_auto else s.tau
+        key = (tau, s.prox_iters)
         if warm and solver is not None and self._solver_key == key:
-            solver.set_measurement(bt)  # keep the iterate and the momentum
+            solver.set_measurement(bt)  # keep the iterate, the momentum and the TV dual
         else:
             from recon.tv import TV
 
             tv = TV(weight_k=0.5) if s.model == "video" else TV()
-            solver = _StreamingFista(self._model.op, bt, tau=s.tau, tv=tv,
+            solver = Fista(self._model.op, bt, tau=tau, tv=tv,
                                      x0=self._x if warm else None, max_iter=10**12, tol=0.0,
                                      prox_iters=s.prox_iters, lipschitz=self._lipschitz)
             self._solver, self._solver_key = solver, key
         step = None
-        for _ in range(s.iters_per_frame):
+        n = 0
+        deadline = t0 + build_s + 1.0 / s.target_fps if s.target_fps > 0 else math.inf
+        t_loop = time.perf_counter()
+        while n < s.iters_per_frame and not solver.done:
+            if n and self._iter_s is not None and (
+                    time.perf_counter() + self._iter_s + self._tail_s > deadline):
+                break  # one more would miss the display rate
+            t_it = time.perf_counter()
             step = solver.step()
+            n += 1
+            dt = time.perf_counter() - t_it
+            self._iter_s = dt if self._iter_s is None else 0.7 * self._iter_s + 0.3 * dt
+        t_tail = time.perf_counter()
         self._x = solver.x
-        self._total_iters += s.iters_per_frame
+        self._total_iters += n
         img = self._display(solver.x)
         lo = 0.0
         hi = float(np.percentile(img, 99.5)) if img.size else 1.0
         if not (hi > lo):
             hi = lo + 1.0
         done = time.time()
-        compute = time.perf_counter() - t0
+        t_end = time.perf_counter()
+        compute = t_end - t0
+        self._tail_s = 0.7 * self._tail_s + 0.3 * (t_end - t_tail)
+        note = ""
+        if n < s.iters_per_frame:
+            note = (f"{n} of {s.iters_per_frame} iterations per frame to hold "
+                    f"{s.target_fps:g} frames/s ({1e3 * (t_tail - t_loop) / max(n, 1):.0f} ms "
+                    "per iteration)")
         return PreviewResult(
             image=img,
             levels=(lo, hi),
             frame_id=int(frame_id),
-            iterations=s.iters_per_frame,
+            iterations=n,
             total_iterations=self._total_iters,
             objective=float(solver.objective),
             residual=float(step.residual) if step is not None else float("nan"),
@@ -365,7 +417,48 @@ class PreviewEngine:
             settings=s,
             shape=(int(img.shape[0]), int(img.shape[1])),
             done_time=done,
+            note=note,
+            threads=self._threads_reason,
+            tau=tau,
+            tau_note=self._auto_note if s.tau_auto else "",
         )
+
+    # -- tau auto ------------------------------------------------------------------------------
+
+    def _auto_update(self, b: F32, s: PreviewSettings) -> float:
+        """The tau to use now; starts a background estimate when the scene has changed."""
+        with self._lock:
+            running = self._auto_thread is not None and self._auto_thread.is_alive()
+            ref = self._auto_ref
+            changed = ref is None or ref.shape != b.shape or float(
+                np.linalg.norm(b - ref)) > AUTO_RETUNE * max(float(np.linalg.norm(ref)), 1e-30)
+            if changed and not running and self._build_args is not None:
+                self._auto_ref = b.copy()
+                self._auto_note = "tau auto: estimating"
+                gen = self._auto_gen
+                self._auto_thread = threading.Thread(
+                    target=self._estimate, args=(b.copy(), self._build_args, gen, s.prox_iters),
+                    name="preview-tau-auto", daemon=True)
+                self._auto_thread.start()
+            return self._auto_tau if self._auto_tau is not None else s.tau
+
+    def _estimate(self, b: F32, recipe: tuple[str, dict[str, Any]], gen: int,
+                  prox_iters: int) -> None:
+        """Background thread: choose tau on an independent copy of the model."""
+        from recon.autotau import choose_tau
+        from recon.models import build_model
+
+        try:
+            model = build_model(recipe[0], **recipe[1])
+            choice = choose_tau(model, torch.from_numpy(b)[None], max_iter=AUTO_ITERS,
+                                min_iter=30, patience=30, prox_iters=prox_iters,
+                                cancel=lambda: gen != self._auto_gen)
+            tau, note = choice.tau, f"{choice.describe()} (re-estimated on a scene change)"
+        except (ValueError, RuntimeError) as exc:  # too few pixels, ...: keep the given tau
+            tau, note = None, f"tau auto failed ({exc}); using the tau setting"
+        with self._lock:
+            if gen == self._auto_gen:  # not for an older geometry or PSF
+                self._auto_tau, self._auto_note = tau, note
 
     def _psf_at_binning(self, binning: int) -> F32:
         assert self._psf is not None
@@ -394,7 +487,8 @@ class PreviewEngine:
             if not mask.any():
                 raise PreviewError(f"the ROI {geo.roi} is too small for downsampling by {d}")
         if geo.model == "video":
-            from drivers.timing import bin_time, downsample_rows, shutter_function
+            from drivers.timing import bin_time, shutter_function
+            from recon.preprocess import downsample_rows
 
             full = shutter_function(timing, 1)
             factor = max(1, -(-full.shape[0] // geo.video_bins))
@@ -402,9 +496,16 @@ class PreviewEngine:
             if binning > 1:
                 m_k = downsample_rows(m_k, binning)
             m_k = downsample_rows(m_k, d)[:, : psf_d.shape[0]]
-            model = build_model("video", psf_d, shutter=m_k.astype(np.float32), mask=mask)
+            recipe: tuple[str, dict[str, Any]] = (
+                "video", {"psf": psf_d, "shutter": m_k.astype(np.float32), "mask": mask})
         else:
-            model = build_model("2d", psf_d, mask=mask)
+            recipe = ("2d", {"psf": psf_d, "mask": mask})
+        model = build_model(recipe[0], **recipe[1])
+        with self._lock:  # a new geometry or PSF: the next frame re-estimates tau
+            self._build_args = recipe
+            self._auto_gen += 1
+            self._auto_tau = self._auto_ref = None
+            self._auto_note = ""
         self._model = model
         self._mask = mask
         with torch.no_grad():
@@ -623,7 +724,8 @@ class PreviewLoop:
             self._on_result(result)
 
     def stop(self, timeout_s: float = 10.0) -> None:
-        """End the thread (after the frame in progress)."""
+        """End the thread (after the frame in progress) and a running tau auto estimate."""
         self.slot.close()
         if self._thread is not threading.current_thread():
             self._thread.join(timeout_s)
+        self.engine.stop_auto(timeout_s)

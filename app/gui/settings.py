@@ -62,6 +62,7 @@ class AppSettings:
     """Everything the app remembers. Unknown keys in the file are ignored."""
 
     camera: str = "sim"
+    show_demo_cameras: bool = False
     light_port: str = "sim"
     connect_light: bool = True
     sim_scene: str = "im65"

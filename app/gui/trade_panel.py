@@ -1,25 +1,26 @@
 """The speed/accuracy trade in the app: the same plot as ``lenslesscam trade``, and a suggestion.
 
 The panel either loads a ``trade.csv`` written by the CLI, or measures a quick trade on the
-current raw frame with the preview's PSF (FISTA-TV and ADMM-TV over tau and iterations, the
-held-out proxy as quality: there is no ground truth at the bench) in a worker thread. For a
-time budget it suggests the best setting found, and *Apply to preview* copies its tau into the
-live preview's controls.
+current raw frame with the preview's PSF, box-downsampled by the panel's factor (FISTA-TV and
+ADMM-TV over tau and iterations, the held-out proxy as quality: there is no ground truth at the
+bench) in a worker thread. For a time budget it suggests the best setting found, and *Apply to
+preview* hands its tau to the preview.
+
+Collaborators come in the constructor: ``current()`` gives the measurement (newest frame and
+the preview's PSF), ``apply_tau(tau)`` sets the preview's tau.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtCore import QObject, Qt, QThread, Signal
+from PySide6.QtCore import QObject, QThread, Signal
 from PySide6.QtWidgets import (
-    QDockWidget,
-    QDoubleSpinBox,
     QFileDialog,
     QHBoxLayout,
     QLabel,
@@ -28,10 +29,9 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app.gui.jobs_panel import Measurement
+from app.gui.widgets import DoubleSpinBox, SpinBox
 from recon.trade import TradeRow, best_for_budgets, pareto_front, read_trade_csv
-
-if TYPE_CHECKING:
-    from app.gui.main_window import MainWindow
 
 COLOURS = {"fista": (31, 119, 180), "admm": (255, 127, 14), "udn": (44, 160, 44)}
 
@@ -41,17 +41,18 @@ class _TradeWorker(QObject):
     finished = Signal()
     failed = Signal(str)
 
-    def __init__(self, case: Any) -> None:
+    def __init__(self, case: Any, grid: list[Any] | None) -> None:
         super().__init__()
         self.case = case
+        self.grid = grid
         self._stop = threading.Event()
 
     def run(self) -> None:
         from recon.trade import default_grid, run_trade
 
         try:
-            for r in run_trade(self.case, default_grid(quick=True, with_udn=False),
-                               cancel=self._stop.is_set):
+            grid = self.grid or default_grid(quick=True, with_udn=False)
+            for r in run_trade(self.case, grid, cancel=self._stop.is_set):
                 self.row.emit(r)
         except Exception as exc:  # shown in the panel, never a crash
             self.failed.emit(f"{type(exc).__name__}: {exc}")
@@ -66,19 +67,35 @@ class TradePanel(QWidget):
 
     rows_changed = Signal()
 
-    def __init__(self, window: MainWindow | None = None) -> None:
-        super().__init__()
-        self.window_ = window
+    def __init__(
+        self,
+        current: Callable[[], Measurement | None] | None = None,
+        apply_tau: Callable[[float], None] | None = None,
+        parent: QWidget | None = None,
+        grid: list[Any] | None = None,
+    ) -> None:
+        """A trade panel; ``grid``: the settings to measure.
+
+        The default grid is ``recon.trade.default_grid(quick=True)`` without the UDN.
+        """
+        super().__init__(parent)
+        self.grid = grid
+        self._current = current
+        self._apply_tau = apply_tau
         self.rows: list[TradeRow] = []
         self._thread: QThread | None = None
         self._worker: _TradeWorker | None = None
         self.measure_button = QPushButton("Measure on current frame")
         self.load_button = QPushButton("Load trade.csv…")
-        self.budget = QDoubleSpinBox()
+        self.budget = DoubleSpinBox()
         self.budget.setRange(0.01, 1e5)
         self.budget.setDecimals(2)
         self.budget.setValue(1.0)
         self.budget.setSuffix(" s")
+        self.downsample = SpinBox()
+        self.downsample.setRange(1, 16)
+        self.downsample.setValue(2)
+        self.downsample.setToolTip("Measure on the frame and PSF box-downsampled by this factor")
         self.apply_button = QPushButton("Apply to preview")
         self.apply_button.setEnabled(False)
         self.suggestion = QLabel("no trade measured yet")
@@ -89,11 +106,17 @@ class TradePanel(QWidget):
         self.plot.setLabel("left", "quality (dB)")
         self.plot.addLegend(offset=(5, 5))
         top = QHBoxLayout()
-        for w in (self.measure_button, self.load_button, QLabel("budget"), self.budget,
-                  self.apply_button):
+        for w in (self.measure_button, QLabel("downsample"), self.downsample,
+                  self.load_button):
             top.addWidget(w)
+        top.addStretch(1)
+        second = QHBoxLayout()
+        for w in (QLabel("time budget"), self.budget, self.apply_button):
+            second.addWidget(w)
+        second.addStretch(1)
         lay = QVBoxLayout(self)
         lay.addLayout(top)
+        lay.addLayout(second)
         lay.addWidget(self.suggestion)
         lay.addWidget(self.plot, 1)
         self.measure_button.clicked.connect(self.measure_current)
@@ -133,12 +156,13 @@ class TradePanel(QWidget):
     # -- measuring -----------------------------------------------------------------------------
 
     def measure_current(self) -> None:
-        """Run a quick trade on the window's latest frame with the preview's PSF."""
+        """Run a quick trade on the latest frame with the preview's PSF (downsampled)."""
+        from recon.io import box_downsample
         from recon.trade import Case
 
-        w = self.window_
-        frame = None if w is None else w.last_frame
-        psf = None if w is None else w.engine.psf
+        m = None if self._current is None else self._current()
+        frame = None if m is None else m.frame
+        psf = None if m is None else m.psf
         if frame is None or psf is None:
             self.suggestion.setText("needs a live frame and a PSF")
             return
@@ -153,14 +177,22 @@ class TradePanel(QWidget):
         if top <= 0:
             self.suggestion.setText("the frame is empty: nothing to reconstruct")
             return
-        case = Case("current frame", psf[None].astype(np.float32),
-                    (meas / top)[None].astype(np.float32))
+        f = int(self.downsample.value())
+        try:
+            small = box_downsample(meas / top, f)
+            small_psf = box_downsample(np.asarray(psf, dtype=np.float32), f)
+        except ValueError as exc:
+            self.suggestion.setText(str(exc))
+            return
+        small_psf = small_psf / max(float(small_psf.sum()), 1e-30)
+        case = Case("current frame", small_psf[None].astype(np.float32),
+                    (small / max(float(small.max()), 1e-30))[None].astype(np.float32))
         self.stop()
         self.rows = []
         self._redraw()
         self.suggestion.setText("measuring…")
         self.measure_button.setEnabled(False)
-        self._worker = _TradeWorker(case)
+        self._worker = _TradeWorker(case, self.grid)
         self._thread = QThread()
         self._worker.moveToThread(self._thread)
         self._thread.started.connect(self._worker.run)
@@ -237,26 +269,8 @@ class TradePanel(QWidget):
         self.apply_button.setEnabled(best.method in ("fista", "admm"))
 
     def apply_suggestion(self) -> None:
-        """Copy the suggested tau into the live preview's controls."""
-        w, best = self.window_, self._suggested
-        if w is None or best is None or best.method not in ("fista", "admm"):
+        """Hand the suggested tau to the preview."""
+        best = self._suggested
+        if self._apply_tau is None or best is None or best.method not in ("fista", "admm"):
             return
-        s = dataclasses.replace(w.preview_controls.settings(), tau=float(best.tau))
-        w.preview_controls.set_settings(s)
-        w.set_preview_settings(s)
-
-
-def add_trade_dock(window: MainWindow) -> None:
-    """Put a :class:`TradePanel` in a (hidden by default) right dock of ``window``."""
-    panel = TradePanel(window)
-    dock = QDockWidget("Speed / accuracy trade", window)
-    dock.setObjectName("trade-dock")
-    dock.setWidget(panel)
-    window.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, dock)
-    dock.hide()
-    window.trade_panel = panel
-    window.trade_dock = dock
-    act = dock.toggleViewAction()
-    act.setText("Speed/accuracy trade panel")
-    window.tools_menu.addAction(act)
-    window._close_hooks = [*getattr(window, "_close_hooks", []), panel.stop]
+        self._apply_tau(float(best.tau))

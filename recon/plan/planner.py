@@ -30,7 +30,6 @@ import torch
 
 from drivers.timing import ReadoutPattern, SensorTiming
 from recon.fista import Fista, FistaStep
-from recon.io import box_downsample
 from recon.models import ForwardModel
 from recon.plan.analysis import (
     LAMBDA_T,
@@ -43,6 +42,7 @@ from recon.plan.analysis import (
 )
 from recon.plan.cost import MIN_ITERS, iteration_cost, method_for_budget
 from recon.plan.roi import Region, build_region_model, embed_region
+from recon.preprocess import box_downsample, downsample_mask, downsample_masked
 from recon.tv import TV
 
 __all__ = [
@@ -70,6 +70,44 @@ F64 = npt.NDArray[np.float64]
 
 # ---------------------------------------------------------------------------------------------
 # the plan
+
+
+def _plan_type_text(annotation: str) -> str:
+    """What a plan field's annotation asks for, in words."""
+    words = {"str": "a string", "int": "an integer", "float": "a number",
+             "tuple[int, int]": "a list of 2 integers",
+             "tuple[int, int, int, int]": "a list of 4 integers",
+             "tuple[str, ...]": "a list of strings", "dict[str, str]": "an object",
+             "dict[str, Any]": "an object"}
+    parts = [p.strip() for p in annotation.split("|")]
+    text = " or ".join(words.get(p, p) for p in parts if p != "None")
+    return text + (" or null" if "None" in parts else "")
+
+
+def _check_plan_field(name: str, annotation: str, v: Any) -> None:
+    """Raise ValueError naming ``name`` and its expected type when ``v`` does not fit it."""
+    parts = [p.strip() for p in annotation.split("|")]
+    if v is None and "None" in parts:
+        return
+    for p in parts:
+        if p == "str" and isinstance(v, str):
+            return
+        num = isinstance(v, int | float) and not isinstance(v, bool)
+        if p == "int" and isinstance(v, int) and not isinstance(v, bool):
+            return
+        if p == "float" and num and math.isfinite(v):
+            return
+        if p.startswith("dict") and isinstance(v, dict):
+            return
+        if p.startswith("tuple") and isinstance(v, list | tuple):
+            items = p[len("tuple["):-1].split(", ")
+            if items[-1] == "...":
+                if all(isinstance(e, str) for e in v):
+                    return
+            elif len(v) == len(items) and all(
+                    isinstance(e, int) and not isinstance(e, bool) for e in v):
+                return
+    raise ValueError(f"plan field {name!r} must be {_plan_type_text(annotation)}, got {v!r}")
 
 
 @dataclass(frozen=True)
@@ -275,7 +313,9 @@ class Plan:
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> Plan:
-        """Inverse of :meth:`to_json` (checks the format and version)."""
+        """Inverse of :meth:`to_json` (checks the format, version and every field's type)."""
+        if not isinstance(d, Mapping):
+            raise ValueError(f"a plan is a JSON object, got {type(d).__name__}")
         if d.get("format") != PLAN_FORMAT:
             raise ValueError(f"not a plan: format {d.get('format')!r}, expected {PLAN_FORMAT!r}")
         if int(d.get("format_version", 0)) > PLAN_VERSION:
@@ -284,8 +324,13 @@ class Plan:
         kw: dict[str, Any] = {}
         for f in dataclasses.fields(cls):
             if f.name not in d:
+                if (f.default is dataclasses.MISSING
+                        and f.default_factory is dataclasses.MISSING):
+                    raise ValueError(f"plan field {f.name!r} is missing "
+                                     f"({_plan_type_text(str(f.type))})")
                 continue
             v = d[f.name]
+            _check_plan_field(f.name, str(f.type), v)
             if f.name in ("sensor", "field", "region", "planes", "overridden") and v is not None:
                 v = tuple(v)
             kw[f.name] = v
@@ -379,15 +424,15 @@ def planned_model(plan: Plan, psf: Any = None, *, shutter: F64 | None = None,
     """The forward model a plan reconstructs with (on its downsampled grid and region).
 
     ``shutter`` is the finest shutter function (K0, H) the plan was made with; ``mask`` the
-    full-resolution sensor mask (a downsampled pixel counts as measured only if all of its
-    pixels are).
+    full-resolution sensor mask (downsampled by the one rule,
+    :func:`recon.preprocess.downsample_mask`: a coarse pixel is measured when any of its
+    sensor pixels is).
     """
     d = plan.downsample
     region = plan.region_obj
     m_d = None
     if mask is not None:
-        m_d = (box_downsample(np.asarray(mask, dtype=np.float32) > 0.5, d) >= 1.0)
-        m_d = m_d.astype(np.float32)
+        m_d = downsample_mask(np.asarray(mask, dtype=np.float32), d)
     kw: dict[str, Any] = {"downsample": d, "mask": m_d, "dtype": dtype, "device": device}
     if plan.planes is not None:
         if psf_stack is None:
@@ -504,8 +549,9 @@ def make_plan(
         mk = np.asarray(mask, dtype=np.float32)
         if mk.shape[-2:] != (h, w):
             raise ValueError(f"mask {mk.shape} does not match the sensor {(h, w)}")
-        measured = box_downsample(mk.reshape(h, w) > 0.5, a) >= 1.0
-        b_a = b_a * measured
+        # the one mask rule: measured when any sensor pixel is, the mean of the measured ones
+        b_m, m_a = downsample_masked(b.mean(axis=0)[None], mk.reshape(h, w), a)
+        b_a, measured = b_m[0], m_a > 0
     evidence["analysis_grid"] = {"factor": a, "shape": list(b_a.shape)}
 
     # extent
@@ -626,6 +672,7 @@ class PlanResult:
     wall_s: float
     residual: float | None
     params: dict[str, Any]
+    mask_hash: str | None = None  # array hash of the coarse sensor mask the model used
 
     def field_image(self) -> F32:
         """The reconstruction placed in the whole (downsampled) field, zero outside."""
@@ -636,7 +683,8 @@ class PlanResult:
         return {"method": self.plan.method, "model": self.plan.model, "plan": self.plan.to_json(),
                 "iterations": self.iterations, "stop_reason": self.stop_reason,
                 "wall_time_s": round(self.wall_s, 3), "residual": self.residual,
-                "region_on_grid": self.region.to_list(), "parameters": self.params}
+                "region_on_grid": self.region.to_list(), "parameters": self.params,
+                "mask_hash": self.mask_hash}
 
 
 def execute(
@@ -665,17 +713,23 @@ def execute(
     base, _ = base_shutter(shutter, timing, plan.sensor[0])
     model = planned_model(plan, psf, shutter=base, psf_stack=psf_stack, mask=mask,
                           dtype=dtype, device=device)
-    b_d = box_downsample(b, plan.downsample)
-    if mask is not None:
-        m_d = box_downsample(np.asarray(mask, dtype=np.float32) > 0.5, plan.downsample) >= 1.0
-        b_d = b_d * m_d
+    if mask is None:
+        b_d = box_downsample(b, plan.downsample)
+    else:  # the one mask rule (recon.preprocess.downsample_masked), as the model's mask
+        b_d, _ = downsample_masked(b, np.asarray(mask, dtype=np.float32), plan.downsample)
     bt = torch.as_tensor(b_d, dtype=dtype, device=device)
     if tuple(bt.shape) != model.meas_shape:
         raise ValueError(f"measurement {tuple(bt.shape)} does not fit the model "
                          f"{model.meas_shape} (channels of PSF and measurement differ?)")
+    mask_hash = None
+    if model.mask is not None:
+        from recon.formats import array_hash
+
+        mask_hash = array_hash(model.mask.detach().cpu().numpy().astype(np.float32))
     t0 = time.perf_counter()
     if plan.method == "udn":
-        return _execute_udn(plan, model, b_d, t0, callback, cancel)
+        res = _execute_udn(plan, model, b_d, t0, callback, cancel)
+        return dataclasses.replace(res, mask_hash=mask_hash)
     tau_grid = plan.tau / plan.downsample  # tau is per full-resolution pixel (see Plan)
     if plan.model == "video":
         tau, tv = video_tv(plan.k, tau_grid, plan.lambda_t)
@@ -694,7 +748,8 @@ def execute(
     wall = time.perf_counter() - t0
     reason = solver.reason.value if solver.reason is not None else "cancelled"
     return PlanResult(solver.x.float().cpu().numpy(), plan, plan.grid_region, solver.iteration,
-                      reason, wall, None if last is None else last.residual, solver.params)
+                      reason, wall, None if last is None else last.residual, solver.params,
+                      mask_hash)
 
 
 def _execute_udn(plan: Plan, model: ForwardModel, b: F32, t0: float,

@@ -23,10 +23,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from drivers.timing import downsample_rows
 from recon.models import ForwardModel, ModelKind, assemble, build_model
 from recon.operators import as_tensor
 from recon.plan.coarse import coarse_psf
+from recon.preprocess import downsample_rows
 
 __all__ = ["Region", "build_region_model", "embed_region"]
 

@@ -7,12 +7,16 @@
 - :mod:`recon.udn.spec`: TOML job specs and their validation.
 - :mod:`recon.udn.jobs`: run folders: checkpoints, previews, loss history, results, run
   records; run, resume, status, cancel.
+- :mod:`recon.udn.rundir`: the run folder's lock, verified checkpoints with a fallback, the
+  clean-up of interrupted writes, a full disk named.
+- :mod:`recon.udn.state`: :class:`~recon.udn.state.JobState` and
+  :class:`~recon.udn.state.FinishReason`, the str-Enums of job states.
 
 Torch is imported by these modules; import them only where torch is wanted.
 """
 
 from recon.udn.network import Generator, NetworkConfig
-from recon.udn.runner import UDNConfig, UDNResult, UDNRunner, UDNStep, UDNStopReason
+from recon.udn.runner import UDNConfig, UDNResult, UDNRunner, UDNStep
 
 __all__ = [
     "Generator",
@@ -21,5 +25,4 @@ __all__ = [
     "UDNResult",
     "UDNRunner",
     "UDNStep",
-    "UDNStopReason",
 ]

@@ -127,10 +127,11 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
     truth_path = rec0["spec"]["data"].get("truth")
     if truth_path:
         from recon.metrics import metrics_report
-        from recon.udn.jobs import load_input
+        from recon.problem import ProblemSpec, load_truth
 
-        try:
-            truth: Any = load_input(truth_path, "data.truth").astype(np.float32)
+        try:  # the truth on the runs' grid, prepared as the runs prepared it
+            truth: Any = load_truth(ProblemSpec.from_data_section(rec0["spec"]["data"]),
+                                    x.shape)
         except (OSError, FormatError, ValueError):
             truth = None  # the truth moved or changed: the ensemble is still written
         if truth is not None and truth.size == x.size:

@@ -8,20 +8,31 @@ Run folder layout (``RUN_DIR``)::
                        progress (iteration, loss, held-out error, ETA), checkpoint, results
     loss.csv           iteration, loss, heldout, best_heldout, lr, gain, elapsed_s, restored
     checkpoint.pt      latest checkpoint (weights, Adam state, RNG states, EMA, best, ...)
+    checkpoint.prev.pt the checkpoint before it (used when the latest is damaged or missing)
+    checkpoints.json   SHA-256 and iteration of the checkpoints written (checked on resume)
+    run.lock           the OS lock of the process writing the folder (see recon.udn.rundir)
     previews/iter_NNNNNNN.png   the estimate every ``output.preview_every`` iterations
     final.tif          the final (EMA) estimate, via recon.io.save_reconstruction (+ .png)
     best.tif           the estimate with the lowest held-out error (+ .png)
     CANCEL             present while a cancellation is requested (``jobs cancel``)
 
-Every file is written atomically. A checkpoint is written every ``output.checkpoint_every``
-iterations or ``output.checkpoint_minutes`` minutes, whichever comes first, and when the run
-stops (completed, stopped early, cancelled). A crash or SIGKILL loses at most one interval;
-:func:`resume_job` continues from the checkpoint and, on CPU, ends with the same weights as an
-uninterrupted run. SIGTERM or SIGINT (with :func:`cancel_on_signals`) or the ``CANCEL`` file
-stop the run cleanly at the next iteration, with a final checkpoint and record.
+Every file is written atomically, by one process at a time (:class:`RunLock`: a second
+``jobs run`` / ``jobs resume`` on the folder is refused with :class:`RunFolderBusy`). A
+checkpoint is written every ``output.checkpoint_every`` iterations or
+``output.checkpoint_minutes`` minutes, whichever comes first, and when the run stops
+(completed, stopped early, cancelled); it is read back and checked against its hash before it
+replaces the previous one. A crash or SIGKILL loses at most one interval; :func:`resume_job`
+continues from the newest verified checkpoint (from the previous one, with a note in the
+record, when the newest is damaged) and, on CPU, ends with the same weights as an
+uninterrupted run. Without any usable checkpoint it refuses unless ``restart=True``.
+SIGTERM or SIGINT (with :func:`cancel_on_signals`) or the ``CANCEL`` file stop the run cleanly
+at the next iteration, with a final checkpoint and record. A full disk fails the run with
+:class:`DiskFull` (one line naming the folder); the record says ``failed`` and keeps the last
+good checkpoint.
 
-Finish reasons in the record: ``completed`` (iteration or time limit; ``detail`` says which),
-``stopped_early``, ``cancelled``, ``failed`` (with ``error``: type and message).
+States (``status``) and finish reasons in the record are :class:`recon.udn.state.JobState`
+and :class:`recon.udn.state.FinishReason`: ``completed`` (iteration or time limit; ``detail``
+says which), ``stopped_early``, ``cancelled``, ``failed`` (with ``error``: type and message).
 """
 
 from __future__ import annotations
@@ -51,22 +62,46 @@ import torch
 from recon.formats import (
     FORMAT_VERSION,
     FormatError,
-    array_hash,
-    atomic_write,
     atomic_write_bytes,
     atomic_write_json,
     file_hash,
     provenance,
 )
+from recon.previews import preview_image
+from recon.previews import write_png as _write_png  # the shared writer (tests patch it)
+from recon.problem import Problem
+from recon.stepwise import StopReason
 from recon.udn.memory import check_memory, estimate_memory
-from recon.udn.runner import UDNRunner, UDNStep, UDNStopReason, resolve_device
+from recon.udn.rundir import (
+    CHECKPOINT_FILE,
+    CHECKPOINT_FORMAT,
+    PREVIOUS_CHECKPOINT_FILE,
+    CheckpointError,
+    DiskFull,
+    JobError,
+    RunFolderBusy,
+    RunLock,
+    clean_temp_files,
+    is_disk_full,
+    load_checkpoint,
+    load_latest_checkpoint,
+    write_checkpoint,
+)
+from recon.udn.runner import UDNRunner, UDNStep, resolve_device
 from recon.udn.spec import SpecError, network_config, normalise_spec, udn_config
+from recon.udn.state import FinishReason, JobState
 
 __all__ = [
     "CHECKPOINT_FORMAT",
     "RUN_RECORD_FORMAT",
+    "CheckpointError",
+    "DiskFull",
+    "FinishReason",
+    "JobError",
     "JobOutcome",
+    "JobState",
     "JobStatus",
+    "RunFolderBusy",
     "cancel_on_signals",
     "format_status",
     "job_status",
@@ -76,20 +111,14 @@ __all__ = [
     "run_job",
 ]
 
-#: ``format`` of run.json and of checkpoint.pt.
+#: ``format`` of run.json (checkpoint.pt: ``CHECKPOINT_FORMAT`` from recon.udn.rundir).
 RUN_RECORD_FORMAT = "lenslesscam.udn_run"
-CHECKPOINT_FORMAT = "lenslesscam.udn_checkpoint"
 
 SPEC_FILE = "job.toml"
 RECORD_FILE = "run.json"
 LOSS_FILE = "loss.csv"
-CHECKPOINT_FILE = "checkpoint.pt"
 CANCEL_FILE = "CANCEL"
 PREVIEW_DIR = "previews"
-
-#: Fault injection for tests: after the iteration given in this environment variable the job
-#: writes its progress and then stalls (sleeps) until it is killed.
-STALL_ENV = "LENSLESSCAM_UDN_STALL_AT"
 
 _CSV_FIELDS = ("iteration", "loss", "heldout", "best_heldout", "lr", "gain", "elapsed_s",
                "restored")
@@ -100,16 +129,12 @@ Cancel = threading.Event | Callable[[], bool] | None
 Progress = Callable[[UDNStep], None] | None
 
 
-class JobError(RuntimeError):
-    """A job could not continue (the message says why and what is intact)."""
-
-
 @dataclass(frozen=True)
 class JobOutcome:
     """How a job ended."""
 
     run_dir: Path
-    finish_reason: str
+    finish_reason: FinishReason
     detail: str
     iterations: int
     record: dict[str, Any]
@@ -203,129 +228,22 @@ class _CancelCheck:
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass
-class _Problem:
-    model: Any
-    meas: F32
-    truth: F32 | None
-    kind: str
-    inputs: dict[str, Any]
+def _load_problem(spec: Mapping[str, Any], device: torch.device) -> Problem:
+    """The problem of a normalised spec's ``[data]`` table (:func:`recon.problem.load_problem`).
 
-
-def load_input(path: str, where: str) -> npt.NDArray[Any]:
-    """A job's input file as an array; errors name the spec key (``where``)."""
-    from recon.io import load_image
-
-    try:
-        return np.asarray(load_image(path))
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{where}: file not found: {path}") from None
-    except ValueError as exc:
-        raise ValueError(f"{where}: {exc}") from None
-
-
-def _describe_input(path: str | list[str] | None, arr: npt.NDArray[Any] | None) -> dict[str, Any]:
-    out: dict[str, Any] = {"path": path}
-    if isinstance(path, str) and Path(path).is_file():
-        out["file_hash"] = file_hash(path)
-    elif isinstance(path, list):
-        out["file_hash"] = [file_hash(p) for p in path]
-    if arr is not None:
-        out["array_hash"] = array_hash(arr)
-        out["shape"] = list(arr.shape)
-    return out
-
-
-def _load_problem(spec: Mapping[str, Any], device: torch.device) -> _Problem:
-    from recon.io import box_downsample, check_pair, load_measurement, load_psf, load_psf_stack
-    from recon.models import build_model
+    Errors name the spec key: ``data.measurement: ...``.
+    """
+    from recon.problem import ProblemSpec, load_problem
 
     d = spec["data"]
-    kind = d["model"]
-    ds = d["downsample"]
-    color = d["color"]
-    dark = d["dark"]
-    psf_dark = d["psf_dark"] if d["psf_dark"] is not None else dark
-    pn = None if d["psf_normalise"] == "none" else d["psf_normalise"]
-    mn = None if d["measurement_normalise"] == "none" else d["measurement_normalise"]
     try:
-        meas = load_measurement(d["measurement"], dark=dark, downsample=ds, channels=color,
-                                normalise=mn)
+        return load_problem(ProblemSpec.from_data_section(d), device=device)
     except (ValueError, FileNotFoundError) as exc:
-        raise type(exc)(f"data.measurement: {exc}") from None
-    try:
-        if kind == "depth":
-            psf = load_psf_stack(d["psf"], dark=psf_dark, downsample=ds,
-                                 normalise=pn)
-            check_pair(psf, meas, psf_is_stack=True)
-        else:
-            psf = load_psf(d["psf"], dark=psf_dark, downsample=ds, channels=color, normalise=pn)
-            check_pair(psf, meas)
-    except (ValueError, FileNotFoundError) as exc:
-        raise type(exc)(f"data.psf: {exc}") from None
-    c, h, w = (int(s) for s in meas.shape)
-    sensor = (h, w)
-    inputs = {"psf": _describe_input(d["psf"], psf),
-              "measurement": _describe_input(d["measurement"], meas)}
-    mask = None
-    if d["mask"] is not None:
-        raw = load_input(d["mask"], "data.mask").astype(np.float64)
-        if raw.ndim == 3 and raw.shape[0] == 1:
-            raw = raw[0]
-        if raw.ndim != 2:
-            raise ValueError(f"data.mask must be a 2D (H, W) array, got shape {raw.shape}")
-        if raw.shape == sensor:
-            mask = (raw > 0.5).astype(np.float32)
-        elif (raw.shape[0] // ds, raw.shape[1] // ds) == sensor and ds > 1:
-            # a downsampled pixel counts as measured only if all its sensor pixels were
-            mask = (box_downsample(raw > 0.5, ds) >= 1.0).astype(np.float32)
-        else:
-            raise ValueError(f"data.mask has shape {raw.shape}; the measurement is {sensor} "
-                             f"(or {h * ds}x{w * ds} at full resolution)")
-        inputs["mask"] = _describe_input(d["mask"], mask)
-    shutter = filters = None
-    if kind == "video":
-        raw = load_input(d["shutter"], "data.shutter").astype(np.float64)
-        if raw.ndim != 2:
-            raise ValueError(f"data.shutter must be a (K, rows) array, got shape {raw.shape}")
-        if raw.shape[1] == h:
-            shutter = raw
-        elif ds > 1 and raw.shape[1] // ds == h:
-            rows = h * ds
-            shutter = raw[:, :rows].reshape(raw.shape[0], h, ds).mean(axis=2)
-        else:
-            full = f" or (K, {h * ds}) at full resolution" if ds > 1 else ""
-            raise ValueError(f"data.shutter has shape {raw.shape}, but the measurement has {h} "
-                             f"rows: expected (K, {h}){full}")
-        inputs["shutter"] = _describe_input(d["shutter"], shutter)
-    if kind == "spectral":
-        raw = load_input(d["filters"], "data.filters").astype(np.float64)
-        if raw.ndim != 3:
-            raise ValueError(f"data.filters must be a (K, H, W) array, got shape {raw.shape}")
-        if raw.shape[1:] == sensor:
-            filters = raw
-        elif ds > 1 and (raw.shape[1] // ds, raw.shape[2] // ds) == sensor:
-            filters = box_downsample(raw, ds)
-        else:
-            raise ValueError(f"data.filters has shape {raw.shape}; expected (K, {h}, {w})")
-        inputs["filters"] = _describe_input(d["filters"], filters)
-    fld = d["field"]
-    field = None if fld == "sensor" else (2 * h, 2 * w) if fld == "full" else tuple(fld)
-    psf_arg: Any = psf
-    if kind != "depth" and psf.shape[0] == 1:
-        psf_arg = psf[0]
-    if kind == "depth" and c != 1:
-        raise ValueError("data.measurement: the depth model takes a grayscale measurement")
-    model = build_model(kind, psf_arg, channels=c if kind != "depth" else None, mask=mask,
-                        shutter=shutter, filters=filters, field=field, device=device)
-    truth = None
-    if d["truth"] is not None:
-        truth = load_input(d["truth"], "data.truth").astype(np.float32)
-        if truth.shape != tuple(model.scene_shape):
-            raise ValueError(f"data.truth has shape {truth.shape}; the scene is "
-                             f"{tuple(model.scene_shape)} (C, K, H, W)")
-        inputs["truth"] = _describe_input(d["truth"], truth)
-    return _Problem(model, meas, truth, kind, inputs)
+        msg = str(exc)
+        for key, path in d.items():
+            if isinstance(path, str) and path and path in msg:
+                raise type(exc)(f"data.{key}: {msg}") from None
+        raise type(exc)(f"[data]: {msg}") from None
 
 
 # --------------------------------------------------------------------------------------------
@@ -341,14 +259,74 @@ def read_record(run_dir: str | Path) -> dict[str, Any]:
         raise FileNotFoundError(f"{run_dir}: no UDN run here ({RECORD_FILE} not found)")
     try:
         rec = json.loads(p.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise FormatError(f"{p}: cannot read the run record: not UTF-8 text (byte "
+                          f"{exc.object[exc.start]:#04x} at offset {exc.start})") from None
     except (OSError, ValueError) as exc:
         raise FormatError(f"{p}: cannot read the run record: {exc}") from None
     if not isinstance(rec, dict) or rec.get("format") != RUN_RECORD_FORMAT:
         raise FormatError(f"{p} is not a UDN run record")
-    if int(rec.get("format_version", 0)) > FORMAT_VERSION:
+    _check_record_fields(rec, p)
+    if rec.get("format_version", 0) > FORMAT_VERSION:
         raise FormatError(f"{p}: run record version {rec.get('format_version')} is newer than "
                           f"this release reads ({FORMAT_VERSION})")
     return rec
+
+
+_NUM = (int, float)
+_NONE = type(None)
+#: Fields of run.json that the code reads, with the types they must have (absent is fine).
+_RECORD_FIELDS: dict[str, tuple[type, ...]] = {
+    "format_version": (int,),
+    "status": (str,),
+    "finish_reason": (str, _NONE),
+    "detail": (str, _NONE),
+    "pid": (int, _NONE),
+    "host": (str, _NONE),
+    "resumes": (int,),
+    "spec": (dict, _NONE),
+    "inputs": (dict, _NONE),
+    "notes": (list,),
+    "sessions": (list,),
+    "timings": (dict,),
+    "device": (dict, _NONE),
+    "results": (dict, _NONE),
+    "progress": (dict, _NONE),
+    "progress.iteration": (int,),
+    "progress.max_iter": (int, _NONE),
+    "progress.loss": (*_NUM, _NONE),
+    "progress.heldout": (*_NUM, _NONE),
+    "progress.best_iteration": (int, _NONE),
+    "progress.elapsed_s": (*_NUM, _NONE),
+    "progress.eta_s": (*_NUM, _NONE),
+    "progress.last_preview": (str, _NONE),
+    "progress.updated_utc": (str, _NONE),
+    "checkpoint": (dict, _NONE),
+    "checkpoint.iteration": (int,),
+}
+_TYPE_WORDS = {int: "an integer", float: "a number", str: "a string", dict: "a table",
+               list: "a list", _NONE: "null"}
+
+
+def _check_record_fields(rec: dict[str, Any], path: Path) -> None:
+    """One-line error naming the file and the field when a field of run.json is damaged."""
+    for key, types in _RECORD_FIELDS.items():
+        head, _, tail = key.partition(".")
+        holder: Any = rec if not tail else rec.get(head)
+        name = tail or head
+        if not isinstance(holder, dict) or name not in holder:
+            continue
+        v = holder[name]
+        ok = isinstance(v, types) and not (isinstance(v, bool) and bool not in types)
+        if not ok:
+            want = " or ".join(dict.fromkeys(_TYPE_WORDS[t] for t in types))
+            raise FormatError(f"{path}: field '{key}' should be {want}, got {v!r:.60} (the run "
+                              "record is damaged; repair that field or start a new run)")
+    for key, enum_type in (("status", JobState), ("finish_reason", FinishReason)):
+        v = rec.get(key)
+        if isinstance(v, str) and v not in enum_type._value2member_map_:
+            allowed = ", ".join(m.value for m in enum_type)
+            raise FormatError(f"{path}: field '{key}' is {v!r:.60}; expected one of {allowed}")
 
 
 def pid_alive(pid: int, host: Any = None) -> bool:
@@ -368,55 +346,6 @@ def _spec_hash(spec: Mapping[str, Any]) -> str:
     return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Read a checkpoint written by a job (safe loader: tensors and plain data only)."""
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"{p}: no checkpoint")
-    try:
-        ck = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise FormatError(f"{p}: cannot read the checkpoint: {exc}") from None
-    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
-        raise FormatError(f"{p} is not a UDN checkpoint")
-    if int(ck.get("format_version", 0)) > FORMAT_VERSION:
-        raise FormatError(f"{p}: checkpoint version {ck.get('format_version')} is newer than "
-                          f"this release reads ({FORMAT_VERSION})")
-    return ck
-
-
-def _preview_png(x: F32) -> npt.NDArray[np.uint8]:
-    """(C, K, H, W) -> uint8 (C', H', W'): gray/RGB (else the channel mean), frames tiled."""
-    from recon.io import contrast_stretch
-
-    arr = np.asarray(x, dtype=np.float32)
-    if arr.shape[0] not in (1, 3):
-        arr = arr.mean(axis=0, keepdims=True)
-    c, k, h, w = arr.shape
-    if k > 1:
-        cols = math.ceil(math.sqrt(k))
-        rows = math.ceil(k / cols)
-        pad = 2
-        tile = np.full((c, rows * (h + pad) - pad, cols * (w + pad) - pad), np.nan,
-                       dtype=np.float32)
-        for i in range(k):
-            r, q = divmod(i, cols)
-            tile[:, r * (h + pad): r * (h + pad) + h, q * (w + pad): q * (w + pad) + w] = \
-                arr[:, i]
-        img = tile
-    else:
-        img = arr[:, 0]
-    return contrast_stretch(img)
-
-
-def _write_png(path: Path, chw: npt.NDArray[np.uint8]) -> None:
-    from PIL import Image
-
-    im = Image.fromarray(chw[0]) if chw.shape[0] == 1 else Image.fromarray(
-        np.ascontiguousarray(np.moveaxis(chw, 0, -1)))
-    atomic_write(path, lambda p: im.save(p, format="PNG"))
-
-
 # --------------------------------------------------------------------------------------------
 # The job
 # --------------------------------------------------------------------------------------------
@@ -426,21 +355,22 @@ class _Job:
     """One session of a job (a fresh run or a resume)."""
 
     def __init__(self, run_dir: Path, record: dict[str, Any], progress: Progress,
-                 cancel: Cancel) -> None:
+                 cancel: Cancel, lock: RunLock | None = None) -> None:
         self.run_dir = run_dir
         self.record = record
+        self.lock = lock
+        #: what this session has to say about how it started (kept in the record's notes)
+        self.notes: list[str] = []
         self.progress = progress
         self.cancel = _CancelCheck(cancel, run_dir)
         self.rows: list[dict[str, Any]] = []
         self.runner: UDNRunner | None = None
-        self.problem: _Problem | None = None
+        self.problem: Problem | None = None
         self.spec: dict[str, Any] = record["spec"]
         self._last_status = 0.0
         self._last_ckpt_time = time.monotonic()
         self._last_ckpt_iter = 0
         self._session_start = time.monotonic()
-        stall = os.environ.get(STALL_ENV)
-        self._stall_at = int(stall) if stall and stall.isdigit() else None
 
     # -- files ---------------------------------------------------------------------------------
     def write_record(self) -> None:
@@ -458,10 +388,18 @@ class _Job:
         self.rows = []
         if not p.is_file():
             return
-        with open(p, encoding="utf-8", newline="") as fh:
-            for row in csv.DictReader(fh):
-                if int(row["iteration"]) <= upto:
-                    self.rows.append({k: row.get(k, "") for k in _CSV_FIELDS})
+        try:
+            with open(p, encoding="utf-8", newline="") as fh:
+                for line, row in enumerate(csv.DictReader(fh), start=2):
+                    try:
+                        it = int(row["iteration"])
+                    except (KeyError, TypeError, ValueError):
+                        raise FormatError(f"{p}: line {line}: field 'iteration' should be an "
+                                          f"integer, got {row.get('iteration')!r:.40}") from None
+                    if it <= upto:
+                        self.rows.append({k: row.get(k, "") for k in _CSV_FIELDS})
+        except UnicodeDecodeError as exc:
+            raise FormatError(f"{p}: not UTF-8 text (offset {exc.start})") from None
 
     def checkpoint(self) -> None:
         runner = self.runner
@@ -478,16 +416,7 @@ class _Job:
             "state": runner.state_dict(),
         }
         self.write_csv()
-        prev = self.record.get("checkpoint") or {}
-        try:
-            atomic_write(self.run_dir / CHECKPOINT_FILE, lambda p: torch.save(ck, p))
-        except OSError as exc:
-            kept = (f"the previous checkpoint (iteration {prev.get('iteration')}) is intact"
-                    if prev else "no earlier checkpoint exists")
-            raise JobError(f"could not write the checkpoint at iteration {it}: {exc}; {kept}"
-                           ) from exc
-        self.record["checkpoint"] = {"path": CHECKPOINT_FILE, "iteration": it,
-                                     "written_utc": ck["written_utc"]}
+        self.record["checkpoint"] = write_checkpoint(self.run_dir, ck)
         self._last_ckpt_time = time.monotonic()
         self._last_ckpt_iter = it
         self.write_record()
@@ -514,9 +443,9 @@ class _Job:
         t0 = time.perf_counter()
         dev_name = spec["device"]["device"]
         device = resolve_device(dev_name)
-        threads = spec["device"]["threads"]
-        if threads > 0:
-            torch.set_num_threads(threads)
+        from recon.threads import apply_threads
+
+        threads = apply_threads(spec["device"]["threads"])  # 0: the thread policy chooses
         problem = _load_problem(spec, device)
         self.problem = problem
         model = problem.model
@@ -530,6 +459,7 @@ class _Job:
         self.runner = runner
         dev_info: dict[str, Any] = {
             "requested": dev_name, "device": str(device), "threads": torch.get_num_threads(),
+            "threads_reason": threads.reason,
             "precision": cfg.precision, "channels_last": cfg.channels_last,
             "compile": {"requested": cfg.compile, "active": bool(runner._compiled)},
             "machine": platform.machine(), "processor": platform.processor(),
@@ -575,7 +505,7 @@ class _Job:
             self._progress_record(s)
             if s.preview is not None:
                 name = f"{PREVIEW_DIR}/iter_{s.iteration:07d}.png"
-                _write_png(self.run_dir / name, _preview_png(s.preview))
+                _write_png(self.run_dir / name, preview_image(s.preview))
                 self.record["progress"]["last_preview"] = name
             if self.progress is not None:
                 self.progress(s)
@@ -590,12 +520,7 @@ class _Job:
                 self._last_status = now
                 self.write_csv()
                 self.write_record()
-            if self._stall_at is not None and s.iteration == self._stall_at:
-                self.write_csv()
-                self.write_record()
-                while True:  # fault injection for the kill-and-resume test
-                    time.sleep(0.05)
-        reason = runner.reason or UDNStopReason.CANCELLED
+        reason = runner.reason or StopReason.CANCELLED
         return reason.value
 
     def finish(self, reason: str) -> None:
@@ -640,18 +565,48 @@ _DETAIL = {
 }
 
 
-def _finish_reason(reason: str) -> str:
-    return "completed" if reason in ("max_iter", "time_limit") else reason
+def _finish_reason(reason: str) -> FinishReason:
+    """The job's finish reason for the solver's stop reason (limits count as completed)."""
+    if reason in (FinishReason.STOPPED_EARLY, FinishReason.CANCELLED):
+        return FinishReason(reason)
+    return FinishReason.COMPLETED
 
 
-def _session(job: _Job, max_memory: int | None, resume_state: dict[str, Any] | None) -> JobOutcome:
+def _kept(rec: Mapping[str, Any]) -> str:
+    """What a failed run keeps (for its one-line error)."""
+    ck = rec.get("checkpoint")
+    if isinstance(ck, dict) and isinstance(ck.get("iteration"), int):
+        return f"the last good checkpoint (iteration {ck['iteration']}) is kept"
+    return "no checkpoint had been written yet"
+
+
+def _as_disk_full(exc: BaseException, job: _Job) -> DiskFull:
+    """A full disk anywhere in a session as one line: the folder, what was written, what is kept."""
+    if isinstance(exc, DiskFull):
+        head = str(exc)
+    else:
+        what = ""
+        fn = getattr(exc, "filename", None)
+        if isinstance(fn, str | os.PathLike):
+            what = f" while writing {Path(fn).name}"
+        head = f"disk full: no space left on the device of {job.run_dir}{what}"
+    return DiskFull(f"{head}; {_kept(job.record)}; free some space, then "
+                    f"'lenslesscam jobs resume {job.run_dir}'")
+
+
+def _session(job: _Job, max_memory: int | None, resume_state: dict[str, Any] | None,
+             resumed_from: dict[str, Any] | None = None) -> JobOutcome:
     rec = job.record
     sessions = rec.setdefault("sessions", [])
-    session = {"started_utc": _now(), "pid": os.getpid(), "host": platform.node(),
-               "start_iteration": 0}
+    session: dict[str, Any] = {"started_utc": _now(), "pid": os.getpid(),
+                               "host": platform.node(), "start_iteration": 0}
+    if resumed_from is not None:
+        session["resumed_from"] = resumed_from
+    if job.notes:
+        session["notes"] = list(job.notes)
     sessions.append(session)
-    rec.update(status="running", finish_reason=None, detail=None, error=None, pid=os.getpid(),
-               host=platform.node(), finished_utc=None)
+    rec.update(status=JobState.RUNNING, finish_reason=None, detail=None, error=None,
+               pid=os.getpid(), host=platform.node(), finished_utc=None)
     t0 = time.perf_counter()
     try:
         job.setup(max_memory)
@@ -664,6 +619,8 @@ def _session(job: _Job, max_memory: int | None, resume_state: dict[str, Any] | N
             job.read_csv(job.runner.iteration)
         else:
             rec["inputs"] = job.problem.inputs
+        # the session's notes travel in the runner's state, so later checkpoints keep them
+        job.runner.notes.extend(n for n in job.notes if n not in job.runner.notes)
         rec["notes"] = list(job.runner.notes)
         job.write_record()
         reason = job.loop()
@@ -678,19 +635,32 @@ def _session(job: _Job, max_memory: int | None, resume_state: dict[str, Any] | N
             detail = (f"the held-out error has not improved for "
                       f"{job.runner.config.patience} iterations; best at iteration "
                       f"{job.runner.best_iteration}")
-        rec.update(status="finished", finish_reason=finish, detail=detail)
+        rec.update(status=JobState.FINISHED, finish_reason=finish, detail=detail)
     except BaseException as exc:
-        rec.update(status="finished", finish_reason="failed",
-                   error={"type": type(exc).__name__, "message": str(exc)},
-                   detail=f"{type(exc).__name__}: {exc}")
+        err: BaseException = exc
+        if is_disk_full(exc):
+            err = _as_disk_full(exc, job)
+            if job.lock is not None:
+                job.lock.release_reserve()  # room for the record that says so
+        elif isinstance(exc, CheckpointError):
+            err = CheckpointError(f"{exc}; {_kept(rec)}")
+        rec.update(status=JobState.FINISHED, finish_reason=FinishReason.FAILED,
+                   error={"type": type(err).__name__, "message": str(err)},
+                   detail=f"{type(err).__name__}: {err}")
         if isinstance(exc, KeyboardInterrupt):
             rec["detail"] = "interrupted (KeyboardInterrupt)"
         if job.runner is not None:
+            job.runner.notes.extend(n for n in job.notes if n not in job.runner.notes)
             rec["notes"] = list(job.runner.notes)
             if isinstance(exc, ArithmeticError) and job.runner.best is not None:
                 _save_best_after_failure(job)
+        else:
+            notes = rec.setdefault("notes", [])
+            notes.extend(n for n in job.notes if n not in notes)
         _finalise(job, session, t0)
-        raise
+        if err is exc:
+            raise
+        raise err from exc
     _finalise(job, session, t0)
     it = job.runner.iteration if job.runner is not None else 0
     return JobOutcome(job.run_dir, rec["finish_reason"], rec["detail"], it, rec)
@@ -708,7 +678,7 @@ def _save_best_after_failure(job: _Job) -> None:
             job.run_dir / "best.tif", runner.best_estimate(),
             {"method": "udn", "model": problem.kind, "estimate": "best",
              "best_iteration": runner.best_iteration, "best_heldout": runner.best_heldout,
-             "finish_reason": "failed", "run_dir": str(job.run_dir)},
+             "finish_reason": FinishReason.FAILED, "run_dir": str(job.run_dir)},
             kind=_RESULT_KIND[problem.kind])
     except (OSError, ValueError):
         return
@@ -728,13 +698,38 @@ def _finalise(job: _Job, session: dict[str, Any], t0: float) -> None:
         timings["iterations_s"] = round(job.runner.elapsed_s, 3)
         if job.runner.iteration:
             timings["per_iteration_s"] = job.runner.elapsed_s / job.runner.iteration
-    rec["timings"]["wall_s"] = round(sum(s.get("wall_s", 0.0) for s in rec["sessions"]), 3)
+    rec.setdefault("timings", {})["wall_s"] = round(
+        sum(s.get("wall_s", 0.0) for s in rec["sessions"]), 3)
     with contextlib.suppress(OSError):  # a full disk may refuse even this; the error is raised
         job.write_csv()
-    with contextlib.suppress(OSError):
+    try:
         job.write_record()
+    except OSError:
+        if job.lock is None:
+            raise
+        job.lock.release_reserve()  # the record must say how the run ended: free the reserve
+        with contextlib.suppress(OSError):
+            job.write_record()
     with contextlib.suppress(OSError):
         (job.run_dir / CANCEL_FILE).unlink(missing_ok=True)
+
+
+def _read_spec_text(sp: Path) -> str:
+    if not sp.is_file():
+        raise FileNotFoundError(f"job spec not found: {sp}")
+    data = sp.read_bytes()
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SpecError(f"{sp}: not UTF-8 text (byte {data[exc.start]:#04x} at offset "
+                        f"{exc.start}); save the spec as UTF-8") from None
+
+
+def _start_notes(removed: list[str]) -> list[str]:
+    if not removed:
+        return []
+    return [f"removed {len(removed)} temporary file(s) left by a write that was interrupted: "
+            f"{', '.join(removed)}"]
 
 
 def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: Progress = None,
@@ -753,7 +748,8 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: Progress = 
             :mod:`recon.udn.ensemble`); recorded under ``overrides``.
 
     Returns the outcome; on failure the run record says ``failed`` with the error, and the
-    exception is raised again.
+    exception is raised again. Raises :class:`RunFolderBusy` while another process writes
+    ``run_dir``.
 
     """
     rd = Path(run_dir)
@@ -761,18 +757,27 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: Progress = 
     if (rd / RECORD_FILE).exists():
         raise ValueError(f"{rd} already holds a run: use 'jobs resume {rd}' or another folder")
     if spec_text is None:
-        if not sp.is_file():
-            raise FileNotFoundError(f"job spec not found: {sp}")
-        spec_text = sp.read_text(encoding="utf-8")
-    rd.mkdir(parents=True, exist_ok=True)
+        spec_text = _read_spec_text(sp)
+    lock = RunLock(rd).acquire()
+    try:
+        if (rd / RECORD_FILE).exists():  # written meanwhile by a process that held the lock
+            raise ValueError(f"{rd} already holds a run: use 'jobs resume {rd}' or another "
+                             "folder")
+        return _run_locked(sp, rd, lock, progress, cancel, max_memory, spec_text, seed)
+    finally:
+        lock.release()
+
+
+def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: Progress, cancel: Cancel,
+                max_memory: int | None, spec_text: str, seed: int | None) -> JobOutcome:
+    removed = clean_temp_files(rd)
     copy = spec_text if seed is None else (
         f"# run with 'jobs run --seed {seed}': optimizer.seed = {seed} overrides this file "
         "(run.json: overrides)\n" + spec_text)
-    atomic_write_bytes(rd / SPEC_FILE, copy.encode("utf-8"))
     record: dict[str, Any] = {
         "format": RUN_RECORD_FORMAT,
         "format_version": FORMAT_VERSION,
-        "status": "starting",
+        "status": JobState.STARTING,
         "finish_reason": None,
         "detail": None,
         "error": None,
@@ -786,8 +791,10 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: Progress = 
         "timings": {},
         "sessions": [],
     }
-    job = _Job(rd, record, progress, cancel)
+    job = _Job(rd, record, progress, cancel, lock)
+    job.notes = _start_notes(removed)
     try:
+        atomic_write_bytes(rd / SPEC_FILE, copy.encode("utf-8"))
         import tomllib
 
         try:
@@ -803,32 +810,53 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: Progress = 
         job.spec = record["spec"]
         record["spec_hash"] = _spec_hash(record["spec"])
     except BaseException as exc:
-        record.update(status="finished", finish_reason="failed", finished_utc=_now(),
-                      error={"type": type(exc).__name__, "message": str(exc)},
-                      detail=f"{type(exc).__name__}: {exc}")
+        err: BaseException = _as_disk_full(exc, job) if is_disk_full(exc) else exc
+        if err is not exc:
+            lock.release_reserve()
+        record.update(status=JobState.FINISHED, finish_reason=FinishReason.FAILED,
+                      finished_utc=_now(),
+                      error={"type": type(err).__name__, "message": str(err)},
+                      detail=f"{type(err).__name__}: {err}")
         with contextlib.suppress(OSError):
             job.write_record()
-        raise
+        if err is exc:
+            raise
+        raise err from exc
     return _session(job, max_memory, None)
 
 
 def resume_job(run_dir: str | Path, *, max_iter: int | None = None,
                time_limit_s: float | None = None, progress: Progress = None,
-               cancel: Cancel = None, max_memory: int | None = None) -> JobOutcome:
-    """Continue a run from its last checkpoint (from the start if it never wrote one).
+               cancel: Cancel = None, max_memory: int | None = None, restart: bool = False,
+               notice: Callable[[str], None] | None = None) -> JobOutcome:
+    """Continue a run from its newest verified checkpoint.
 
-    ``max_iter`` / ``time_limit_s`` raise the limits (to continue a completed run). Refuses a
-    run whose process is still alive, and inputs whose files changed since the run started.
+    ``max_iter`` / ``time_limit_s`` raise the limits (to continue a completed run). When the
+    newest checkpoint is damaged or missing the previous one is used, and the run record says
+    so. When no checkpoint is usable although one was written, the resume is refused unless
+    ``restart`` (begin again from iteration 0); a run stopped before its first checkpoint starts
+    again from 0 with a note. ``notice`` receives these notes (one line each) as they arise.
+
+    Refuses (:class:`RunFolderBusy`) while another process writes the folder, and inputs whose
+    files changed since the run started.
     """
     rd = Path(run_dir)
-    rec = read_record(rd)
+    read_record(rd)  # a run is there (never create a lock file in a folder without one)
+    lock = RunLock(rd).acquire()
+    try:
+        return _resume_locked(rd, lock, max_iter, time_limit_s, progress, cancel, max_memory,
+                              restart, notice)
+    finally:
+        lock.release()
+
+
+def _resume_locked(rd: Path, lock: RunLock, max_iter: int | None, time_limit_s: float | None,
+                   progress: Progress, cancel: Cancel, max_memory: int | None, restart: bool,
+                   notice: Callable[[str], None] | None) -> JobOutcome:
+    rec = read_record(rd)  # again, now that no other process writes it
     if rec.get("spec") is None:
         raise ValueError(f"{rd}: the run never started (its spec was invalid: "
                          f"{rec.get('detail')}); fix the spec and start a new run")
-    pid = rec.get("pid")
-    if (rec.get("status") in ("running", "starting") and isinstance(pid, int)
-            and pid != os.getpid() and pid_alive(pid, rec.get("host"))):
-        raise ValueError(f"{rd}: the run is still running (pid {pid}); cancel it first")
     spec = {sec: {k: v for k, v in keys.items() if v is not None}
             for sec, keys in json.loads(json.dumps(rec["spec"])).items()}
     if max_iter is not None:
@@ -836,27 +864,52 @@ def resume_job(run_dir: str | Path, *, max_iter: int | None = None,
     if time_limit_s is not None:
         spec["stopping"]["time_limit_s"] = float(time_limit_s)
     spec = normalise_spec(spec, rd, source=f"{rd / RECORD_FILE} spec")
-    rec["spec"] = spec
-    with contextlib.suppress(FileNotFoundError):
-        (rd / CANCEL_FILE).unlink()
-    ck_path = rd / CHECKPOINT_FILE
-    state = load_checkpoint(ck_path) if ck_path.is_file() else None
+    notes = _start_notes(clean_temp_files(rd))
+    state, info, problems = load_latest_checkpoint(rd)
+    recorded = rec.get("checkpoint")
+    at = int((rec.get("progress") or {}).get("iteration", 0))
+    had_checkpoint = (isinstance(recorded, dict) or (rd / CHECKPOINT_FILE).exists()
+                      or (rd / PREVIOUS_CHECKPOINT_FILE).exists())
+    why = "; ".join(problems)
+    if state is None and had_checkpoint and not restart:
+        raise CheckpointError(
+            f"{rd}: no usable checkpoint ({why}); the run had reached iteration {at}: pass "
+            "--restart to begin again from iteration 0")
     # refusals that leave the run's record as it is
-    done = int(state["iteration"]) if state is not None else 0
+    done = int(state["iteration"]) if state is not None and not restart else 0
     limit = spec["stopping"]["max_iter"]
     if done >= limit:
         raise ValueError(f"{rd}: the run is at iteration {done} and its limit is {limit}: pass a "
                          "larger --max-iter to continue it")
-    for name, info in (rec.get("inputs") or {}).items():
-        path, old = info.get("path"), info.get("file_hash")
+    for name, inp in (rec.get("inputs") or {}).items():
+        path, old = inp.get("path"), inp.get("file_hash")
         if isinstance(path, str) and old is not None and file_hash(path) != old:
             raise ValueError(f"data.{name} ({path}) changed since the run started (hash {old} "
                              f"-> {file_hash(path)}); start a new run instead")
-    if state is None:
-        rec.setdefault("notes", []).append("resumed without a checkpoint: started again")
+    if restart:
+        if state is not None:
+            notes.append(f"restarted from iteration 0 (--restart) at the user's request; the "
+                         f"checkpoint of iteration {info['iteration']} was usable")
+        else:
+            notes.append(f"restarted from iteration 0 (--restart): no usable checkpoint "
+                         f"({why}); the run had reached iteration {at}")
+        state, info = None, {}
+    elif state is None:
+        notes.append(f"resumed without a checkpoint (none was written before the run stopped "
+                     f"at iteration {at}): started again from iteration 0")
+    elif problems:
+        notes.append(f"resumed from {info['path']} (iteration {info['iteration']}) because "
+                     f"{why}")
+    if notice is not None:
+        for n in notes:
+            notice(n)
+    rec["spec"] = spec
+    with contextlib.suppress(FileNotFoundError):
+        (rd / CANCEL_FILE).unlink()
     rec["resumes"] = int(rec.get("resumes", 0)) + 1
-    job = _Job(rd, rec, progress, cancel)
-    return _session(job, max_memory, state)
+    job = _Job(rd, rec, progress, cancel, lock)
+    job.notes = notes
+    return _session(job, max_memory, state, info or None)
 
 
 # --------------------------------------------------------------------------------------------
@@ -870,8 +923,8 @@ class JobStatus:
 
     run_dir: Path
     name: str
-    state: str
-    finish_reason: str | None
+    state: JobState
+    finish_reason: FinishReason | None
     detail: str | None
     iteration: int
     max_iter: int | None
@@ -901,11 +954,13 @@ def job_status(run_dir: str | Path) -> JobStatus:
     spec = rec.get("spec") or {}
     status = rec.get("status")
     pid = rec.get("pid")
-    if status in ("running", "starting"):
+    state: JobState
+    if status in (JobState.RUNNING, JobState.STARTING):
         alive = isinstance(pid, int) and pid_alive(pid, rec.get("host"))
-        state = "running" if alive else "interrupted"
+        state = JobState.RUNNING if alive else JobState.INTERRUPTED
     else:
-        state = "finished"
+        state = JobState.FINISHED
+    fr = rec.get("finish_reason")
     dev = rec.get("device") or {}
     device = None
     if dev:
@@ -917,7 +972,7 @@ def job_status(run_dir: str | Path) -> JobStatus:
     lp = prog.get("last_preview")
     return JobStatus(
         run_dir=rd, name=(spec.get("job") or {}).get("name", ""), state=state,
-        finish_reason=rec.get("finish_reason"), detail=rec.get("detail"),
+        finish_reason=FinishReason(fr) if fr is not None else None, detail=rec.get("detail"),
         iteration=int(prog.get("iteration", 0)),
         max_iter=prog.get("max_iter", (spec.get("stopping") or {}).get("max_iter")),
         loss=prog.get("loss"), heldout=prog.get("heldout"),

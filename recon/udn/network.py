@@ -69,7 +69,7 @@ class NetworkConfig:
 
     variant: Variant = "2d"
     scales: int = 5
-    channels: int = 128
+    channels: int = 32
     skip_channels: int = 4
     input_channels: int = 32
     input_scale: float = 0.1

@@ -35,15 +35,14 @@ import random
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
-from enum import Enum
 from typing import Any, Literal, cast
 
 import numpy as np
 import numpy.typing as npt
 import torch
 
-from recon.fista import NumericalError
 from recon.models import ForwardModel
+from recon.stepwise import NumericalError, Stepwise, StopReason
 from recon.tv import TV
 from recon.udn.network import Generator, NetworkConfig
 
@@ -53,7 +52,6 @@ __all__ = [
     "UDNResult",
     "UDNRunner",
     "UDNStep",
-    "UDNStopReason",
     "resolve_device",
 ]
 
@@ -63,15 +61,15 @@ F32 = npt.NDArray[np.float32]
 
 #: ``format`` of :meth:`UDNRunner.state_dict`.
 STATE_FORMAT = "lenslesscam.udn_state"
-
-
-class UDNStopReason(str, Enum):
-    """Why a UDN run stopped."""
-
-    MAX_ITER = "max_iter"
-    TIME_LIMIT = "time_limit"
-    STOPPED_EARLY = "stopped_early"
-    CANCELLED = "cancelled"
+#: A sigmoid output at or above this counts as "at the cap" (clipped).
+CLIP_LEVEL = 0.99
+#: Iterations between clipping checks (the fraction itself is reported at every step).
+CLIP_CHECK_EVERY = 20
+#: A correction also scales the output layer (its logits) by this: pixels pinned deep in the
+#: sigmoid's flat top get a gradient again and can move under the raised cap.
+CLIP_LOGIT_SCALE = 0.5
+#: Gain corrections allowed in one run.
+CLIP_MAX_ADAPT = 30
 
 
 @dataclass(frozen=True)
@@ -104,16 +102,27 @@ class UDNConfig:
         precision: ``float32`` or ``bf16`` (autocast of the network; the model stays float32).
         compile: run the network through ``torch.compile`` (falls back to eager if it fails).
         channels_last: channels-last memory format for the network.
+        clip_adapt: watch the output for clipping at the network's cap (sigmoid output at
+            or above :data:`CLIP_LEVEL`, i.e. x at ``CLIP_LEVEL x gain``) and correct it
+            during the run: every :data:`CLIP_CHECK_EVERY` iterations, when more than
+            ``clip_tolerance`` of the output pixels sit at the cap, the gain is multiplied by
+            ``clip_gain_step`` and the output layer's logits are halved and lowered by the
+            step's log (so pinned pixels get a gradient again and mid-range pixels move
+            little); each correction is a note in the run's record and shows in the gain
+            column of its history (``UDNStep.clip_fraction`` reports the fraction at every
+            step). At most :data:`CLIP_MAX_ADAPT` times.
+        clip_tolerance: fraction of output pixels allowed at the cap.
+        clip_gain_step: gain factor of one correction (> 1).
 
     """
 
-    lr: float = 0.01
+    lr: float = 0.03
     reg_noise: float = 0.05
     loss: LossKind = "mse"
     tv_weight: float = 0.0
     tv_isotropic: bool = True
     tv_weight_k: float = 0.0
-    ema: float = 0.99
+    ema: float = 0.9
     gain: float | None = None
     headroom: float = 1.0
     seed: int = 0
@@ -130,6 +139,9 @@ class UDNConfig:
     precision: Precision = "float32"
     compile: bool = False
     channels_last: bool = False
+    clip_adapt: bool = True
+    clip_tolerance: float = 1e-3
+    clip_gain_step: float = 1.5
 
     def __post_init__(self) -> None:
         def _pos(name: str, v: float, allow_zero: bool = False) -> None:
@@ -165,6 +177,10 @@ class UDNConfig:
                 raise ValueError(f"{name} must be an integer >= 0, got {v!r}")
         if self.snapshot_every < 1:
             raise ValueError(f"snapshot_every must be >= 1, got {self.snapshot_every}")
+        if not 0 <= self.clip_tolerance < 1:
+            raise ValueError(f"clip_tolerance must be in [0, 1), got {self.clip_tolerance!r}")
+        if not (math.isfinite(self.clip_gain_step) and self.clip_gain_step > 1):
+            raise ValueError(f"clip_gain_step must be > 1, got {self.clip_gain_step!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict for metadata."""
@@ -186,6 +202,8 @@ class UDNStep:
     eta_s: float | None
     restored: bool = False
     preview: F32 | None = field(default=None, repr=False, compare=False)
+    #: fraction of this iteration's output pixels at the cap (see UDNConfig.clip_adapt)
+    clip_fraction: float | None = None
 
 
 @dataclass
@@ -195,7 +213,7 @@ class UDNResult:
     final: F32
     best: F32
     best_iteration: int
-    reason: UDNStopReason
+    reason: StopReason
     iterations: int
     elapsed_s: float
     history: list[UDNStep]
@@ -239,6 +257,11 @@ def _clone_to_cpu(obj: Any) -> Any:
     return copy.deepcopy(obj)
 
 
+def _at_cap(x: torch.Tensor, gain: torch.Tensor) -> float:
+    """Fraction of the entries of ``x`` (= sigmoid x gain) at or above CLIP_LEVEL x gain."""
+    return float((x >= CLIP_LEVEL * gain.to(x.dtype)).float().mean())
+
+
 def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     out: dict[str, Any] = {}
     for k, v in d.items():
@@ -278,7 +301,7 @@ def _set_rng_states(s: dict[str, Any]) -> None:
         torch.cuda.set_rng_state_all(s["cuda"])
 
 
-class UDNRunner:
+class UDNRunner(Stepwise[UDNStep]):
     """Stepwise UDN reconstruction of one measurement through a forward model.
 
     Use :meth:`step`, iterate :meth:`steps`, or call :meth:`run`. The device is the forward
@@ -372,6 +395,8 @@ class UDNRunner:
         else:
             self.G.set_gain(cfg.gain)
         self.initial_gain = self.G.gain
+        self.clip_adaptations = 0
+        self.last_clip_fraction: float | None = None
         self.opt = torch.optim.Adam(self.G.parameters(), lr=cfg.lr)
         self.iteration = 0
         self.elapsed_s = 0.0
@@ -383,7 +408,7 @@ class UDNRunner:
         self.last_heldout: float | None = None
         self.loss_ref: float | None = None
         self.backoffs = 0
-        self.reason: UDNStopReason | None = None
+        self.reason: StopReason | None = None
         self._step_time: float | None = None
         self._snapshot: dict[str, Any] = self._take_snapshot()
 
@@ -444,6 +469,33 @@ class UDNRunner:
             total = total + g[2].abs().sum()
         return total / x.numel()
 
+    def clip_fraction(self) -> float:
+        """Fraction of the current (noise-free) output pixels at the network's cap."""
+        with torch.no_grad():
+            return _at_cap(self._forward(noise=False), self.G.log_gain.detach().exp())
+
+    def _widen_gain(self, fraction: float, it: int) -> None:
+        """Correct clipping: raise the gain, compress and lower the output logits.
+
+        gain x clip_gain_step; logits l -> ``CLIP_LOGIT_SCALE * l - log(clip_gain_step)``.
+        """
+        f = self.config.clip_gain_step
+        old = self.G.gain
+        head = self.G.net.head
+        with torch.no_grad():
+            self.G.log_gain.add_(math.log(f))
+            head.weight.mul_(CLIP_LOGIT_SCALE)
+            if head.bias is not None:
+                head.bias.mul_(CLIP_LOGIT_SCALE).sub_(math.log(f))
+        self.clip_adaptations += 1
+        self.loss_ref = None  # the loss moves with the gain: no false divergence alarm
+        self.notes.append(
+            f"iteration {it}: {fraction:.2%} of the output at the network's cap (sigmoid >= "
+            f"{CLIP_LEVEL:g}); gain {old:.4g} -> {self.G.gain:.4g} (x{f:g}, correction "
+            f"{self.clip_adaptations} of at most {CLIP_MAX_ADAPT})")
+        self._snapshot = self._take_snapshot()
+        self._snapshot["iteration"] = it
+
     def heldout_error(self, x: torch.Tensor) -> float | None:
         """Mean squared prediction error of ``x`` on the held-out pixels (None if none)."""
         if self.n_heldout == 0:
@@ -472,11 +524,6 @@ class UDNRunner:
             group["lr"] = self.lr
 
     # -- stepping ------------------------------------------------------------------------------
-    @property
-    def done(self) -> bool:
-        """True once a stop criterion was met."""
-        return self.reason is not None
-
     def _eta(self) -> float | None:
         if self._step_time is None:
             return None
@@ -486,14 +533,18 @@ class UDNRunner:
         return eta
 
     def step(self, preview: bool = False) -> UDNStep:
-        """Do one iteration and report it (``preview``: attach the estimate as numpy)."""
-        if self.done:
-            raise RuntimeError(f"the run has already stopped ({self.reason})")
+        """Do one iteration and report it (``preview``: attach the estimate as numpy).
+
+        Raises :class:`~recon.stepwise.RunFinished` once the run is done.
+        """
+        self._check_running()
         cfg = self.config
         start = time.perf_counter()
         it = self.iteration + 1
         self.opt.zero_grad(set_to_none=True)
         x = self._forward(noise=True)
+        clip_frac = _at_cap(x.detach(), self.G.log_gain.detach().exp())
+        self.last_clip_fraction = clip_frac
         ax = self.model.apply(x)
         scale: torch.Tensor | None = None
         if cfg.loss == "scale_invariant":
@@ -533,6 +584,10 @@ class UDNRunner:
                     self.ema.mul_(cfg.ema).add_(xd, alpha=1.0 - cfg.ema)
             self.loss_ref = loss_val if self.loss_ref is None else (
                 0.9 * self.loss_ref + 0.1 * loss_val)
+            if (cfg.clip_adapt and it % CLIP_CHECK_EVERY == 0
+                    and clip_frac > cfg.clip_tolerance
+                    and self.clip_adaptations < CLIP_MAX_ADAPT):
+                self._widen_gain(clip_frac, it)
         est = self.ema if self.ema is not None else x.detach()
         err = self.heldout_error(est)
         self.last_heldout = err
@@ -553,16 +608,17 @@ class UDNRunner:
         self._step_time = dt if self._step_time is None else 0.9 * self._step_time + 0.1 * dt
         if (err is not None and it - self.best_iteration >= cfg.patience
                 and it >= cfg.min_iter):
-            self.reason = UDNStopReason.STOPPED_EARLY
+            self.reason = StopReason.STOPPED_EARLY
         elif it >= cfg.max_iter:
-            self.reason = UDNStopReason.MAX_ITER
+            self.reason = StopReason.MAX_ITER
         elif cfg.time_limit_s is not None and self.elapsed_s >= cfg.time_limit_s:
-            self.reason = UDNStopReason.TIME_LIMIT
+            self.reason = StopReason.TIME_LIMIT
         pv = None
         if preview:
             pv = est.detach().float().cpu().numpy().copy()
         return UDNStep(it, loss_val, err, self.best_heldout, self.best_iteration, self.lr,
-                       self.G.gain, self.elapsed_s, self._eta(), restored, pv)
+                       self.G.gain, self.elapsed_s, self._eta(), restored, pv,
+                       clip_fraction=clip_frac)
 
     def steps(self, preview_every: int = 0) -> Iterator[UDNStep]:
         """Generator of steps until a stop criterion; stop iterating to cancel.
@@ -573,24 +629,12 @@ class UDNRunner:
             it = self.iteration + 1
             yield self.step(preview=preview_every > 0 and it % preview_every == 0)
 
-    def cancel(self) -> None:
-        """Mark the run as cancelled (the estimate so far stays available)."""
-        if self.reason is None:
-            self.reason = UDNStopReason.CANCELLED
-
     def run(self, callback: Callable[[UDNStep], None] | None = None,
             cancel: Callable[[], bool] | None = None, preview_every: int = 0) -> UDNResult:
         """Run to a stop criterion (or until ``cancel()`` returns True) and return the result."""
-        history: list[UDNStep] = []
-        for s in self.steps(preview_every):
-            history.append(s)
-            if callback is not None:
-                callback(s)
-            if cancel is not None and cancel():
-                self.cancel()
-                break
+        history = self._drive(self.steps(preview_every), callback, cancel)
         if self.reason is None:
-            self.reason = UDNStopReason.MAX_ITER
+            self.reason = StopReason.MAX_ITER
         return self.result(history)
 
     def result(self, history: list[UDNStep] | None = None) -> UDNResult:
@@ -598,7 +642,7 @@ class UDNRunner:
         final = self.final_estimate()
         best = self.best_estimate()
         return UDNResult(final, best, self.best_iteration,
-                         self.reason if self.reason is not None else UDNStopReason.CANCELLED,
+                         self.reason if self.reason is not None else StopReason.CANCELLED,
                          self.iteration, self.elapsed_s, history or [], list(self.notes))
 
     def final_estimate(self) -> F32:
@@ -643,6 +687,7 @@ class UDNRunner:
             "backoffs": self.backoffs,
             "step_time": self._step_time,
             "initial_gain": self.initial_gain,
+            "clip_adaptations": self.clip_adaptations,
             "heldout": self.heldout.cpu().clone(),
             "snapshot": _clone_to_cpu(self._snapshot),
             "noise_rng": self._noise_gen.get_state(),
@@ -655,6 +700,9 @@ class UDNRunner:
         if state.get("format") != STATE_FORMAT:
             raise ValueError(f"not a UDN state (format {state.get('format')!r})")
         mine, theirs = _flatten(self._identity()), _flatten(state["identity"])
+        for k in mine:  # checkpoints from before the clipping correction: it applies from now
+            if k.startswith("config.clip_") and k not in theirs:
+                theirs[k] = mine[k]
         if mine != theirs:
             diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
             raise ValueError("the checkpoint was written for a different run (differs in: "
@@ -673,6 +721,7 @@ class UDNRunner:
         self.backoffs = int(state["backoffs"])
         self._step_time = state["step_time"]
         self.initial_gain = float(state["initial_gain"])
+        self.clip_adaptations = int(state.get("clip_adaptations", 0))
         self.heldout = state["heldout"].to(self.device)
         self.fit = self.measured & ~self.heldout
         self.n_heldout = int(self.heldout.sum())

@@ -86,7 +86,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
                    "or a list of plane files", required=True, path=True),
         "measurement": Key((str,), None, "measurement file", required=True, path=True),
         "mask": Key((str,), None, "erasure / dead-pixel mask, 1 = measured (sensor size at "
-                    "full or reconstruction resolution)", path=True),
+                    "full or reconstruction resolution; a coarse pixel is measured when any "
+                    "of its sensor pixels is)", path=True),
         "shutter": Key((str,), None, "video: shutter function M (K, rows)", path=True),
         "filters": Key((str,), None, "spectral: filter cube (K, H, W)", path=True),
         "truth": Key((str,), None, "ground-truth scene (C, K, H, W), only to score the result "
@@ -99,7 +100,11 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "color": Key((str,), "gray", "reconstruct gray or rgb", ("gray", "rgb")),
         "field": Key((str, list), "sensor", "scene field: 'sensor', 'full' (2H x 2W) or "
                      "[H, W]"),
-        "psf_normalise": Key((str,), "sum", "PSF normalisation", ("sum", "max", "l2", "none")),
+        "channel_order": Key((str,), "rgb", "colour order stored in the files (bgr: the "
+                             "DiffuserCam MirFlickr dataset)", ("rgb", "bgr")),
+        "flip_rows": Key((bool,), False, "flip the rows of every sensor-frame input alike"),
+        "psf_normalise": Key((str,), "auto", "PSF normalisation (auto: sum for a PSF, max for "
+                             "a stack)", ("auto", "sum", "max", "l2", "none")),
         "measurement_normalise": Key((str,), "max", "measurement normalisation",
                                      ("max", "sum", "l2", "none")),
     },
@@ -137,6 +142,12 @@ SCHEMA: dict[str, dict[str, Key]] = {
                             minimum=0),
         "snapshot_every": Key((int,), _UDN.snapshot_every,
                               "iterations between last-good-state snapshots", minimum=1),
+        "clip_adapt": Key((bool,), _UDN.clip_adapt, "detect output clipping at the network's "
+                          "cap during the run and raise the gain (recorded in the notes)"),
+        "clip_tolerance": Key((float,), _UDN.clip_tolerance,
+                              "fraction of output pixels allowed at the cap"),
+        "clip_gain_step": Key((float,), _UDN.clip_gain_step,
+                              "gain factor of one clipping correction (> 1)"),
     },
     "stopping": {
         "max_iter": Key((int,), _UDN.max_iter, "iteration limit", minimum=1),
@@ -154,7 +165,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
                          ("float32", "bf16")),
         "compile": Key((bool,), _UDN.compile, "torch.compile the network (falls back)"),
         "channels_last": Key((bool,), _UDN.channels_last, "channels-last memory format"),
-        "threads": Key((int,), 0, "torch CPU threads (0: torch's default)", minimum=0),
+        "threads": Key((int,), 0, "torch CPU threads (0: recon.threads policy)", minimum=0),
         "max_memory": Key((str, int), None, "refuse runs estimated above this ('2GB')"),
     },
     "output": {
@@ -264,17 +275,13 @@ def normalise_spec(raw: Mapping[str, Any], base_dir: str | Path | None = None,
             isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in field)):
         raise SpecError(f"{source}: data.field must be [H, W] with positive integers, got "
                         f"{field!r}")
-    model = data["model"]
-    if model == "video" and data["shutter"] is None:
-        raise SpecError(f"{source}: data.shutter is required for the video model")
-    if model != "video" and data["shutter"] is not None:
-        raise SpecError(f"{source}: data.shutter is only for the video model (model is "
-                        f"{model!r})")
-    if model == "spectral" and data["filters"] is None:
-        raise SpecError(f"{source}: data.filters is required for the spectral model")
-    if model != "spectral" and data["filters"] is not None:
-        raise SpecError(f"{source}: data.filters is only for the spectral model (model is "
-                        f"{model!r})")
+    # [data] is a recon.problem.ProblemSpec: its checks (files a model needs, field, colour)
+    from recon.problem import ProblemSpec
+
+    try:
+        ProblemSpec.from_data_section(data)
+    except ValueError as exc:
+        raise SpecError(f"{source}: [data] {exc}") from None
     gain = out["optimizer"]["gain"]
     if isinstance(gain, str) and gain != "auto":
         raise SpecError(f"{source}: optimizer.gain must be 'auto' or a number, got {gain!r}")
@@ -338,6 +345,8 @@ def udn_config(spec: Mapping[str, Any]) -> UDNConfig:
         headroom=o["headroom"],
         seed=o["seed"], lr_backoff=o["lr_backoff"], divergence_factor=o["divergence_factor"],
         max_backoffs=o["max_backoffs"], snapshot_every=o["snapshot_every"],
+        clip_adapt=o["clip_adapt"], clip_tolerance=o["clip_tolerance"],
+        clip_gain_step=o["clip_gain_step"],
         max_iter=s["max_iter"], time_limit_s=s["time_limit_s"], holdout=s["holdout"],
         patience=s["patience"], min_iter=s["min_iter"], min_delta=s["min_delta"],
         precision=d["precision"], compile=d["compile"], channels_last=d["channels_last"],

@@ -18,11 +18,11 @@ from drivers.lightstate import LightMode
 from drivers.timing import (
     ReadoutPattern,
     SensorTiming,
-    downsample_rows,
     row_start_lines,
     shutter_function,
 )
 from recon.calibfile import load_shutter
+from recon.preprocess import downsample_rows
 from tests.calibration.conftest import ROWS
 
 

@@ -29,11 +29,13 @@ def make_window(qtbot: Any, tmp_path: Path) -> Iterator[Any]:
     windows: list[Any] = []
 
     def make(settings: AppSettings | None = None, **kwargs: Any) -> Any:
-        s = settings or AppSettings()
+        # 10 frames/s (the app's default is 20): a smaller workload, frames still arrive fast
+        s = settings or AppSettings(frame_rate_hz=10.0)
         s.save_dir = s.save_dir or str(tmp_path / "snaps")
         s.jobs_dir = s.jobs_dir or str(tmp_path / "jobs")
         kwargs.setdefault("reconnect_interval_ms", 300)
         kwargs.setdefault("light_check_interval_ms", 300)
+        kwargs.setdefault("jobs_poll_ms", 250)
         w = MainWindow(s, **kwargs)
         qtbot.addWidget(w)
         w.show()
@@ -48,8 +50,21 @@ def make_window(qtbot: Any, tmp_path: Path) -> Iterator[Any]:
 
 @pytest.fixture
 def live_window(make_window: Any, qtbot: Any) -> Any:
-    """A window whose simulated camera is live and has shown a few frames."""
+    """A window whose simulated camera is live and has shown a few frames (no point source:
+    tests that need one use :func:`bench_window`)."""
+    from app.gui.settings import AppSettings
+
+    w = make_window(AppSettings(frame_rate_hz=10.0, connect_light=False))
+    qtbot.waitUntil(lambda: w.camera_state == "live", timeout=20_000)
+    qtbot.waitUntil(lambda: w.frames_shown >= 3, timeout=10_000)
+    return w
+
+
+@pytest.fixture
+def bench_window(make_window: Any, qtbot: Any) -> Any:
+    """The whole simulated bench: the camera live and the point source (firmware on a PTY)."""
     w = make_window()
     qtbot.waitUntil(lambda: w.camera_state == "live", timeout=20_000)
     qtbot.waitUntil(lambda: w.frames_shown >= 3, timeout=10_000)
+    qtbot.waitUntil(lambda: w.light_state == "connected", timeout=15_000)
     return w

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Iterator
 from typing import Any
@@ -13,10 +14,22 @@ pytestmark = pytest.mark.gui
 
 @pytest.fixture(autouse=True)
 def _reap_jobs() -> Iterator[None]:
+    """Terminate and reap every job process the test started (a test hook kept out of the
+    app: the app itself leaves jobs running when it closes)."""
     yield
-    from app.gui.jobs_core import stop_children_for_tests
+    import subprocess
 
-    stop_children_for_tests()
+    from app.gui import jobs_core
+
+    for pid, proc in list(jobs_core._CHILDREN.items()):
+        if proc.poll() is None:
+            proc.terminate()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(20)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        jobs_core._CHILDREN.pop(pid, None)
 
 
 def _tiny(dlg: Any, iters: int) -> None:
@@ -39,35 +52,12 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def test_tiny_job_from_the_gui_completes_and_its_result_opens(live_window: Any,
-                                                              qtbot: Any) -> None:
-    w = live_window
-    panel = w.jobs_panel
-    dlg = panel.new_job_dialog()
-    assert dlg is not None
-    _tiny(dlg, 30)
-    assert "about" in dlg.memory.text() and "available" in dlg.memory.text()
-    dlg.accept()
-    qtbot.waitUntil(lambda: len(panel.views) == 1, timeout=5_000)
-    qtbot.waitUntil(lambda: panel.views[0].state in ("starting", "running", "finished"),
-                    timeout=5_000)
-    qtbot.waitUntil(lambda: panel.views[0].state == "finished", timeout=60_000)
-    v = panel.views[0]
-    assert v.finish_reason == "completed" and v.iteration == 30
-    assert set(v.results) == {"best", "final"}
-    panel.table.selectRow(0)
-    qtbot.waitUntil(lambda: panel.open_button.isEnabled(), timeout=5_000)
-    assert len(panel.loss_curve.getData()[0]) == 30
-    assert panel.preview.image is not None
-    dlg2 = panel.open_selected()
-    assert dlg2 is not None
-    assert dlg2.panels["best"].image.shape == (37, 50)
-    assert dlg2.meta["final"]["method"] == "udn"
-
-
 def test_job_survives_closing_the_window_and_is_found_again(make_window: Any,
                                                             qtbot: Any) -> None:
-    w = make_window()
+    from app.gui.settings import AppSettings
+
+    # no point source, 10 frames/s: a smaller workload
+    w = make_window(AppSettings(connect_light=False, frame_rate_hz=10.0))
     qtbot.waitUntil(lambda: w.frames_shown >= 2, timeout=20_000)
     dlg = w.jobs_panel.new_job_dialog()
     _tiny(dlg, 1_000_000)
@@ -80,7 +70,7 @@ def test_job_survives_closing_the_window_and_is_found_again(make_window: Any,
     w.close()
     assert _alive(pid)
 
-    w2 = make_window()
+    w2 = make_window(autoconnect=False)  # the jobs panel needs no devices
     p2 = w2.jobs_panel
     qtbot.waitUntil(lambda: p2.views and p2.views[0].state == "running", timeout=10_000)
     it0 = p2.views[0].iteration
@@ -100,41 +90,89 @@ def test_job_survives_closing_the_window_and_is_found_again(make_window: Any,
     qtbot.waitUntil(lambda: p2.views[0].state == "finished", timeout=20_000)
 
 
-def test_seeds_queue_an_ensemble_that_combines(live_window: Any, qtbot: Any) -> None:
-    """Seeds 3 queues three jobs (seeds 0-2, one after another); Combine averages them."""
+def test_jobs_from_the_gui_complete_open_and_combine(make_window: Any, qtbot: Any) -> None:
+    """Seeds 2 queues two tiny jobs (seeds 0, 1, one after another): each completes, its result
+    opens with its metadata, and Combine averages them."""
     import numpy as np
 
+    from app.gui.settings import AppSettings
     from recon.io import read_reconstruction
 
-    panel = live_window.jobs_panel
+    w = make_window(AppSettings(connect_light=False, frame_rate_hz=10.0))
+    qtbot.waitUntil(lambda: w.frames_shown >= 2, timeout=20_000)
+    panel = w.jobs_panel
     dlg = panel.new_job_dialog()
     assert dlg is not None
-    _tiny(dlg, 20)
-    dlg.seeds.setValue(3)
+    _tiny(dlg, 10)
+    assert "about" in dlg.memory.text() and "available" in dlg.memory.text()
+    dlg.seeds.setValue(2)
     dlg.accept()
-    qtbot.waitUntil(lambda: len(panel.views) == 3, timeout=5_000)
-    assert sorted(v.name for v in panel.views) == ["tiny-s0", "tiny-s1", "tiny-s2"]
-    assert len(panel.selected_all()) == 3  # the new jobs are selected ...
+    qtbot.waitUntil(lambda: len(panel.views) == 2, timeout=5_000)
+    assert sorted(v.name for v in panel.views) == ["tiny-s0", "tiny-s1"]
+    assert len(panel.selected_all()) == 2  # the new jobs are selected ...
     if not all(v.state == "finished" for v in panel.views):
         assert not panel.combine_button.isEnabled()  # ... and not all have finished yet
-    qtbot.waitUntil(lambda: all(v.state == "finished" for v in panel.views), timeout=120_000)
+    qtbot.waitUntil(lambda: all(v.state == "finished" for v in panel.views), timeout=90_000)
     panel.refresh()
-    assert len(panel.selected_all()) == 3  # the selection survives the polling
-    qtbot.waitUntil(lambda: panel.combine_button.isEnabled(), timeout=5_000)
-    panel.combine_button.click()
-    msg = panel.message.text()
-    assert "ensemble of 3 jobs written to" in msg, msg
-    out = sorted((panel.queue.jobs_dir / "ensembles").glob("*.tif"))
-    assert len(out) == 1
-    x, meta = read_reconstruction(out[0])
-    assert sorted(m["seed"] for m in meta["members"]) == [0, 1, 2]
-    bests = [read_reconstruction(v.run_dir / "best.tif")[0] for v in panel.views]
-    np.testing.assert_allclose(x, np.mean(bests, axis=0), rtol=1e-6, atol=1e-7)
-    assert len(panel.views) == 3  # the ensembles folder is not taken for a job
+    assert len(panel.selected_all()) == 2  # the selection survives the polling
+    for v in panel.views:
+        assert v.finish_reason == "completed" and v.iteration == 10
+        assert set(v.results) == {"best", "final"}
 
-    # one finished job alone cannot be combined; the core refuses it too
+    # one job: its curves, its preview, its result with the metadata
     panel._select_folders({panel.views[0].folder})
-    panel._show_details()
+    qtbot.waitUntil(lambda: panel.open_button.isEnabled(), timeout=5_000)
+    assert len(panel.loss_curve.getData()[0]) == 10
+    assert panel.preview.image is not None
+    dlg2 = panel.open_selected()
+    assert dlg2 is not None
+    assert dlg2.panels["best"].image.shape == (37, 50)
+    assert dlg2.meta["final"]["method"] == "udn"
+    text = dlg2.metadata.toPlainText()
+    assert "[best]" in text and "[final]" in text and "method: udn" in text
+    # one finished job alone cannot be combined; the core refuses it too
     assert not panel.combine_button.isEnabled()
     panel.combine_selected()
     assert "cannot combine: an ensemble needs at least two runs" in panel.message.text()
+
+    panel._select_folders({v.folder for v in panel.views})
+    qtbot.waitUntil(lambda: panel.combine_button.isEnabled(), timeout=5_000)
+    panel.combine_button.click()
+    msg = panel.message.text()
+    assert "ensemble of 2 jobs written to" in msg, msg
+    out = sorted((panel.queue.jobs_dir / "ensembles").glob("*.tif"))
+    assert len(out) == 1
+    x, meta = read_reconstruction(out[0])
+    assert sorted(m["seed"] for m in meta["members"]) == [0, 1]
+    bests = [read_reconstruction(v.run_dir / "best.tif")[0] for v in panel.views]
+    np.testing.assert_allclose(x, np.mean(bests, axis=0), rtol=1e-6, atol=1e-7)
+    assert len(panel.views) == 2  # the ensembles folder is not taken for a job
+
+
+def test_job_dialog_defaults_come_from_the_spec(live_window: Any, tmp_path: Any) -> None:
+    from recon.udn.spec import SCHEMA
+
+    dlg = live_window.jobs_panel.new_job_dialog()
+    assert dlg is not None
+    assert dlg.max_iter.value() == SCHEMA["stopping"]["max_iter"].default
+    assert dlg.channels.value() == SCHEMA["network"]["channels"].default
+    assert dlg.scales.value() == SCHEMA["network"]["scales"].default
+    assert dlg.lr.value() == pytest.approx(SCHEMA["optimizer"]["lr"].default, rel=1e-3)
+    assert dlg.headroom.value() == pytest.approx(SCHEMA["optimizer"]["headroom"].default,
+                                                 abs=0.005)
+    assert dlg.patience.value() == SCHEMA["stopping"]["patience"].default
+    dlg.lr.setValue(0.002)
+    dlg.headroom.setValue(1.5)
+    dlg.holdout.setValue(0.1)
+    secs = dlg.sections()
+    assert secs["optimizer"]["lr"] == pytest.approx(0.002)
+    assert secs["optimizer"]["headroom"] == pytest.approx(1.5)
+    assert secs["stopping"]["holdout"] == pytest.approx(0.1)
+    from recon.udn.spec import normalise_spec
+
+    for name in ("p.npy", "m.npy"):
+        (tmp_path / name).write_bytes(b"")
+    spec = normalise_spec({"data": {"psf": "p.npy", "measurement": "m.npy"}, **secs},
+                          base_dir=tmp_path)  # the dialog's sections are a valid job spec
+    assert spec["optimizer"]["headroom"] == pytest.approx(1.5)
+    dlg.reject()

@@ -11,8 +11,9 @@ import pytest
 pytestmark = pytest.mark.gui
 
 
-def test_app_starts_live_with_preview_and_point_source(live_window: Any, qtbot: Any) -> None:
-    w = live_window
+def test_app_starts_live_with_preview_and_point_source(bench_window: Any,
+                                                       qtbot: Any) -> None:
+    w = bench_window
     assert w.bench.is_simulated
     assert w.raw_panel.image is not None and w.raw_panel.image.shape == (150, 200)
     qtbot.waitUntil(lambda: w.previews_shown >= 3, timeout=20_000)
@@ -107,8 +108,8 @@ def test_camera_unplug_shows_error_and_reconnects(live_window: Any, qtbot: Any) 
     assert not w.banner.isVisible()
 
 
-def test_point_source_death_is_shown_and_recovered(live_window: Any, qtbot: Any) -> None:
-    w = live_window
+def test_point_source_death_is_shown_and_recovered(bench_window: Any, qtbot: Any) -> None:
+    w = bench_window
     qtbot.waitUntil(lambda: w.light_state == "connected", timeout=15_000)
     old_pid = w.bench.sim_source.process.pid
     w.bench.sim_source.kill()
@@ -152,8 +153,8 @@ def test_settings_persist_between_sessions(make_window: Any, qtbot: Any) -> None
     qtbot.waitUntil(lambda: abs(w2.bench.camera.exposure_us - 8000.0) < 20, timeout=5_000)
 
 
-def test_bad_serial_port_is_an_error_in_the_window(live_window: Any, qtbot: Any) -> None:
-    w = live_window
+def test_bad_serial_port_is_an_error_in_the_window(bench_window: Any, qtbot: Any) -> None:
+    w = bench_window
     qtbot.waitUntil(lambda: w.light_state == "connected", timeout=15_000)
     w.device_panel.port_combo.setEditText("/dev/does-not-exist")
     w.device_panel.light_connect.click()

@@ -1,7 +1,7 @@
 """Extreme erasures: 99 % and 99.9 % of the sensor erased, and a single measured pixel.
 
 Expected: FISTA and ADMM give finite, non-negative results; FISTA's objective never increases
-(restart on); each estimate explains the measured pixels better than the zero image does.
+(monotone restart); each estimate explains the measured pixels better than the zero image does.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ def _case(fraction: float):
 def test_fista_extreme_erasures(fraction):
     model, b, sim = _case(fraction)
     assert int(sim.mask.sum()) == round((1 - fraction) * H * W)
-    solver = Fista(model.op, b, tau=TAU, max_iter=300, tol=0)
+    solver = Fista(model.op, b, tau=TAU, max_iter=300, tol=0, restart="monotone")
     objs = [s.objective for s in solver.steps()]
     sane(solver.x)
     assert non_increasing(objs)
@@ -56,7 +56,7 @@ def test_single_measured_pixel():
     model = build_model("2d", psf, mask=mask)
     b = torch.zeros(model.meas_shape)
     b[0, y, x] = 0.9
-    res = Fista(model.op, b, tau=TAU, max_iter=500, tol=0).run()
+    res = Fista(model.op, b, tau=TAU, max_iter=500, tol=0, restart="monotone").run()
     sane(res.x)
     assert non_increasing([s.objective for s in res.history])
     pred = float(model.apply(res.x)[0, y, x])

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from recon.fista import Fista, StopReason
+from recon.fista import Fista
+from recon.stepwise import StopReason
 from recon.tv import TV
 from tests.stability.helpers import all_finite, dense, non_increasing, sane, tiny_models
 
@@ -45,7 +46,7 @@ def test_no_divergence_over_10k_iterations(kind):
 @pytest.mark.parametrize("kind", KINDS)
 def test_objective_non_increasing_with_restart(kind):
     model, b, tv = _case(kind)
-    solver = Fista(model.op, b, tau=1e-3, tv=tv, max_iter=3000, tol=0, restart=True)
+    solver = Fista(model.op, b, tau=1e-3, tv=tv, max_iter=3000, tol=0, restart="monotone")
     objs = [s.objective for s in solver.steps()]
     sane(solver.x)
     assert all_finite(objs) and non_increasing(objs)

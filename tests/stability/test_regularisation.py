@@ -35,7 +35,7 @@ def test_tau_zero_is_nonnegative_least_squares():
     b = torch.as_tensor(sim.meas, dtype=torch.float64)
     _, rnorm = nnls(dense(model).numpy(), b.numpy().ravel(), maxiter=5000)
     f_opt = 0.5 * rnorm**2
-    res = Fista(model.op, b, tau=0.0, max_iter=2000, tol=0).run()
+    res = Fista(model.op, b, tau=0.0, max_iter=2000, tol=0, restart="monotone").run()
     sane(res.x)
     assert non_increasing([s.objective for s in res.history])
     assert res.history[-1].objective == pytest.approx(f_opt, rel=1e-4)
@@ -60,7 +60,7 @@ def test_huge_tau_gives_the_best_constant(tau):
     sim = simulate(model, np.random.default_rng(0).random(model.scene_shape), noise=0.01, seed=3)
     b = torch.as_tensor(sim.meas)
     c = _best_constant(model, b)
-    res = Fista(model.op, b, tau=tau, max_iter=300, tol=0).run()
+    res = Fista(model.op, b, tau=tau, max_iter=300, tol=0, restart="monotone").run()
     sane(res.x)
     assert non_increasing([s.objective for s in res.history])
     mean = float(res.x.mean())

@@ -164,28 +164,29 @@ def test_status_of_finished_and_interrupted_runs(tiny_data, tmp_path, capsys):
 
 def test_disk_full_during_a_checkpoint_keeps_the_previous_one(tiny_data, tmp_path,
                                                               monkeypatch):
-    real_save = torch.save
+    from recon.udn import rundir
+
+    real_write = rundir._write_bytes
     calls = {"n": 0}
 
-    def save(obj, f, *a, **k):
+    def write(fh, data):
         calls["n"] += 1
         if calls["n"] >= 2:  # the second checkpoint: half a file, then the disk is full
-            with open(f, "wb") as fh:
-                fh.write(b"\0" * 100)
+            fh.write(data[:100])
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        return real_save(obj, f, *a, **k)
+        real_write(fh, data)
 
-    monkeypatch.setattr(torch, "save", save)
+    monkeypatch.setattr(rundir, "_write_bytes", write)
     out = tmp_path / "run"
-    with pytest.raises(JobError, match="No space left"):
+    with pytest.raises(JobError, match="disk full"):
         run_job(write_spec(tiny_data, stopping={"max_iter": 60}), out)
-    monkeypatch.setattr(torch, "save", real_save)
+    monkeypatch.setattr(rundir, "_write_bytes", real_write)
     ck = load_checkpoint(out / "checkpoint.pt")  # intact and readable
     assert ck["iteration"] == 20
     rec = record(out)
-    assert rec["finish_reason"] == "failed"
-    assert "No space left on device" in rec["error"]["message"]
-    assert "previous checkpoint (iteration 20) is intact" in rec["error"]["message"]
+    assert rec["finish_reason"] == "failed" and rec["error"]["type"] == "DiskFull"
+    assert f"disk full: no space left on the device of {out}" in rec["error"]["message"]
+    assert "last good checkpoint (iteration 20) is kept" in rec["error"]["message"]
     assert not [p for p in out.iterdir() if ".tmp" in p.name]
     # and the run can be resumed from that checkpoint
     outcome = resume_job(out)
@@ -270,9 +271,11 @@ def test_kill_and_resume_ends_with_identical_weights(tiny_data, tmp_path):
     whole = run_job(spec, tmp_path / "whole")
     assert whole.iterations == 40
     out = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "app", "jobs", "run", str(spec), "--out", str(out), "--quiet"]
-    # the job stalls after iteration 27 (checkpoint at 20, progress written at 27)
-    proc = subprocess.Popen(cmd, cwd=REPO, env=_env(LENSLESSCAM_UDN_STALL_AT="27"),
+    cmd = [sys.executable, "-m", "tests.udn.jobrunner", "jobs", "run", str(spec), "--out",
+           str(out), "--quiet"]
+    # the job stalls after iteration 27 (checkpoint at 20, progress written at 27); the stall
+    # is a test hook of tests/udn/jobrunner.py
+    proc = subprocess.Popen(cmd, cwd=REPO, env=_env(LENSLESSCAM_TEST_STALL_AT="27"),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         _wait_for(lambda: _progress_iteration(out) == 27, proc)

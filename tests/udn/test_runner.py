@@ -11,8 +11,9 @@ import torch
 
 from recon.metrics import gain_fit, psnr
 from recon.models import build_model
+from recon.stepwise import StopReason
 from recon.udn.network import NetworkConfig
-from recon.udn.runner import NumericalError, UDNConfig, UDNRunner, UDNStopReason
+from recon.udn.runner import NumericalError, UDNConfig, UDNRunner
 from tests.udn.conftest import TINY_NET, tiny_problem
 
 NET = NetworkConfig(**TINY_NET)
@@ -82,13 +83,13 @@ def test_early_stopping_returns_the_best_estimate(monkeypatch):
     estimates = {}
     for s in r.steps(preview_every=1):
         estimates[s.iteration] = s.preview
-    assert r.reason is UDNStopReason.STOPPED_EARLY
+    assert r.reason is StopReason.STOPPED_EARLY
     assert r.iteration == 8 + 5
     assert r.best_iteration == 8
     np.testing.assert_array_equal(r.best_estimate(), estimates[8])
     assert not np.array_equal(r.final_estimate(), estimates[8])
     res = r.result()
-    assert res.best_iteration == 8 and res.reason is UDNStopReason.STOPPED_EARLY
+    assert res.best_iteration == 8 and res.reason is StopReason.STOPPED_EARLY
 
 
 def test_divergence_restores_the_last_good_state():
@@ -164,7 +165,7 @@ def test_udn_improves_psnr_end_to_end():
     score = lambda x: psnr(truth, gain_fit(truth, x)[0])  # noqa: E731
     p0, p_best = score(first), score(r.best_estimate())
     assert p_best > p0 + 4.0, (p0, p_best)
-    assert r.reason is UDNStopReason.MAX_ITER
+    assert r.reason is StopReason.MAX_ITER
 
 
 def test_scale_invariant_loss_keeps_the_measurement_scale():
@@ -209,10 +210,10 @@ def test_compile_error_at_first_call_falls_back(monkeypatch):
 def test_cancel_and_time_limit():
     r, _ = make_runner(max_iter=100)
     res = r.run(cancel=lambda: True)
-    assert res.reason is UDNStopReason.CANCELLED and res.iterations == 1
+    assert res.reason is StopReason.CANCELLED and res.iterations == 1
     r2, _ = make_runner(max_iter=10_000, time_limit_s=1e-6)
     res2 = r2.run()
-    assert res2.reason is UDNStopReason.TIME_LIMIT and res2.iterations == 1
+    assert res2.reason is StopReason.TIME_LIMIT and res2.iterations == 1
 
 
 def test_progress_reports_eta_and_preview():

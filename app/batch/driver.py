@@ -1,0 +1,344 @@
+"""The batch driver: items to Ray tasks, progress, retries, cancel, state and summary.
+
+:func:`run_batch` reads the manifest, takes the batch folder's lock, skips the items whose
+record says ``done`` with the same item hash and an intact result, starts Ray (embedded:
+``ray.init(num_cpus=...)`` in this process, no dashboard, no usage statistics, logs kept out of
+the terminal) or joins a cluster (``address``), submits one task per remaining item, and
+collects them as they finish: a live progress bar, ``state.json`` rewritten about once a second
+(for ``lenslesscam batch status``), a ``CANCEL`` file polled (``lenslesscam batch cancel``), and
+at the end the summary tables. Ray's own retries handle lost workers and transient errors
+(``max_retries``); an item that still fails is recorded as failed with its error and the batch
+goes on.
+
+Ray is imported here only, inside the functions (``import ray`` takes seconds).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import platform
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from app.batch.manifest import Item, input_hashes, item_hash, read_manifest
+from app.batch.state import (
+    STATE_FORMAT,
+    BatchLock,
+    BatchPaths,
+    now_utc,
+    write_state,
+)
+from app.batch.summary import write_summary
+from app.batch.task import ITEM_FORMAT, run_item
+
+__all__ = ["BatchOptions", "BatchReport", "run_batch", "start_ray"]
+
+#: Seconds the driver waits for running UDN items to stop at their next iteration after a
+#: cancel (they write a final checkpoint) before it ends them.
+CANCEL_GRACE_S = 60.0
+#: Object store of the embedded Ray (tasks exchange only small records).
+EMBEDDED_OBJECT_STORE = 128 * 1024 * 1024
+
+
+@dataclass(frozen=True)
+class BatchOptions:
+    """How to run a batch (the options of ``lenslesscam batch run``)."""
+
+    address: str | None = None  # None: embedded Ray; "auto" or HOST:PORT: join a cluster
+    num_cpus: int | None = None  # embedded Ray's CPUs (None: all cores)
+    cpus_per_item: int = 1  # CPUs (= torch threads) of a fista / auto / ... task
+    udn_cpus: int = 1  # CPUs (= torch threads) of a udn task on a cluster without GPUs
+    max_retries: int = 2  # Ray retries of a task whose worker died or that raised
+    progress: bool | None = None  # None: a progress bar when stderr is a terminal
+    poll_s: float = 0.5
+
+
+@dataclass
+class BatchReport:
+    """How a batch ended."""
+
+    root: Path
+    status: str  # finished | failed | cancelled
+    records: dict[str, dict[str, Any]]
+    counts: dict[str, int]
+    wall_s: float
+    ran: int  # items run by this driver (not skipped)
+    summary: list[Path] = field(default_factory=list)
+
+
+def start_ray(address: str | None, num_cpus: int | None) -> bool:
+    """Start embedded Ray or join a cluster; True when this call started it (and owns it)."""
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no usage reports, ever
+    try:
+        import ray
+    except ImportError:
+        from app.cli import CliError
+
+        raise CliError("lenslesscam batch needs Ray: pip install -c constraints.txt "
+                       "'lenslesscam[batch]'") from None
+
+    if ray.is_initialized():
+        return False
+    if address:
+        ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+    else:  # Ray's notices about its own defaults (auth token, ...) would only clutter the bar
+        ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False,
+                 object_store_memory=EMBEDDED_OBJECT_STORE, log_to_driver=False,
+                 logging_level=logging.ERROR)
+    return True
+
+
+def finished_record(paths: BatchPaths, item: Item, h: str) -> dict[str, Any] | None:
+    """The item's record if it is done with hash ``h`` and its result is intact, else None."""
+    from recon.formats import file_hash
+
+    p = paths.record(item.id)
+    if not p.is_file():
+        return None
+    try:
+        rec = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if (not isinstance(rec, dict) or rec.get("format") != ITEM_FORMAT
+            or rec.get("status") != "done" or rec.get("item_hash") != h):
+        return None
+    out = paths.root / str(rec.get("output", ""))
+    if not out.is_file() or file_hash(out) != rec.get("output_hash"):
+        return None
+    return rec
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = [ln for ln in str(exc).strip().splitlines() if ln.strip()]
+    # Ray's messages start with a traceback; the last line is the error itself
+    return (lines[-1] if lines else type(exc).__name__)[:500]
+
+
+class _Driver:
+    def __init__(self, manifest: Path, root: Path, items: list[Item], opts: BatchOptions) -> None:
+        self.manifest = manifest
+        self.paths = BatchPaths(root)
+        self.items = items
+        self.opts = opts
+        self.records: dict[str, dict[str, Any]] = {}
+        self.status: dict[str, str] = {}
+        self.hashes: dict[str, str] = {}
+        self.t0 = time.monotonic()
+        self.started = now_utc()
+        self._last_state = 0.0
+        self.cancelling = False
+        self.cancel_deadline: float | None = None
+        self.ran = 0
+
+    # -- state -------------------------------------------------------------------------------
+    def write_state(self, status: str, eta_s: float | None = None) -> None:
+        from recon.formats import FORMAT_VERSION
+
+        items = {}
+        for it in self.items:
+            rec = self.records.get(it.id, {})
+            items[it.id] = {"status": self.status[it.id], "method": it.method,
+                            "item_hash": self.hashes.get(it.id), "attempt": rec.get("attempt"),
+                            "output": rec.get("output"), "error": rec.get("error")}
+        write_state(self.paths.root, {
+            "format": STATE_FORMAT, "format_version": FORMAT_VERSION, "status": status,
+            "manifest": str(self.manifest), "address": self.opts.address or "embedded",
+            "pid": os.getpid(), "host": platform.node(), "started_utc": self.started,
+            "updated_utc": now_utc(), "eta_s": None if eta_s is None else round(eta_s, 1),
+            "items": items})
+        self._last_state = time.monotonic()
+
+    def running_count(self) -> int:
+        try:
+            return sum(1 for _ in self.paths.items_dir.glob("*.running"))
+        except OSError:
+            return 0
+
+    # -- the run -----------------------------------------------------------------------------
+    def plan(self) -> list[tuple[Item, str, dict[str, str | None]]]:
+        todo = []
+        for it in self.items:
+            hashes = input_hashes(it)
+            h = item_hash(it, hashes)
+            self.hashes[it.id] = h
+            rec = finished_record(self.paths, it, h)
+            if rec is not None:
+                self.records[it.id] = rec
+                self.status[it.id] = "skipped"
+            else:
+                self.status[it.id] = "pending"
+                todo.append((it, h, hashes))
+        return todo
+
+    def record_failure(self, item: Item, h: str, error: str, status: str = "failed") -> None:
+        from recon.formats import FORMAT_VERSION, atomic_write_json
+
+        marker = self.paths.running(item.id)
+        attempt = None
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            attempt = int(json.loads(marker.read_text(encoding="utf-8"))["attempt"])
+        rec = {"format": ITEM_FORMAT, "format_version": FORMAT_VERSION, "id": item.id,
+               "method": item.method, "item_hash": h, "item": item.to_dict(),
+               "status": status, "error": error, "attempt": attempt,
+               "finished_utc": now_utc(), "recorded_by": "driver"}
+        atomic_write_json(self.paths.record(item.id), rec)
+        marker.unlink(missing_ok=True)
+        self.records[item.id] = rec
+        self.status[item.id] = status
+
+    def execute(self, todo: list[tuple[Item, str, dict[str, str | None]]]) -> None:
+        import ray
+        from ray.exceptions import RayError, TaskCancelledError
+
+        gpus = float(ray.cluster_resources().get("GPU", 0.0))  # type: ignore[no-untyped-call]
+        remote = ray.remote(run_item)
+        pending: dict[Any, tuple[Item, str]] = {}
+        for it, h, hashes in todo:
+            if it.method == "udn":
+                cpus = 1 if gpus > 0 else self.opts.udn_cpus
+                opts: dict[str, Any] = {"num_cpus": cpus, "num_gpus": 1 if gpus > 0 else 0}
+            else:
+                cpus = self.opts.cpus_per_item
+                opts = {"num_cpus": cpus}
+            ref = remote.options(**opts, max_retries=self.opts.max_retries,
+                                 retry_exceptions=True, name=f"batch:{it.id}").remote(
+                it, str(self.paths.root), h, hashes, cpus)
+            pending[ref] = (it, h)
+        show = sys.stderr.isatty() if self.opts.progress is None else self.opts.progress
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(todo), desc="batch", unit="item", disable=not show,
+                   file=sys.stderr, dynamic_ncols=True)
+        failed = 0
+        try:
+            while pending:
+                try:
+                    ready, _ = ray.wait(list(pending), num_returns=len(pending),
+                                        timeout=self.opts.poll_s)
+                    for ref in ready:
+                        it, h = pending.pop(ref)
+                        try:
+                            rec = ray.get(ref)
+                        except RayError as exc:
+                            kept = finished_record(self.paths, it, h)
+                            if kept is not None:  # interrupted after its result was recorded
+                                self.records[it.id] = kept
+                                self.status[it.id] = "done"
+                            elif isinstance(exc, TaskCancelledError):
+                                self.record_failure(it, h, "cancelled by 'batch cancel'",
+                                                    "cancelled")
+                            else:  # retries exhausted, or the worker died
+                                self.record_failure(it, h, f"{type(exc).__name__}: "
+                                                    f"{_first_line(exc)}")
+                        else:
+                            self.records[it.id] = rec
+                            self.status[it.id] = rec["status"]
+                        self.ran += 1
+                        failed += self.status[it.id] == "failed"
+                        bar.update(1)
+                    if not self.cancelling and self.paths.cancel_file.exists():
+                        self.cancel(pending)
+                except KeyboardInterrupt:
+                    if self.cancelling:
+                        raise
+                    self.cancel(pending)
+                if self.cancel_deadline is not None and time.monotonic() > self.cancel_deadline:
+                    for ref in pending:
+                        ray.cancel(ref, force=True)
+                    self.cancel_deadline = None
+                running = self.running_count()
+                bar.set_postfix_str(f"running {running}, failed {failed}", refresh=False)
+                if time.monotonic() - self._last_state > 1.0:
+                    eta = None
+                    if self.ran and pending:
+                        eta = (time.monotonic() - self.t0) / self.ran * len(pending)
+                    self.write_state("cancelling" if self.cancelling else "running", eta)
+        finally:
+            bar.close()
+
+    def cancel(self, pending: dict[Any, tuple[Item, str]]) -> None:
+        """Stop the batch.
+
+        Pending tasks are dropped, running fista/auto tasks interrupted, udn jobs stop at their
+        next iteration (with a checkpoint).
+        """
+        import ray
+
+        from recon.formats import atomic_write_json
+
+        self.cancelling = True
+        if not self.paths.cancel_file.exists():
+            atomic_write_json(self.paths.cancel_file, {"requested_utc": now_utc(),
+                                                       "by": "driver (interrupt)"})
+        for ref, (it, _) in pending.items():
+            if it.method != "udn":
+                ray.cancel(ref, force=False)
+        self.cancel_deadline = time.monotonic() + CANCEL_GRACE_S
+        self.write_state("cancelling")
+
+
+def run_batch(manifest: str | Path, out: str | Path,
+              options: BatchOptions | None = None) -> BatchReport:
+    """Run (or continue) the batch of ``manifest`` in the folder ``out``; see the module doc.
+
+    Raises ValueError / FileNotFoundError for a bad manifest (nothing runs) and
+    :class:`~app.batch.state.BatchBusy` when another driver holds the folder.
+    """
+    opts = options or BatchOptions()
+    manifest = Path(manifest).resolve()
+    items = read_manifest(manifest)
+    root = Path(out).resolve()
+    paths = BatchPaths(root)
+    paths.make()
+    lock = BatchLock(root).acquire()
+    owns_ray = False
+    drv = _Driver(manifest, root, items, opts)
+    final = "failed"
+    try:
+        paths.cancel_file.unlink(missing_ok=True)  # a request from an earlier run is spent
+        for stale in paths.items_dir.glob("*.running"):
+            stale.unlink(missing_ok=True)  # no worker of an earlier driver outlives it
+        for it in items:
+            drv.status[it.id] = "pending"
+        drv.write_state("starting")
+        todo = drv.plan()
+        drv.write_state("running")
+        show = sys.stderr.isatty() if opts.progress is None else opts.progress
+        if show:
+            where = (f"joining the Ray cluster at {opts.address}" if opts.address else
+                     f"starting Ray here ({opts.num_cpus or os.cpu_count()} CPUs)")
+            print(f"batch: {len(items)} items, {len(items) - len(todo)} already done, "
+                  f"{len(todo)} to run; {where if todo else 'nothing to run'}", file=sys.stderr)
+        if todo:
+            owns_ray = start_ray(opts.address, opts.num_cpus)
+            drv.execute(todo)
+        counts: dict[str, int] = {}
+        for s in drv.status.values():
+            counts[s] = counts.get(s, 0) + 1
+        if drv.cancelling or counts.get("cancelled"):
+            final = "cancelled"
+        elif counts.get("failed"):
+            final = "failed"
+        else:
+            final = "finished"
+        summary = write_summary(root, items, drv.records, drv.status)
+        drv.write_state(final)
+        return BatchReport(root, final, drv.records, counts, time.monotonic() - drv.t0,
+                           drv.ran, summary)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            drv.write_state("interrupted")
+        raise
+    finally:
+        paths.cancel_file.unlink(missing_ok=True)
+        if owns_ray:
+            import ray
+
+            ray.shutdown()
+        lock.release()

@@ -1,0 +1,74 @@
+"""Command-line inputs -> :class:`recon.problem.ProblemSpec` (the one way commands load data).
+
+Every command that reads a measurement (``recon fista|udn|auto``, ``plan``, ``trade``) builds
+its spec with :func:`problem_spec` and loads it with :func:`recon.problem.load_problem`.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+from app.commands._common import parse_dark
+
+
+def add_layout_arguments(p: Any) -> None:
+    """The dataset-layout options every loading command takes (see recon.problem)."""
+    p.add_argument("--channel-order", choices=["rgb", "bgr"], default="rgb",
+                   help="colour order stored in the files (bgr: the DiffuserCam MirFlickr "
+                        "dataset); PSF, measurement and truth alike")
+    p.add_argument("--flip-rows", action="store_true",
+                   help="flip the rows of PSF, measurement, mask, shutter, filters and truth "
+                        "alike (they share one frame: this only turns the result upside down)")
+
+
+def field_value(value: str | None) -> Any:
+    """``--field`` as a ProblemSpec field: 'sensor', 'full' or (H, W)."""
+    if value in (None, "sensor", "full"):
+        return value or "sensor"
+    m = re.fullmatch(r"(\d+)x(\d+)", value or "")
+    if not m:
+        raise ValueError(f"--field must be 'sensor', 'full' or HxW, got {value!r}")
+    return (int(m.group(1)), int(m.group(2)))
+
+
+def dark_value(value: str | None) -> Any:
+    """``--dark``: None, a number, 'auto' or an existing file (as an absolute path)."""
+    d = parse_dark(value)
+    return str(Path(d).expanduser().resolve()) if isinstance(d, Path) else d
+
+
+def problem_spec(args: Any, **changes: Any) -> Any:
+    """The :class:`recon.problem.ProblemSpec` that a command's arguments describe.
+
+    Reads the arguments a command has (``--model``, ``--psf``, ``--psf-stack``, ``--meas``,
+    ``--mask``, ``--shutter``, ``--filters``, ``--truth``, ``--dark``, ``--psf-dark``,
+    ``--downsample``, ``--field``, ``--rgb``, ``--channel-order``, ``--flip-rows``); missing
+    ones take the spec's defaults. ``changes`` override fields.
+    """
+    from recon.problem import ProblemSpec
+
+    def get(name: str) -> Any:
+        return getattr(args, name, None)
+
+    def path(value: Any) -> Any:
+        return None if value is None else str(Path(value).expanduser().resolve())
+
+    model = get("model") or ("depth" if get("psf_stack") else "2d")
+    kw: dict[str, Any] = {
+        "meas": path(get("meas")), "model": model,
+        "psf": path(get("psf")) if model != "depth" else None,
+        "psf_stack": path(get("psf_stack")) if model == "depth" else None,
+        "mask": path(get("mask")), "shutter": path(get("shutter")),
+        "filters": path(get("filters")), "truth": path(get("truth")),
+        "dark": dark_value(get("dark")),
+        "psf_dark": dark_value(get("psf_dark")),
+        "downsample": int(get("downsample") or 1),
+        "field": field_value(get("field")),
+        "color": "rgb" if get("rgb") else "gray",
+        "channel_order": get("channel_order") or "rgb",
+        "flip_rows": bool(get("flip_rows")),
+    }
+    kw.update(changes)
+    return ProblemSpec(**kw)

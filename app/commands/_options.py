@@ -1,0 +1,126 @@
+"""Range-checked ``type=`` functions for every numeric command-line option.
+
+One set, reused by every subcommand and benchmark: a bad value (``--bits 0``, ``--erasure 1.0``,
+``--noise nan``) stops at the command line with the allowed range in a one-line message
+(argparse prints ``argument --bits: must be an integer >= 1, got '0'``, exit code 2) instead of
+producing NaN files or invalid JSON later. Floats are finite only (no nan, no inf).
+``tests/test_cli_faults.py`` walks the whole parser and fails on any bare ``type=int`` or
+``type=float``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from collections.abc import Callable, Iterable
+
+__all__ = [
+    "BITS",
+    "FINITE",
+    "FRACTION",
+    "NONNEG",
+    "NONNEG_INT",
+    "POSITIVE",
+    "POSITIVE_INT",
+    "UNIT",
+    "add_overwrite_option",
+    "check_command_outputs",
+    "finite_float",
+    "integer",
+]
+
+
+def _bound(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:
+    parts = []
+    if lo is not None:
+        parts.append(f"{'>' if lo_open else '>='} {lo:g}")
+    if hi is not None:
+        parts.append(f"{'<' if hi_open else '<='} {hi:g}")
+    return " and ".join(parts)
+
+
+def finite_float(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+                 hi_open: bool = False) -> Callable[[str], float]:
+    """A ``type=`` for a finite float in [lo, hi] (open ends with ``lo_open`` / ``hi_open``)."""
+    bound = _bound(lo, hi, lo_open, hi_open)
+    what = f"a finite number {bound}".rstrip()
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}") from None
+        bad = not math.isfinite(value)
+        bad = bad or (lo is not None and (value <= lo if lo_open else value < lo))
+        bad = bad or (hi is not None and (value >= hi if hi_open else value > hi))
+        if bad:
+            raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+        return value
+
+    parse.__name__ = f"float {bound}".strip()
+    parse.range_text = what  # type: ignore[attr-defined]
+    return parse
+
+
+def integer(lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
+    """A ``type=`` for an integer in [lo, hi]."""
+    bound = _bound(lo, hi, False, False)
+    what = f"an integer {bound}".rstrip()
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}") from None
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+        return value
+
+    parse.__name__ = f"int {bound}".strip()
+    parse.range_text = what  # type: ignore[attr-defined]
+    return parse
+
+
+#: iterations, downsampling factors, frame counts, network sizes
+POSITIVE_INT = integer(1)
+#: seeds, patience, thread counts where 0 means "choose for me"
+NONNEG_INT = integer(0)
+#: quantisation bits of a simulated sensor
+BITS = integer(1, 32)
+#: any finite number (gain, motion)
+FINITE = finite_float()
+#: weights, noise levels, tolerances
+NONNEG = finite_float(0)
+#: learning rates, photon counts, durations, timeouts
+POSITIVE = finite_float(0, lo_open=True)
+#: fractions of pixels that may be removed (erasure, held-out): 1 would leave nothing
+FRACTION = finite_float(0, 1, hi_open=True)
+#: fractions in [0, 1] (EMA decay, intensity, target peak)
+UNIT = finite_float(0, 1)
+
+
+#: Namespace attributes that name input files of some command (checked against its outputs).
+INPUT_OPTIONS = ("psf", "psf_stack", "meas", "mask", "shutter", "filters", "dark", "psf_dark",
+                 "timing", "plan", "scene", "light_state", "cube", "like", "pixel_maps",
+                 "sim_psf")
+
+
+def add_overwrite_option(p: argparse.ArgumentParser) -> None:
+    """``--overwrite``: the only way a command replaces an existing output file."""
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace existing output files (an input of the same command never)")
+
+
+def check_command_outputs(args: argparse.Namespace, outputs: Iterable[str | os.PathLike[str]]
+                          ) -> None:
+    """Refuse outputs that are an input of this command, or exist without ``--overwrite``.
+
+    One rule for every writer command (:func:`recon.formats.check_outputs`), called before
+    any work is done.
+    """
+    from recon.formats import check_outputs
+
+    inputs = {f"--{name.replace('_', '-')}": value for name in INPUT_OPTIONS
+              if isinstance(value := getattr(args, name, None), (str, os.PathLike))}
+    check_outputs(outputs, inputs, overwrite=bool(getattr(args, "overwrite", False)))

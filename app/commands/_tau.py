@@ -1,0 +1,69 @@
+"""``--tau`` / ``--iters`` with ``auto`` defaults, shared by every reconstruction command.
+
+``auto`` (the default) chooses from the measurement alone (:mod:`recon.autotau`, held-out
+measured pixels); a number is used exactly. The choice and its rule are printed on stderr and
+returned as metadata for the result file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+
+def tau_type(text: str) -> float | None:
+    """``type=`` for ``--tau``: ``auto`` (None) or a finite number >= 0."""
+    from recon.autotau import parse_tau
+
+    try:
+        return parse_tau(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("tau ")) from None
+
+
+def iters_type(text: str) -> int | None:
+    """``type=`` for ``--iters``: ``auto`` (None) or an integer >= 1."""
+    if text.strip().lower() == "auto":
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be 'auto' or an integer >= 1, got {text!r}"
+                                         ) from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be 'auto' or an integer >= 1, got {text!r}")
+    return value
+
+
+def add_tau_arguments(p: argparse.ArgumentParser, *, iters: bool = True) -> None:
+    """``--tau`` (default auto) and, with ``iters``, ``--iters`` (default auto)."""
+    p.add_argument("--tau", type=tau_type, default=None, metavar="TAU|auto",
+                   help="TV weight; 'auto' (default) chooses it from held-out measured pixels")
+    if iters:
+        p.add_argument("--iters", type=iters_type, default=None, metavar="N|auto",
+                       help="iterations; 'auto' (default) stops where the held-out error "
+                       "stops improving (at most 500)")
+
+
+def resolve_tau(args: argparse.Namespace, model: Any, b: Any, tv: Any = None,
+                *, tau_only: bool = False) -> tuple[float, int, dict[str, Any]]:
+    """(tau, iterations, metadata) for this command line; prints the automatic choice.
+
+    ``tau_only``: the iteration count is not chosen here (the solver is not FISTA): with
+    ``--iters auto`` it is the automatic search's limit.
+    """
+    from recon.autotau import AUTO_MAX_ITER, resolve
+
+    tau = args.tau
+    iters = getattr(args, "iters", None)
+    if tau_only and iters is None:
+        iters_for_search = None
+        if tau is not None:
+            return tau, AUTO_MAX_ITER, {"tau": tau, "tau_rule": "given",
+                                        "iterations": AUTO_MAX_ITER, "iterations_rule": "limit"}
+        tau, _, meta = resolve(model, b, None, iters_for_search, tv=tv,
+                               log=lambda s: print(s, file=sys.stderr))
+        meta.update(iterations=AUTO_MAX_ITER, iterations_rule="limit")
+        return tau, AUTO_MAX_ITER, meta
+    return resolve(model, b, tau, iters, tv=tv, log=lambda s: print(s, file=sys.stderr))

@@ -1,0 +1,258 @@
+"""Preprocessing of lensless images: small composable steps, and THE downsampling rules.
+
+Dark subtraction (:func:`subtract_dark`, :func:`auto_dark_level`), clipping
+(:func:`clip_nonneg`), box downsampling (:func:`box_downsample`), normalisation
+(:func:`normalise`), channel layout (:func:`to_channel_first`, :func:`to_gray`), and the one rule
+each for downsampling a masked measurement (:func:`downsample_masked`, :func:`downsample_mask`:
+a coarse pixel is measured when ANY sensor pixel under it is, its value the mean of the
+measured ones) and a shutter function (:func:`downsample_rows`: the mean of ``factor`` rows).
+Pure numpy.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = [
+    "AUTO_DARK_PATCH",
+    "LUMA_WEIGHTS",
+    "ChannelOrder",
+    "Channels",
+    "NormMode",
+    "auto_dark_level",
+    "box_downsample",
+    "clip_nonneg",
+    "downsample_mask",
+    "downsample_masked",
+    "downsample_rows",
+    "normalise",
+    "subtract_dark",
+    "to_channel_first",
+    "to_gray",
+]
+
+Array = npt.NDArray[Any]
+F32 = npt.NDArray[np.float32]
+NormMode = Literal["max", "sum", "l2"]
+Channels = Literal["gray", "rgb"]
+ChannelOrder = Literal["rgb", "bgr"]
+
+
+#: Corner patch (rows, columns) whose mean is the 'auto' dark level, as in the DiffuserCam
+#: tutorial (``bg = np.mean(psf[5:15, 5:15])``).
+AUTO_DARK_PATCH: tuple[slice, slice] = (slice(5, 15), slice(5, 15))
+
+
+#: Rec. 601 luma weights (R, G, B), as used by OpenCV and Pillow for colour -> gray.
+LUMA_WEIGHTS: tuple[float, float, float] = (0.299, 0.587, 0.114)
+
+
+def _as_float(a: Array) -> Array:
+    """Float view/copy of ``a``: float arrays keep their dtype, others become float32."""
+    arr = np.asarray(a)
+    if arr.dtype.kind == "f":
+        return arr
+    return arr.astype(np.float32)
+
+
+def auto_dark_level(a: Array) -> Array:
+    """Dark level as the DiffuserCam tutorial estimates it: mean of ``a[..., 5:15, 5:15]``.
+
+    Returns an array broadcastable against ``a`` (one level per leading index, e.g. per
+    colour channel, shape ``(..., 1, 1)``).
+    """
+    arr = np.asarray(a)
+    if arr.ndim < 2 or arr.shape[-2] < 15 or arr.shape[-1] < 15:
+        raise ValueError(
+            f"cannot estimate the dark level: image of shape {arr.shape} is smaller than "
+            "the 15x15 corner needed for patch [5:15, 5:15]"
+        )
+    patch = arr[(..., *AUTO_DARK_PATCH)].astype(np.float64)
+    return np.asarray(patch.mean(axis=(-2, -1), keepdims=True))
+
+
+def subtract_dark(a: Array, dark: float | Array | Literal["auto"]) -> Array:
+    """Subtract a dark level: a scalar, a dark frame, or ``'auto'`` (:func:`auto_dark_level`).
+
+    A dark frame must have the shape of ``a`` or of its trailing axes (it is broadcast over
+    the leading ones). Returns a float array (float32 for integer input); values may become
+    negative (see :func:`clip_nonneg`).
+    """
+    arr = _as_float(a)
+    if isinstance(dark, str):
+        if dark != "auto":
+            raise ValueError(f"dark must be a number, an array or 'auto', got {dark!r}")
+        level = auto_dark_level(arr)
+        return np.asarray(arr - level.astype(arr.dtype))
+    d = np.asarray(dark)
+    if d.ndim == 0:
+        if not math.isfinite(float(d)):
+            raise ValueError(f"dark level must be finite, got {float(d)}")
+        return np.asarray(arr - arr.dtype.type(float(d)))
+    if d.shape != arr.shape[arr.ndim - d.ndim :] or d.ndim > arr.ndim:
+        raise ValueError(f"dark frame shape {d.shape} does not match image shape {arr.shape}")
+    if not np.all(np.isfinite(d)):
+        raise ValueError("dark frame contains NaN or infinite values")
+    return np.asarray(arr - d.astype(arr.dtype))
+
+
+def clip_nonneg(a: Array) -> Array:
+    """Set negative values to zero (same dtype)."""
+    arr = np.asarray(a)
+    return np.asarray(np.maximum(arr, arr.dtype.type(0)))
+
+
+def box_downsample(a: Array, factor: int) -> Array:
+    """Mean over ``factor x factor`` blocks of the last two axes; a remainder is dropped.
+
+    Integer input gives float32; float input keeps its dtype. ``factor=1`` returns a float
+    copy.
+    """
+    if isinstance(factor, bool) or not isinstance(factor, int | np.integer) or factor < 1:
+        raise ValueError(f"downsample factor must be a positive integer, got {factor!r}")
+    f = int(factor)
+    arr = _as_float(a)
+    if arr.ndim < 2:
+        raise ValueError(f"box_downsample needs at least 2 axes, got shape {arr.shape}")
+    h, w = arr.shape[-2] // f, arr.shape[-1] // f
+    if h == 0 or w == 0:
+        raise ValueError(
+            f"downsample factor {f} is larger than the image ({arr.shape[-2]}x{arr.shape[-1]})"
+        )
+    if f == 1:
+        return arr.copy()
+    cropped = arr[..., : h * f, : w * f]
+    blocks = cropped.reshape(*arr.shape[:-2], h, f, w, f)
+    return np.asarray(blocks.mean(axis=(-3, -1), dtype=np.float64), dtype=arr.dtype)
+
+
+def downsample_masked(meas: Array, mask: Array, factor: int) -> tuple[F32, F32]:
+    """Box-downsample a measurement (C, H, W) that has erased pixels (mask (H, W), 1 = measured).
+
+    A coarse pixel is the mean over its *measured* sub-pixels (erased pixels hold no data, so
+    averaging their zeros in would bias it) and counts as measured when any sub-pixel is.
+    Returns (measurement, mask), float32.
+    """
+    m = np.asarray(mask, dtype=np.float64)
+    b = np.asarray(meas, dtype=np.float64)
+    if m.shape != b.shape[-2:]:
+        raise ValueError(f"mask of shape {m.shape} does not match the measurement {b.shape}")
+    m = (m > 0.5).astype(np.float64)
+    if factor == 1:
+        return b.astype(np.float32), m.astype(np.float32)
+    count = box_downsample(m, factor)
+    total = box_downsample(b * m, factor)
+    out = np.where(count > 0, total / np.maximum(count, 1e-12), 0.0)
+    return out.astype(np.float32), downsample_mask(m, factor)
+
+
+def downsample_mask(mask: Array, factor: int) -> F32:
+    """The coarse mask of a sensor mask (H, W) (1 = measured): THE mask downsampling rule.
+
+    A coarse pixel is measured when ANY sensor pixel under it is (its value, in
+    :func:`downsample_masked`, is the mean of the measured ones), so no measured pixel is
+    lost. Every command (FISTA, UDN jobs, planner, trade, GUI) downsamples masks this way.
+    """
+    m = np.asarray(mask)
+    return (box_downsample(m > 0.5, factor) > 0).astype(np.float32)
+
+
+def downsample_rows(shutter: Array, factor: int) -> npt.NDArray[np.float64]:
+    """THE shutter downsampling rule: average ``factor`` consecutive rows of M (K, rows).
+
+    Matches a measurement box-downsampled by ``factor``; trailing rows that do not fill a
+    block are dropped, as box downsampling drops them.
+    """
+    m = np.asarray(shutter, dtype=np.float64)
+    if m.ndim != 2:
+        raise ValueError(f"shutter must be (K, rows), got shape {m.shape}")
+    if isinstance(factor, bool) or int(factor) != factor or factor < 1:
+        raise ValueError(f"factor must be an integer >= 1, got {factor!r}")
+    f = int(factor)
+    rows = (m.shape[1] // f) * f
+    if rows == 0:
+        raise ValueError(f"cannot downsample {m.shape[1]} rows by {f}")
+    return np.asarray(m[:, :rows].reshape(m.shape[0], rows // f, f).mean(axis=2))
+
+
+def normalise(a: Array, mode: NormMode = "max") -> Array:
+    """Scale ``a`` so its maximum (``'max'``), total (``'sum'``) or L2 norm (``'l2'``) is 1.
+
+    One factor for the whole array, so the relative weights of channels and planes are kept.
+    Raises ValueError when that quantity is zero, negative or not finite.
+    """
+    arr = _as_float(a)
+    if mode == "max":
+        s = float(np.max(arr))
+    elif mode == "sum":
+        s = float(np.sum(arr, dtype=np.float64))
+    elif mode == "l2":
+        s = float(np.linalg.norm(arr.ravel().astype(np.float64)))
+    else:
+        raise ValueError(f"normalise mode must be 'max', 'sum' or 'l2', got {mode!r}")
+    if not math.isfinite(s) or s <= 0:
+        raise ValueError(f"cannot normalise by {mode}: it is {s} (must be positive)")
+    return np.asarray(arr / arr.dtype.type(s))
+
+
+def to_channel_first(a: Array, layout: Literal["auto", "hwc", "chw"] = "auto") -> Array:
+    """Bring an image to channel-first ``(C, H, W)``.
+
+    ``(H, W)`` becomes ``(1, H, W)``; ``(H, W, 3|4)`` is transposed. With ``layout='auto'`` a
+    3-axis array whose last axis has 3 or 4 entries (and whose first does not have 1, 3 or 4)
+    is taken as HWC, one whose first axis has 1, 3 or 4 entries as CHW; anything else is
+    ambiguous (for example a stack of pages) and raises ValueError.
+    """
+    arr = np.asarray(a)
+    if arr.ndim == 2:
+        return arr[np.newaxis]
+    if arr.ndim != 3:
+        raise ValueError(
+            f"expected an image of shape (H, W), (H, W, C) or (C, H, W), got shape {arr.shape}"
+        )
+    if layout == "hwc":
+        return np.ascontiguousarray(np.moveaxis(arr, -1, 0))
+    if layout == "chw":
+        return arr
+    if layout != "auto":
+        raise ValueError(f"layout must be 'auto', 'hwc' or 'chw', got {layout!r}")
+    first_c = arr.shape[0] in (1, 3, 4)
+    last_c = arr.shape[2] in (3, 4)
+    if last_c and not first_c:
+        return np.ascontiguousarray(np.moveaxis(arr, -1, 0))
+    if first_c and not last_c:
+        return arr
+    if first_c and last_c:  # e.g. (3, H, 3): take the smaller leading axis as channels
+        raise ValueError(f"cannot tell the channel axis of shape {arr.shape}; pass layout=")
+    raise ValueError(
+        f"cannot tell the channel axis of shape {arr.shape}: not (H, W, 3|4) nor (1|3|4, H, W)"
+        " (a multi-page stack?)"
+    )
+
+
+def to_gray(a: Array, weights: Sequence[float] = LUMA_WEIGHTS) -> Array:
+    """Channel-first colour ``(C, ...)`` to gray ``(1, ...)`` with the Rec. 601 luma weights.
+
+    ``C = 1`` is returned unchanged, ``C = 4`` (RGBA) drops alpha. The weights are normalised
+    to sum 1, so a gray image keeps its level. Float output (float32 for integer input).
+    """
+    arr = _as_float(a)
+    if arr.ndim < 1:
+        raise ValueError("to_gray needs a channel axis")
+    c = arr.shape[0]
+    if c == 1:
+        return arr
+    if c == 4:
+        arr = arr[:3]
+        c = 3
+    w = np.asarray(weights, dtype=np.float64)
+    if w.shape != (c,):
+        raise ValueError(f"to_gray: {c} channels but {w.size} weights")
+    w = w / w.sum()
+    out = np.tensordot(w, arr.astype(np.float64), axes=(0, 0))[np.newaxis]
+    return out.astype(arr.dtype)

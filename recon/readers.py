@@ -1,0 +1,499 @@
+"""Readers: image files to arrays, and the PSF / measurement / PSF stack loaders.
+
+:func:`load_image` reads a file into its raw array (raw dtype, the file's own layout): TIFF,
+PNG/JPEG/BMP, ``.npy``, ``.npz``, MATLAB ``.mat`` (v5 and v7.3). :func:`load_psf`,
+:func:`load_measurement` and :func:`load_psf_stack` chain the steps of :mod:`recon.preprocess`
+in the fixed order dark -> channels -> downsample -> clip -> normalise, and validate the
+result with errors naming the file. Whole problems (mask, shutter, filters, truth, the
+downsampling rules) are loaded by :func:`recon.problem.load_problem`.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from recon.preprocess import (
+    ChannelOrder,
+    Channels,
+    NormMode,
+    _as_float,
+    box_downsample,
+    clip_nonneg,
+    normalise,
+    subtract_dark,
+    to_channel_first,
+    to_gray,
+)
+
+__all__ = ["DarkSpec", "PathLike", "load_image", "load_measurement", "load_psf", "load_psf_stack"]
+
+PathLike = str | os.PathLike[str]
+Array = npt.NDArray[Any]
+F32 = npt.NDArray[np.float32]
+DarkSpec = float | int | Array | PathLike | None
+
+
+_TIFF_EXT = (".tif", ".tiff")
+
+
+_CV_EXT = (".png", ".jpg", ".jpeg", ".bmp")
+
+
+_ACCEPTED_INT = (np.uint8, np.uint16, np.uint32, np.int16, np.int32)
+
+
+def load_image(
+    path: PathLike, *, key: str | None = None, prefer: Sequence[str] | None = None
+) -> Array:
+    """Read an image file into a numpy array with its raw dtype and the file's layout.
+
+    Supported: TIFF (``.tif``/``.tiff``; a multi-page file gives ``(pages, H, W)`` or
+    ``(pages, H, W, S)``), PNG/JPEG/BMP (8 or 16 bit kept; colour is returned RGB(A), ``(H, W,
+    3|4)``), ``.npy``, ``.npz`` and MATLAB ``.mat`` (v5 through scipy, v7.3 through h5py,
+    transposed to MATLAB's axis order). ``key`` names the variable of an ``.npz``/``.mat``; by
+    default the only array in the file is taken, else the first present of ``arr_0``, ``psf``,
+    ``meas``, ``measurement``, ``image``, ``data`` (``prefer`` replaces that list).
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: unknown extension, unreadable or corrupt file, missing ``key``.
+
+    """
+    return _load_image(path, key=key, prefer=_DEFAULT_KEYS if prefer is None else prefer)
+
+
+_DEFAULT_KEYS: tuple[str, ...] = ("arr_0", "psf", "meas", "measurement", "image", "data")
+
+
+_PSF_KEYS: tuple[str, ...] = ("psf", "arr_0", "image", "data")
+
+
+_MEAS_KEYS: tuple[str, ...] = ("meas", "measurement", "b", "arr_0", "image", "data")
+
+
+_STACK_KEYS: tuple[str, ...] = ("psf", "psfs", "zstack", "stack", "arr_0", "data")
+
+
+def _load_image(path: PathLike, *, key: str | None, prefer: Sequence[str]) -> Array:
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"{p}: no such file")
+    if p.is_dir():
+        raise ValueError(f"{p}: is a directory, expected an image file")
+    ext = p.suffix.lower()
+    if ext in _TIFF_EXT:
+        return _read_tiff(p)
+    if ext in _CV_EXT:
+        return _read_cv(p)
+    if ext == ".npy":
+        return _read_npy(p)
+    if ext == ".npz":
+        return _read_npz(p, key, prefer)
+    if ext == ".mat":
+        return _read_mat(p, key, prefer)
+    raise ValueError(
+        f"{p}: unknown image file extension {p.suffix!r} (expected one of "
+        f"{', '.join(_TIFF_EXT + _CV_EXT + ('.npy', '.npz', '.mat'))})"
+    )
+
+
+def _read_tiff(p: Path) -> Array:
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(p) as tf:
+            series = tf.series
+            if len(series) <= 1:
+                return np.asarray(tf.asarray())
+            # Pages written one at a time form one series each: stack them if they agree.
+            kinds = {(tuple(s.shape), str(s.dtype)) for s in series}
+            if len(kinds) != 1:
+                raise ValueError(
+                    f"it holds {len(series)} image series of different shapes or dtypes "
+                    f"({', '.join(sorted(f'{s} {d}' for s, d in kinds))})"
+                )
+            return np.stack([np.asarray(s.asarray()) for s in series])
+    except Exception as exc:
+        raise ValueError(f"cannot read {p} as TIFF: {exc}") from exc
+
+
+def _read_cv(p: Path) -> Array:
+    import cv2
+
+    try:
+        buf = np.fromfile(p, dtype=np.uint8)  # imdecode: works with any path encoding
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    except Exception as exc:
+        raise ValueError(f"cannot read {p} as {p.suffix[1:].upper()}: {exc}") from exc
+    if img is None:
+        raise ValueError(f"cannot read {p} as {p.suffix[1:].upper()}: not a valid image file")
+    arr = np.asarray(img)
+    if arr.ndim == 3 and arr.shape[2] == 3:
+        arr = np.ascontiguousarray(arr[:, :, ::-1])  # BGR -> RGB
+    elif arr.ndim == 3 and arr.shape[2] == 4:
+        arr = np.ascontiguousarray(arr[:, :, [2, 1, 0, 3]])  # BGRA -> RGBA
+    return arr
+
+
+def _read_npy(p: Path) -> Array:
+    try:
+        arr = np.load(p, allow_pickle=False)
+    except Exception as exc:
+        raise ValueError(f"cannot read {p} as NPY: {exc}") from exc
+    return np.asarray(arr)
+
+
+def _pick_key(p: Path, keys: Sequence[str], key: str | None, prefer: Sequence[str]) -> str:
+    if key is not None:
+        if key not in keys:
+            raise ValueError(
+                f"{p}: no variable {key!r}; available: {', '.join(sorted(keys)) or '(none)'}"
+            )
+        return key
+    if len(keys) == 1:
+        return keys[0]
+    for k in prefer:
+        if k in keys:
+            return k
+    if not keys:
+        raise ValueError(f"{p}: contains no arrays")
+    raise ValueError(
+        f"{p}: contains several arrays ({', '.join(sorted(keys))}); choose one with key="
+    )
+
+
+def _read_npz(p: Path, key: str | None, prefer: Sequence[str]) -> Array:
+    try:
+        with np.load(p, allow_pickle=False) as npz:
+            keys = list(npz.files)
+            k = _pick_key(p, keys, key, prefer)
+            return np.asarray(npz[k])
+    except ValueError as exc:
+        if str(p) in str(exc):
+            raise
+        raise ValueError(f"cannot read {p} as NPZ: {exc}") from exc
+    except Exception as exc:
+        raise ValueError(f"cannot read {p} as NPZ: {exc}") from exc
+
+
+def _read_mat(p: Path, key: str | None, prefer: Sequence[str]) -> Array:
+    import h5py
+
+    if h5py.is_hdf5(p):
+        return _read_mat73(p, key, prefer)
+    import scipy.io
+
+    try:
+        mat = scipy.io.loadmat(p)
+    except Exception as exc:
+        raise ValueError(f"cannot read {p} as MATLAB v5 file: {exc}") from exc
+    keys = [k for k in mat if not k.startswith("__")]
+    k = _pick_key(p, keys, key, prefer)
+    arr = np.asarray(mat[k])
+    if arr.dtype.kind not in "biuf":
+        raise ValueError(f"{p}: variable {k!r} is not a numeric array (dtype {arr.dtype})")
+    return arr
+
+
+def _read_mat73(p: Path, key: str | None, prefer: Sequence[str]) -> Array:
+    import h5py
+
+    try:
+        with h5py.File(p, "r") as fh:
+            keys = [k for k in fh if not k.startswith("#") and isinstance(fh[k], h5py.Dataset)]
+            k = _pick_key(p, keys, key, prefer)
+            arr = np.asarray(fh[k][()])
+    except ValueError as exc:
+        if str(p) in str(exc):
+            raise
+        raise ValueError(f"cannot read {p} as MATLAB v7.3 file: {exc}") from exc
+    except Exception as exc:
+        raise ValueError(f"cannot read {p} as MATLAB v7.3 file: {exc}") from exc
+    if arr.dtype.kind not in "biuf":
+        raise ValueError(f"{p}: variable {k!r} is not a numeric array (dtype {arr.dtype})")
+    # HDF5 stores MATLAB's column-major arrays with the axes reversed.
+    return np.ascontiguousarray(arr.T)
+
+
+_normalise_fn: Callable[[Array, NormMode], Array] = normalise
+
+
+def _validate_raw(a: Array, p: Path, what: str) -> None:
+    dt = a.dtype
+    if dt.kind == "f":
+        n_nan = int(np.count_nonzero(np.isnan(a)))
+        if n_nan:
+            raise ValueError(f"{what} file {p} contains {n_nan} NaN values")
+        n_inf = int(np.count_nonzero(np.isinf(a)))
+        if n_inf:
+            raise ValueError(f"{what} file {p} contains {n_inf} infinite values")
+    elif dt.kind in "iu":
+        if dt.type not in _ACCEPTED_INT:
+            raise ValueError(
+                f"{what} file {p} has unsupported integer dtype {dt} (expected uint8, uint16, "
+                "uint32, int16, int32 or float)"
+            )
+    else:
+        raise ValueError(
+            f"{what} file {p} has unsupported dtype {dt} (expected integer or float pixels)"
+        )
+    if a.size == 0:
+        raise ValueError(f"{what} file {p} is empty (shape {a.shape})")
+
+
+def _to_chw(a: Array, p: Path, what: str) -> Array:
+    if a.ndim not in (2, 3):
+        raise ValueError(
+            f"{what} file {p} has shape {a.shape}: expected a 2D image (H, W) or a colour "
+            "image (H, W, 3)"
+        )
+    try:
+        return to_channel_first(a)
+    except ValueError as exc:
+        hint = "; for a stack of PSFs use load_psf_stack" if what == "PSF" else ""
+        raise ValueError(f"{what} file {p}: {exc}{hint}") from exc
+
+
+def _select_channels(
+    a: Array, channels: Channels, p: Path, what: str, order: ChannelOrder = "rgb"
+) -> Array:
+    if order not in ("rgb", "bgr"):
+        raise ValueError(f"channel order must be 'rgb' or 'bgr', got {order!r}")
+    if order == "bgr" and a.shape[0] >= 3:  # the file stores B, G, R: make it R, G, B
+        a = np.concatenate([a[2::-1], a[3:]])
+    if channels == "gray":
+        return to_gray(a)
+    if channels == "rgb":
+        if a.shape[0] == 1:
+            raise ValueError(f"{what} file {p} is grayscale; cannot load it with channels='rgb'")
+        return a[:3]
+    raise ValueError(f"channels must be 'gray' or 'rgb', got {channels!r}")
+
+
+def _dark_for(
+    dark: DarkSpec,
+    key: str | None,
+    image: Array,
+    channels: Channels | None,
+    what: str,
+    p: Path,
+    order: ChannelOrder = "rgb",
+) -> float | Array | Literal["auto"] | None:
+    """Turn a ``dark`` argument into what :func:`subtract_dark` takes, matched to ``image``.
+
+    A dark *file* gets the image's treatment (channel-first, channel selection; for a stack,
+    ``channels=None``: one gray plane). A dark *array* is used as given and must match the
+    image's shape or its trailing (H, W).
+    """
+    if dark is None:
+        return None
+    if isinstance(dark, str) and dark == "auto":
+        return "auto"
+    if isinstance(dark, str | os.PathLike):
+        dp = Path(dark)
+        d = _load_image(dp, key=key, prefer=_DEFAULT_KEYS)
+        _validate_raw(d, dp, "dark")
+        if channels is None:
+            if d.ndim == 3:
+                d = to_gray(_to_chw(d, dp, "dark"))[0]
+        else:
+            d = _select_channels(_to_chw(d, dp, "dark"), channels, dp, "dark", order)
+        d = _as_float(d)
+    elif isinstance(dark, int | float | np.integer | np.floating):
+        return float(dark)
+    else:
+        d = np.asarray(dark)
+        if d.ndim == 0:
+            return float(d)
+    if d.shape != image.shape and d.shape != image.shape[-2:]:
+        raise ValueError(
+            f"dark frame shape {d.shape} does not match {what} file {p} of shape {image.shape}"
+        )
+    return d
+
+
+def _prepare(
+    path: PathLike,
+    *,
+    what: str,
+    dark: DarkSpec,
+    downsample: int,
+    channels: Channels,
+    key: str | None,
+    prefer: Sequence[str],
+    order: ChannelOrder = "rgb",
+) -> tuple[F32, Path]:
+    p = Path(path)
+    raw = _load_image(p, key=key, prefer=prefer)
+    _validate_raw(raw, p, what)
+    chw = _select_channels(_to_chw(raw, p, what), channels, p, what, order)
+    arr = _as_float(chw).astype(np.float32, copy=False)
+    d = _dark_for(dark, key, arr, channels, what, p, order)
+    if d is not None:
+        arr = subtract_dark(arr, d).astype(np.float32, copy=False)
+    out = clip_nonneg(box_downsample(arr, downsample)).astype(np.float32, copy=False)
+    return out, p
+
+
+def load_psf(
+    path: PathLike,
+    *,
+    dark: DarkSpec = None,
+    downsample: int = 1,
+    channels: Channels = "gray",
+    normalise: NormMode | None = "sum",
+    key: str | None = None,
+    channel_order: ChannelOrder = "rgb",
+) -> F32:
+    """Load a PSF as float32 ``(C, H, W)``: dark -> downsample -> clip at 0 -> normalise.
+
+    Args:
+        path: image file (see :func:`load_image`).
+        dark: ``None``, a level, a dark frame (array or file) or ``'auto'`` (corner patch
+            ``[5:15, 5:15]`` as in the DiffuserCam tutorial); subtracted at full resolution.
+        downsample: box-filter factor over rows and columns.
+        channels: ``'gray'`` (luma, ``C = 1``) or ``'rgb'`` (``C = 3``).
+        normalise: ``'sum'`` (unit total, default), ``'max'``, ``'l2'`` or ``None``; one
+            factor for all channels, so the colour balance is kept.
+        key: variable name in an ``.npz``/``.mat`` file.
+        channel_order: ``'bgr'`` for files that store colour as B, G, R (the DiffuserCam
+            Lensless MirFlickr dataset); the result is always R, G, B.
+
+    Raises:
+        FileNotFoundError, ValueError: missing file, unreadable file, NaN/inf values, bad
+            dtype or shape, all-zero PSF.
+
+    """
+    arr, p = _prepare(
+        path,
+        what="PSF",
+        dark=dark,
+        downsample=downsample,
+        channels=channels,
+        key=key,
+        prefer=_PSF_KEYS,
+        order=channel_order,
+    )
+    if not np.any(arr > 0):
+        extra = f" after dark subtraction (dark={_describe_dark(dark)})" if dark is not None else ""
+        raise ValueError(f"PSF file {p} is all zero{extra}")
+    if normalise is not None:
+        arr = _normalise_fn(arr, normalise)
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def load_measurement(
+    path: PathLike,
+    *,
+    dark: DarkSpec = None,
+    downsample: int = 1,
+    channels: Channels = "gray",
+    normalise: NormMode | None = "max",
+    key: str | None = None,
+    channel_order: ChannelOrder = "rgb",
+) -> F32:
+    """Load a measurement as float32 ``(C, H, W)``: dark -> downsample -> clip -> normalise.
+
+    Same arguments as :func:`load_psf`; by default the result is scaled to maximum 1
+    (``normalise=None`` keeps the counts). Raises for NaN/inf values, a bad dtype or shape, and
+    an all-zero measurement when it is to be normalised.
+    """
+    arr, p = _prepare(
+        path,
+        what="measurement",
+        dark=dark,
+        downsample=downsample,
+        channels=channels,
+        key=key,
+        prefer=_MEAS_KEYS,
+        order=channel_order,
+    )
+    if normalise is not None:
+        if not np.any(arr > 0):
+            raise ValueError(f"measurement file {p} is all zero; cannot normalise it")
+        arr = _normalise_fn(arr, normalise)
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def load_psf_stack(
+    paths: PathLike | Sequence[PathLike],
+    *,
+    dark: DarkSpec = None,
+    downsample: int = 1,
+    normalise: NormMode | None = "max",
+    key: str | None = None,
+) -> F32:
+    """Load a depth PSF stack as float32 ``(K, H, W)`` (grayscale).
+
+    ``paths`` is a sequence of single-plane files (one per depth, in order), a folder (its
+    image files in sorted name order), or one file holding the whole stack (multi-page TIFF,
+    or a 3-axis ``.npy``/``.npz``/``.mat`` array ``(K, H, W)``). Each plane: dark ->
+    downsample -> clip at 0; then one normalisation for the whole stack (default ``'max'``,
+    the convention of the DiffuserCam 3D data), which keeps the planes' relative energies.
+    """
+    planes: list[Array] = []
+    names: list[Path] = []
+    if isinstance(paths, str | os.PathLike):
+        p = Path(paths)
+        if p.is_dir():
+            exts = (*_TIFF_EXT, *_CV_EXT, ".npy")
+            files = sorted(
+                f for f in p.iterdir() if f.suffix.lower() in exts and not f.name.startswith(".")
+            )
+            if not files:
+                raise ValueError(f"{p}: folder contains no image files")
+            return load_psf_stack(
+                files, dark=dark, downsample=downsample, normalise=normalise, key=key
+            )
+        raw = _load_image(p, key=key, prefer=_STACK_KEYS)
+        _validate_raw(raw, p, "PSF stack")
+        if raw.ndim == 2:
+            raw = raw[np.newaxis]
+        if raw.ndim != 3:
+            raise ValueError(
+                f"PSF stack file {p} has shape {raw.shape}: expected (K, H, W) grayscale planes"
+            )
+        planes = [raw[k] for k in range(raw.shape[0])]
+        names = [p] * len(planes)
+    else:
+        if len(paths) == 0:
+            raise ValueError("load_psf_stack: no files given")
+        for item in paths:
+            q = Path(item)
+            raw = _load_image(q, key=key, prefer=_PSF_KEYS)
+            _validate_raw(raw, q, "PSF")
+            if raw.ndim == 3:
+                raw = to_gray(_to_chw(raw, q, "PSF"))[0]
+            elif raw.ndim != 2:
+                raise ValueError(f"PSF file {q} has shape {raw.shape}: expected one 2D plane")
+            planes.append(raw)
+            names.append(q)
+    shape0 = planes[0].shape
+    for q, pl in zip(names, planes, strict=True):
+        if pl.shape != shape0:
+            raise ValueError(
+                f"PSF plane {q} has shape {pl.shape}, but the first plane ({names[0]}) has {shape0}"
+            )
+    stack = np.stack([_as_float(pl).astype(np.float32, copy=False) for pl in planes])
+    d = _dark_for(dark, key, stack, None, "PSF stack", names[0])
+    if d is not None:
+        stack = subtract_dark(stack, d).astype(np.float32, copy=False)
+    stack = clip_nonneg(box_downsample(stack, downsample))
+    for k in range(stack.shape[0]):
+        if not np.any(stack[k] > 0):
+            raise ValueError(f"PSF stack plane {k} ({names[k]}) is all zero")
+    if normalise is not None:
+        stack = _normalise_fn(stack, normalise)
+    return np.ascontiguousarray(stack, dtype=np.float32)
+
+
+def _describe_dark(dark: DarkSpec) -> str:
+    if isinstance(dark, np.ndarray):
+        return f"frame of shape {dark.shape}"
+    return str(dark)

@@ -1,0 +1,140 @@
+"""Batch manifests without Ray: parsing, globs, checks with the recon parser, item hashes."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.batch.manifest import input_hashes, item_hash, read_manifest
+from app.cli import main
+from tests.batch.conftest import make_data, write_udn_spec
+
+
+@pytest.fixture
+def data(tmp_path: Path) -> Path:
+    return make_data(tmp_path / "data", 3)
+
+
+def test_simplest_csv_with_a_glob(data: Path) -> None:
+    (data / "m.csv").write_text("measurement,psf,method\nmeas/m*.npy,psf.npy,fista\n")
+    items = read_manifest(data / "m.csv")
+    assert [it.id for it in items] == ["m00-fista", "m01-fista", "m02-fista"]
+    it = items[1]
+    assert it.method == "fista"
+    meas = str((data / "meas" / "m01.npy").resolve())
+    assert it.argv == ("--meas", meas, "--psf", str((data / "psf.npy").resolve()))
+    assert dict(it.inputs)["measurement"] == meas
+
+
+def test_ray_is_imported_only_to_run_a_batch(data: Path) -> None:
+    """Reading manifests, the task code, status and cancel never import Ray (seconds)."""
+    (data / "m.csv").write_text("measurement,psf,method\nmeas/m*.npy,psf.npy,fista\n")
+    code = ("import sys\n"
+            "from app.batch.manifest import read_manifest\n"
+            "import app.batch.task, app.batch.state, app.batch.driver, app.commands.batch\n"
+            f"assert len(read_manifest({str(data / 'm.csv')!r})) == 3\n"
+            "from app.cli import main\n"
+            f"assert main(['batch', 'status', {str(data)!r}]) == 2\n"
+            "print('ray' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=Path(__file__).parents[2], timeout=120, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_toml_defaults_items_and_overrides(data: Path) -> None:
+    write_udn_spec(data, 10, 5)
+    (data / "m.toml").write_text(
+        '[defaults]\npsf = "psf.npy"\nmethod = "fista"\ntau = 1e-4\n\n'
+        '[[item]]\nmeasurement = "meas/m0[01].npy"\niters = 50\n\n'
+        '[[item]]\nmeasurement = "meas/m00.npy"\nmethod = "udn"\nspec = "udn.toml"\n'
+        'truth = "meas/t00.npy"\niters = 7\n\n'
+        '[[item]]\nmeasurement = "meas/m00.npy"\nname = "again"\nno_restart = true\n')
+    items = read_manifest(data / "m.toml")
+    assert [it.id for it in items] == ["m00-fista", "m01-fista", "m00-udn", "again"]
+    assert items[0].argv[-4:] == ("--tau", "0.0001", "--iters", "50")
+    udn = items[2]
+    assert udn.spec == str((data / "udn.toml").resolve())
+    assert ("stopping", "max_iter", 7) in udn.spec_data
+    assert ("data", "truth", str((data / "meas" / "t00.npy").resolve())) in udn.spec_data
+    assert "--no-restart" in items[3].argv
+
+
+def test_duplicate_names_are_numbered(data: Path) -> None:
+    (data / "m.csv").write_text("measurement,psf,method,tau\nmeas/m00.npy,psf.npy,fista,1e-3\n"
+                                "meas/m00.npy,psf.npy,fista,1e-2\n")
+    assert [it.id for it in read_manifest(data / "m.csv")] == ["m00-fista", "m00-fista-2"]
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("measurement,psf,method\nmeas/none*.npy,psf.npy,fista\n", "matches no file"),
+    ("measurement,psf,method\nmeas/m00.npy,psf.npy,magic\n", "not a method of"),
+    ("measurement,psf,method,colour\nmeas/m00.npy,psf.npy,fista,red\n",
+     "column 'colour' is not an option"),
+    ("measurement,psf,method,iters\nmeas/m00.npy,psf.npy,fista,-3\n", "--iters"),
+    ("measurement,psf,method,spec\nmeas/m00.npy,psf.npy,fista,x.toml\n", "is for method udn"),
+    ("psf,method\npsf.npy,fista\n", "'measurement' is missing"),
+    ("measurement,psf,method,rgb\nmeas/m00.npy,psf.npy,fista,maybe\n", "is a flag"),
+    ("measurement,psf,method\n", "lists no items"),
+])
+def test_bad_rows_name_the_row(data: Path, text: str, message: str) -> None:
+    (data / "m.csv").write_text(text)
+    with pytest.raises(ValueError, match=message) as err:
+        read_manifest(data / "m.csv")
+    assert "\n" not in str(err.value)
+    if "lists no items" not in message:
+        assert "m.csv:2" in str(err.value)
+
+
+def test_udn_spec_column_checked_when_read(data: Path) -> None:
+    write_udn_spec(data, 10, 5)
+    (data / "m.csv").write_text("measurement,psf,method,spec,tau\n"
+                                "meas/m00.npy,psf.npy,udn,udn.toml,1e-3\n")
+    with pytest.raises(ValueError, match="column 'tau' cannot change a job spec"):
+        read_manifest(data / "m.csv")
+    (data / "bad.toml").write_text('[stopping]\nmax_iters = 3\n')
+    (data / "m.csv").write_text("measurement,psf,method,spec\n"
+                                "meas/m00.npy,psf.npy,udn,bad.toml\n")
+    with pytest.raises(ValueError, match=r"unknown key 'stopping\.max_iters'"):
+        read_manifest(data / "m.csv")
+
+
+def test_item_hash_follows_contents_and_options(data: Path) -> None:
+    (data / "m.csv").write_text("measurement,psf,method,tau\nmeas/m*.npy,psf.npy,fista,1e-3\n")
+    a = read_manifest(data / "m.csv")
+    before = [item_hash(it) for it in a]
+    assert len(set(before)) == 3
+    assert [item_hash(it) for it in read_manifest(data / "m.csv")] == before  # stable
+    np.save(data / "meas" / "m01.npy", np.load(data / "meas" / "m01.npy") * 1.01)
+    after = [item_hash(it) for it in a]
+    assert [b == c for b, c in zip(before, after, strict=True)] == [True, False, True]
+    (data / "m.csv").write_text("measurement,psf,method,tau\nmeas/m*.npy,psf.npy,fista,1e-2\n")
+    changed = [item_hash(it) for it in read_manifest(data / "m.csv")]
+    assert not set(changed) & set(after)  # another tau: every item is new
+    assert input_hashes(a[0])["psf"] is not None
+
+
+def test_second_driver_is_refused(data: Path) -> None:
+    from app.batch.driver import run_batch
+    from app.batch.state import BatchBusy, BatchLock
+
+    (data / "m.csv").write_text("measurement,psf,method\nmeas/m00.npy,psf.npy,fista\n")
+    out = data / "out"
+    out.mkdir()
+    with BatchLock(out), pytest.raises(BatchBusy, match="in use by another batch driver"):
+        run_batch(data / "m.csv", out)
+    assert not (out / "state.json").exists()
+
+
+def test_cli_bad_manifest_is_one_line(data: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (data / "m.csv").write_text("measurement,psf,method\nmeas/m00.npy,psf.npy,fista,extra\n")
+    rc = main(["batch", "run", str(data / "m.csv"), "--out", str(data / "out")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2
+    assert err.count("\n") == 0 and "more cells than columns" in err
+    rc = main(["batch", "status", str(data)])
+    assert rc == 2
+    assert "not a batch folder" in capsys.readouterr().err

@@ -1,0 +1,289 @@
+"""One problem loader (recon.problem): every command loads, downsamples and checks inputs alike.
+
+- plan, recon auto, recon udn and recon fista succeed on `simulate` output with masks at 50, 90
+  and 99 % erasures and downsampling 2, 4, 6, and all use the SAME coarse mask (the "any
+  sensor pixel measured" rule, checked against an independent computation);
+- recon udn and jobs run read the shutter file that `calibrate shutter` writes;
+- the DiffuserCam MirFlickr layout (BGR, PSF on the padded grid) loads through the CLI with
+  --rgb, and a FISTA reconstruction correlates with its truth while a row-flipped truth does
+  not;
+- bad inputs give one-line errors naming the file at fault.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from recon.formats import array_hash
+from recon.io import read_reconstruction
+from recon.problem import ProblemSpec, load_problem
+from recon.samples import shared_data_dir
+
+_SHARED = shared_data_dir()
+DLMD = (_SHARED / "dlmd") if _SHARED is not None else Path("/nonexistent/dlmd")
+
+
+def _run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    return out.out
+
+
+def _any_rule(mask, ds):
+    """Independent spelling of the mask rule: measured when any sensor pixel under it is."""
+    h, w = mask.shape[0] // ds, mask.shape[1] // ds
+    return mask[: h * ds, : w * ds].reshape(h, ds, w, ds).astype(bool).any(axis=(1, 3))
+
+
+@pytest.fixture(scope="module")
+def sims(tmp_path_factory):
+    """`lenslesscam simulate` output (50x66) at 50, 90 and 99 % erasures."""
+    root = tmp_path_factory.mktemp("sims")
+    out = {}
+    for er in (0.5, 0.9, 0.99):
+        d = root / f"e{er}"
+        assert main(["simulate", "--psf", "sample:tutorial", "--scene", "sample:im408",
+                     "--erasure", str(er), "--noise", "0.01", "--downsample", "3",
+                     "--out", str(d)]) == 0
+        out[er] = d
+    return out
+
+
+@pytest.mark.parametrize("erasure", [0.5, 0.9, 0.99])
+def test_every_command_uses_the_same_coarse_mask(sims, erasure, tmp_path, capsys):
+    sim = sims[erasure]
+    files = ["--psf", sim / "psf.npy", "--meas", sim / "meas.npy", "--mask", sim / "mask.npy"]
+    mask = np.load(sim / "mask.npy")
+    for ds in (2, 4, 6):
+        expected = _any_rule(mask, ds)
+        assert expected.any()
+        want = array_hash(expected.astype(np.float32))
+        # recon fista
+        fista = tmp_path / f"f{ds}.tif"
+        _run(capsys, "recon", "fista", *files, "--downsample", ds, "--tau", "1e-3",
+             "--iters", "5", "--out", fista)
+        x, meta = read_reconstruction(fista)
+        assert x.shape[-2:] == expected.shape
+        assert meta["preprocessing"]["mask_hash"] == want
+        # plan, then recon auto running that plan at this downsampling
+        plan = tmp_path / f"p{ds}.json"
+        _run(capsys, "plan", *files, "--no-probe", "--set", f"downsample={ds}",
+             "--set", "iterations=5", "--out", plan)
+        auto = tmp_path / f"a{ds}.tif"
+        _run(capsys, "recon", "auto", *files, "--plan", plan, "--quiet", "--out", auto)
+        xa, meta_a = read_reconstruction(auto)
+        assert xa.shape[-2:] == expected.shape and meta_a["mask_hash"] == want
+        # recon udn (a few iterations of a tiny network)
+        run = tmp_path / f"u{ds}"
+        _run(capsys, "recon", "udn", *files, "--downsample", ds, "--iters", "2", "--scales",
+             "2", "--net-channels", "4", "--skip-channels", "2", "--input-channels", "4",
+             "--device", "cpu", "--quiet", "--out", run)
+        rec = json.loads((run / "run.json").read_text())
+        assert rec["inputs"]["mask"]["array_hash"] == want
+    # the rule the planner and the UDN jobs used before lost every pixel here
+    if erasure == 0.5:
+        h, w = mask.shape[0] // 6, mask.shape[1] // 6
+        all_rule = mask[: h * 6, : w * 6].reshape(h, 6, w, 6).all(axis=(1, 3))
+        assert not all_rule.any()
+
+
+def _video_case(tmp_path, capsys):
+    """A video measurement for the sensor of `calibrate shutter --camera sim` (32x40)."""
+    import torch
+
+    from recon.models import build_model
+
+    sh = tmp_path / "shutter.npz"
+    _run(capsys, "calibrate", "shutter", "--camera", "sim", "--sim-size", "32x40",
+         "--bin-lines", "8", "--out", sh)
+    z = np.load(sh)
+    assert "metadata" in z.files and z["shutter"].shape[1] == 32
+    m = np.asarray(z["shutter"], dtype=np.float64)
+    rng = np.random.default_rng(0)
+    psf = rng.random((32, 40)).astype(np.float32) ** 8
+    psf /= psf.sum()
+    model = build_model("video", psf, shutter=m)
+    scene = torch.as_tensor(rng.random(model.scene_shape), dtype=torch.float32)
+    meas = model.apply(scene).numpy()
+    np.save(tmp_path / "psf.npy", psf)
+    np.save(tmp_path / "meas.npy", meas)
+    return sh, m
+
+
+def test_udn_and_jobs_read_the_calibrated_shutter_file(tmp_path, capsys):
+    sh, m = _video_case(tmp_path, capsys)
+    files = ["--model", "video", "--psf", tmp_path / "psf.npy", "--meas",
+             tmp_path / "meas.npy", "--shutter", sh]
+    net = ["--iters", "2", "--scales", "2", "--net-channels", "4", "--skip-channels", "2",
+           "--input-channels", "4", "--device", "cpu", "--quiet"]
+    # recon udn at full resolution and at downsample 2 (the shutter's rows are averaged)
+    _run(capsys, "recon", "udn", *files, *net, "--out", tmp_path / "u1")
+    rec = json.loads((tmp_path / "u1" / "run.json").read_text())
+    assert rec["inputs"]["shutter"]["shape"] == [m.shape[0], 32]
+    _run(capsys, "recon", "udn", *files, "--downsample", "2", *net,
+         "--write-spec", tmp_path / "job.toml")
+    text = (tmp_path / "job.toml").read_text()
+    assert "shutter.npz" in text and "downsample = 2" in text
+    _run(capsys, "jobs", "run", tmp_path / "job.toml", "--out", tmp_path / "j2", "--quiet")
+    rec = json.loads((tmp_path / "j2" / "run.json").read_text())
+    assert rec["finish_reason"] == "completed"
+    assert rec["inputs"]["shutter"]["shape"] == [m.shape[0], 16]
+    expected = m.reshape(m.shape[0], 16, 2).mean(axis=2)
+    assert rec["inputs"]["shutter"]["array_hash"] == array_hash(expected)
+    # recon fista reads it the same way
+    _run(capsys, "recon", "fista", *files, "--downsample", "2", "--tau", "1e-3", "--iters",
+         "3", "--out", tmp_path / "f.tif")
+
+
+def _corr(a, b):
+    a = np.asarray(a, np.float64).ravel()
+    b = np.asarray(b, np.float64).ravel()
+    a, b = a - a.mean(), b - b.mean()
+    return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+
+
+def _dlmd_truth(ds):
+    """The lensed truth of im408, read independently: BGR (H, W, 3) -> RGB (3, H/ds, W/ds)."""
+    t = np.load(DLMD / "lensed_im408.npy")[:, :, ::-1].transpose(2, 0, 1).astype(np.float64)
+    h, w = t.shape[1] // ds, t.shape[2] // ds
+    return t[:, : h * ds, : w * ds].reshape(3, h, ds, w, ds).mean(axis=(2, 4))
+
+
+@pytest.mark.skipif(not DLMD.is_dir(), reason="needs ../shared/data/dlmd (real pairs)")
+def test_dlmd_pair_loads_through_the_cli_and_reconstructs_its_truth(tmp_path, capsys):
+    files = ["--psf", DLMD / "psf_estimated_padded_bgr.npy", "--meas",
+             DLMD / "diffuser_im408.npy", "--rgb", "--channel-order", "bgr", "--downsample", "4",
+             "--tau", "1e-3", "--iters", "100"]
+    _run(capsys, "recon", "fista", *files, "--out", tmp_path / "r.tif")
+    x, meta = read_reconstruction(tmp_path / "r.tif")
+    assert x.shape == (3, 1, 67, 120)
+    assert meta["preprocessing"]["psf_grid"] == "padded"
+    truth = _dlmd_truth(4)
+    c_ok = _corr(x[:, 0], truth)
+    c_flipped = _corr(x[:, 0], truth[:, ::-1])
+    assert c_ok > 0.6, c_ok
+    assert c_flipped < 0.45, c_flipped
+    assert c_ok - c_flipped > 0.3
+    # channel order: with the files' BGR order taken as RGB, red and blue trade places
+    per_channel = [_corr(x[i, 0], truth[i]) for i in range(3)]
+    assert min(per_channel) > 0.5, per_channel
+    # --flip-rows flips PSF, measurement (and truth) alike: the result is the same, upside down
+    _run(capsys, "recon", "fista", *files, "--flip-rows", "--out", tmp_path / "rf.tif")
+    xf, _ = read_reconstruction(tmp_path / "rf.tif")
+    assert _corr(xf[:, 0], truth[:, ::-1]) > 0.6
+    assert _corr(xf[:, 0], truth) < 0.45
+
+
+@pytest.mark.skipif(not DLMD.is_dir(), reason="needs ../shared/data/dlmd (real pairs)")
+def test_dlmd_truth_is_prepared_like_the_measurement():
+    spec = ProblemSpec(meas=str(DLMD / "diffuser_im408.npy"),
+                       psf=str(DLMD / "psf_estimated_270x480_gray.npy"),
+                       truth=str(DLMD / "lensed_im408.npy"), downsample=6, color="rgb",
+                       channel_order="bgr")
+    with pytest.raises(ValueError, match=r"psf_estimated_270x480_gray\.npy is grayscale"):
+        load_problem(spec)
+    prob = load_problem(spec.with_changes(color="gray"))
+    assert prob.metadata["psf_grid"] == "sensor" and prob.meas.shape == (1, 45, 80)
+    assert prob.truth is not None and prob.truth.shape == (1, 1, 45, 80)
+    luma = np.tensordot([0.299, 0.587, 0.114], _dlmd_truth(6), axes=(0, 0))
+    assert np.allclose(prob.truth[0, 0], luma, atol=1e-5)
+
+
+# -- the loader's rules and errors ----------------------------------------------------------
+
+
+@pytest.fixture
+def small(tmp_path):
+    rng = np.random.default_rng(1)
+    psf = rng.random((24, 30)).astype(np.float32) ** 6
+    meas = rng.random((24, 30)).astype(np.float32)
+    mask = (rng.random((24, 30)) > 0.7).astype(np.float32)
+    for name, a in (("psf", psf), ("meas", meas), ("mask", mask)):
+        np.save(tmp_path / f"{name}.npy", a)
+    return tmp_path
+
+
+def _spec(d, **kw):
+    base = {"meas": str(d / "meas.npy"), "psf": str(d / "psf.npy")}
+    base.update(kw)
+    return ProblemSpec(**base)
+
+
+def test_mask_rule_keeps_every_measured_pixel_and_averages_only_them(small):
+    mask = np.load(small / "mask.npy")
+    meas = np.load(small / "meas.npy")
+    prob = load_problem(_spec(small, mask=str(small / "mask.npy"), downsample=3,
+                              meas_normalise="none"))
+    assert np.array_equal(prob.mask > 0, _any_rule(mask, 3))
+    blocks_m = mask.reshape(8, 3, 10, 3)
+    blocks_b = (meas * mask).reshape(8, 3, 10, 3)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = blocks_b.sum(axis=(1, 3)) / blocks_m.sum(axis=(1, 3))
+    sel = prob.mask > 0
+    assert np.allclose(prob.meas[0][sel], mean[sel], rtol=1e-5)
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    (np.zeros((24, 30), np.float32), "marks no pixel as measured"),
+    (np.full((24, 30), np.nan, np.float32), "NaN"),
+    (np.full((24, 30), 0.5, np.float32), "values other than 0 and 1"),
+    (np.ones((20, 30), np.float32), "the measurement is 24x30"),
+])
+def test_bad_masks_are_refused_naming_the_mask(small, content, message):
+    np.save(small / "bad_mask.npy", content)
+    with pytest.raises(ValueError, match=message) as info:
+        load_problem(_spec(small, mask=str(small / "bad_mask.npy"), downsample=2))
+    assert "bad_mask.npy" in str(info.value) and "PSF" not in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_psf_of_the_wrong_size_names_the_psf(small):
+    np.save(small / "psf_small.npy", np.ones((10, 10), np.float32))
+    with pytest.raises(ValueError, match=r"PSF file .*psf_small\.npy has shape \(1, 10, 10\)"):
+        load_problem(_spec(small, psf=str(small / "psf_small.npy")))
+
+
+def test_a_padded_psf_is_exact_for_the_sensor_field(small):
+    """A 2x PSF: the sensor sits in the middle of the padded grid, the rest is masked out."""
+    import torch
+
+    from recon.models import build_model
+
+    rng = np.random.default_rng(2)
+    big = rng.random((48, 60)).astype(np.float32) ** 6
+    np.save(small / "psf_padded.npy", big)
+    scene = rng.random((1, 1, 24, 30)).astype(np.float32)
+    # reference: the scene on the full padded field, crop of the virtual 48x60 sensor
+    ref = build_model("2d", big, field=(24, 30)).apply(torch.as_tensor(scene)).numpy()
+    np.save(small / "meas_p.npy", ref[0, 12:36, 15:45])
+    prob = load_problem(_spec(small, psf=str(small / "psf_padded.npy"),
+                              meas=str(small / "meas_p.npy"), meas_normalise="none",
+                              psf_normalise="none"))
+    assert prob.metadata["psf_grid"] == "padded" and prob.sensor == (24, 30)
+    assert prob.model.scene_shape == (1, 1, 24, 30)
+    pred = prob.model.apply(torch.as_tensor(scene)).numpy()
+    assert np.allclose(pred[0, 12:36, 15:45], ref[0, 12:36, 15:45], rtol=1e-4, atol=1e-6)
+    assert np.allclose(pred * prob.mask, prob.meas, rtol=1e-4, atol=1e-6)
+
+
+def test_job_data_section_round_trips():
+    spec = ProblemSpec(meas="/m.npy", psf="/p.npy", mask="/k.npy", downsample=3, field=(10, 12),
+                       color="rgb", channel_order="bgr", flip_rows=True, dark="auto")
+    assert ProblemSpec.from_data_section(spec.to_data_section()) == spec
+    with pytest.raises(ValueError, match="shutter"):
+        ProblemSpec(meas="/m.npy", psf="/p.npy", model="video")
+
+
+def test_the_pixel_maps_file_of_calibrate_darks_is_a_mask(small, capsys):
+    pm = small / "pixel_maps.npz"
+    _run(capsys, "calibrate", "darks", "--camera", "sim", "--sim-size", "24x30", "--frames", "2",
+         "--no-prompt", "--out", pm)
+    prob = load_problem(_spec(small, mask=str(pm), downsample=2))
+    assert prob.mask is not None and prob.mask.shape == (12, 15) and prob.mask.all()
+    assert prob.inputs["mask"]["file_hash"]

@@ -1,0 +1,127 @@
+"""A real measurement / lensed-truth pair in the dataset's layout: geometry through the loader.
+
+The bundled sample (``recon.samples.dlmd_pair_paths``: im65 of the DiffuserCam Lensless
+MirFlickr dataset at 1/4, BGR, stored upside-down, PSF on the padded grid) is read as a user
+reads the dataset (``recon.problem``) and reconstructed with a few FISTA-TV iterations. The
+reconstruction must correlate with its truth, and clearly less with the row-flipped truth (a
+flip between the files is the classic mistake with this dataset). The benchmark's helpers
+(``benchmarks.real_pairs``) are checked on the same sample and on their tables.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from benchmarks import real_pairs as rp
+from recon import samples
+from recon.fista import Fista
+from recon.problem import ProblemSpec, load_problem
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+def _corr(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.corrcoef(np.ravel(a), np.ravel(b))[0, 1])
+
+
+def _spec(flip_rows: bool) -> ProblemSpec:
+    p = samples.dlmd_pair_paths()
+    return ProblemSpec(meas=str(p["measurement"]), psf=str(p["psf"]), truth=str(p["truth"]),
+                       color="rgb", channel_order="bgr", flip_rows=flip_rows)
+
+
+def _fista(model, meas, iters: int = 40) -> np.ndarray:
+    solver = Fista(model.op, torch.as_tensor(meas), tau=1e-4, max_iter=iters, tol=0.0)
+    for _ in solver.steps():
+        pass
+    return solver.x.detach().numpy()
+
+
+def test_bundled_pair_layout() -> None:
+    p = samples.dlmd_pair_paths()
+    meas, truth, psf = (np.load(p[k]) for k in ("measurement", "truth", "psf"))
+    assert meas.shape == truth.shape == (67, 120, 3)
+    assert psf.shape == (134, 240, 3)  # the padded grid: exactly twice the sensor
+    # the dataset's per-channel PSF gains B:G:R = 0.96 : 1 : 1.18 are kept (to 2 %)
+    sums = psf.astype(np.float64).sum(axis=(0, 1))
+    np.testing.assert_allclose(sums / sums[1], [0.96, 1.0, 1.18], atol=0.02)
+
+
+@pytest.mark.parametrize("flip_rows", [True, False])
+def test_reconstruction_correlates_with_truth_not_with_flipped_truth(flip_rows: bool) -> None:
+    prob = load_problem(_spec(flip_rows))
+    assert prob.sensor == (67, 120)
+    assert prob.meas.shape == (3, 134, 240) and prob.mask is not None
+    assert int(prob.mask.sum()) == 67 * 120  # the sensor window of the padded grid
+    assert prob.truth is not None and prob.truth.shape == (3, 1, 67, 120)
+    x = _fista(prob.model, prob.meas)
+    truth = prob.truth
+    right = _corr(x, truth)
+    flipped = _corr(x, truth[:, :, ::-1])
+    # measured: 0.80 and 0.29-0.33; the flip of all files alike changes nothing
+    assert right > 0.7, right
+    assert flipped < 0.45, flipped
+    assert right - flipped > 0.3
+
+
+def test_a_flip_between_the_files_is_seen() -> None:
+    """Negative control: flipping only the truth's rows (a wrong frame) breaks the match."""
+    prob = load_problem(_spec(True))
+    x = _fista(prob.model, prob.meas)
+    assert prob.truth is not None
+    wrong = prob.truth[:, :, ::-1].copy()
+    assert _corr(x, wrong) < 0.45
+    # and the benchmark's score says the same (PSNR after a gain fit)
+    assert rp.psnr_only(prob.truth[:, 0], x) > rp.psnr_only(wrong[:, 0], x) + 3.0
+
+
+def test_benchmark_loader_and_erasures_on_the_bundled_pair() -> None:
+    p = samples.dlmd_pair_paths()
+    pair = rp.load_pair("im65", dict(p), 1)
+    assert pair.truth.shape == (3, 67, 120)
+    r0, c0 = pair.origin
+    # the model crops the linear convolution at (h // 2, w // 2) and the PSF's zero shift
+    # sits at the padded grid's centre (67, 120): the sensor starts at 67 - 33, 120 - 60
+    assert (r0, c0) == (34, 60)
+    assert pair.window[r0:r0 + 67, c0:c0 + 120].all()
+    for e in (0.0, 0.9, 0.99):
+        m = rp.sensor_mask(pair, e)
+        assert m.shape == pair.window.shape
+        assert not m[pair.window == 0].any()  # nothing measured outside the sensor
+        assert int(m.sum()) == 67 * 120 - round(e * 67 * 120)
+    # fixed seeds: the same mask every time, a different one per level
+    np.testing.assert_array_equal(rp.sensor_mask(pair, 0.9), rp.sensor_mask(pair, 0.9))
+    assert rp.erasure_seed(0.9) != rp.erasure_seed(0.95)
+
+
+def test_scores_use_fewer_ms_ssim_scales_on_small_images() -> None:
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0, 1, (3, 67, 120)).astype(np.float32)
+    s = rp.scores(truth, 2.0 * truth)  # a gain is fitted away
+    assert s["psnr"] > 60 and s["ssim"] == pytest.approx(1.0, abs=1e-6)
+    assert s["ms_ssim_scales"] == 3 and s["ms_ssim"] == pytest.approx(1.0, abs=1e-6)
+    noisy = rp.scores(truth, truth + rng.normal(0, 0.2, truth.shape).astype(np.float32))
+    assert noisy["psnr"] < 20 and noisy["ms_ssim"] < 0.9
+
+
+def test_tables_average_per_level_and_list_every_case() -> None:
+    def row(pair: str, e: float, f: float, u: float) -> dict:
+        m = {"psnr": f, "ssim": 0.5, "ms_ssim": 0.6, "wall_s": 1.0, "tau": 1e-4,
+             "iterations": 100}
+        return {"pair": pair, "erasure": e, "fista_auto": m, "fista_oracle": dict(m),
+                "udn": dict(m, psnr=u), "udn_clipped": 0.0}
+
+    rows = [row("im65", 0.9, 15.0, 14.0), row("im408", 0.9, 17.0, 18.0)]
+    summary = rp.make_tables(rows)
+    assert "| 90% | UDN (held-out stop) | 2 | 16.00 |" in summary
+    assert "| 90% | FISTA-TV oracle tau | 2 | 16.00 |" in summary
+    cases = rp.case_table(rows)
+    assert cases.count("\n") == 3 and "im408" in cases and "0.00%" in cases

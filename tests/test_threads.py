@@ -1,0 +1,55 @@
+"""The thread policy (recon.threads): free cores from core count and load, explicit wins."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from recon.threads import MAX_AUTO_THREADS, apply_threads, choose_threads
+
+
+@pytest.mark.parametrize(
+    ("cores", "load", "expected"),
+    [
+        (2, 0.0, 2),  # idle 2-core machine: both cores
+        (2, 0.3, 2),
+        (2, 0.6, 1),  # anything else running: one thread (2 can be 10x slower then)
+        (2, 2.9, 1),
+        (2, 9.0, 1),  # overloaded: never below 1
+        (1, 0.0, 1),
+        (16, 10.2, 6),
+        (16, 4.2, MAX_AUTO_THREADS),
+        (64, 0.0, MAX_AUTO_THREADS),
+    ],
+)
+def test_auto_uses_free_cores(cores: int, load: float, expected: int) -> None:
+    c = choose_threads(None, cores=cores, load=load, env={})
+    assert (c.threads, c.source) == (expected, "auto")
+    assert f"{cores} cores" in c.reason and f"load {load:.2f}" in c.reason
+
+
+def test_explicit_request_and_env_win() -> None:
+    assert choose_threads(3, cores=2, load=9.0, env={}).threads == 3
+    assert choose_threads("4", cores=2, load=0.0, env={}).source == "requested"
+    env = {"OMP_NUM_THREADS": "1"}
+    c = choose_threads(None, cores=2, load=0.0, env=env)
+    assert (c.threads, c.source) == (1, "OMP_NUM_THREADS")
+    assert choose_threads(2, cores=2, load=0.0, env=env).threads == 2  # request beats env
+    for auto in (0, "auto", "0"):
+        assert choose_threads(auto, cores=2, load=0.0, env={}).source == "auto"
+
+
+@pytest.mark.parametrize("bad", [-1, "two", 1.5, True])
+def test_bad_request_is_one_clear_error(bad: object) -> None:
+    with pytest.raises(ValueError, match="threads must be a whole number"):
+        choose_threads(bad, cores=2, load=0.0, env={})  # type: ignore[arg-type]
+
+
+def test_apply_sets_torch() -> None:
+    before = torch.get_num_threads()
+    try:
+        c = apply_threads(2)
+        assert torch.get_num_threads() == c.threads == 2
+        assert "requested" in str(c)
+    finally:
+        torch.set_num_threads(before)
