@@ -148,9 +148,10 @@ def _case_video(rounds: int, prox_iters: int) -> list[dict[str, Any]]:
     import numpy as np
     import torch
 
-    from drivers.timing import SensorTiming, bin_time
+    from drivers.timing import SensorTiming
     from recon.fista import Fista
     from recon.models import build_model
+    from recon.preprocess import bin_time
     from recon.simulate import synthetic_psf
     from recon.tv import TV
 
@@ -256,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
               f"{check['ratio_p25']:.2f}-{check['ratio_p75']:.2f}): {verdict} than 1 thread "
               f"(load average {os.getloadavg()[0]:.2f})")
     if args.json:
-        from recon.formats import atomic_write_json
+        from recon.atomic import atomic_write_json
 
         atomic_write_json(args.json, {"format": "lenslesscam.bench_fista", "version": 2,
                                       "threads": choice.threads, "threads_reason": choice.reason,

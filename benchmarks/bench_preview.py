@@ -168,7 +168,7 @@ def busy_processes(n: int) -> Iterator[list[int]]:
 
 def run(args: argparse.Namespace) -> int:
     """Measure every setting and print the table."""
-    from app.gui.bench import SimConfig, make_sim_camera
+    from app.gui.devices import SimConfig, make_sim_camera
     from app.gui.preview_engine import PreviewSettings
     from recon.threads import apply_threads
 
@@ -236,7 +236,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print("No setting met the target on this machine now.")
     if args.json:
-        from recon.formats import atomic_write_json
+        from recon.atomic import atomic_write_json
 
         atomic_write_json(args.json, {"format": "lenslesscam.bench_preview", "version": 2,
                                       "threads": choice.threads, "threads_reason": choice.reason,

@@ -87,7 +87,7 @@ def run_one(name: str, precision: str, compiled: bool, args: argparse.Namespace)
     import torch
 
     from recon.threads import apply_threads
-    from recon.udn.memory import estimate_memory
+    from recon.udn.memory import estimate_udn_memory
     from recon.udn.network import NetworkConfig
     from recon.udn.runner import UDNConfig, UDNRunner, resolve_device
 
@@ -101,7 +101,7 @@ def run_one(name: str, precision: str, compiled: bool, args: argparse.Namespace)
                         gradient_checkpointing=args.grad_checkpoint)
     cfg = UDNConfig(precision=precision, compile=compiled, max_iter=10**9, holdout=0.05,
                     gain=1.0)
-    est = estimate_memory(net, model.scene_shape, model.meas_shape, precision=precision)
+    est = estimate_udn_memory(net, model.scene_shape, model.meas_shape, precision=precision)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
@@ -231,7 +231,7 @@ def run_udn_benchmark(args: argparse.Namespace) -> int:
     for r in rows:
         print(_line(r, table=True))
     if args.json:
-        from recon.formats import atomic_write_json
+        from recon.atomic import atomic_write_json
 
         atomic_write_json(args.json, {"rows": rows, "threads": threads, "device": dev_name})
     return 0

@@ -373,7 +373,8 @@ def run(args: argparse.Namespace) -> int:
           f"FISTA-TV up to {args.iters} iterations, total {time.perf_counter() - t0:.0f} s")
     print(_table(rows, args.markdown))
     if args.json:
-        from recon.formats import atomic_write_json, provenance
+        from recon.atomic import atomic_write_json
+        from recon.formats import provenance
 
         atomic_write_json(args.json, {"rows": rows, "size": [h, w], "threads": args.threads,
                                       "iters": args.iters, "provenance": provenance()})

@@ -80,6 +80,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--results", default="real-pairs.jsonl",
                    help="JSON lines, one per case, appended (real-pairs.jsonl)")
     p.add_argument("--figure", default=None, help="write the PNG figure here")
+    p.add_argument("--time-threads", type=POSITIVE_INT, default=0, metavar="N",
+                   help="only time N UDN iterations per setting at 1 and 2 torch threads "
+                   "(interleaved, 3 rounds) on the first pair, and print the seconds per "
+                   "iteration")
     p.add_argument("--table-only", action="store_true",
                    help="do not run: make the table (and figure) from --results")
     p.add_argument("--out", default=None, help="write the Markdown here")
@@ -404,8 +408,8 @@ def make_tables(rows: list[dict[str, Any]]) -> str:
     """Mean over the pairs per erasure level and method, then per case."""
     erasures = sorted({r["erasure"] for r in rows})
     methods = [(k, label) for k, label in METHODS if any(k in r for r in rows)]
-    out = ["| erasure | method | pairs | PSNR (dB) | SSIM | MS-SSIM | wall (s) |",
-           "|---|---|---|---|---|---|---|"]
+    out = ["| erasure | method | pairs | PSNR (dB) | SSIM | MS-SSIM | wall (s) | peak memory "
+           "(MiB) |", "|---|---|---|---|---|---|---|---|"]
     for e in erasures:
         rs = [r for r in rows if r["erasure"] == e]
         for k, label in methods:
@@ -417,9 +421,15 @@ def make_tables(rows: list[dict[str, Any]]) -> str:
                 vals = [h[key] for h in have if h.get(key) is not None]
                 return sum(vals) / len(vals) if vals else None
 
+            # peak resident memory of the run above the process's baseline: the FISTA grid's
+            # for both FISTA rows (one figure for the whole grid), the method's own otherwise
+            peaks = [r.get("fista_peak_mb") if k.startswith("fista") else r[k].get("peak_mb")
+                     for r in rs if k in r]
+            peak_vals = [v for v in peaks if v is not None]
+            peak = sum(peak_vals) / len(peak_vals) if peak_vals else None
             out.append(f"| {e:.0%} | {label} | {len(have)} | {_fmt(mean('psnr'))} | "
                        f"{_fmt(mean('ssim'), 3)} | {_fmt(mean('ms_ssim'), 3)} | "
-                       f"{_fmt(mean('wall_s'), 1)} |")
+                       f"{_fmt(mean('wall_s'), 1)} | {_fmt(peak, 0)} |")
     return "\n".join(out)
 
 
@@ -454,7 +464,7 @@ def write_figure(images: dict[tuple[str, float], dict[str, Any]], path: str) -> 
     import numpy as np
     from PIL import Image
 
-    from recon.formats import atomic_write
+    from recon.atomic import atomic_write
 
     pairs = sorted({p for p, _ in images}, key=lambda p: PAIRS.index(p) if p in PAIRS else 99)
     erasures = sorted({e for _, e in images})
@@ -472,14 +482,14 @@ def write_figure(images: dict[tuple[str, float], dict[str, Any]], path: str) -> 
                     continue
                 y, x = i * (h + gap), j * (len(cols) * w + 3 * gap) + k * w
                 canvas[y:y + h, x:x + w] = _view(imgs[c])
-    atomic_write(Path(path), lambda tmp: Image.fromarray(canvas).save(tmp, format="PNG",
-                                                                      optimize=True))
+    img = Image.fromarray(canvas).quantize(colors=256)  # a palette PNG: about 3x smaller
+    atomic_write(Path(path), lambda tmp: img.save(tmp, format="PNG", optimize=True))
 
 
 def _save_images(results: str, pair: str, erasure: float, keep: dict[str, Any]) -> None:
     import numpy as np
 
-    from recon.formats import atomic_write
+    from recon.atomic import atomic_write
 
     path = Path(results).with_suffix("") .parent / f"{Path(results).stem}-images" / \
         f"{pair}-{round(erasure * 100)}.npz"
@@ -498,6 +508,36 @@ def _load_images(results: str) -> dict[tuple[str, float], dict[str, Any]]:
         with np.load(f) as z:
             out[(pair, int(pct) / 100)] = {k: z[k] for k in z.files}
     return out
+
+
+def time_threads(args: argparse.Namespace) -> dict[str, Any]:
+    """Seconds per UDN iteration (the configured network) at 1 and 2 threads, interleaved."""
+    import torch
+
+    from recon.models import build_model
+    from recon.udn.network import NetworkConfig
+    from recon.udn.runner import UDNConfig, UDNRunner
+
+    name = args.pairs[0]
+    pair = load_pair(name, pair_files(name, data_dir(args.data)), args.downsample)
+    mask = sensor_mask(pair, 0.0)
+    model = build_model("2d", pair.psf, mask=mask, field=pair.truth.shape[1:])
+    net = NetworkConfig(channels=args.channels, scales=args.scales, skip_channels=args.skip)
+    out: dict[int, list[float]] = {1: [], 2: []}
+    for _ in range(3):
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            r = UDNRunner(model, pair.meas * mask, network=net,
+                          config=UDNConfig(max_iter=args.time_threads + 1, lr=args.lr,
+                                           ema=args.ema, headroom=args.headroom))
+            r.step()  # warm-up
+            t0 = time.perf_counter()
+            for _ in range(args.time_threads):
+                r.step()
+            out[threads].append((time.perf_counter() - t0) / args.time_threads)
+    return {"pair": name, "shape": list(pair.truth.shape),
+            "s_per_iteration": {str(k): sorted(v) for k, v in out.items()},
+            "load": os.getloadavg(), "cpus": os.cpu_count()}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -520,6 +560,9 @@ def run(args: argparse.Namespace) -> int:
         if not 0 <= e < 1:
             raise SystemExit(f"--erasures must be in [0, 1), got {e}")
     t_all = time.perf_counter()
+    if args.time_threads:
+        print(json.dumps(time_threads(args)))
+        return 0
     if not args.table_only:
         folder = data_dir(args.data)
         done = {(r["pair"], r["erasure"]) for r in read_results(args.results)
@@ -552,7 +595,7 @@ def run(args: argparse.Namespace) -> int:
     if args.figure:
         write_figure(_load_images(args.results), args.figure)
     if args.out:
-        from recon.formats import atomic_write_bytes
+        from recon.atomic import atomic_write_bytes
 
         s = rows[0]["settings"]
         h, w = rows[0]["shape"][1:]

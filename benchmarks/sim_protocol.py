@@ -50,7 +50,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--restart-check", action="store_true",
                    help="instead: restart rules (monotone, gradient, none) against an accurate "
                    "run (500 iterations x 50 inner prox steps) at tau 3e-5, noise 0.01, "
-                   "erasures 99 % and 0 %")
+                   "erasures 99 %% and 0 %%")
     p.add_argument("--hand", action="store_true",
                    help="instead: the real DiffuserCam-Tutorial hand (no truth): the held-out "
                    "error over tau and the automatic choice")
@@ -301,7 +301,7 @@ def run(args: argparse.Namespace) -> int:
     table = tables(cases)
     print(table)
     if args.out:
-        from recon.formats import atomic_write_bytes
+        from recon.atomic import atomic_write_bytes
 
         header = (
             "# Simulation protocol: the default (tau auto) against the oracle tau\n\n"

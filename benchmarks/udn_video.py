@@ -229,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
     print(table)
     print(f"total {total:.0f} s", file=sys.stderr)
     if args.out:
-        from recon.formats import atomic_write_bytes
+        from recon.atomic import atomic_write_bytes
 
         h, w = psf.shape
         argv = sys.argv[1:]

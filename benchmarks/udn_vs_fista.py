@@ -280,7 +280,7 @@ def run(args: argparse.Namespace) -> int:
     print(curve)
     print("\n".join(verdicts))
     if args.out:
-        from recon.formats import atomic_write_bytes
+        from recon.atomic import atomic_write_bytes
 
         u0 = udn[names[0]]
         per_iter = u0["wall"] / max(u0["iterations"] * args.seeds, 1)

@@ -30,7 +30,6 @@ __all__ = [
     "ReadoutPattern",
     "SensorTiming",
     "ShutterMode",
-    "bin_time",
     "row_start_lines",
     "shutter_function",
 ]
@@ -184,19 +183,3 @@ def shutter_function(timing: SensorTiming, bin_lines: int, n_bins: int | None = 
     overlap = np.clip(np.minimum(hi, ends[None, :]) - np.maximum(lo, starts[None, :]), 0, None)
     return overlap.astype(np.float64) / float(bin_lines)
 
-
-def bin_time(shutter: np.ndarray, factor: int) -> np.ndarray:
-    """Merge ``factor`` consecutive time bins (mean, so a bin of width factor*w keeps units).
-
-    A trailing partial group is averaged over ``factor`` too (it is a bin with less exposure).
-    """
-    m = np.asarray(shutter, dtype=np.float64)
-    if m.ndim != 2:
-        raise ValueError(f"shutter must be (K, rows), got shape {m.shape}")
-    if int(factor) != factor or factor < 1:
-        raise ValueError(f"factor must be an integer >= 1, got {factor!r}")
-    k = m.shape[0]
-    k_new = -(-k // factor)
-    padded = np.zeros((k_new * factor, m.shape[1]), dtype=np.float64)
-    padded[:k] = m
-    return padded.reshape(k_new, factor, m.shape[1]).mean(axis=1)

@@ -19,7 +19,7 @@ kind               file                                       main array
 
 Every writer checks that the metadata it is given has the keys its kind requires (for a PSF:
 camera, exposure, gain, frames averaged, dark level, timing, quality report), adds the keys
-the format owns, and writes atomically (:func:`~recon.formats.atomic_write`), so a failed
+the format owns, and writes atomically (:func:`~recon.atomic.atomic_write`), so a failed
 calibration never leaves a half-written file. :func:`load_calibration` reads any of them and
 raises :class:`~recon.formats.FormatError` for a foreign or corrupt file.
 """
@@ -38,11 +38,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from recon.atomic import atomic_write
 from recon.formats import (
     FORMAT_VERSION,
     FormatError,
     array_hash,
-    atomic_write,
     json_default,
     provenance,
     software_version,

@@ -49,8 +49,8 @@ __all__ = [
     "SolverMemoryEstimate",
     "available_memory",
     "check_fits",
-    "estimate_memory",
     "estimate_model_memory",
+    "estimate_solver_memory",
     "format_bytes",
 ]
 
@@ -115,7 +115,7 @@ class SolverMemoryEstimate:
                 f"{h}x{w}, padded FFT grid {self.pad[0]}x{self.pad[1]}, {self.dtype})")
 
 
-def estimate_memory(
+def estimate_solver_memory(
     sensor: Sequence[int],
     *,
     field: Sequence[int] | None = None,
@@ -207,7 +207,7 @@ def estimate_model_memory(model: Any, method: str = "fista", tv_weight_k: float 
         hf = getattr(op, "hf", None) if not hasattr(op, "conv") else op.conv.hf
         if hf is not None:
             psf_channels, psf_planes = int(hf.shape[0]), int(hf.shape[1])
-    return estimate_memory(
+    return estimate_solver_memory(
         (h, w), field=(hs, ws), channels=c, k=k, psf_channels=psf_channels,
         psf_planes=psf_planes, dtype=model.op.dtype, method=method,
         tv_dirs=3 if (tv_weight_k > 0 and k > 1) else 2, mask=model.mask is not None,
@@ -243,7 +243,7 @@ def _hints(est: SolverMemoryEstimate) -> list[str]:
             "filters": inp["filters"]}
 
     def total(sensor: Sequence[int], **kw: Any) -> str:
-        return format_bytes(estimate_memory(sensor, **{**base, **kw}).total_bytes)
+        return format_bytes(estimate_solver_memory(sensor, **{**base, **kw}).total_bytes)
 
     h, w = inp["sensor"]
     hs, ws = inp["field"]

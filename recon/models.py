@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from recon.memory import CHECK_THRESHOLD_BYTES, ProblemTooLarge, check_fits, estimate_memory
+from recon.memory import CHECK_THRESHOLD_BYTES, ProblemTooLarge, check_fits, estimate_solver_memory
 from recon.operators import (
     Compose,
     Conv2D,
@@ -93,9 +93,10 @@ def _check_memory(kind: ModelKind, psf: Any, channels: int | None, mask: Any, sh
         k = int(np.shape(shutter)[0])
     if kind is ModelKind.SPECTRAL and filters is not None and len(np.shape(filters)) == 3:
         k = int(np.shape(filters)[0])
-    est = estimate_memory(sensor, field=field, channels=c, k=k, psf_channels=psf_c,
-                          psf_planes=psf_k, dtype=dtype, mask=mask is not None,
-                          shutter=kind is ModelKind.VIDEO, filters=kind is ModelKind.SPECTRAL)
+    est = estimate_solver_memory(sensor, field=field, channels=c, k=k, psf_channels=psf_c,
+                                 psf_planes=psf_k, dtype=dtype, mask=mask is not None,
+                                 shutter=kind is ModelKind.VIDEO,
+                                 filters=kind is ModelKind.SPECTRAL)
     if est.total_bytes <= CHECK_THRESHOLD_BYTES:
         return
     try:

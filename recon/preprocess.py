@@ -5,7 +5,8 @@ Dark subtraction (:func:`subtract_dark`, :func:`auto_dark_level`), clipping
 (:func:`normalise`), channel layout (:func:`to_channel_first`, :func:`to_gray`), and the one rule
 each for downsampling a masked measurement (:func:`downsample_masked`, :func:`downsample_mask`:
 a coarse pixel is measured when ANY sensor pixel under it is, its value the mean of the
-measured ones) and a shutter function (:func:`downsample_rows`: the mean of ``factor`` rows).
+measured ones) and a shutter function (:func:`downsample_rows`: the mean of ``factor`` rows;
+:func:`bin_time`: the mean of ``factor`` time bins).
 Pure numpy.
 """
 
@@ -25,6 +26,7 @@ __all__ = [
     "Channels",
     "NormMode",
     "auto_dark_level",
+    "bin_time",
     "box_downsample",
     "clip_nonneg",
     "downsample_mask",
@@ -162,22 +164,41 @@ def downsample_mask(mask: Array, factor: int) -> F32:
     return (box_downsample(m > 0.5, factor) > 0).astype(np.float32)
 
 
+def _shutter_and_factor(shutter: Array, factor: int) -> tuple[npt.NDArray[np.float64], int]:
+    """A shutter function M (K, rows) as float64 and a checked integer factor >= 1."""
+    m = np.asarray(shutter, dtype=np.float64)
+    if m.ndim != 2:
+        raise ValueError(f"shutter must be (K, rows), got shape {m.shape}")
+    if isinstance(factor, bool) or int(factor) != factor or factor < 1:
+        raise ValueError(f"factor must be an integer >= 1, got {factor!r}")
+    return m, int(factor)
+
+
 def downsample_rows(shutter: Array, factor: int) -> npt.NDArray[np.float64]:
     """THE shutter downsampling rule: average ``factor`` consecutive rows of M (K, rows).
 
     Matches a measurement box-downsampled by ``factor``; trailing rows that do not fill a
     block are dropped, as box downsampling drops them.
     """
-    m = np.asarray(shutter, dtype=np.float64)
-    if m.ndim != 2:
-        raise ValueError(f"shutter must be (K, rows), got shape {m.shape}")
-    if isinstance(factor, bool) or int(factor) != factor or factor < 1:
-        raise ValueError(f"factor must be an integer >= 1, got {factor!r}")
-    f = int(factor)
+    m, f = _shutter_and_factor(shutter, factor)
     rows = (m.shape[1] // f) * f
     if rows == 0:
         raise ValueError(f"cannot downsample {m.shape[1]} rows by {f}")
     return np.asarray(m[:, :rows].reshape(m.shape[0], rows // f, f).mean(axis=2))
+
+
+def bin_time(shutter: Array, factor: int) -> npt.NDArray[np.float64]:
+    """THE time-binning rule: merge ``factor`` consecutive time bins of M (K, rows).
+
+    The mean, so a bin of width ``factor * w`` keeps the units of M. A trailing partial group
+    is averaged over ``factor`` too (it is a bin with less exposure).
+    """
+    m, f = _shutter_and_factor(shutter, factor)
+    k = m.shape[0]
+    k_new = -(-k // f)
+    padded = np.zeros((k_new * f, m.shape[1]), dtype=np.float64)
+    padded[:k] = m
+    return np.asarray(padded.reshape(k_new, f, m.shape[1]).mean(axis=1))
 
 
 def normalise(a: Array, mode: NormMode = "max") -> Array:

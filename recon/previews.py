@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from recon.formats import atomic_write
+from recon.atomic import atomic_write
 
 __all__ = ["contrast_stretch", "preview_frames", "preview_image", "write_gif", "write_png"]
 

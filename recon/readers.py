@@ -333,6 +333,11 @@ def _prepare(
     raw = _load_image(p, key=key, prefer=prefer)
     _validate_raw(raw, p, what)
     chw = _select_channels(_to_chw(raw, p, what), channels, p, what, order)
+    if what == "PSF" and np.any(raw):  # constant or clipped: a one-line PsfWarning (all zero:
+        # the error below says more)
+        from recon.psfcheck import check_psf
+
+        check_psf(raw, warn=True, name=f"PSF file {p}")
     arr = _as_float(chw).astype(np.float32, copy=False)
     d = _dark_for(dark, key, arr, channels, what, p, order)
     if d is not None:

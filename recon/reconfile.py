@@ -18,15 +18,9 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from recon.atomic import atomic_write
 from recon.falsecolor import load_false_color_weights
-from recon.formats import (
-    FORMAT_VERSION,
-    FormatError,
-    array_hash,
-    atomic_write,
-    json_default,
-    provenance,
-)
+from recon.formats import FORMAT_VERSION, FormatError, array_hash, json_default, provenance
 from recon.previews import (
     _montage,
     _preview_channels,
@@ -79,7 +73,7 @@ _RESERVED_KEYS = frozenset(
 def reconstruction_paths(path: PathLike, kind: Kind = "image") -> list[Path]:
     """The files :func:`save_reconstruction` writes for ``path`` and ``kind``, TIFF first.
 
-    Commands check these before computing (``recon.formats.check_outputs``), so a preview
+    Commands check these before computing (``recon.atomic.check_outputs``), so a preview
     cannot replace an input either (``--meas hand.png --out hand.tif``).
     """
     target = Path(path)

@@ -20,7 +20,8 @@ import numpy as np
 import numpy.typing as npt
 
 from recon import io as rio
-from recon.formats import FORMAT_VERSION, atomic_write, atomic_write_json, file_hash, provenance
+from recon.atomic import atomic_write, atomic_write_json
+from recon.formats import FORMAT_VERSION, file_hash, provenance
 
 __all__ = [
     "DEPTH_AXIAL_BIN",

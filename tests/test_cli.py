@@ -99,7 +99,11 @@ def good_pair(tmp_path):
     [
         (lambda d: np.save(d / "bad.npy", np.zeros((16, 12), np.float32)), "--psf", "all zero"),
         (lambda d: np.save(d / "bad.npy", np.full((16, 12), np.nan, np.float32)), "--psf", "NaN"),
-        (lambda d: np.save(d / "bad.npy", np.ones((10, 12), np.float32)), "--psf", "10, 12"),
+        (  # a non-constant PSF of the wrong size (a constant one also warns)
+            lambda d: np.save(d / "bad.npy", np.arange(120, dtype=np.float32).reshape(10, 12)),
+            "--psf",
+            "10, 12",
+        ),
         (lambda d: np.save(d / "bad.npy", np.ones((2, 3, 16, 12), np.float32)), "--meas", "shape"),
         (lambda d: np.save(d / "bad.npy", np.ones((16, 12), np.complex64)), "--meas", "complex"),
         (lambda d: (d / "bad.npy").write_bytes(b"\x93NUMPY garbage"), "--meas", "bad.npy"),

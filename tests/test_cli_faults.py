@@ -247,7 +247,7 @@ def test_trade_needs_overwrite(sim, tmp_path, capsys):
 
 
 def test_check_outputs_unit(tmp_path):
-    from recon.formats import check_outputs
+    from recon.atomic import check_outputs
 
     a = tmp_path / "a.tif"
     a.write_bytes(b"x")

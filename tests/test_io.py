@@ -15,6 +15,7 @@ from PIL import Image
 
 from recon import io as rio
 from recon.formats import FORMAT_VERSION, FormatError
+from recon.psfcheck import PsfWarning
 
 RNG = np.random.default_rng(1234)
 
@@ -280,7 +281,10 @@ def test_load_psf_all_zero(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"PSF file .*z\.npy is all zero"):
         rio.load_psf(tmp_path / "z.npy")
     np.save(tmp_path / "flat.npy", np.full((20, 20), 7, dtype=np.uint16))
-    with pytest.raises(ValueError, match=r"all zero after dark subtraction \(dark=auto\)"):
+    with (
+        pytest.warns(PsfWarning, match="is constant"),  # said first, then refused
+        pytest.raises(ValueError, match=r"all zero after dark subtraction \(dark=auto\)"),
+    ):
         rio.load_psf(tmp_path / "flat.npy", dark="auto")
 
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from recon.catalogue import OPERATOR_FACTORIES, make_operator
 from recon.models import build_model
 from recon.operators import Conv2D, Crop, fast_fft_size, power_norm
-from recon.registry import OPERATOR_FACTORIES, make_operator
 
 TOL = {torch.float32: 1e-4, torch.float64: 1e-10}
 NAMES = sorted(OPERATOR_FACTORIES)
@@ -45,7 +45,7 @@ def test_adjoint_matches_autograd(name):
     torch.testing.assert_close(op.adjoint(y), vjp, rtol=1e-10, atol=1e-12)
 
 
-def test_registry_covers_every_model_kind():
+def test_catalogue_covers_every_model_kind():
     kinds = {n.split("_")[1] for n in NAMES if n.startswith("model_")}
     assert {"2d", "video", "spectral", "depth"} <= kinds
 

@@ -244,7 +244,7 @@ def test_bad_masks_are_refused_naming_the_mask(small, content, message):
 
 
 def test_psf_of_the_wrong_size_names_the_psf(small):
-    np.save(small / "psf_small.npy", np.ones((10, 10), np.float32))
+    np.save(small / "psf_small.npy", np.arange(100, dtype=np.float32).reshape(10, 10))
     with pytest.raises(ValueError, match=r"PSF file .*psf_small\.npy has shape \(1, 10, 10\)"):
         load_problem(_spec(small, psf=str(small / "psf_small.npy")))
 

@@ -117,11 +117,13 @@ def test_tables_average_per_level_and_list_every_case() -> None:
         m = {"psnr": f, "ssim": 0.5, "ms_ssim": 0.6, "wall_s": 1.0, "tau": 1e-4,
              "iterations": 100}
         return {"pair": pair, "erasure": e, "fista_auto": m, "fista_oracle": dict(m),
-                "udn": dict(m, psnr=u), "udn_clipped": 0.0}
+                "udn": dict(m, psnr=u, peak_mb=80.0), "udn_clipped": 0.0,
+                "fista_peak_mb": 20.0}
 
     rows = [row("im65", 0.9, 15.0, 14.0), row("im408", 0.9, 17.0, 18.0)]
     summary = rp.make_tables(rows)
     assert "| 90% | UDN (held-out stop) | 2 | 16.00 |" in summary
     assert "| 90% | FISTA-TV oracle tau | 2 | 16.00 |" in summary
+    assert summary.splitlines()[-1].endswith("| 80 |")  # the UDN's peak memory
     cases = rp.case_table(rows)
     assert cases.count("\n") == 3 and "im408" in cases and "0.00%" in cases

@@ -177,7 +177,8 @@ class _Driver:
         return todo
 
     def record_failure(self, item: Item, h: str, error: str, status: str = "failed") -> None:
-        from recon.formats import FORMAT_VERSION, atomic_write_json
+        from recon.atomic import atomic_write_json
+        from recon.formats import FORMAT_VERSION
 
         marker = self.paths.running(item.id)
         attempt = None
@@ -270,7 +271,7 @@ class _Driver:
         """
         import ray
 
-        from recon.formats import atomic_write_json
+        from recon.atomic import atomic_write_json
 
         self.cancelling = True
         if not self.paths.cancel_file.exists():

@@ -136,14 +136,14 @@ def read_state(root: str | Path, missing_ok: bool = False) -> dict[str, Any]:
 
 def write_state(root: Path, state: dict[str, Any]) -> None:
     """Write state.json atomically."""
-    from recon.formats import atomic_write_json
+    from recon.atomic import atomic_write_json
 
     atomic_write_json(BatchPaths(root).state, state)
 
 
 def request_cancel(root: str | Path) -> str:
     """Ask the driver of the batch in ``root`` to stop; what was done, in one line."""
-    from recon.formats import atomic_write_json
+    from recon.atomic import atomic_write_json
 
     root = Path(root)
     st = read_state(root)

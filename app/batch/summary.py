@@ -54,7 +54,8 @@ def write_summary(root: Path, items: list[Item], records: dict[str, dict[str, An
                   status: dict[str, str]) -> list[Path]:
     """Write ``summary.csv`` and ``summary.md`` in ``root`` (atomically); their paths."""
     from app.batch.state import now_utc
-    from recon.formats import FORMAT_VERSION, atomic_write_bytes
+    from recon.atomic import atomic_write_bytes
+    from recon.formats import FORMAT_VERSION
 
     rows = summary_rows(items, records, status)
     buf = io.StringIO()

@@ -173,7 +173,8 @@ def run_item(item: Item, out_dir: str, item_hash: str, hashes: dict[str, str | N
 
     ``cpus`` is the task's CPU count: torch's thread count is set to it explicitly.
     """
-    from recon.formats import FORMAT_VERSION, atomic_write_json, file_hash, provenance
+    from recon.atomic import atomic_write_json
+    from recon.formats import FORMAT_VERSION, file_hash, provenance
     from recon.threads import apply_threads
 
     paths = BatchPaths(Path(out_dir))

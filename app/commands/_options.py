@@ -116,10 +116,10 @@ def check_command_outputs(args: argparse.Namespace, outputs: Iterable[str | os.P
                           ) -> None:
     """Refuse outputs that are an input of this command, or exist without ``--overwrite``.
 
-    One rule for every writer command (:func:`recon.formats.check_outputs`), called before
+    One rule for every writer command (:func:`recon.atomic.check_outputs`), called before
     any work is done.
     """
-    from recon.formats import check_outputs
+    from recon.atomic import check_outputs
 
     inputs = {f"--{name.replace('_', '-')}": value for name in INPUT_OPTIONS
               if isinstance(value := getattr(args, name, None), (str, os.PathLike))}

@@ -42,8 +42,8 @@ def add_tau_arguments(p: argparse.ArgumentParser, *, iters: bool = True) -> None
                    help="TV weight; 'auto' (default) chooses it from held-out measured pixels")
     if iters:
         p.add_argument("--iters", type=iters_type, default=None, metavar="N|auto",
-                       help="iterations; 'auto' (default) stops where the held-out error "
-                       "stops improving (at most 500)")
+                       help="iterations; 'auto' (default): where the held-out error starts "
+                       "to rise at the chosen tau, else 500")
 
 
 def resolve_tau(args: argparse.Namespace, model: Any, b: Any, tv: Any = None,
@@ -58,11 +58,10 @@ def resolve_tau(args: argparse.Namespace, model: Any, b: Any, tv: Any = None,
     tau = args.tau
     iters = getattr(args, "iters", None)
     if tau_only and iters is None:
-        iters_for_search = None
         if tau is not None:
             return tau, AUTO_MAX_ITER, {"tau": tau, "tau_rule": "given",
                                         "iterations": AUTO_MAX_ITER, "iterations_rule": "limit"}
-        tau, _, meta = resolve(model, b, None, iters_for_search, tv=tv,
+        tau, _, meta = resolve(model, b, None, None, tv=tv,
                                log=lambda s: print(s, file=sys.stderr))
         meta.update(iterations=AUTO_MAX_ITER, iterations_rule="limit")
         return tau, AUTO_MAX_ITER, meta

@@ -153,7 +153,8 @@ def _snap(args: argparse.Namespace) -> int:
 def _save_frame(out: str, frame: Any) -> str:
     import tifffile
 
-    from recon.formats import atomic_write, provenance
+    from recon.atomic import atomic_write
+    from recon.formats import provenance
 
     meta = frame.metadata()
     meta["provenance"] = provenance()

@@ -134,9 +134,15 @@ def load_inputs(args: argparse.Namespace) -> dict[str, Any]:
         if not path.is_file():
             raise FileNotFoundError(f"timing file not found: {args.timing}")
         data = json.loads(path.read_text())
-        timing = data.get("timing", data) if isinstance(data, dict) else None
-        if not isinstance(timing, dict):
+        raw = data.get("timing", data) if isinstance(data, dict) else None
+        if not isinstance(raw, dict):
             raise ValueError(f"{args.timing}: expected a JSON object with the timing fields")
+        from drivers.timing import SensorTiming
+
+        try:
+            timing = SensorTiming.from_dict(raw)
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{args.timing}: not a sensor timing ({e})") from e
     if shutter is not None and timing is not None:
         raise ValueError("give --shutter or --timing, not both")
     if prob.metadata["psf_grid"] == "padded" and (shutter is not None or timing is not None):
@@ -251,7 +257,7 @@ def plan_from_trade(plan: Any, trade_csv: str) -> Any:
 
 def run_plan(args: argparse.Namespace) -> int:
     """Print (and optionally save) the plan."""
-    from recon.formats import atomic_write_json
+    from recon.atomic import atomic_write_json
 
     if args.out:
         check_command_outputs(args, [args.out])

@@ -120,7 +120,7 @@ def run_udn(args: argparse.Namespace) -> int:
     text = spec_to_toml(spec)  # written once, as RUN_DIR/job.toml (or --write-spec)
     if args.write_spec:
         check_command_outputs(args, [args.write_spec])
-        from recon.formats import atomic_write_bytes
+        from recon.atomic import atomic_write_bytes
 
         atomic_write_bytes(args.write_spec, text.encode("utf-8"))
         print(f"wrote {args.write_spec}; run it with: lenslesscam jobs run {args.write_spec} "

@@ -112,10 +112,6 @@ def load_psf_spec(spec: str, downsample: int, dark: Any) -> Any:
     if spec == "sample:tutorial":
         psf = samples.tutorial_psf()
         return normalise(box_downsample(psf, downsample), "sum") if downsample > 1 else psf
-    from recon.io import load_image
-    from recon.psfcheck import check_psf
-
-    check_psf(load_image(spec), warn=True, name=f"PSF file {spec}")  # constant or saturated
     return load_psf(spec, dark=dark, downsample=downsample)
 
 
@@ -149,13 +145,8 @@ def run(args: argparse.Namespace) -> int:
     """Simulate and write meas.npy, mask.npy, truth.npy, psf.npy and simulation.json."""
     import numpy as np
 
-    from recon.formats import (
-        FORMAT_VERSION,
-        array_hash,
-        atomic_write,
-        atomic_write_json,
-        provenance,
-    )
+    from recon.atomic import atomic_write, atomic_write_json
+    from recon.formats import FORMAT_VERSION, array_hash, provenance
     from recon.models import build_model
     from recon.simulate import simulate
 

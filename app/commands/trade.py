@@ -86,7 +86,7 @@ def _cases(args: argparse.Namespace) -> list[Any]:
 
 def run(args: argparse.Namespace) -> int:
     """Run the grid on each case; write trade.csv, trade.md and trade_pareto.png."""
-    from recon.formats import atomic_write_bytes
+    from recon.atomic import atomic_write_bytes
     from recon.threads import apply_threads
     from recon.trade import (
         best_for_budgets,
@@ -158,7 +158,7 @@ def _plot(cases: list[Any], rows: list[Any], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from recon.formats import atomic_write
+    from recon.atomic import atomic_write
     from recon.trade import pareto_front
 
     n = len(cases)

@@ -3,7 +3,7 @@
 Importing this package does not import Qt; :func:`run_app` does. SIGTERM, SIGINT and SIGHUP
 close the window cleanly (devices closed, the simulated point-source process stopped,
 settings saved), as the window's close button does. The Qt-free parts
-(:mod:`app.gui.preview_engine`, :mod:`app.gui.bench`, :mod:`app.gui.settings`,
+(:mod:`app.gui.preview_engine`, :mod:`app.gui.devices`, :mod:`app.gui.settings`,
 :mod:`app.gui.jobs_core`, :mod:`app.gui.snapshots`) are usable without a display.
 """
 

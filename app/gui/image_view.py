@@ -240,7 +240,7 @@ class ImagePanel(QWidget):
 
     def export_view(self, path: str | Path) -> Path:
         """Save what the panel shows (image, levels, overlays) as a PNG."""
-        from recon.formats import atomic_write
+        from recon.atomic import atomic_write
 
         def write(tmp: Path) -> None:
             if not self.graphics.grab().save(str(tmp), "PNG"):
@@ -254,7 +254,8 @@ class ImagePanel(QWidget):
             raise ValueError("no image to save")
         import tifffile
 
-        from recon.formats import atomic_write, provenance
+        from recon.atomic import atomic_write
+        from recon.formats import provenance
 
         data = np.ascontiguousarray(self._image)
         meta = json.dumps({"format": "lenslesscam-view", "format_version": 1,

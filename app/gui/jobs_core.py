@@ -85,7 +85,7 @@ def _read_json(p: Path) -> dict[str, Any] | None:
 
 
 def _write_entry(folder: Path, entry: Mapping[str, Any]) -> None:
-    from recon.formats import atomic_write_json
+    from recon.atomic import atomic_write_json
 
     atomic_write_json(folder / APP_JOB_FILE, dict(entry))
 
@@ -122,7 +122,7 @@ def estimate_job_memory(
     k: int = 1,
 ) -> tuple[Any, int | None, str]:
     """Memory estimate of a 2D job: (MemoryEstimate, bytes available or None, their source)."""
-    from recon.udn.memory import available_memory, estimate_memory
+    from recon.udn.memory import available_memory, estimate_udn_memory
     from recon.udn.spec import network_config
 
     spec = _full_spec(sections)
@@ -130,8 +130,8 @@ def estimate_job_memory(
     if h < 1 or w < 1:
         raise ValueError(f"downsampling by {downsample} leaves nothing of {sensor}")
     net = network_config(spec, k)
-    est = estimate_memory(net, (1, k, h, w), (1, h, w),
-                          precision=spec["device"]["precision"])
+    est = estimate_udn_memory(net, (1, k, h, w), (1, h, w),
+                              precision=spec["device"]["precision"])
     avail, source = available_memory(resolve_device_name(spec["device"]["device"]))
     return est, avail, source
 
@@ -156,7 +156,7 @@ def create_job(
     """
     import shutil
 
-    from recon.formats import atomic_write, atomic_write_bytes, atomic_write_json
+    from recon.atomic import atomic_write, atomic_write_bytes, atomic_write_json
     from recon.problem import ProblemSpec
     from recon.udn.spec import load_spec, spec_to_toml
 

@@ -41,7 +41,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.devices_state import CameraState, DeviceStates, LightAction, LightState
-from app.gui.bench import (
+from app.gui.devices import (
     SIM_CAMERA,
     SIM_PORT,
     Bench,
@@ -147,7 +147,7 @@ class MainWindow(QMainWindow):
         settings: what to start with (see :class:`~app.gui.settings.AppSettings`).
         settings_path: where :meth:`closeEvent` saves them (None: the user config file;
             ``False``-y Path("") disables saving).
-        bench: the devices (default: a new :class:`~app.gui.bench.Bench`, simulated bench).
+        bench: the devices (default: a new :class:`~app.gui.devices.Bench`, simulated bench).
         autoconnect: connect the camera (and point source) from the settings at start.
         reconnect_interval_ms: time between reconnect attempts after a device is lost.
         light_check_interval_ms: time between checks of the point source.
@@ -598,7 +598,7 @@ class MainWindow(QMainWindow):
         cam = self.bench.camera
         if cam is None or not self.bench.is_simulated:
             return
-        from app.gui.bench import set_sim_scene
+        from app.gui.devices import set_sim_scene
 
         sim = self.bench.sim
         self.camera_queue.submit(lambda: set_sim_scene(cam, name, sim.peak_fraction,

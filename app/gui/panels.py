@@ -26,7 +26,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app.gui.bench import SCENES, CameraChoice, PortChoice
+from app.gui.devices import SCENES, CameraChoice, PortChoice
 from app.gui.preview_engine import MODELS, PreviewSettings
 from app.gui.widgets import ComboBox, DoubleSpinBox, SpinBox, double_spin
 

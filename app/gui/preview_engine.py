@@ -487,8 +487,8 @@ class PreviewEngine:
             if not mask.any():
                 raise PreviewError(f"the ROI {geo.roi} is too small for downsampling by {d}")
         if geo.model == "video":
-            from drivers.timing import bin_time, shutter_function
-            from recon.preprocess import downsample_rows
+            from drivers.timing import shutter_function
+            from recon.preprocess import bin_time, downsample_rows
 
             full = shutter_function(timing, 1)
             factor = max(1, -(-full.shape[0] // geo.video_bins))

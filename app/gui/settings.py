@@ -2,7 +2,7 @@
 
 The file is ``<config dir>/app-settings.json`` where the config dir is ``$LENSLESSCAM_CONFIG_DIR``
 if set, else ``$XDG_CONFIG_HOME/lenslesscam`` (``~/.config/lenslesscam``). It is written
-atomically (:func:`recon.formats.atomic_write_json`) and carries ``format`` and
+atomically (:func:`recon.atomic.atomic_write_json`) and carries ``format`` and
 ``format_version``; an unreadable or foreign file is set aside (renamed ``.bad``) and the
 defaults are used, so a broken settings file never stops the app from starting.
 """
@@ -126,6 +126,6 @@ def load_settings(path: Path | None = None) -> AppSettings:
 
 def save_settings(settings: AppSettings, path: Path | None = None) -> Path:
     """Write the settings atomically; returns the path."""
-    from recon.formats import atomic_write_json
+    from recon.atomic import atomic_write_json
 
     return atomic_write_json(path or settings_path(), settings.to_dict())

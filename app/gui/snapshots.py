@@ -33,7 +33,8 @@ def save_frame(frame: Any, path: str | Path, extra: Mapping[str, Any] | None = N
     import numpy as np
     import tifffile
 
-    from recon.formats import atomic_write, atomic_write_json, provenance
+    from recon.atomic import atomic_write, atomic_write_json
+    from recon.formats import provenance
 
     target = Path(path)
     if target.is_dir() or target.suffix == "":

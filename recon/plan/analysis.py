@@ -38,10 +38,10 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from drivers.timing import bin_time
 from recon.fista import Fista
 from recon.models import ForwardModel
 from recon.plan.roi import Region, build_region_model
+from recon.preprocess import bin_time
 from recon.tv import TV
 
 __all__ = [

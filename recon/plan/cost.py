@@ -35,8 +35,8 @@ from typing import Any
 
 import torch
 
+from recon.atomic import atomic_write_json
 from recon.fista import Fista
-from recon.formats import atomic_write_json
 from recon.models import ForwardModel
 from recon.operators import power_norm
 from recon.tv import TV

@@ -22,13 +22,13 @@ import math
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from enum import Enum
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 import torch
 
-from drivers.timing import ReadoutPattern, SensorTiming
 from recon.fista import Fista, FistaStep
 from recon.models import ForwardModel
 from recon.plan.analysis import (
@@ -51,6 +51,7 @@ __all__ = [
     "PLAN_VERSION",
     "Plan",
     "PlanResult",
+    "SensorTimingLike",
     "base_shutter",
     "execute",
     "make_plan",
@@ -66,6 +67,29 @@ METHODS = ("fista-tv", "udn")
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
+
+
+class SensorTimingLike(Protocol):
+    """What the planner needs of a frame's sensor timing.
+
+    :class:`drivers.timing.SensorTiming` is one (recon does not import drivers: the caller
+    builds the timing, for example from a frame's metadata with ``SensorTiming.from_dict``).
+    """
+
+    @property
+    def rows(self) -> int:
+        """Sensor rows."""
+
+    @property
+    def exposure_lines(self) -> int:
+        """Exposure of one row in line units."""
+
+    @property
+    def pattern(self) -> Enum:
+        """Readout pattern (its ``value`` names it in the plan's notes)."""
+
+    def shutter(self, bin_lines: int, n_bins: int | None = None) -> npt.NDArray[Any]:
+        """Shutter function (K, rows) with time bins of ``bin_lines`` lines."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -391,7 +415,7 @@ def _scaled_meas(meas: Any) -> F32:
     return np.asarray(b / peak, dtype=np.float32)
 
 
-def base_shutter(shutter: Any, timing: SensorTiming | Mapping[str, Any] | None,
+def base_shutter(shutter: Any, timing: SensorTimingLike | None,
                  rows: int) -> tuple[F64 | None, str]:
     """The finest shutter function (K0, rows) from an array or a sensor timing, and a note.
 
@@ -407,12 +431,15 @@ def base_shutter(shutter: Any, timing: SensorTiming | Mapping[str, Any] | None,
         return m, f"shutter function of {m.shape[0]} bins given"
     if timing is None:
         return None, "no shutter function or sensor timing given: time is not resolvable"
-    t = timing if isinstance(timing, SensorTiming) else SensorTiming.from_dict(dict(timing))
+    if isinstance(timing, Mapping) or not callable(getattr(timing, "shutter", None)):
+        raise TypeError("timing must be a sensor timing object (drivers.timing.SensorTiming, "
+                        f"built from its dict by the caller), got {type(timing).__name__}")
+    t = timing
     if t.rows != rows:
         raise ValueError(f"sensor timing has {t.rows} rows, the measurement {rows}")
-    if t.pattern is ReadoutPattern.GLOBAL:
+    m = np.asarray(t.shutter(bin_lines=1), dtype=np.float64)
+    if bool(np.all(m == m[:, :1])):
         return None, "global shutter: every row integrates the same window, no time resolution"
-    m = t.shutter(bin_lines=1)
     return m, (f"{t.pattern.value} readout, exposure {t.exposure_lines} lines: "
                f"{m.shape[0]} one-line bins")
 
@@ -465,7 +492,7 @@ def make_plan(
     meas: Any,
     *,
     shutter: Any = None,
-    timing: SensorTiming | Mapping[str, Any] | None = None,
+    timing: SensorTimingLike | None = None,
     psf_stack: Any = None,
     mask: Any = None,
     field: tuple[int, int] | None = None,
@@ -483,7 +510,8 @@ def make_plan(
         psf: (H, W) or (C, H, W) PSF (None when ``psf_stack`` is given).
         meas: (H, W) or (C, H, W) measurement (dark subtracted; any scale).
         shutter: finest shutter function (K0, H) of a rolling-shutter frame, or
-        timing: the frame's :class:`~drivers.timing.SensorTiming` (or its dict).
+        timing: the frame's sensor timing (:class:`SensorTimingLike`, for example a
+            ``drivers.timing.SensorTiming``).
         psf_stack: (K, H, W) PSFs of depth planes: plan 2D (one plane) or depth.
         mask: (H, W) sensor mask, 1 = measured (erased / dead pixels are left out).
         field: scene field (Hs, Ws) to consider (default the sensor size).
@@ -693,7 +721,7 @@ def execute(
     meas: Any,
     *,
     shutter: Any = None,
-    timing: SensorTiming | Mapping[str, Any] | None = None,
+    timing: SensorTimingLike | None = None,
     psf_stack: Any = None,
     mask: Any = None,
     dtype: torch.dtype = torch.float32,

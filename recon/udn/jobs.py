@@ -59,19 +59,13 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from recon.formats import (
-    FORMAT_VERSION,
-    FormatError,
-    atomic_write_bytes,
-    atomic_write_json,
-    file_hash,
-    provenance,
-)
+from recon.atomic import atomic_write_bytes, atomic_write_json
+from recon.formats import FORMAT_VERSION, FormatError, file_hash, provenance
 from recon.previews import preview_image
 from recon.previews import write_png as _write_png  # the shared writer (tests patch it)
 from recon.problem import Problem
 from recon.stepwise import StopReason
-from recon.udn.memory import check_memory, estimate_memory
+from recon.udn.memory import check_memory, estimate_udn_memory
 from recon.udn.rundir import (
     CHECKPOINT_FILE,
     CHECKPOINT_FORMAT,
@@ -126,7 +120,7 @@ _RESULT_KIND: dict[str, Literal["image", "video", "spectral", "depth"]] = {
     "2d": "image", "video": "video", "spectral": "spectral", "depth": "depth"}
 F32 = npt.NDArray[np.float32]
 Cancel = threading.Event | Callable[[], bool] | None
-Progress = Callable[[UDNStep], None] | None
+OnStep = Callable[[UDNStep], None] | None
 
 
 @dataclass(frozen=True)
@@ -354,7 +348,7 @@ def _spec_hash(spec: Mapping[str, Any]) -> str:
 class _Job:
     """One session of a job (a fresh run or a resume)."""
 
-    def __init__(self, run_dir: Path, record: dict[str, Any], progress: Progress,
+    def __init__(self, run_dir: Path, record: dict[str, Any], progress: OnStep,
                  cancel: Cancel, lock: RunLock | None = None) -> None:
         self.run_dir = run_dir
         self.record = record
@@ -452,7 +446,7 @@ class _Job:
         net = network_config(spec, model.k)
         cfg = udn_config(spec)
         limit = max_memory if max_memory is not None else spec["device"]["max_memory"]
-        est = estimate_memory(net, model.scene_shape, model.meas_shape, precision=cfg.precision)
+        est = estimate_udn_memory(net, model.scene_shape, model.meas_shape, precision=cfg.precision)
         self.record["memory"] = check_memory(est, net, model.scene_shape, device, limit,
                                              model.meas_shape)
         runner = UDNRunner(model, problem.meas, network=net, config=cfg)
@@ -732,7 +726,7 @@ def _start_notes(removed: list[str]) -> list[str]:
             f"{', '.join(removed)}"]
 
 
-def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: Progress = None,
+def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: OnStep = None,
             cancel: Cancel = None, max_memory: int | None = None,
             spec_text: str | None = None, seed: int | None = None) -> JobOutcome:
     """Run the job of ``spec_path`` into a new run folder ``run_dir``.
@@ -768,7 +762,7 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: Progress = 
         lock.release()
 
 
-def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: Progress, cancel: Cancel,
+def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: OnStep, cancel: Cancel,
                 max_memory: int | None, spec_text: str, seed: int | None) -> JobOutcome:
     removed = clean_temp_files(rd)
     copy = spec_text if seed is None else (
@@ -826,7 +820,7 @@ def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: Progress, cancel: C
 
 
 def resume_job(run_dir: str | Path, *, max_iter: int | None = None,
-               time_limit_s: float | None = None, progress: Progress = None,
+               time_limit_s: float | None = None, progress: OnStep = None,
                cancel: Cancel = None, max_memory: int | None = None, restart: bool = False,
                notice: Callable[[str], None] | None = None) -> JobOutcome:
     """Continue a run from its newest verified checkpoint.
@@ -851,7 +845,7 @@ def resume_job(run_dir: str | Path, *, max_iter: int | None = None,
 
 
 def _resume_locked(rd: Path, lock: RunLock, max_iter: int | None, time_limit_s: float | None,
-                   progress: Progress, cancel: Cancel, max_memory: int | None, restart: bool,
+                   progress: OnStep, cancel: Cancel, max_memory: int | None, restart: bool,
                    notice: Callable[[str], None] | None) -> JobOutcome:
     rec = read_record(rd)  # again, now that no other process writes it
     if rec.get("spec") is None:

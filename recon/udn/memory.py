@@ -34,7 +34,7 @@ __all__ = [
     "MemoryRefusal",
     "available_memory",
     "check_memory",
-    "estimate_memory",
+    "estimate_udn_memory",
     "format_bytes",
     "parse_bytes",
 ]
@@ -122,9 +122,9 @@ def _level_sizes(config: NetworkConfig, scene_shape: Sequence[int]) -> tuple[lis
     return sizes, out_ch, sizes[0]
 
 
-def estimate_memory(config: NetworkConfig, scene_shape: Sequence[int],
-                    meas_shape: Sequence[int] | None = None, *, precision: str = "float32",
-                    batch: int = 1) -> MemoryEstimate:
+def estimate_udn_memory(config: NetworkConfig, scene_shape: Sequence[int],
+                        meas_shape: Sequence[int] | None = None, *, precision: str = "float32",
+                        batch: int = 1) -> MemoryEstimate:
     """Estimate the bytes one training step of ``config`` on ``scene_shape`` needs.
 
     Args:
@@ -221,13 +221,13 @@ def check_memory(estimate: MemoryEstimate, config: NetworkConfig, scene_shape: S
         return info
     hints = []
     if not config.gradient_checkpointing:
-        with_ckpt = estimate_memory(
+        with_ckpt = estimate_udn_memory(
             NetworkConfig(**{**config.to_dict(), "gradient_checkpointing": True}),
             scene_shape, meas_shape, precision=estimate.precision)
         hints.append(f"enable gradient checkpointing (network.gradient_checkpointing = true: "
                      f"about {format_bytes(with_ckpt.total_bytes)})")
     half = NetworkConfig(**{**config.to_dict(), "channels": max(1, config.channels // 2)})
-    half_est = estimate_memory(half, scene_shape, meas_shape, precision=estimate.precision)
+    half_est = estimate_udn_memory(half, scene_shape, meas_shape, precision=estimate.precision)
     hints.append(f"use fewer channels (network.channels = {half.channels}: about "
                  f"{format_bytes(half_est.total_bytes)})")
     h, w = int(scene_shape[-2]), int(scene_shape[-1])

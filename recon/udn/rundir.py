@@ -33,14 +33,8 @@ from typing import Any
 
 import torch
 
-from recon.formats import (
-    FORMAT_VERSION,
-    FormatError,
-    _umask_mode,
-    atomic_write_json,
-    fsync_dir,
-    temp_files,
-)
+from recon.atomic import _umask_mode, atomic_write_json, fsync_dir, temp_files
+from recon.formats import FORMAT_VERSION, FormatError
 
 __all__ = [
     "CHECKPOINT_FILE",

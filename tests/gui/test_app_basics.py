@@ -140,7 +140,7 @@ def test_cursor_readout_auto_levels_and_image_menu(live_window: Any, qtbot: Any,
 
 
 def test_device_list_real_first_demo_only_on_request(monkeypatch: pytest.MonkeyPatch) -> None:
-    from app.gui import bench
+    from app.gui import devices
     from drivers import registry
 
     infos = [registry.CameraInfo("sim", "sim", "sim", demo=True),
@@ -148,9 +148,9 @@ def test_device_list_real_first_demo_only_on_request(monkeypatch: pytest.MonkeyP
              registry.CameraInfo("genicam:1", "genicam", "Hamamatsu [dcam.cti]"),
              registry.CameraInfo("v4l2:0", "v4l2", "/dev/video0 webcam")]
     monkeypatch.setattr(registry, "list_cameras", lambda **_k: infos)
-    specs = [c.spec for c in bench.list_camera_choices()]
+    specs = [c.spec for c in devices.list_camera_choices()]
     assert specs == ["genicam:1", "v4l2:0", "sim"]
-    specs = [c.spec for c in bench.list_camera_choices(show_demo=True)]
+    specs = [c.spec for c in devices.list_camera_choices(show_demo=True)]
     assert specs == ["genicam:1", "v4l2:0", "sim", "genicam:0"]
 
 
@@ -167,12 +167,12 @@ def test_producer_warnings_are_logged_once(caplog: pytest.LogCaptureFixture,
                                            capfd: pytest.CaptureFixture[str]) -> None:
     import os
 
-    from app.gui import bench
+    from app.gui import devices
 
     line = b"GenTL producer does not implement DSGetNumFlows (test)\n"
-    with caplog.at_level("WARNING", logger="app.gui.bench"):
+    with caplog.at_level("WARNING", logger="app.gui.devices"):
         for _ in range(3):
-            with bench._producer_output_logged_once():
+            with devices._producer_output_logged_once():
                 os.write(2, line)
                 os.write(2, b"another line\n")
     warned = [r for r in caplog.records if "DSGetNumFlows (test)" in r.getMessage()]

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import recon.memory as mem
-from recon.memory import ProblemTooLarge, check_fits, estimate_memory, estimate_model_memory
+from recon.memory import ProblemTooLarge, check_fits, estimate_model_memory, estimate_solver_memory
 from recon.models import build_model
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -32,9 +32,9 @@ def _rss() -> int:
 
 def test_4096_estimate_without_allocating():
     before, t0 = _rss(), time.perf_counter()
-    f32 = estimate_memory((4096, 4096))
-    f64 = estimate_memory((4096, 4096), dtype=torch.float64)
-    adm = estimate_memory((4096, 4096), method="admm")
+    f32 = estimate_solver_memory((4096, 4096))
+    f64 = estimate_solver_memory((4096, 4096), dtype=torch.float64)
+    adm = estimate_solver_memory((4096, 4096), method="admm")
     assert time.perf_counter() - t0 < 0.1 and _rss() - before < 16 * 2**20
     assert f32.pad == (8192, 8192) and f32.scene_shape == (1, 1, 4096, 4096)
     # 4096^2 float32 FISTA: ~16 scene-sized + ~10 padded-grid-sized buffers -> 3 to 7 GiB
@@ -47,7 +47,7 @@ def test_4096_estimate_without_allocating():
 
 
 def test_refusal_names_the_size_and_what_to_change():
-    est = estimate_memory((4096, 4096), field=(8192, 8192), dtype=torch.float64)
+    est = estimate_solver_memory((4096, 4096), field=(8192, 8192), dtype=torch.float64)
     with pytest.raises(ProblemTooLarge) as info:
         check_fits(est, available=2 * GiB)
     msg = str(info.value)
@@ -58,8 +58,8 @@ def test_refusal_names_the_size_and_what_to_change():
         assert hint in msg, hint
     assert info.value.estimate is est and info.value.available == 2 * GiB
     with pytest.raises(ProblemTooLarge, match="use FISTA"):
-        check_fits(estimate_memory((4096, 4096), method="admm"), GiB)
-    small = estimate_memory((8, 8))
+        check_fits(estimate_solver_memory((4096, 4096), method="admm"), GiB)
+    small = estimate_solver_memory((8, 8))
     assert check_fits(small, available=GiB) == GiB
 
 
@@ -112,7 +112,7 @@ def test_model_estimate_matches_the_shapes():
     with pytest.raises(ValueError, match="ADMM"):
         estimate_model_memory(d, method="admm")
     with pytest.raises(ValueError, match="bfloat16"):
-        estimate_memory((8, 8), dtype=torch.bfloat16)
+        estimate_solver_memory((8, 8), dtype=torch.bfloat16)
 
 
 _PEAK = r"""

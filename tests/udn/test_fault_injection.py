@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 import torch
 
-from recon.formats import is_temp_name
+from recon.atomic import is_temp_name
 from recon.io import read_reconstruction
 from recon.udn.jobs import load_checkpoint
 from recon.udn.rundir import RunLock, load_latest_checkpoint

@@ -8,7 +8,7 @@ import torch
 from recon.udn.memory import (
     MemoryRefusal,
     check_memory,
-    estimate_memory,
+    estimate_udn_memory,
     format_bytes,
     parse_bytes,
 )
@@ -37,29 +37,29 @@ def test_activation_estimate_matches_saved_tensors(variant, shape):
     cfg = NetworkConfig(variant=variant, scales=4, channels=16, skip_channels=4,
                         input_channels=8)
     measured = saved_activation_bytes(Generator(cfg, shape))
-    est = estimate_memory(cfg, shape)
+    est = estimate_udn_memory(cfg, shape)
     assert 0.9 * measured <= est.activation_bytes <= 1.6 * measured, (est.activation_bytes,
                                                                         measured)
     ck = NetworkConfig(**{**cfg.to_dict(), "gradient_checkpointing": True})
     measured_ck = saved_activation_bytes(Generator(ck, shape))
-    est_ck = estimate_memory(ck, shape)
+    est_ck = estimate_udn_memory(ck, shape)
     assert measured_ck < 0.6 * measured  # checkpointing keeps much less ...
     assert measured_ck <= est_ck.activation_bytes < est.activation_bytes  # ... and says so
 
 
 def test_estimate_scales_with_size_and_precision():
     cfg = NetworkConfig(scales=4, channels=16)
-    small = estimate_memory(cfg, (1, 1, 64, 64))
-    big = estimate_memory(cfg, (1, 1, 128, 128))
+    small = estimate_udn_memory(cfg, (1, 1, 64, 64))
+    big = estimate_udn_memory(cfg, (1, 1, 128, 128))
     assert 3.5 < big.activation_bytes / small.activation_bytes < 4.5
-    half = estimate_memory(cfg, (1, 1, 128, 128), precision="bf16")
+    half = estimate_udn_memory(cfg, (1, 1, 128, 128), precision="bf16")
     assert half.activation_bytes == pytest.approx(big.activation_bytes / 2, rel=0.01)
 
 
 def test_refusal_names_what_to_change():
     cfg = NetworkConfig(scales=5, channels=128)
     shape = (1, 16, 128, 128)
-    est = estimate_memory(NetworkConfig(variant="frames", scales=5, channels=128), shape)
+    est = estimate_udn_memory(NetworkConfig(variant="frames", scales=5, channels=128), shape)
     with pytest.raises(MemoryRefusal) as info:
         check_memory(est, NetworkConfig(variant="frames", scales=5, channels=128), shape,
                      "cpu", max_memory=parse_bytes("100MB"))
@@ -73,7 +73,7 @@ def test_refusal_names_what_to_change():
 
 def test_fits_when_under_the_limit():
     cfg = NetworkConfig(scales=3, channels=8)
-    est = estimate_memory(cfg, (1, 1, 32, 32))
+    est = estimate_udn_memory(cfg, (1, 1, 32, 32))
     info = check_memory(est, cfg, (1, 1, 32, 32), "cpu", max_memory=parse_bytes("1GB"))
     assert info["limit_bytes"] == 10**9
 

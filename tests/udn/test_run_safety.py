@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 
 from app.cli import main as cli_main
-from recon.formats import FormatError, atomic_write
+from recon.atomic import atomic_write
+from recon.formats import FormatError
 from recon.udn import jobs as jobs_mod
 from recon.udn import rundir
 from recon.udn.jobs import (

@@ -1,0 +1,171 @@
+"""Safe writes: every file the project writes goes through these functions.
+
+:func:`atomic_write` and :func:`atomic_open` write to a temporary file in the same folder,
+flush, fsync, then ``os.replace`` it onto the target, so a crash or a full disk leaves either the
+old file or the new one, never half of one. :func:`check_outputs` refuses, before anything is
+computed, writes that would overwrite an input or an existing file. What a saved file contains
+(format versions, provenance, hashes) is :mod:`recon.formats`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from pathlib import Path
+from typing import IO, Any
+
+from recon.formats import json_default
+
+__all__ = [
+    "atomic_open",
+    "atomic_write",
+    "atomic_write_bytes",
+    "atomic_write_json",
+    "check_outputs",
+    "fsync_dir",
+    "is_temp_name",
+    "temp_files",
+]
+
+
+def _umask_mode() -> int:
+    """Permissions a plain ``open()`` would give a new file (mkstemp makes them 0600)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[Any]]:
+    """Open a temporary file beside ``path``; on success it replaces ``path`` atomically.
+
+    On any exception the temporary file is removed and ``path`` is left untouched.
+    """
+    if "w" not in mode:
+        raise ValueError(f"atomic_open writes only, got mode {mode!r}")
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, mode) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, _umask_mode())
+        os.replace(tmp, target)
+    except BaseException as exc:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        _name_target(exc, target)
+        raise
+
+
+def is_temp_name(name: str) -> bool:
+    """Whether ``name`` is a temporary file of :func:`atomic_open` / :func:`atomic_write`.
+
+    Their names are ``.<target name>.<random>.tmp`` and ``.<target stem>.<random>.tmp<suffix>``;
+    one left behind means a process died while writing (the target is intact).
+    """
+    return name.startswith(".") and ".tmp" in name and len(name) > 5
+
+
+def temp_files(folder: str | os.PathLike[str]) -> list[Path]:
+    """Temporary files of interrupted atomic writes directly in ``folder`` (sorted)."""
+    d = Path(folder)
+    if not d.is_dir():
+        return []
+    return sorted(p for p in d.iterdir() if is_temp_name(p.name) and p.is_file())
+
+
+def fsync_dir(folder: str | os.PathLike[str]) -> None:
+    """Make renames in ``folder`` durable (a no-op where directories cannot be opened)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write(path: str | os.PathLike[str], writer: Callable[[Path], None]) -> Path:
+    """Call ``writer(tmp_path)`` to produce the file, then move it to ``path`` atomically.
+
+    Use this for libraries that want a filename (tifffile, Pillow, numpy, torch.save).
+    The temporary name keeps the target's suffix so format detection by extension works.
+    """
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(
+        prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}", dir=target.parent
+    )
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        writer(tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.chmod(tmp, _umask_mode())
+        os.replace(tmp, target)
+    except BaseException as exc:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        _name_target(exc, target)
+        raise
+    return target
+
+
+def _name_target(exc: BaseException, target: Path) -> None:
+    """Give an OSError raised by a write (``fh.write`` names no file) the file it was for."""
+    if (isinstance(exc, OSError) and exc.filename is None and exc.errno is not None
+            and exc.strerror):  # (an OSError built from a message alone would print badly)
+        exc.filename = str(target)
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically."""
+    with atomic_open(path, "wb") as fh:
+        fh.write(data)
+    return Path(path)
+
+
+def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
+    """Write ``obj`` as indented JSON atomically."""
+    text = json.dumps(obj, indent=2, sort_keys=False, default=json_default) + "\n"
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def check_outputs(
+    outputs: Iterable[str | os.PathLike[str]],
+    inputs: Mapping[str, str | os.PathLike[str] | None] | None = None,
+    *,
+    overwrite: bool = False,
+) -> None:
+    """Refuse, before anything is computed, writes that would lose data.
+
+    ``outputs`` are the files a command is about to write; ``inputs`` maps an input's name (the
+    option, e.g. ``--meas``) to its path (None: not given). An output that is the same file as
+    an input (same resolved path, or ``os.path.samefile`` for links) is always refused; an
+    output that exists already is refused unless ``overwrite``. Raises :class:`FileExistsError`
+    with a one-line message naming the file and what to do.
+    """
+    named = [(k, Path(v)) for k, v in (inputs or {}).items() if v is not None]
+    for out in (Path(o) for o in outputs):
+        for key, src in named:
+            same = out.resolve() == src.resolve()
+            if not same and out.exists() and src.exists():
+                with contextlib.suppress(OSError):
+                    same = os.path.samefile(out, src)
+            if same:
+                raise FileExistsError(
+                    f"refusing to write {out}: it is the input {key} of this command "
+                    "(choose another output name)")
+        if out.exists() and not overwrite:
+            raise FileExistsError(
+                f"{out} exists: pass --overwrite to replace it, or choose another output")
