@@ -158,17 +158,11 @@ def request_cancel(root: str | Path) -> str:
 
 def _alive(pid: Any, host: Any) -> bool | None:
     """Whether the process lives (None when it is on another host: unknown)."""
-    if not isinstance(pid, int):
+    from recon.udn.jobs import pid_alive
+
+    if not isinstance(pid, int) or host not in (None, platform.node()):
         return None
-    if host not in (None, platform.node()):
-        return None
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+    return pid_alive(pid)
 
 
 def batch_status(root: str | Path) -> dict[str, Any]:

@@ -12,11 +12,11 @@ Each job the app creates is a folder under the jobs folder::
         job.log          stdout and stderr of the job's processes
 
 The job runs in its own process (``python -m app jobs run job.toml --out run``), started in a
-new session, so closing the window (or the app crashing) leaves it running; its progress is read
-back from the run folder. :class:`JobQueue` starts queued jobs one at a time per device (a
-second job for a busy device waits), and :func:`discover_jobs` finds every job again after a
-restart: running, interrupted (process gone: resume continues from the last checkpoint),
-finished.
+new session by :func:`spawn_job_process`, so closing the window (or the app crashing) leaves it
+running; its progress is read back from the run folder. :class:`JobQueue` starts queued jobs
+one at a time per device (a second job for a busy device waits), and :func:`discover_jobs`
+finds every job again after a restart: running, interrupted (process gone: resume continues
+from the last checkpoint), finished.
 """
 
 from __future__ import annotations
@@ -29,10 +29,10 @@ import os
 import re
 import subprocess
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -52,6 +52,7 @@ __all__ = [
     "job_view",
     "read_loss",
     "resolve_device_name",
+    "spawn_job_process",
 ]
 
 APP_JOB_FILE = "app-job.json"
@@ -64,7 +65,11 @@ LOG = "job.log"
 #: Processes this app process started (pid -> Popen), reaped by :meth:`JobQueue.poll` so a
 #: finished child never lingers as a zombie that looks alive. Process-wide on purpose: a job
 #: started by a window that was closed is still this process's child.
-_CHILDREN: dict[int, subprocess.Popen[bytes]] = {}
+_CHILDREN: dict[int, Any] = {}
+
+#: Starts one job process: ``(lenslesscam arguments, working folder, environment, log file)``
+#: -> a handle with Popen's ``pid``, ``poll``, ``wait``, ``terminate`` and ``kill``.
+Spawner = Callable[[list[str], Path, dict[str, str], IO[bytes]], Any]
 
 
 def _now() -> str:
@@ -219,8 +224,19 @@ def _pid_alive(pid: int) -> bool:
     return pid_alive(pid)
 
 
-def _launch(folder: Path, action: str, max_iter: int | None = None) -> subprocess.Popen[bytes]:
-    """Start ``jobs run`` / ``jobs resume`` for ``folder`` in a new session (detached)."""
+def spawn_job_process(args: list[str], cwd: Path, env: dict[str, str],
+                      log: IO[bytes]) -> subprocess.Popen[bytes]:
+    """``python -m app ARGS`` in a new session (detached), its output appended to ``log``."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "app", *args],
+        stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, cwd=str(cwd),
+        env=env, start_new_session=True,
+    )
+
+
+def _launch(folder: Path, action: str, max_iter: int | None = None,
+            spawn: Spawner = spawn_job_process) -> Any:
+    """Start ``jobs run`` / ``jobs resume`` for ``folder`` through ``spawn``."""
     if action == "run":
         args = ["jobs", "run", str(folder / SPEC), "--out", str(folder / RUN_DIR), "--quiet"]
     else:
@@ -234,11 +250,7 @@ def _launch(folder: Path, action: str, max_iter: int | None = None) -> subproces
     with open(folder / LOG, "ab") as log:
         log.write(f"--- {_now()} {action}\n".encode())
         log.flush()
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "app", *args],
-            stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, cwd=str(folder),
-            env=env, start_new_session=True,
-        )
+        proc = spawn(args, folder, env, log)
     _CHILDREN[proc.pid] = proc
     return proc
 
@@ -466,10 +478,14 @@ def queue_resume(folder: str | Path, max_iter: int | None = None) -> None:
 
 
 class JobQueue:
-    """Starts queued jobs, one at a time per device, and reports every job's state."""
+    """Starts queued jobs, one at a time per device, and reports every job's state.
 
-    def __init__(self, jobs_dir: str | Path) -> None:
+    ``spawn`` starts a job's process (default :func:`spawn_job_process`).
+    """
+
+    def __init__(self, jobs_dir: str | Path, spawn: Spawner = spawn_job_process) -> None:
         self.jobs_dir = Path(jobs_dir)
+        self.spawn = spawn
 
     def poll(self) -> list[JobView]:
         """Reap finished children, start what may start, return every job's view."""
@@ -484,7 +500,7 @@ class JobQueue:
             entry = _read_json(v.folder / APP_JOB_FILE) or {}
             action = str(entry.get("action", "run"))
             try:
-                proc = _launch(v.folder, action, entry.get("max_iter"))
+                proc = _launch(v.folder, action, entry.get("max_iter"), self.spawn)
             except OSError as exc:
                 entry["state"] = AppJobState.FAILED_TO_START.value
                 entry["error"] = str(exc)

@@ -41,12 +41,14 @@ from app.gui.jobs_core import (
     AppJobState,
     JobQueue,
     JobView,
+    Spawner,
     cancel_job,
     combine_jobs,
     create_job,
     estimate_job_memory,
     queue_resume,
     read_loss,
+    spawn_job_process,
 )
 from app.gui.widgets import ComboBox, DoubleSpinBox, SpinBox, never_wider
 
@@ -316,11 +318,15 @@ class JobsPanel(QWidget):
         current: Callable[[], Measurement | None],
         parent: QWidget | None = None,
         poll_ms: int = 1000,
+        spawn: Spawner = spawn_job_process,
     ) -> None:
-        """``current()`` gives the measurement and PSF a new job starts from (None: none)."""
+        """``current()``: the measurement and PSF a new job starts from (None: none).
+
+        ``spawn`` starts a job's process (:class:`~app.gui.jobs_core.JobQueue`).
+        """
         super().__init__(parent)
         self._current = current
-        self.queue = JobQueue(jobs_dir)
+        self.queue = JobQueue(jobs_dir, spawn)
         self.views: list[JobView] = []
         self.result_dialog: ResultDialog | None = None
 

@@ -52,6 +52,7 @@ from app.gui.devices import (
     list_port_choices,
 )
 from app.gui.image_view import ImagePanel, configure_pyqtgraph
+from app.gui.jobs_core import Spawner, spawn_job_process
 from app.gui.jobs_panel import JobsPanel, Measurement
 from app.gui.panels import (
     CameraControls,
@@ -152,6 +153,7 @@ class MainWindow(QMainWindow):
         reconnect_interval_ms: time between reconnect attempts after a device is lost.
         light_check_interval_ms: time between checks of the point source.
         jobs_poll_ms: how often the jobs panel reads the jobs folder (and starts queued jobs).
+        job_spawn: starts a UDN job's process (:func:`app.gui.jobs_core.spawn_job_process`).
 
     """
 
@@ -171,6 +173,7 @@ class MainWindow(QMainWindow):
         reconnect_interval_ms: int = 1000,
         light_check_interval_ms: int = 2000,
         jobs_poll_ms: int = 1000,
+        job_spawn: Spawner = spawn_job_process,
     ) -> None:
         super().__init__()
         configure_pyqtgraph()
@@ -181,6 +184,7 @@ class MainWindow(QMainWindow):
         self.bench = bench or Bench(SimConfig(scene=self.settings.sim_scene))
         self.reconnect_interval_ms = int(reconnect_interval_ms)
         self._jobs_poll_ms = int(jobs_poll_ms)
+        self._job_spawn = job_spawn
 
         self.camera_queue = TaskQueue("camera", self)
         self.light_queue = TaskQueue("light", self)
@@ -351,7 +355,7 @@ class MainWindow(QMainWindow):
         if not self.settings.jobs_dir:
             self.settings.jobs_dir = str(default_jobs_dir())
         self.jobs_panel = JobsPanel(self.settings.jobs_dir, self.current_measurement, self,
-                                    poll_ms=self._jobs_poll_ms)
+                                    poll_ms=self._jobs_poll_ms, spawn=self._job_spawn)
         self.jobs_dock = self._dock("UDN jobs", "jobs-dock", self.jobs_panel)
         self.trade_panel = TradePanel(self.current_measurement, self.set_preview_tau, self)
         self.trade_dock = self._dock("Speed / accuracy trade", "trade-dock", self.trade_panel)

@@ -53,3 +53,18 @@ def test_base_shutter_refuses_a_timing_dict() -> None:
     t = SensorTiming(rows=12, line_time_us=1.0, exposure_lines=4)
     with pytest.raises(TypeError, match="sensor timing object"):
         base_shutter(None, t.to_dict(), 12)  # type: ignore[arg-type]
+
+
+def test_plan_cli_reports_a_bad_timing_file_in_one_line(tmp_path, capsys) -> None:
+    from app.cli import main
+
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "psf.npy", rng.random((12, 10)))
+    np.save(tmp_path / "meas.npy", rng.random((12, 10)))
+    (tmp_path / "timing.json").write_text('{"timing": {"rows": 12}}')  # no line time
+    code = main(["plan", "--psf", str(tmp_path / "psf.npy"), "--meas",
+                 str(tmp_path / "meas.npy"), "--timing", str(tmp_path / "timing.json"),
+                 "--no-probe"])
+    err = capsys.readouterr().err
+    assert code != 0
+    assert "timing.json: not a sensor timing" in err and "line_time_us" in err
