@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -13,6 +12,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+
+from tests.udn.jobrunner import ServerChild
 
 pytestmark = pytest.mark.gui
 
@@ -55,23 +56,25 @@ def _wait_for(cond: Callable[[], Any], timeout_s: float, what: str) -> Any:
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc")
-def test_sigterm_closes_the_app_and_stops_the_point_source_process(tmp_path: Path) -> None:
+def test_sigterm_closes_the_app_and_stops_the_point_source_process(tmp_path: Path,
+                                                                  job_server: Any) -> None:
+    # `lenslesscam app` in a real process, forked from the fork server (torch imported once)
     env = dict(os.environ, QT_QPA_PLATFORM="offscreen", OMP_NUM_THREADS="1",
                LENSLESSCAM_CONFIG_DIR=str(tmp_path / "config"),
                LENSLESSCAM_JOBS_DIR=str(tmp_path / "jobs"))
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "app", "app", "--camera", "sim", "--light-port", "sim",
-         "--reset-settings"],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+    pid, log = job_server.start(["app", "--camera", "sim", "--light-port", "sim",
+                                 "--reset-settings"], env, tmp_path / "app.log")
+    proc = ServerChild(job_server, pid)
     source: list[int] = []
     try:
         source = _wait_for(
             lambda: [c for c in _children(proc.pid) if "drivers.pointsource_sim" in _cmdline(c)]
             or proc.poll() is not None,
             60.0, "the simulated point-source process")
-        assert proc.poll() is None, proc.communicate()[0].decode(errors="replace")
+        assert proc.poll() is None, log.read_text(errors="replace")
         proc.send_signal(signal.SIGTERM)
-        out = proc.communicate(timeout=30)[0].decode(errors="replace")
+        proc.wait(timeout=30)
+        out = log.read_text(errors="replace")
         assert proc.returncode == 0, out
         assert "SIGTERM: closing the app" in out
         _wait_for(lambda: not any(_alive(p) for p in source), 10.0,
@@ -80,7 +83,7 @@ def test_sigterm_closes_the_app_and_stops_the_point_source_process(tmp_path: Pat
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.wait()
+            proc.wait(30)
         for p in source:
             if _alive(p):
                 os.kill(p, signal.SIGKILL)

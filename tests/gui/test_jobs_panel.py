@@ -12,6 +12,17 @@ import pytest
 pytestmark = pytest.mark.gui
 
 
+@pytest.fixture
+def jobs_window(make_window: Any, job_server: Any) -> Any:
+    """:func:`make_window` whose jobs start through the fork server (conftest's
+    ``job_server``): each job is a real process that does not import torch again."""
+
+    def make(*args: Any, **kwargs: Any) -> Any:
+        return make_window(*args, job_spawn=job_server.spawn, **kwargs)
+
+    return make
+
+
 @pytest.fixture(autouse=True)
 def _reap_jobs() -> Iterator[None]:
     """Terminate and reap every job process the test started (a test hook kept out of the
@@ -52,12 +63,12 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def test_job_survives_closing_the_window_and_is_found_again(make_window: Any,
+def test_job_survives_closing_the_window_and_is_found_again(jobs_window: Any,
                                                             qtbot: Any) -> None:
     from app.gui.settings import AppSettings
 
     # no point source, 10 frames/s: a smaller workload
-    w = make_window(AppSettings(connect_light=False, frame_rate_hz=10.0))
+    w = jobs_window(AppSettings(connect_light=False, frame_rate_hz=10.0))
     qtbot.waitUntil(lambda: w.frames_shown >= 2, timeout=20_000)
     dlg = w.jobs_panel.new_job_dialog()
     _tiny(dlg, 1_000_000)
@@ -70,7 +81,7 @@ def test_job_survives_closing_the_window_and_is_found_again(make_window: Any,
     w.close()
     assert _alive(pid)
 
-    w2 = make_window(autoconnect=False)  # the jobs panel needs no devices
+    w2 = jobs_window(autoconnect=False)  # the jobs panel needs no devices
     p2 = w2.jobs_panel
     qtbot.waitUntil(lambda: p2.views and p2.views[0].state == "running", timeout=10_000)
     it0 = p2.views[0].iteration
@@ -90,7 +101,7 @@ def test_job_survives_closing_the_window_and_is_found_again(make_window: Any,
     qtbot.waitUntil(lambda: p2.views[0].state == "finished", timeout=20_000)
 
 
-def test_jobs_from_the_gui_complete_open_and_combine(make_window: Any, qtbot: Any) -> None:
+def test_jobs_from_the_gui_complete_open_and_combine(jobs_window: Any, qtbot: Any) -> None:
     """Seeds 2 queues two tiny jobs (seeds 0, 1, one after another): each completes, its result
     opens with its metadata, and Combine averages them."""
     import numpy as np
@@ -98,7 +109,7 @@ def test_jobs_from_the_gui_complete_open_and_combine(make_window: Any, qtbot: An
     from app.gui.settings import AppSettings
     from recon.io import read_reconstruction
 
-    w = make_window(AppSettings(connect_light=False, frame_rate_hz=10.0))
+    w = jobs_window(AppSettings(connect_light=False, frame_rate_hz=10.0))
     qtbot.waitUntil(lambda: w.frames_shown >= 2, timeout=20_000)
     panel = w.jobs_panel
     dlg = panel.new_job_dialog()

@@ -8,7 +8,8 @@ Two ways to use it:
 - :class:`JobServer`: a long-lived process that imports torch and the app once, then forks a
   fresh child per command. A child is a real process (it can be SIGKILLed at any moment) that
   starts in milliseconds instead of the seconds an interpreter needs to import torch on a busy
-  machine.
+  machine. :meth:`JobServer.spawn` starts the GUI's job processes this way (the
+  ``spawn`` argument of :class:`app.gui.jobs_core.JobQueue`).
 
 Hooks (environment variables of the command):
 
@@ -138,6 +139,8 @@ def _serve() -> None:
                     os.dup2(fd, 1)
                     os.dup2(fd, 2)
                     os.environ.update(req.get("env") or {})
+                    if req.get("cwd"):
+                        os.chdir(req["cwd"])
                     signal.signal(signal.SIGTERM, signal.SIG_DFL)
                     rc = run_cli(req["argv"])
                 except SystemExit as exc:
@@ -155,6 +158,10 @@ def _serve() -> None:
         elif "wait" in req:
             _, status = os.waitpid(int(req["wait"]), 0)
             out.write(json.dumps({"rc": os.waitstatus_to_exitcode(status)}) + "\n")
+        elif "poll" in req:  # reap without blocking: rc None while the child runs
+            done, status = os.waitpid(int(req["poll"]), os.WNOHANG)
+            rc = os.waitstatus_to_exitcode(status) if done else None
+            out.write(json.dumps({"rc": rc}) + "\n")
         out.flush()
 
 
@@ -182,14 +189,30 @@ class JobServer:
         answer: dict[str, Any] = json.loads(self.proc.stdout.readline())
         return answer
 
-    def start(self, argv: list[str], env: dict[str, str] | None = None) -> tuple[int, Path]:
-        """Fork a child running ``lenslesscam ARGV``; its pid and its log (stdout + stderr)."""
+    def start(self, argv: list[str], env: dict[str, str] | None = None,
+              log: Path | None = None, cwd: Path | None = None) -> tuple[int, Path]:
+        """Fork a child running ``lenslesscam ARGV``; its pid and its log (stdout + stderr,
+        appended; default a new file in ``log_dir``)."""
         self.n += 1
-        log = self.log_dir / f"child_{self.n:03d}.log"
+        log = log or self.log_dir / f"child_{self.n:03d}.log"
         pid = int(self._ask({"argv": [str(a) for a in argv], "env": env or {},
-                             "log": str(log)})["pid"])
+                             "log": str(log), "cwd": str(cwd) if cwd else None})["pid"])
         self.pending.add(pid)
         return pid, log
+
+    def poll(self, pid: int) -> int | None:
+        """A child's exit code (reaped), or None while it runs."""
+        rc = self._ask({"poll": pid})["rc"]
+        if rc is not None:
+            self.pending.discard(pid)
+        return None if rc is None else int(rc)
+
+    def spawn(self, args: list[str], cwd: Path, env: dict[str, str],
+              log: Any) -> ServerChild:
+        """:data:`app.gui.jobs_core.Spawner`: ``lenslesscam ARGS`` in a forked child."""
+        log.flush()
+        pid, _ = self.start(args, env, Path(log.name), cwd)
+        return ServerChild(self, pid)
 
     def wait(self, pid: int, timeout: float = 120.0) -> int:
         """Reap a child: its exit code, or minus the signal that ended it."""
@@ -223,6 +246,40 @@ class JobServer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class ServerChild:
+    """A child of :class:`JobServer` with Popen's ``pid``/``poll``/``wait``/``terminate``/
+    ``kill``."""
+
+    def __init__(self, server: JobServer, pid: int) -> None:
+        self.server, self.pid = server, pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            self.returncode = self.server.poll(self.pid)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.poll() is None:
+            if deadline is not None and time.monotonic() > deadline:
+                raise subprocess.TimeoutExpired(f"child {self.pid}", timeout or 0.0)
+            time.sleep(0.05)
+        assert self.returncode is not None
+        return self.returncode
+
+    def send_signal(self, sig: int) -> None:
+        if self.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, sig)
+
+    def terminate(self) -> None:
+        self.send_signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
 
 
 if __name__ == "__main__":
