@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 from app.commands._common import ProgressBar
@@ -85,24 +86,60 @@ def load_problem(args: argparse.Namespace) -> Any:
 
 def run_fista(args: argparse.Namespace) -> int:
     """Run FISTA-TV and save the result with its metadata."""
-    import torch
-
     from recon.fista import Fista
-    from recon.io import reconstruction_paths, save_reconstruction
     from recon.tv import TV
 
     kind = {"2d": "image", "video": "video", "spectral": "spectral", "depth": "depth"}[args.model]
+
+    def make(model: Any, b: Any) -> tuple[Any, Any, int, dict[str, Any]]:
+        tv = TV(isotropic=args.tv == "iso", weight_k=args.tv_k if model.k > 1 else 0.0)
+        tau, iters, tau_meta = resolve_tau(args, model, b, tv)
+        solver = Fista(model.op, b, tau=tau, tv=tv, max_iter=iters, tol=args.tol,
+                       restart="none" if args.no_restart else "gradient",
+                       prox_iters=args.prox_iters)
+        return solver, tau, iters, tau_meta
+
+    return _solve_and_save(args, "fista-tv", kind, make)
+
+
+def run_admm(args: argparse.Namespace) -> int:
+    """Run ADMM-TV and save the result with its metadata (tau auto: chosen as for FISTA)."""
+    from recon.admm import Admm
+    from recon.tv import TV
+
+    if args.model != "2d":
+        raise ValueError(f"recon admm handles --model 2d (with or without --mask), not "
+                         f"{args.model}; use recon fista")
+
+    def make(model: Any, b: Any) -> tuple[Any, Any, int, dict[str, Any]]:
+        tv = TV(isotropic=args.tv == "iso")
+        # the held-out search runs FISTA (same objective, so the same tau); ADMM's iteration
+        # count is the limit unless given
+        tau, iters, tau_meta = resolve_tau(args, model, b, tv, tau_only=True)
+        solver = Admm(model, b, tau=tau, tv=tv, max_iter=iters, tol=args.tol, rho=args.rho)
+        return solver, tau, iters, tau_meta
+
+    return _solve_and_save(args, "admm-tv", "image", make)
+
+
+def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
+                    make: Callable[[Any, Any], tuple[Any, Any, int, dict[str, Any]]]) -> int:
+    """Load, solve and save: the one path of ``recon fista`` and ``recon admm``.
+
+    ``make(model, b)`` builds the solver and returns ``(solver, tau, iterations, tau_meta)``;
+    the run shows a progress bar, the result is saved with its metadata and a one-line JSON
+    summary is printed.
+    """
+    import torch
+
+    from recon.io import reconstruction_paths, save_reconstruction
+
     check_command_outputs(args, reconstruction_paths(args.out, kind))
     prob = load_problem(args)
-    model = prob.model
-    tv = TV(isotropic=args.tv == "iso", weight_k=args.tv_k if model.k > 1 else 0.0)
     dtype = torch.float64 if args.float64 else torch.float32
     b = torch.as_tensor(prob.meas, dtype=dtype)
-    tau, iters, tau_meta = resolve_tau(args, model, b, tv)
-    solver = Fista(model.op, b, tau=tau, tv=tv, max_iter=iters, tol=args.tol,
-                   restart="none" if args.no_restart else "gradient",
-                   prox_iters=args.prox_iters)
-    bar = ProgressBar(iters, "fista")
+    solver, tau, iters, tau_meta = make(prob.model, b)
+    bar = ProgressBar(iters, method.split("-")[0])
     t0 = time.perf_counter()
     last = None
     for step in solver.steps():
@@ -111,7 +148,7 @@ def run_fista(args: argparse.Namespace) -> int:
     bar.close()
     wall = time.perf_counter() - t0
     meta = {
-        "method": "fista-tv", "model": args.model, "parameters": solver.params,
+        "method": method, "model": args.model, "parameters": solver.params,
         "regularisation": tau_meta, "iterations": solver.iteration,
         "stop_reason": solver.reason.value if solver.reason else "max_iter",
         "wall_time_s": round(wall, 3),
@@ -121,54 +158,6 @@ def run_fista(args: argparse.Namespace) -> int:
         "preprocessing": {**prob.metadata, "rgb": args.rgb},
     }
     paths = save_reconstruction(args.out, solver.x.float().cpu().numpy(), meta, kind=kind)
-    summary = {"out": [str(p) for p in paths], "iterations": solver.iteration,
-               "tau": tau, "tau_rule": tau_meta["tau_rule"],
-               "stop_reason": meta["stop_reason"], "wall_time_s": meta["wall_time_s"],
-               "residual": last.residual if last else None}
-    print(json.dumps(summary), file=sys.stdout)
-    return 0
-
-
-def run_admm(args: argparse.Namespace) -> int:
-    """Run ADMM-TV and save the result with its metadata (tau auto: chosen as for FISTA)."""
-    import torch
-
-    from recon.admm import Admm
-    from recon.io import reconstruction_paths, save_reconstruction
-    from recon.tv import TV
-
-    if args.model != "2d":
-        raise ValueError(f"recon admm handles --model 2d (with or without --mask), not "
-                         f"{args.model}; use recon fista")
-    check_command_outputs(args, reconstruction_paths(args.out, "image"))
-    prob = load_problem(args)
-    model = prob.model
-    tv = TV(isotropic=args.tv == "iso")
-    dtype = torch.float64 if args.float64 else torch.float32
-    b = torch.as_tensor(prob.meas, dtype=dtype)
-    # the held-out search runs FISTA (same objective, so the same tau); ADMM's iteration
-    # count is the limit unless given
-    tau, iters, tau_meta = resolve_tau(args, model, b, tv, tau_only=True)
-    solver = Admm(model, b, tau=tau, tv=tv, max_iter=iters, tol=args.tol, rho=args.rho)
-    bar = ProgressBar(iters, "admm")
-    t0 = time.perf_counter()
-    last = None
-    for step in solver.steps():
-        last = step
-        bar.update(step.iteration, f"objective {step.objective:.4g}")
-    bar.close()
-    wall = time.perf_counter() - t0
-    meta = {
-        "method": "admm-tv", "model": args.model, "parameters": solver.params,
-        "regularisation": tau_meta, "iterations": solver.iteration,
-        "stop_reason": solver.reason.value if solver.reason else "max_iter",
-        "wall_time_s": round(wall, 3),
-        "final": {"objective": last.objective, "residual": last.residual} if last else None,
-        "inputs": {k: v["path"] for k, v in prob.inputs.items()},
-        "input_hashes": {k: v for k, v in prob.hashes.items() if v is not None},
-        "preprocessing": {**prob.metadata, "rgb": args.rgb},
-    }
-    paths = save_reconstruction(args.out, solver.x.float().cpu().numpy(), meta, kind="image")
     summary = {"out": [str(p) for p in paths], "iterations": solver.iteration,
                "tau": tau, "tau_rule": tau_meta["tau_rule"],
                "stop_reason": meta["stop_reason"], "wall_time_s": meta["wall_time_s"],
