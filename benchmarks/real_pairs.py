@@ -611,6 +611,7 @@ def run(args: argparse.Namespace) -> int:
         cmd = "lenslesscam bench real-pairs " + " ".join(sys.argv[3:] if sys.argv[1:3] == [
             "bench", "real-pairs"] else sys.argv[1:])
         n_udn = sum("udn" in r for r in rows)
+        others = " (the others: FISTA and ADMM only, `--no-udn`)" if n_udn < len(rows) else ""
         text = (
             "# Real pairs: UDN against FISTA-TV and ADMM-TV on real DiffuserCam data\n\n"
             "The four measurement / lensed-truth pairs of the DiffuserCam Lensless MirFlickr "
@@ -627,8 +628,7 @@ def run(args: argparse.Namespace) -> int:
             f"{rows[0]['settings'].get('wmv_window', 50)}), or its last; *blend*: "
             "w UDN + (1 - w) FISTA-auto, w in {0, 0.25, 0.5, 0.75, 1} chosen on the UDN's "
             "held-out pixels. Walls are single runs on a loaded machine (see the load).\n\n"
-            f"Cases with a UDN run: {n_udn} of {len(rows)} (the others: FISTA and ADMM only, "
-            "`--no-udn`, for want of CPU time in this session).\n\n"
+            f"Cases with a UDN run: {n_udn} of {len(rows)}{others}.\n\n"
             "How to read it, what was tried and the time to beat FISTA: "
             "[udn.md](udn.md#real-pairs).\n\n"
             "## Results\n\n"

@@ -918,7 +918,8 @@ class MainWindow(QMainWindow):
         self._preview_latency_ms.append(res.latency_s * 1000.0)
         self._last_preview_info = (f"{res.shape[1]}x{res.shape[0]} · {res.iterations} it/frame"
                                    f"{' (rate-limited)' if res.note else ''} · residual "
-                                   f"{res.residual:.3f}")
+                                   f"{res.residual:.3f}"
+                                   f"{' · ' + res.tau_note if res.tau_note else ''}")
         self.previews_shown += 1
         self.preview_shown.emit(res)
 

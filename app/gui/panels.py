@@ -366,6 +366,11 @@ class PreviewControls(QGroupBox):
         self.tau.setRange(0.0, 1.0)
         self.tau.setSingleStep(0.0005)
         self.tau.setKeyboardTracking(False)
+        self.tau_auto = QCheckBox("auto")
+        self.tau_auto.setToolTip(
+            "Choose tau from the frame itself (held-out pixels), again only when the scene, "
+            "the PSF or the geometry changes; the value in the box serves until then"
+        )
         self.iters = SpinBox()
         self.iters.setRange(1, 200)
         self.iters.setKeyboardTracking(False)
@@ -390,7 +395,10 @@ class PreviewControls(QGroupBox):
         form = QFormLayout(self)
         form.addRow(self.enabled)
         form.addRow("Model", self.model)
-        form.addRow("tau", self.tau)
+        tau_row = QHBoxLayout()
+        tau_row.addWidget(self.tau, 1)
+        tau_row.addWidget(self.tau_auto)
+        form.addRow("tau", tau_row)
         form.addRow("Iterations/frame", self.iters)
         form.addRow("Downsampling", self.downsample)
         form.addRow("Dark level", self.dark)
@@ -402,7 +410,7 @@ class PreviewControls(QGroupBox):
         form.addRow(self.psf_label)
         self.set_settings(PreviewSettings())
 
-        for sig in (self.model.currentIndexChanged, self.tau.valueChanged,
+        for sig in (self.model.currentIndexChanged, self.tau.valueChanged, self.tau_auto.toggled,
                     self.iters.valueChanged, self.downsample.valueChanged,
                     self.dark.valueChanged, self.bins.valueChanged):
             sig.connect(self._emit)
@@ -416,6 +424,7 @@ class PreviewControls(QGroupBox):
         return PreviewSettings(
             model=str(self.model.currentData()),
             tau=float(self.tau.value()),
+            tau_auto=self.tau_auto.isChecked(),
             iters_per_frame=int(self.iters.value()),
             downsample=int(self.downsample.value()),
             dark=None if dark < 0 else dark,
@@ -424,10 +433,12 @@ class PreviewControls(QGroupBox):
 
     def set_settings(self, s: PreviewSettings) -> None:
         """Show ``s`` without emitting."""
-        widgets = (self.model, self.tau, self.iters, self.downsample, self.dark, self.bins)
+        widgets = (self.model, self.tau, self.tau_auto, self.iters, self.downsample, self.dark,
+                   self.bins)
         blockers = [QSignalBlocker(w) for w in widgets]
         self.model.setCurrentIndex(max(0, self.model.findData(s.model)))
         self.tau.setValue(s.tau)
+        self.tau_auto.setChecked(s.tau_auto)
         self.iters.setValue(s.iters_per_frame)
         self.downsample.setValue(s.downsample)
         self.dark.setValue(-1.0 if s.dark is None else s.dark)

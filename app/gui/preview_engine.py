@@ -106,7 +106,7 @@ class PreviewSettings:
     video_bins: int = 4
     threads: int = 0
     target_fps: float = 15.0
-    tau_auto: bool = False
+    tau_auto: bool = True
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:

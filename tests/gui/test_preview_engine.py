@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 
 import numpy as np
@@ -123,3 +124,17 @@ def test_preview_loop_drops_stale_frames(psf: np.ndarray) -> None:
     assert st.processed == len(got) < 30
     assert st.dropped == 30 - st.processed
     assert [r.frame_id for r in got] == sorted(r.frame_id for r in got)
+
+
+def test_preview_controls_offer_tau_auto_on_by_default(qtbot) -> None:
+    """The preview's tau has an 'auto' setting (held-out pixels), on by default (issue 12)."""
+    from app.gui.panels import PreviewControls
+
+    controls = PreviewControls()
+    qtbot.addWidget(controls)
+    assert controls.tau_auto.isChecked() and controls.settings().tau_auto
+    with qtbot.waitSignal(controls.settings_changed) as sig:
+        controls.tau_auto.setChecked(False)
+    assert sig.args[0].tau_auto is False
+    controls.set_settings(dataclasses.replace(controls.settings(), tau_auto=True))
+    assert controls.tau_auto.isChecked()
