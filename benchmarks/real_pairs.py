@@ -643,7 +643,9 @@ def run(args: argparse.Namespace) -> int:
             f"(shared 2-core VM).\n\n"
             "Mean over the pairs:\n\n" + summary + "\n\nPSNR (dB) per case:\n\n" + cases +
             "\n\n" + fig + f"Produced by `{cmd}` (the runs appended to the results file; "
-            "this table and figure from all of them).\n"
+            "this table and figure from all of them). In one go: `lenslesscam bench "
+            f"real-pairs --downsample {s['downsample']} --udn-iters {s['udn_iters']} --out "
+            "docs/real-pairs.md --figure docs/img/real-pairs.png`.\n"
         )
         atomic_write_bytes(args.out, text.encode())
     print(f"total {time.perf_counter() - t_all:.0f} s", file=sys.stderr)

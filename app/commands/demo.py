@@ -12,7 +12,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from app.commands._options import NONNEG, POSITIVE_INT, add_overwrite_option, check_command_outputs
+from app.commands._options import add_overwrite_option, check_command_outputs
+from app.commands._tau import iters_type, resolve_tau, tau_type
 
 
 def register(sub: Any) -> None:
@@ -23,9 +24,11 @@ def register(sub: Any) -> None:
     p.add_argument("--out", default=None,
                    help="output folder (default: the user's data folder, "
                    "$XDG_DATA_HOME/lenslesscam/demo; printed on use)")
-    p.add_argument("--tau", type=NONNEG, default=None, help="TV weight (1e-3 hand, 3e-3 depth)")
-    p.add_argument("--iters", type=POSITIVE_INT, default=None,
-                   help="iterations (300 hand, 500 depth)")
+    p.add_argument("--tau", type=tau_type, default=None, metavar="TAU|auto",
+                   help="TV weight (hand: 'auto', chosen from held-out pixels as by recon "
+                   "fista; depth: 3e-3)")
+    p.add_argument("--iters", type=iters_type, default=None, metavar="N|auto",
+                   help="iterations (hand: 'auto'; depth: 500)")
     p.add_argument("--open", action="store_true", help="open the preview in an image viewer")
     add_overwrite_option(p)
     p.set_defaults(func=run)
@@ -121,18 +124,21 @@ def run_hand(args: argparse.Namespace) -> int:
     meas = samples.tutorial_measurement()
     model = build_model("2d", psf)
     t0 = time.perf_counter()
-    tau = 1e-3 if args.tau is None else args.tau
-    iters = 300 if args.iters is None else args.iters
-    solver = Fista(model.op, torch.as_tensor(meas), tau=tau, tv=TV(), max_iter=iters)
+    b = torch.as_tensor(meas)
+    tv = TV()
+    tau, iters, tau_meta = resolve_tau(args, model, b, tv)  # auto unless --tau/--iters given
+    solver = Fista(model.op, b, tau=tau, tv=tv, max_iter=iters)
     res = solver.run()
     wall = time.perf_counter() - t0
     meta = {"method": "fista-tv", "model": "2d", "parameters": solver.params,
-            "iterations": res.iterations, "stop_reason": res.reason.value,
+            "regularisation": tau_meta, "iterations": res.iterations,
+            "stop_reason": res.reason.value,
             "wall_time_s": round(wall, 3), "threads": _threads(args),
             "inputs": {"psf": "sample:tutorial_psf", "meas": "sample:tutorial_measurement"},
             "source": "DiffuserCam-Tutorial (Waller Lab, BSD-3-Clause), 1/8 scale"}
     paths = save_reconstruction(Path(args.out) / "hand.tif", res.x.numpy(), meta, kind="image")
     print(json.dumps({"out": [str(p) for p in paths], "iterations": res.iterations,
+                      "tau": tau, "tau_rule": tau_meta["tau_rule"],
                       "wall_time_s": round(wall, 2)}))
     _maybe_open(args, paths[1])
     return 0
