@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from typing import Any
+
 import pytest
 
 
@@ -25,3 +28,15 @@ def _one_torch_thread():
         os.environ.pop("OMP_NUM_THREADS", None)
     else:
         os.environ["OMP_NUM_THREADS"] = env_before
+
+
+@pytest.fixture(scope="session")
+def job_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+    """One fork server for the session (:class:`tests.udn.jobrunner.JobServer`): the job and
+    app processes tests start through it are real processes forked from one that imported
+    torch once, instead of new interpreters that each take seconds to import it on a busy
+    machine."""
+    from tests.udn.jobrunner import JobServer
+
+    with JobServer(tmp_path_factory.mktemp("job-server")) as server:
+        yield server

@@ -20,17 +20,6 @@ def _private_dirs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("LENSLESSCAM_JOBS_DIR", str(tmp_path / "jobs"))
 
 
-@pytest.fixture(scope="session")
-def job_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
-    """The fork server of the UDN tests (:class:`tests.udn.jobrunner.JobServer`): the job and
-    app processes these tests start are real processes forked from one that imported torch
-    once, instead of new interpreters that each take seconds to import it on a busy machine."""
-    from tests.udn.jobrunner import JobServer
-
-    with JobServer(tmp_path_factory.mktemp("job-server")) as server:
-        yield server
-
-
 @pytest.fixture
 def make_window(qtbot: Any, tmp_path: Path) -> Iterator[Any]:
     """Factory: a shown MainWindow on the simulated bench (closed at teardown)."""

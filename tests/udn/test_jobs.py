@@ -30,6 +30,7 @@ from recon.udn.memory import MemoryRefusal
 from recon.udn.runner import NumericalError
 from recon.udn.spec import SpecError
 from tests.udn.conftest import write_spec
+from tests.udn.jobrunner import STALL_ENV, ServerChild
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -249,10 +250,10 @@ def _env(**extra):
     return env
 
 
-def _wait_for(cond, proc, timeout=60.0):
+def _wait_for(cond, proc, timeout=60.0, log=None):
     t0 = time.monotonic()
     while not cond():
-        assert proc.poll() is None, proc.communicate()
+        assert proc.poll() is None, log.read_text() if log else proc.communicate()
         assert time.monotonic() - t0 < timeout, "timed out"
         time.sleep(0.02)
 
@@ -264,30 +265,28 @@ def _progress_iteration(out: Path) -> int:
         return 0
 
 
-def test_kill_and_resume_ends_with_identical_weights(tiny_data, tmp_path):
+def test_kill_and_resume_ends_with_identical_weights(tiny_data, tmp_path, job_server):
     """2N iterations in one go == N, SIGKILL (mid-interval), resume for the rest."""
     spec = write_spec(tiny_data, stopping={"max_iter": 40}, optimizer={"snapshot_every": 15},
                       output={"checkpoint_every": 20, "preview_every": 10})
     whole = run_job(spec, tmp_path / "whole")
     assert whole.iterations == 40
     out = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "tests.udn.jobrunner", "jobs", "run", str(spec), "--out",
-           str(out), "--quiet"]
-    # the job stalls after iteration 27 (checkpoint at 20, progress written at 27); the stall
-    # is a test hook of tests/udn/jobrunner.py
-    proc = subprocess.Popen(cmd, cwd=REPO, env=_env(LENSLESSCAM_TEST_STALL_AT="27"),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    # real processes forked by the fork server (tests/udn/jobrunner.py, torch imported once);
+    # the job stalls after iteration 27 (checkpoint at 20, progress written at 27): a test hook
+    # of the fork server's children
+    pid, log = job_server.start(["jobs", "run", spec, "--out", out, "--quiet"],
+                                {STALL_ENV: "27"}, tmp_path / "run.log")
+    proc = ServerChild(job_server, pid)
     try:
-        _wait_for(lambda: _progress_iteration(out) == 27, proc)
+        _wait_for(lambda: _progress_iteration(out) == 27, proc, log=log)
     finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.communicate()
-    assert proc.returncode == -signal.SIGKILL
+        proc.kill()
+    assert proc.wait(60) == -signal.SIGKILL
     assert record(out)["checkpoint"]["iteration"] == 20
     assert len((out / "loss.csv").read_text().splitlines()) == 28
-    res = subprocess.run([sys.executable, "-m", "app", "jobs", "resume", str(out), "--quiet"],
-                         cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
-    assert res.returncode == 0, res.stderr
+    pid, log = job_server.start(["jobs", "resume", out, "--quiet"], {}, tmp_path / "resume.log")
+    assert job_server.wait(pid) == 0, log.read_text(errors="replace")
     a = load_checkpoint(tmp_path / "whole" / "checkpoint.pt")["state"]
     b = load_checkpoint(out / "checkpoint.pt")["state"]
     assert a["iteration"] == b["iteration"] == 40

@@ -27,7 +27,8 @@ def test_video_demo_pipeline_runs_and_beats_a_constant_image():
     for name, sim in sims.items():
         floor = np.array(demo.constant_baseline(sim.truth))
         results = {"fista": fista["scenes"][name]}
-        for variant, iters in (("frames", 300), ("3d", 100)):  # the 3D net is ~4x slower
+        # the 3D net is ~4x slower; the smallest margin over the floor: 0.7 dB for both
+        for variant, iters in (("frames", 200), ("3d", 100)):
             args.iters = iters
             results[variant] = demo.run_udn(psf, shutter, sim, variant, args, input_channels=8)
         for method, r in results.items():
