@@ -12,7 +12,16 @@ import numpy as np
 import torch
 
 from recon.models import build_model
-from recon.operators import Compose, Conv2D, Crop, LinearOperator, Mask, StackConvSum, SumK
+from recon.operators import (
+    Compose,
+    Conv2D,
+    Crop,
+    Identity,
+    LinearOperator,
+    Mask,
+    StackConvSum,
+    SumK,
+)
 from recon.preprocess import downsample_rows
 
 __all__ = ["OPERATOR_FACTORIES", "make_operator"]
@@ -46,6 +55,7 @@ OPERATOR_FACTORIES: dict[str, Factory] = {
     "conv2d_stack": lambda dt: Conv2D(_rng().random((3, 6, 5)), (2, 3, 6, 5), dtype=dt),
     "stack_conv_sum": lambda dt: StackConvSum(_rng().random((3, 6, 5)), (1, 3, 6, 5), dtype=dt),
     "crop": lambda dt: Crop((2, 3, 9, 8), (4, 5), (2, 1), dtype=dt),
+    "identity": lambda dt: Identity((2, 3, 4, 5), dtype=dt),
     "mask": lambda dt: Mask(_rng().random((3, 1, 8)), (2, 3, 4, 8), dtype=dt),
     "sum_k": lambda dt: SumK((2, 3, 4, 5), dtype=dt),
     "compose": lambda dt: Compose([

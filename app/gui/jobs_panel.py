@@ -8,7 +8,6 @@ own processes, so closing the window leaves them running; a new window finds the
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,13 +68,6 @@ class Measurement:
     psf_source: str = ""
     psf_path: str = ""
     dark: float | None = None
-
-
-def _hms(s: float | None) -> str:
-    if s is None or not math.isfinite(s):
-        return "–"
-    n = round(s)
-    return f"{n // 3600:d}:{n % 3600 // 60:02d}:{n % 60:02d}"
 
 
 def _fmt_bytes(n: float | None) -> str:
@@ -416,13 +408,15 @@ class JobsPanel(QWidget):
         except Exception as exc:  # a broken folder must not break the window
             self.message.setText(f"jobs folder: {exc}")
             return
+        from recon.udn.jobs import format_hms
+
         keep = {v.folder for v in self.selected_all()}
         self.views = views
         self.table.setRowCount(len(views))
         for row, v in enumerate(views):
             state = (f"finished: {v.finish_reason}" if v.state is AppJobState.FINISHED
                      else v.state.value)
-            cells = (v.name, v.device, state, None, _hms(v.eta_s),
+            cells = (v.name, v.device, state, None, format_hms(v.eta_s),
                      f"{v.iteration}" + (f" / {v.max_iter}" if v.max_iter else ""),
                      "–" if v.loss is None else f"{v.loss:.4g}")
             for col, text in enumerate(cells):
@@ -492,7 +486,9 @@ class JobsPanel(QWidget):
         if mem is not None:
             lines.append(f"memory estimate: {_fmt_bytes(mem)}")
         if v.elapsed_s is not None:
-            lines.append(f"elapsed {_hms(v.elapsed_s)}, ETA {_hms(v.eta_s)}")
+            from recon.udn.jobs import format_hms
+
+            lines.append(f"elapsed {format_hms(v.elapsed_s)}, ETA {format_hms(v.eta_s)}")
         self.details.setText("\n".join(lines))
         its, loss, held = read_loss(v.folder)
         ok = np.isfinite(loss) & (loss > 0)

@@ -978,7 +978,8 @@ def job_status(run_dir: str | Path) -> JobStatus:
     )
 
 
-def _hms(s: float | None) -> str:
+def format_hms(s: float | None) -> str:
+    """Seconds as ``H:MM:SS`` (``-`` when unknown); job status in the CLI and the GUI."""
     if s is None or not math.isfinite(s):
         return "-"
     n = round(s)
@@ -1007,7 +1008,7 @@ def format_status(st: JobStatus) -> str:
         f"iteration:  {st.iteration}{of}",
         f"loss:       {_num(st.loss)}   held-out: {_num(st.heldout)}   best at iteration "
         f"{st.best_iteration if st.best_iteration is not None else '-'}",
-        f"elapsed:    {_hms(st.elapsed_s)}   ETA: {_hms(st.eta_s)}",
+        f"elapsed:    {format_hms(st.elapsed_s)}   ETA: {format_hms(st.eta_s)}",
         f"device:     {st.device or '-'}",
         f"checkpoint: {'-' if st.checkpoint_iteration is None else st.checkpoint_iteration}",
         f"preview:    {st.last_preview or '-'}",
