@@ -19,7 +19,7 @@ import os
 import shutil
 import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -43,6 +43,17 @@ __all__ = [
 ]
 
 _log = logging.getLogger(__name__)
+
+
+def best_effort(what: str, fn: Callable[[], object]) -> None:
+    """Run a device call whose failure must not stop the caller; log the reason if it fails.
+
+    For closing or stopping a device that may be gone already: never swallowed silently.
+    """
+    try:
+        fn()
+    except Exception as exc:  # any backend's error: the caller goes on, the log says why
+        _log.warning("%s failed: %s", what, exc)
 
 #: Camera spec of the simulated camera.
 SIM_CAMERA = "sim"
@@ -314,14 +325,12 @@ class Bench:
         cam = self.camera
         if cam is None:
             raise RuntimeError("no camera to reconnect")
-        with contextlib.suppress(Exception):
-            cam.close()
+        best_effort(f"closing {cam.describe()} before reconnecting", cam.close)
         cam.open()
         try:
             cam.snap(timeout_s=check_timeout_s)
         except BaseException:
-            with contextlib.suppress(Exception):
-                cam.close()
+            best_effort(f"closing {cam.describe()} after a failed check", cam.close)
             raise
         return cam
 
@@ -383,11 +392,9 @@ class Bench:
         """Switch the source off where possible, close it, stop a simulator."""
         light, self.light, self.light_port = self.light, None, None
         if light is not None:
-            with contextlib.suppress(Exception):
-                if light.is_open:
-                    light.off()
-            with contextlib.suppress(Exception):
-                light.close()
+            if light.is_open:
+                best_effort("switching the point source off", light.off)
+            best_effort("closing the point source", light.close)
         self._stop_sim_source()
 
     # -- lifetime ------------------------------------------------------------------------------

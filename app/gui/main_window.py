@@ -48,6 +48,7 @@ from app.gui.devices import (
     CameraChoice,
     PortChoice,
     SimConfig,
+    best_effort,
     list_camera_choices,
     list_port_choices,
 )
@@ -761,8 +762,7 @@ class MainWindow(QMainWindow):
             cam = bench.camera
             if cam is None:
                 raise RuntimeError("no camera")
-            with contextlib.suppress(Exception):
-                cam.stop()
+            best_effort(f"stopping {cam.describe()} before reconnecting", cam.stop)
             bench.reconnect_camera(check_timeout_s=min(2.0, self.reconnect_interval_ms / 1000))
             cam.start_live()
             return _read_camera(cam)
@@ -1000,8 +1000,7 @@ class MainWindow(QMainWindow):
                 if hide:
                     cam.scene = scene
                 if was_live:
-                    with contextlib.suppress(Exception):
-                        cam.start_live()
+                    best_effort(f"restarting live view on {cam.describe()}", cam.start_live)
 
         def resume() -> None:
             if self.camera_state is CameraState.CALIBRATING:
