@@ -27,9 +27,11 @@ drives it directly. Nothing here imports Qt.
 
 from __future__ import annotations
 
+import atexit
 import math
 import threading
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -59,6 +61,16 @@ F32 = npt.NDArray[np.float32]
 AUTO_RETUNE = 0.25
 #: iteration limit of the preview's tau search (a few seconds at 256^2 on one core)
 AUTO_ITERS = 100
+
+#: Engines whose tau auto estimate may still run: stopped at interpreter exit, since a daemon
+#: thread still inside torch when Python finalises aborts the process.
+_LIVE_ENGINES: weakref.WeakSet[Any] = weakref.WeakSet()
+
+
+@atexit.register
+def _stop_auto_estimates() -> None:
+    for engine in list(_LIVE_ENGINES):
+        engine.stop_auto(timeout_s=30.0)
 
 #: Preview models the engine knows.
 MODELS: tuple[str, ...] = ("2d", "video")
@@ -218,6 +230,7 @@ class PreviewEngine:
         # tau auto: model recipe for the estimating thread, its result and what it was for
         self._build_args: tuple[str, dict[str, Any]] | None = None
         self._auto_thread: threading.Thread | None = None
+        _LIVE_ENGINES.add(self)
         self._auto_gen = 0
         self._auto_tau: float | None = None
         self._auto_ref: F32 | None = None
