@@ -26,32 +26,33 @@ def register(sub: Any) -> None:
     p = sub.add_parser("recon", help="reconstruct a measurement (FISTA-TV or UDN)")
     methods = p.add_subparsers(dest="method", metavar="METHOD", required=True)
     f = methods.add_parser("fista", help="FISTA with total variation and non-negativity")
-    add_input_arguments(f)
-    add_tau_arguments(f)
-    f.add_argument("--tol", type=NONNEG, default=1e-5, help="stop on relative change (1e-5)")
-    f.add_argument("--tv", choices=["iso", "aniso"], default="iso", help="2D TV form")
+    _add_tv_solver_arguments(f)
     f.add_argument("--tv-k", type=NONNEG, default=0.5,
                    help="weight of TV along k for video/spectral/depth (default 0.5)")
     f.add_argument("--prox-iters", type=POSITIVE_INT, default=3, help="inner TV prox iterations")
-    f.add_argument("--no-restart", action="store_true", help="disable adaptive restart")
-    f.add_argument("--out", required=True, help="output TIFF (previews are written beside it)")
-    add_overwrite_option(f)
+    f.add_argument("--no-restart", action="store_true",
+                   help="disable the gradient restart of the momentum")
     f.set_defaults(func=run_fista)
     a = methods.add_parser("admm", help="ADMM-TV (2d model, with or without a mask)")
-    add_input_arguments(a)
-    add_tau_arguments(a)
-    a.add_argument("--tol", type=NONNEG, default=1e-5, help="stop on relative change (1e-5)")
-    a.add_argument("--tv", choices=["iso", "aniso"], default="iso", help="2D TV form")
+    _add_tv_solver_arguments(a)
     a.add_argument("--rho", type=POSITIVE, default=0.01,
                    help="ADMM penalty relative to max|H|^2 (default 0.01)")
-    a.add_argument("--out", required=True, help="output TIFF (previews are written beside it)")
-    add_overwrite_option(a)
     a.set_defaults(func=run_admm)
     from app.commands.plan import register_auto
     from app.commands.recon_udn import register_udn
 
     register_udn(methods)
     register_auto(methods)
+
+
+def _add_tv_solver_arguments(p: argparse.ArgumentParser) -> None:
+    """Inputs, tau/iterations, tolerance, TV form and output: shared by fista and admm."""
+    add_input_arguments(p)
+    add_tau_arguments(p)
+    p.add_argument("--tol", type=NONNEG, default=1e-5, help="stop on relative change (1e-5)")
+    p.add_argument("--tv", choices=["iso", "aniso"], default="iso", help="2D TV form")
+    p.add_argument("--out", required=True, help="output TIFF (previews are written beside it)")
+    add_overwrite_option(p)
 
 
 def add_input_arguments(p: argparse.ArgumentParser) -> None:
