@@ -74,7 +74,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     saved_show = warnings.showwarning
     warnings.showwarning = _show_warning
     try:
-        if args.command not in NO_TORCH_COMMANDS or args.global_threads is not None:
+        needs_torch = args.command not in NO_TORCH_COMMANDS and not getattr(args, "no_torch", False)
+        if needs_torch or args.global_threads is not None:
             from recon.threads import apply_threads
 
             # an OMP_NUM_THREADS that is not a number is a one-line error too

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from app.batch.manifest import Item, option_names, parse_recon_args
-from app.batch.state import BatchPaths
+from app.batch.state import BatchPaths, now_utc
 
 __all__ = ["build_udn_spec", "run_item"]
 
@@ -66,11 +66,6 @@ def build_udn_spec(item: Item, threads: int | None = None) -> tuple[dict[str, An
     normalise_spec(spec, base, source=item.spec or "udn item")
     return spec, base
 
-
-def _now() -> str:
-    import datetime as _dt
-
-    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
 def _attempt(marker: Path) -> int:
@@ -183,12 +178,12 @@ def run_item(item: Item, out_dir: str, item_hash: str, hashes: dict[str, str | N
     marker = paths.running(item.id)
     attempt = _attempt(marker)
     atomic_write_json(marker, {"id": item.id, "pid": os.getpid(), "host": platform.node(),
-                               "attempt": attempt, "started_utc": _now()})
+                               "attempt": attempt, "started_utc": now_utc()})
     rec: dict[str, Any] = {
         "format": ITEM_FORMAT, "format_version": FORMAT_VERSION, "id": item.id,
         "method": item.method, "item_hash": item_hash, "input_hashes": hashes,
         "item": item.to_dict(), "attempt": attempt, "pid": os.getpid(),
-        "host": platform.node(), "threads": threads.threads, "started_utc": _now(),
+        "host": platform.node(), "threads": threads.threads, "started_utc": now_utc(),
     }
     t0 = time.perf_counter()
     try:
@@ -220,7 +215,7 @@ def run_item(item: Item, out_dir: str, item_hash: str, hashes: dict[str, str | N
     except (ValueError, FileNotFoundError) as exc:  # bad input: a retry cannot help
         rec.update(status="failed", error=f"{type(exc).__name__}: {exc}")
     rec["time_s"] = round(time.perf_counter() - t0, 3)
-    rec["finished_utc"] = _now()
+    rec["finished_utc"] = now_utc()
     rec["provenance"] = provenance()
     atomic_write_json(paths.record(item.id), rec)
     marker.unlink(missing_ok=True)

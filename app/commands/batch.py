@@ -44,10 +44,10 @@ def register(sub: Any) -> None:
     s = acts.add_parser("status", help="state of a batch folder (running here or elsewhere)")
     s.add_argument("dir", help="batch folder")
     s.add_argument("--json", action="store_true", help="print JSON")
-    s.set_defaults(func=status_cmd)
+    s.set_defaults(func=status_cmd, no_torch=True)
     c = acts.add_parser("cancel", help="stop a running batch cleanly (results written stay)")
     c.add_argument("dir", help="batch folder")
-    c.set_defaults(func=cancel_cmd)
+    c.set_defaults(func=cancel_cmd, no_torch=True)
 
 
 def run_batch_cmd(args: argparse.Namespace) -> int:

@@ -105,7 +105,9 @@ def build_spec(args: argparse.Namespace) -> dict[str, Any]:
         "output": {"checkpoint_every": args.checkpoint_every,
                    "preview_every": args.preview_every},
     }
-    return spec
+    # options not given are left out (the spec's defaults apply), for every caller: recon udn
+    # and batch udn items alike
+    return {sec: {k: v for k, v in keys.items() if v is not None} for sec, keys in spec.items()}
 
 
 def run_udn(args: argparse.Namespace) -> int:
@@ -115,8 +117,7 @@ def run_udn(args: argparse.Namespace) -> int:
     from recon.udn.spec import normalise_spec, spec_to_toml
 
     spec = build_spec(args)
-    clean = {sec: {k: v for k, v in keys.items() if v is not None} for sec, keys in spec.items()}
-    normalise_spec(clean, Path.cwd(), source="command line")  # fail early, before any file
+    normalise_spec(spec, Path.cwd(), source="command line")  # fail early, before any file
     text = spec_to_toml(spec)  # written once, as RUN_DIR/job.toml (or --write-spec)
     if args.write_spec:
         check_command_outputs(args, [args.write_spec])

@@ -138,3 +138,15 @@ def test_cli_bad_manifest_is_one_line(data: Path, capsys: pytest.CaptureFixture[
     rc = main(["batch", "status", str(data)])
     assert rc == 2
     assert "not a batch folder" in capsys.readouterr().err
+
+
+def test_udn_item_without_a_spec_gets_the_recon_udn_spec(data: Path) -> None:
+    """A ``udn`` row with only the simplest columns builds the spec ``recon udn`` would (the
+    options not given take the spec's defaults; they used to arrive as None and fail)."""
+    from app.batch.task import build_udn_spec
+
+    (data / "m.csv").write_text("measurement,psf,method,iters\nmeas/m00.npy,psf.npy,udn,7\n")
+    (item,) = read_manifest(data / "m.csv")
+    spec, _ = build_udn_spec(item, threads=1)
+    assert spec["stopping"]["max_iter"] == 7 and spec["device"]["threads"] == 1
+    assert "time_limit_s" not in spec["stopping"]  # not given: the spec's default applies
