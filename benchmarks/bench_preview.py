@@ -24,6 +24,7 @@ the preview keeps updating with fewer iterations instead of freezing.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import statistics
 import subprocess
@@ -39,6 +40,7 @@ from app.commands._options import NONNEG, POSITIVE, POSITIVE_INT
 TARGET_RATE = 15.0
 TARGET_LATENCY_MS = 150.0
 SIZE = 256
+AUTO_WAIT_S = 60.0  # the longest wait for the one-off tau auto estimate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -87,26 +89,40 @@ def measure_camera(cam: Any, psf: Any, settings: Any, seconds: float,
     lock = threading.Lock()
     measuring = threading.Event()
 
+    estimated = threading.Event()
+    if not settings.tau_auto:
+        estimated.set()
+
     def on_result(r: PreviewResult) -> None:
+        if r.tau_note and not r.tau_note.startswith("tau auto: estimating"):
+            estimated.set()
         if measuring.is_set():
             with lock:
                 results.append(r)
 
-    loop = PreviewLoop(PreviewEngine(psf, settings), on_result)
+    engine = PreviewEngine(psf, settings)
+    loop = PreviewLoop(engine, on_result)
     frames = 0
+    estimate_s = float("nan")
     cam.start_live()
     try:
         t_start = time.monotonic()
         t_measure = t_start + warmup
-        t_end = t_measure + seconds
+        t_end = math.inf
         stats0 = None
         while True:
             now = time.monotonic()
             if now >= t_end:
                 break
-            if stats0 is None and now >= t_measure:
+            # the steady state: after the warm-up and after the one-off tau auto estimate
+            # (made again only when the scene, PSF or geometry changes), at most 60 s on
+            if stats0 is None and now >= t_measure and (
+                    estimated.is_set() or now >= t_measure + AUTO_WAIT_S):
+                if settings.tau_auto and estimated.is_set():
+                    estimate_s = now - t_start
                 stats0 = (cam.stream_stats(), loop.stats())
                 measuring.set()
+                t_end = now + seconds
             f = cam.latest_frame(timeout_s=0.1)
             if f is not None:
                 loop.submit_frame(f)
@@ -132,6 +148,7 @@ def measure_camera(cam: Any, psf: Any, settings: Any, seconds: float,
         "stale_dropped": stats1[1].dropped - stats0[1].dropped,
         "camera_dropped": stats1[0].dropped - stats0[0].dropped,
         "previews": len(results),
+        "estimate_s": estimate_s,
     }
 
 
@@ -142,6 +159,7 @@ def measure_saturated(frames: list[Any], psf: Any, settings: Any, seconds: float
     eng = PreviewEngine(psf, settings)
     for f in frames[:3]:
         eng.process(f)
+    eng.wait_auto(AUTO_WAIT_S)  # the steady state, as in measure_camera
     n = 0
     comp: list[float] = []
     t0 = time.perf_counter()
@@ -212,15 +230,15 @@ def run(args: argparse.Namespace) -> int:
           f"{TARGET_LATENCY_MS:g} ms")
     print("| busy procs | load | preview size | it/frame (max) | it/frame run (median) | "
           "cut previews | camera fps | previews/s | latency median (ms) | latency p95 (ms) | "
-          "compute (ms) | stale dropped | saturated previews/s | goal |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "compute (ms) | stale dropped | saturated previews/s | tau auto estimate (s) | goal |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['busy']} | {r['load']:.1f} | {r['preview_size']} | {r['iters_per_frame']} | "
               f"{r['iters_median']:g} | {100 * r['reduced_frac']:.0f} % | "
               f"{r['camera_fps']:.1f} | "
               f"{r['previews_per_s']:.1f} | {r['latency_ms_median']:.0f} | "
               f"{r['latency_ms_p95']:.0f} | {r['compute_ms_median']:.1f} | "
-              f"{r['stale_dropped']} | {r['saturated_per_s']:.1f} | "
+              f"{r['stale_dropped']} | {r['saturated_per_s']:.1f} | {r['estimate_s']:.1f} | "
               f"{'met' if r['meets_target'] else 'missed'} |")
     ok = [r for r in rows if r["meets_target"] and r["busy"] == 0]
     # the recommendation keeps a 20% margin (the app also draws, and the camera renders)

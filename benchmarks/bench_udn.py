@@ -51,6 +51,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=NONNEG_INT, default=0, help="torch threads (0: torch default)")
     p.add_argument("--grad-checkpoint", action="store_true", help="gradient checkpointing")
     p.add_argument("--json", help="also write the rows as JSON here")
+    p.add_argument("--ratio", action="store_true",
+                   help="bf16 / float32 step-time ratio instead of the matrix: both runners in "
+                   "one process, steps interleaved over --rounds rounds, median and p25-p75, "
+                   "and where the time goes (a torch.profiler breakdown by kind of op)")
+    p.add_argument("--rounds", type=POSITIVE_INT, default=9, help="rounds of --ratio (9)")
     p.add_argument("--case-json", help=argparse.SUPPRESS)  # internal: run one case, print JSON
 
 
@@ -188,8 +193,112 @@ def _fmt_bytes(n: float | None) -> str:
     return f"{n / 2**20:.0f} MiB"
 
 
+#: kinds of op in the profile breakdown of ``--ratio`` (first match of the op name wins)
+OP_KINDS = (
+    ("convolution (forward and backward)", ("conv",)),
+    ("FFT (forward model, float32)", ("fft",)),
+    ("normalisation", ("norm",)),
+    ("dtype casts and copies (autocast)", ("_to_copy", "copy_", "to", "clone", "contiguous")),
+    ("activations", ("relu", "sigmoid", "tanh", "elu")),
+    ("resampling", ("upsample", "pool", "interpolate", "pad")),
+    ("optimizer", ("adam", "_foreach", "addcdiv", "lerp", "sqrt")),
+)
+
+
+def _kind(name: str) -> str:
+    n = name.lower().removeprefix("aten::")
+    for kind, keys in OP_KINDS:
+        if any(k in n for k in keys):
+            return kind
+    return "other"
+
+
+def _profile_step(runner: Any) -> dict[str, float]:
+    """Self CPU time (s) of one step by kind of op."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        runner.step()
+    out: dict[str, float] = {}
+    for ev in prof.key_averages():
+        if not ev.key.startswith("aten::"):
+            continue
+        out[_kind(ev.key)] = out.get(_kind(ev.key), 0.0) + ev.self_cpu_time_total / 1e6
+    return out
+
+
+def run_ratio(args: argparse.Namespace) -> int:
+    """bf16 / float32 per-step time, interleaved in one process, and where the time goes."""
+    import statistics
+
+    import torch
+
+    from recon.threads import apply_threads
+    from recon.udn.network import NetworkConfig
+    from recon.udn.runner import UDNConfig, UDNRunner, resolve_device
+
+    choice = apply_threads(args.threads)
+    device = resolve_device(args.device)
+    if device.type != "cpu":
+        print("--ratio times CPU steps (thread CPU time); use the matrix on a GPU",
+              file=sys.stderr)
+        return 2
+    one_thread = torch.get_num_threads() == 1
+    clock = time.thread_time if one_thread else time.perf_counter
+    load0 = os.getloadavg()[0]
+    for name in args.cases:
+        case = CASES[name]
+        model, b = _problem(case, device)
+        net = NetworkConfig(variant=case["variant"], scales=args.scales, channels=args.channels)
+        variants = {"float32": ("float32", False), "float32 channels-last": ("float32", True),
+                    "bf16": ("bf16", False), "bf16 channels-last": ("bf16", True)}
+        runners = {v: UDNRunner(model, b, network=net,
+                                config=UDNConfig(precision=p, channels_last=cl, max_iter=10**9,
+                                                 holdout=0.05, gain=1.0, seed=0))
+                   for v, (p, cl) in variants.items()}
+        for r in runners.values():
+            for _ in range(max(1, args.warmup)):
+                r.step()
+        times: dict[str, list[float]] = {v: [] for v in variants}
+        names = list(variants)
+        for k in range(args.rounds):
+            for v in names[k % len(names):] + names[:k % len(names)]:  # rotate the order
+                t = clock()
+                runners[v].step()
+                times[v].append(clock() - t)
+        print(f"\n{name}: {args.scales} scales x {args.channels} channels; {choice.reason}; "
+              f"clock: {'CPU time of the one torch thread' if one_thread else 'wall'}; "
+              f"load {load0:.2f} -> {os.getloadavg()[0]:.2f}; {args.rounds} interleaved rounds")
+        print("| network | step (ms, median) | / float32 (median of rounds) | p25-p75 |")
+        print("|---|---|---|---|")
+        for v in names:
+            ratios = sorted(a / f for a, f in zip(times[v], times["float32"], strict=True))
+            q = statistics.quantiles(ratios, n=4) if len(ratios) > 1 else [ratios[0]] * 3
+            print(f"| {v} | {1e3 * statistics.median(times[v]):.0f} | "
+                  f"**{statistics.median(ratios):.2f}** | {q[0]:.2f}-{q[2]:.2f} |")
+        best = min(names[1:], key=lambda v: statistics.median(times[v]))
+        prof = {"float32": _profile_step(runners["float32"]), "bf16": _profile_step(runners[best])}
+        print(f"\n(profile: float32 against {best})")
+        kinds = sorted(set(prof["float32"]) | set(prof["bf16"]),
+                       key=lambda k: -prof["float32"].get(k, 0.0))
+        tot = {p: sum(v.values()) for p, v in prof.items()}
+        print("\nWhere one step's time goes (torch.profiler, self CPU time of aten ops):\n")
+        print("| kind of op | float32 (ms) | share | bf16 (ms) | share | bf16 / float32 |")
+        print("|---|---|---|---|---|---|")
+        for kd in kinds:
+            a, c = prof["float32"].get(kd, 0.0), prof["bf16"].get(kd, 0.0)
+            print(f"| {kd} | {1e3 * a:.0f} | {100 * a / tot['float32']:.0f} % | "
+                  f"{1e3 * c:.0f} | {100 * c / tot['bf16']:.0f} % | "
+                  f"{(c / a) if a > 0 else float('nan'):.2f} |")
+        print(f"| total | {1e3 * tot['float32']:.0f} | 100 % | {1e3 * tot['bf16']:.0f} | "
+              f"100 % | {tot['bf16'] / tot['float32']:.2f} |")
+    return 0
+
+
 def run_udn_benchmark(args: argparse.Namespace) -> int:
     """Run the benchmark matrix and print the table."""
+    if args.ratio and not args.case_json:
+        return run_ratio(args)
     if args.case_json:
         spec = json.loads(args.case_json)
         row = run_one(spec["case"], spec["precision"], spec["compile"], args)

@@ -182,37 +182,23 @@ def _make(args: argparse.Namespace, inputs: dict[str, Any], probe: bool = True) 
 def auto_tau_plan(plan: Any, inputs: dict[str, Any]) -> Any:
     """The plan with tau and iterations chosen from held-out pixels on its own model.
 
-    The measurement is prepared as :func:`recon.plan.execute` does (scaled, downsampled with
-    the one mask rule); tau is searched on the solver's scale and stored per full-resolution
-    pixel as the plan defines it (x downsample; x K for a video's per-frame weight).
+    The measurement is prepared by :func:`recon.plan.planner.prepare`, as
+    :func:`recon.plan.execute` runs it (scaled, downsampled with the one mask rule); tau is
+    searched on the solver's scale and stored per full-resolution pixel as the plan defines it
+    (x downsample; x K for a video's per-frame weight).
     """
     import dataclasses
 
-    import numpy as np
     import torch
 
     from recon.autotau import AUTO_MAX_ITER, choose_tau
-    from recon.io import box_downsample, downsample_masked
-    from recon.plan.analysis import video_tv
-    from recon.plan.planner import _scaled_meas, base_shutter, planned_model
-    from recon.tv import TV
+    from recon.plan.planner import plan_tv, prepare
 
-    b = _scaled_meas(inputs["meas"])
-    base, _ = base_shutter(inputs["shutter"], inputs["timing"], plan.sensor[0])
-    model = planned_model(plan, inputs["psf"], shutter=base, psf_stack=inputs["stack"],
-                          mask=inputs["mask"])
-    if inputs["mask"] is None:
-        b_d = box_downsample(b, plan.downsample)
-    else:
-        b_d, _ = downsample_masked(b, np.asarray(inputs["mask"], dtype=np.float32),
-                                   plan.downsample)
+    prep = prepare(plan, inputs["psf"], inputs["meas"], shutter=inputs["shutter"],
+                   timing=inputs["timing"], psf_stack=inputs["stack"], mask=inputs["mask"])
+    model, b_d = prep.model, prep.b
     per_frame = plan.k if plan.model == "video" else 1
-    if plan.model == "video":
-        tv = video_tv(plan.k, 1.0, plan.lambda_t)[1]
-    elif plan.model == "depth":
-        tv = TV(weight_k=plan.tv_depth)
-    else:
-        tv = TV()
+    tv = plan_tv(plan, 1.0)[1]
     limit = plan.iterations if plan.budget_s is not None else AUTO_MAX_ITER
     choice = choose_tau(model, torch.as_tensor(b_d, dtype=torch.float32), tv=tv,
                         max_iter=max(limit, 1), min_iter=min(100, max(limit, 1)),

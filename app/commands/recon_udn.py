@@ -60,8 +60,9 @@ def register_udn(methods: Any) -> None:
     d.add_argument("--precision", choices=["float32", "bf16"], default="float32",
                    help="network precision: float32 or bf16 (autocast)")
     d.add_argument("--compile", action="store_true", help="torch.compile the network")
-    d.add_argument("--channels-last", action="store_true",
-                   help="channels-last memory format for the network")
+    d.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None,
+                   help="channels-last memory format for the network (default on: 0.83-0.89x "
+                   "the step time on this CPU, docs/udn.md)")
     d.add_argument("--threads", type=NONNEG_INT, default=0, help="torch CPU threads (0: default)")
     d.add_argument("--max-memory", help="refuse runs estimated above this (e.g. 2GB)")
     d.add_argument("--checkpoint-every", type=POSITIVE_INT, default=500,

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import atexit
 import math
+import os
 import threading
 import time
 import weakref
@@ -74,6 +75,21 @@ def _stop_auto_estimates() -> None:
 
 #: Preview models the engine knows.
 MODELS: tuple[str, ...] = ("2d", "video")
+
+
+def _lower_priority(nice: int = 5) -> None:
+    """Lower the calling thread's CPU priority.
+
+    On Linux nice is per thread and the worker threads torch starts from this thread inherit
+    it, so a background estimate gives way to the live preview (nice 5: about a third of a
+    core's share against it, so on a busy machine it still finishes); a no-op where the
+    platform does not allow it.
+    """
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, max(os.getpriority(os.PRIO_PROCESS, tid), nice))
+    except (AttributeError, OSError):  # not Linux, or not permitted: run at normal priority
+        pass
 
 
 class PreviewError(ValueError):
@@ -297,6 +313,20 @@ class PreviewEngine:
         if thread is not None:
             thread.join(timeout_s)
 
+    @property
+    def auto_pending(self) -> bool:
+        """True while a tau auto estimate runs in the background."""
+        with self._lock:
+            return self._auto_thread is not None and self._auto_thread.is_alive()
+
+    def wait_auto(self, timeout_s: float | None = None) -> bool:
+        """Wait for a running tau auto estimate; True when none is running any more."""
+        with self._lock:
+            thread = self._auto_thread
+        if thread is not None:
+            thread.join(timeout_s)
+        return not self.auto_pending
+
     # -- processing ----------------------------------------------------------------------------
 
     def _apply_pending(self) -> PreviewSettings:
@@ -461,6 +491,7 @@ class PreviewEngine:
         from recon.autotau import choose_tau
         from recon.models import build_model
 
+        _lower_priority()  # the live preview comes first: this estimate gets the spare CPU
         try:
             model = build_model(recipe[0], **recipe[1])
             choice = choose_tau(model, torch.from_numpy(b)[None], max_iter=AUTO_ITERS,

@@ -715,6 +715,62 @@ class PlanResult:
                 "mask_hash": self.mask_hash}
 
 
+@dataclass(frozen=True)
+class Prepared:
+    """What every run of a plan starts from: the planned model and its measurement."""
+
+    model: ForwardModel
+    b: F32  #: the measurement scaled and downsampled (the one mask rule), the model's shape
+    mask_hash: str | None  #: hash of the model's coarse mask (None without a mask)
+
+
+def prepare(
+    plan: Plan,
+    psf: Any,
+    meas: Any,
+    *,
+    shutter: Any = None,
+    timing: SensorTimingLike | None = None,
+    psf_stack: Any = None,
+    mask: Any = None,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+) -> Prepared:
+    """Build the planned model and bring the measurement to it.
+
+    :func:`execute` runs on it and ``plan``'s tau auto searches on it: one preparation for both.
+    """
+    b = _scaled_meas(meas)
+    if tuple(b.shape[1:]) != plan.sensor:
+        raise ValueError(f"the plan is for a {plan.sensor} sensor, the measurement is "
+                         f"{b.shape[1:]}")
+    base, _ = base_shutter(shutter, timing, plan.sensor[0])
+    model = planned_model(plan, psf, shutter=base, psf_stack=psf_stack, mask=mask,
+                          dtype=dtype, device=device)
+    if mask is None:
+        b_d = box_downsample(b, plan.downsample)
+    else:  # the one mask rule (recon.preprocess.downsample_masked), as the model's mask
+        b_d, _ = downsample_masked(b, np.asarray(mask, dtype=np.float32), plan.downsample)
+    if tuple(b_d.shape) != model.meas_shape:
+        raise ValueError(f"measurement {tuple(b_d.shape)} does not fit the model "
+                         f"{model.meas_shape} (channels of PSF and measurement differ?)")
+    mask_hash = None
+    if model.mask is not None:
+        from recon.formats import array_hash
+
+        mask_hash = array_hash(model.mask.detach().cpu().numpy().astype(np.float32))
+    return Prepared(model, np.asarray(b_d, dtype=np.float32), mask_hash)
+
+
+def plan_tv(plan: Plan, tau_grid: float) -> tuple[Any, TV]:
+    """The solver's tau and TV for a plan, from tau on the solver's grid."""
+    if plan.model == "video":
+        return video_tv(plan.k, tau_grid, plan.lambda_t)
+    if plan.model == "depth":
+        return tau_grid, TV(weight_k=plan.tv_depth)
+    return tau_grid, TV()
+
+
 def execute(
     plan: Plan,
     psf: Any,
@@ -734,37 +790,15 @@ def execute(
     ``callback`` receives every solver step (a :class:`~recon.fista.FistaStep` or a UDN step);
     ``cancel()`` returning True stops the run after the current step.
     """
-    b = _scaled_meas(meas)
-    if tuple(b.shape[1:]) != plan.sensor:
-        raise ValueError(f"the plan is for a {plan.sensor} sensor, the measurement is "
-                         f"{b.shape[1:]}")
-    base, _ = base_shutter(shutter, timing, plan.sensor[0])
-    model = planned_model(plan, psf, shutter=base, psf_stack=psf_stack, mask=mask,
-                          dtype=dtype, device=device)
-    if mask is None:
-        b_d = box_downsample(b, plan.downsample)
-    else:  # the one mask rule (recon.preprocess.downsample_masked), as the model's mask
-        b_d, _ = downsample_masked(b, np.asarray(mask, dtype=np.float32), plan.downsample)
+    prep = prepare(plan, psf, meas, shutter=shutter, timing=timing, psf_stack=psf_stack,
+                   mask=mask, dtype=dtype, device=device)
+    model, b_d, mask_hash = prep.model, prep.b, prep.mask_hash
     bt = torch.as_tensor(b_d, dtype=dtype, device=device)
-    if tuple(bt.shape) != model.meas_shape:
-        raise ValueError(f"measurement {tuple(bt.shape)} does not fit the model "
-                         f"{model.meas_shape} (channels of PSF and measurement differ?)")
-    mask_hash = None
-    if model.mask is not None:
-        from recon.formats import array_hash
-
-        mask_hash = array_hash(model.mask.detach().cpu().numpy().astype(np.float32))
     t0 = time.perf_counter()
     if plan.method == "udn":
         res = _execute_udn(plan, model, b_d, t0, callback, cancel)
         return dataclasses.replace(res, mask_hash=mask_hash)
-    tau_grid = plan.tau / plan.downsample  # tau is per full-resolution pixel (see Plan)
-    if plan.model == "video":
-        tau, tv = video_tv(plan.k, tau_grid, plan.lambda_t)
-    elif plan.model == "depth":
-        tau, tv = tau_grid, TV(weight_k=plan.tv_depth)
-    else:
-        tau, tv = tau_grid, TV()
+    tau, tv = plan_tv(plan, plan.tau / plan.downsample)  # tau is per full-resolution pixel
     solver = Fista(model.op, bt, tau=tau, tv=tv, max_iter=plan.iterations, tol=1e-5)
     last: FistaStep | None = None
     for step in solver.steps():

@@ -12,11 +12,28 @@
 - :mod:`recon.udn.state`: :class:`~recon.udn.state.JobState` and
   :class:`~recon.udn.state.FinishReason`, the str-Enums of job states.
 
-Torch is imported by these modules; import them only where torch is wanted.
+Torch is imported by the network and the runner; the names below are loaded on first use, so
+``import recon.udn.jobs`` (``jobs status``, ``jobs cancel``) does not pay for torch.
 """
 
-from recon.udn.network import Generator, NetworkConfig
-from recon.udn.runner import UDNConfig, UDNResult, UDNRunner, UDNStep
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from recon.udn.network import Generator, NetworkConfig
+    from recon.udn.runner import UDNConfig, UDNResult, UDNRunner, UDNStep
+
+_LAZY = {"Generator": "recon.udn.network", "NetworkConfig": "recon.udn.network",
+         "UDNConfig": "recon.udn.runner", "UDNResult": "recon.udn.runner",
+         "UDNRunner": "recon.udn.runner", "UDNStep": "recon.udn.runner"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = [
     "Generator",

@@ -138,3 +138,32 @@ def test_preview_controls_offer_tau_auto_on_by_default(qtbot) -> None:
     assert sig.args[0].tau_auto is False
     controls.set_settings(dataclasses.replace(controls.settings(), tau_auto=True))
     assert controls.tau_auto.isChecked()
+
+
+def test_tau_auto_estimate_runs_below_the_preview_priority(psf: np.ndarray, monkeypatch) -> None:
+    """The background estimate lowers its own thread's priority (not the caller's), and
+    wait_auto / auto_pending see it through."""
+    import os
+
+    import recon.autotau
+
+    seen: list[tuple[int, int]] = []
+    real = recon.autotau.choose_tau
+
+    def spy(*args, **kwargs):
+        tid = threading.get_native_id()
+        seen.append((tid, os.getpriority(os.PRIO_PROCESS, tid)))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(recon.autotau, "choose_tau", spy)
+    eng = PreviewEngine(psf, PreviewSettings(tau_auto=True, target_fps=0, iters_per_frame=2))
+    before = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    eng.process(_frame(psf))
+    assert eng.wait_auto(60.0) and not eng.auto_pending
+    assert len(seen) == 1
+    tid, nice = seen[0]
+    assert tid != threading.get_native_id()
+    assert nice >= max(before, 5)
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == before
+    r = eng.process(_frame(psf))
+    assert "tau auto" in r.tau_note and "estimating" not in r.tau_note
