@@ -31,7 +31,8 @@ from recon.preprocess import (
     to_gray,
 )
 
-__all__ = ["DarkSpec", "PathLike", "load_image", "load_measurement", "load_psf", "load_psf_stack"]
+__all__ = ["DarkSpec", "PathLike", "load_image", "load_measurement", "load_psf", "load_psf_any",
+           "load_psf_stack"]
 
 PathLike = str | os.PathLike[str]
 Array = npt.NDArray[Any]
@@ -502,3 +503,23 @@ def _describe_dark(dark: DarkSpec) -> str:
     if isinstance(dark, np.ndarray):
         return f"frame of shape {dark.shape}"
     return str(dark)
+
+
+def load_psf_any(path: PathLike) -> F32:
+    """A 2D PSF ``(H, W)``, summing to 1, as the app loads one.
+
+    A PSF calibration file (:mod:`recon.calibfile`), else any image file through
+    :func:`load_psf`.
+    """
+    from recon.formats import FormatError
+
+    p = Path(path)
+    try:
+        from recon.calibfile import load_psf_calibration
+
+        psf, _meta = load_psf_calibration(p)
+        return np.asarray(psf, dtype=np.float32)
+    except FormatError:  # not a calibration file: read it as an image
+        pass
+    out: F32 = np.asarray(load_psf(p, normalise="sum"), dtype=np.float32)[0]
+    return out

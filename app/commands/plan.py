@@ -250,7 +250,16 @@ def run_plan(args: argparse.Namespace) -> int:
     inputs = load_inputs(args)
     plan = _make(args, inputs, probe=not args.no_probe)
     if args.out:
-        atomic_write_json(args.out, plan.to_json())
+        d = plan.to_json()
+        if getattr(args, "meas", None) and getattr(args, "psf", None):
+            import datetime as _dt
+
+            from recon.suggest import input_hashes_of_files
+
+            # which measurement the plan is for: the app's job dialog offers it for that frame
+            d["inputs"] = input_hashes_of_files(args.meas, args.psf)
+            d["created_utc"] = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+        atomic_write_json(args.out, d)
     if args.json:
         print(json.dumps(plan.to_json(), indent=2, default=str))
     else:

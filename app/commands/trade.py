@@ -23,7 +23,7 @@ QUALITY_LABEL = {"psnr": "PSNR vs truth (dB)", "heldout_psnr": "held-out predict
 
 
 #: What ``trade`` writes into ``--out``.
-TRADE_FILES = ("trade.csv", "trade.md", "trade_pareto.png")
+TRADE_FILES = ("trade.csv", "trade.md", "trade_pareto.png", "inputs.json")
 
 
 def register(sub: Any) -> None:
@@ -119,6 +119,11 @@ def run(args: argparse.Namespace) -> int:
     for r in rows:
         writer.writerow(r.as_dict())
     atomic_write_bytes(out / "trade.csv", buf.getvalue().encode())
+    if getattr(args, "meas", None) and getattr(args, "psf", None):
+        from recon.suggest import input_hashes_of_files, write_trade_inputs
+
+        # which measurement the trade was measured on: the app's job dialog offers it for that
+        write_trade_inputs(out, input_hashes_of_files(args.meas, args.psf))
     # Markdown
     md = [f"# Speed/accuracy trade\n\nProduced by `lenslesscam trade {' '.join(sys.argv[2:])}` "
           f"in {time.perf_counter() - t_all:.0f} s, {threads.reason}. Wall time "

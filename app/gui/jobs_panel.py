@@ -18,6 +18,7 @@ import pyqtgraph as pg
 from PySide6.QtCore import QItemSelectionModel, Qt, QTimer, QUrl, Signal
 from PySide6.QtGui import QDesktopServices
 from PySide6.QtWidgets import (
+    QComboBox,
     QDialog,
     QDialogButtonBox,
     QFormLayout,
@@ -50,6 +51,7 @@ from app.gui.jobs_core import (
     spawn_job_process,
 )
 from app.gui.widgets import ComboBox, DoubleSpinBox, SpinBox, never_wider
+from app.gui.workers import TaskQueue
 
 __all__ = ["JobsPanel", "Measurement", "NewJobDialog", "ResultDialog"]
 
@@ -82,8 +84,23 @@ class NewJobDialog(QDialog):
     """Settings of a new UDN job with a live memory estimate."""
 
     def __init__(self, sensor: tuple[int, int], source: str, parent: QWidget | None = None,
-                 name: str = "udn") -> None:
+                 name: str = "udn", *, hashes: dict[str, str] | None = None,
+                 suggestion_dirs: list[Path] | None = None,
+                 run_planner: Callable[[], Any] | None = None,
+                 save_dir: Path | None = None) -> None:
+        """A dialog for a ``sensor``-sized measurement described by ``source``.
+
+        ``hashes``: :func:`recon.suggest.input_hashes` of the measurement and PSF; plans and
+        trades for them are looked for in ``suggestion_dirs``. ``run_planner()`` makes a plan
+        (run off the GUI thread); it is saved in ``save_dir`` with the hashes.
+        """
         super().__init__(parent)
+        self._hashes = hashes
+        self._suggestion_dirs = list(suggestion_dirs or [])
+        self._run_planner = run_planner
+        self._save_dir = save_dir
+        self._planner_queue: TaskQueue | None = None
+        self.suggestions_found: list[Any] = []
         self.setWindowTitle("New UDN job")
         self.sensor = sensor
         from recon.udn.spec import SCHEMA
@@ -171,8 +188,28 @@ class NewJobDialog(QDialog):
         self.preview_every.setValue(int(default("output", "preview_every")))
         self.memory = QLabel("")
         self.memory.setWordWrap(True)
+        self.suggestion_box = ComboBox()
+        self.suggestion_box.setToolTip("UDN settings found by lenslesscam plan or trade for "
+                                       "this measurement and PSF (their recorded input hashes)")
+        self.suggestion_box.setSizeAdjustPolicy(
+            QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
+        self.suggestion_box.setMinimumContentsLength(24)  # long labels: full text in the list
+        self.apply_suggestion_button = QPushButton("Apply")
+        self.plan_button = QPushButton("Run planner")
+        self.plan_button.setToolTip("Plan this measurement (seconds); the plan is saved and "
+                                    "offered here")
+        self.suggestion_note = never_wider(QLabel(""))
+        self.suggestion_note.setWordWrap(True)
+        srow = QHBoxLayout()
+        srow.setContentsMargins(0, 0, 0, 0)
+        srow.addWidget(self.suggestion_box, 1)
+        srow.addWidget(self.apply_suggestion_button)
+        srow.addWidget(self.plan_button)
+        self.setMinimumWidth(560)  # room for a suggestion's values (1366x768 screens: fine)
         form = QFormLayout(self)
         form.addRow(QLabel(source))
+        form.addRow("Suggested settings", srow)
+        form.addRow("", self.suggestion_note)
         form.addRow("Name", self.name)
         form.addRow("Downsampling", self.downsample)
         form.addRow("Iterations", self.max_iter)
@@ -201,7 +238,114 @@ class NewJobDialog(QDialog):
             w.valueChanged.connect(self.update_estimate)
         self.device.currentIndexChanged.connect(self.update_estimate)
         self.precision.currentIndexChanged.connect(self.update_estimate)
+        self.apply_suggestion_button.clicked.connect(self.apply_selected_suggestion)
+        self.suggestion_box.currentIndexChanged.connect(
+            lambda i: self.suggestion_box.setToolTip(self.suggestion_box.itemText(i)))
+        self.plan_button.clicked.connect(self.run_planner)
         self.update_estimate()
+        self.refresh_suggestions()
+
+    # -- suggestions ---------------------------------------------------------------------------
+
+    def refresh_suggestions(self) -> None:
+        """Look for plans and trades made for this measurement; list them (newest first)."""
+        from recon.suggest import find_suggestions
+
+        found = ([] if self._hashes is None else
+                 find_suggestions(self._suggestion_dirs, self._hashes))
+        self.suggestions_found = found
+        self.suggestion_box.clear()
+        for s in found:
+            self.suggestion_box.addItem(s.label)
+            self.suggestion_box.setItemData(self.suggestion_box.count() - 1,
+                                            f"{s.path}\n{s.detail}",
+                                            Qt.ItemDataRole.ToolTipRole)
+        has = bool(found)
+        self.suggestion_box.setEnabled(has)
+        self.apply_suggestion_button.setEnabled(has)
+        can_plan = (self._run_planner is not None and self._save_dir is not None
+                    and self._hashes is not None)
+        self.plan_button.setEnabled(can_plan and self._planner_queue is None)
+        if not has:
+            self.suggestion_box.addItem("none for this measurement")
+            self._note("no plan or trade found for this measurement"
+                       + (": Run planner to make one" if can_plan else ""))
+        else:
+            self._note(f"{len(found)} found for this measurement: choose one and Apply")
+
+    def _note(self, text: str, tip: str | None = None) -> None:
+        self.suggestion_note.setText(text)
+        self.suggestion_note.setToolTip(text if tip is None else f"{text}\n{tip}")
+
+    def apply_selected_suggestion(self) -> None:
+        """Fill the fields from the chosen suggestion (they stay editable)."""
+        i = self.suggestion_box.currentIndex()
+        if not 0 <= i < len(self.suggestions_found):
+            return
+        self.apply_suggestion(self.suggestions_found[i])
+
+    def apply_suggestion(self, s: Any) -> None:
+        """Set the fields a :class:`recon.suggest.Suggestion` names; say where they came from."""
+        v = s.settings
+        if "downsample" in v:
+            self.downsample.setValue(int(v["downsample"]))
+        if "max_iter" in v:
+            self.max_iter.setValue(int(v["max_iter"]))
+        if "time_limit_s" in v:
+            self.time_limit.setValue(float(v["time_limit_s"]) / 3600.0)
+        if "scales" in v:
+            self.scales.setValue(int(v["scales"]))
+        if "channels" in v:
+            self.channels.setValue(int(v["channels"]))
+        if "lr" in v:
+            self.lr.setValue(float(v["lr"]))
+        if "precision" in v and self.precision.findText(str(v["precision"])) >= 0:
+            self.precision.setCurrentText(str(v["precision"]))
+        names = ", ".join(f"{k}={val}" for k, val in v.items())
+        self._note(f"applied {s.origin}", f"{s.path}\n{s.detail}\n{names}")
+        self.update_estimate()
+
+    def run_planner(self) -> None:
+        """Plan this measurement off the GUI thread; the saved plan is then offered."""
+        if self._run_planner is None or self._save_dir is None or self._hashes is None:
+            return
+        if self._planner_queue is not None:
+            return
+        from recon.suggest import write_plan_suggestion
+
+        planner, folder, hashes = self._run_planner, self._save_dir, dict(self._hashes)
+
+        def work() -> Path:
+            return write_plan_suggestion(folder, planner(), hashes)
+
+        self._planner_queue = TaskQueue("planner", self)
+        self.plan_button.setEnabled(False)
+        self._note("planning this measurement…")
+        self._planner_queue.submit(work, name="plan", on_done=self._planned,
+                                   on_error=self._plan_failed)
+
+    def _end_planner(self) -> None:
+        q, self._planner_queue = self._planner_queue, None
+        if q is not None:
+            q.shutdown()
+
+    def _planned(self, path: Path) -> None:
+        self._end_planner()
+        self.refresh_suggestions()
+        for i, s in enumerate(self.suggestions_found):
+            if s.path == path:
+                self.suggestion_box.setCurrentIndex(i)
+        self._note(f"plan saved as {path.name}: press Apply to use it", str(path))
+
+    def _plan_failed(self, exc: BaseException) -> None:
+        self._end_planner()
+        self.refresh_suggestions()
+        self._note(f"planner failed: {exc}")
+
+    def done(self, r: int) -> None:
+        """Close; a running planner is waited for (it takes seconds)."""
+        self._end_planner()
+        super().done(r)
 
     def sections(self) -> dict[str, dict[str, Any]]:
         """Spec sections from the controls."""
@@ -319,6 +463,9 @@ class JobsPanel(QWidget):
         super().__init__(parent)
         self._current = current
         self.queue = JobQueue(jobs_dir, spawn)
+        #: where the job dialog looks for plans and trades (``recon.suggest``); the first one
+        #: also receives the plans the dialog makes
+        self.suggestion_dirs: list[Path] = [self.queue.jobs_dir / "suggestions"]
         self.views: list[JobView] = []
         self.result_dialog: ResultDialog | None = None
 
@@ -515,7 +662,17 @@ class JobsPanel(QWidget):
             return None
         src = (f"measurement: frame {frame.frame_id} ({frame.shape[1]}x{frame.shape[0]}, "
                f"{frame.backend}); PSF: {m.psf_source or 'current'}")
-        dlg = NewJobDialog(frame.shape, src, self)
+        hashes = None
+        try:
+            from recon.suggest import input_hashes
+
+            hashes = input_hashes(frame.pixels, psf)
+        except Exception:  # an odd frame: no suggestions, the dialog still works
+            hashes = None
+        dlg = NewJobDialog(frame.shape, src, self, hashes=hashes,
+                           suggestion_dirs=self.suggestion_dirs,
+                           run_planner=lambda: _plan_measurement(m),
+                           save_dir=self.suggestion_dirs[0])
         self.dialog = dlg
         dlg.accepted.connect(lambda: self._create_from_dialog(dlg, m))
         dlg.show()
@@ -538,13 +695,7 @@ class JobsPanel(QWidget):
                 f"the frame ({frame.shape}) and the PSF ({psf.shape}) differ in size: use a "
                 "full-sensor frame")
             return None
-        dark: float | str
-        if m.dark is not None:
-            dark = float(m.dark)
-        else:
-            flat = np.asarray(frame.pixels, dtype=np.float32).ravel()
-            k = flat.size // 100
-            dark = float(np.partition(flat, k)[k])
+        dark = _dark_level(m)
         meta = {"frame": frame.metadata(), "psf_source": m.psf_source,
                 "psf_path": m.psf_path or None, "dark": dark}
         folders: list[Path] = []
@@ -631,6 +782,23 @@ class JobsPanel(QWidget):
         v = self.selected()
         target = v.folder if v is not None else self.queue.jobs_dir
         QDesktopServices.openUrl(QUrl.fromLocalFile(str(target)))
+
+
+def _dark_level(m: Measurement) -> float:
+    """The measurement's dark level: the preview's, else the frame's 1st percentile."""
+    if m.dark is not None:
+        return float(m.dark)
+    flat = np.asarray(m.frame.pixels, dtype=np.float32).ravel()
+    k = flat.size // 100
+    return float(np.partition(flat, k)[k])
+
+
+def _plan_measurement(m: Measurement) -> Any:
+    """``recon.plan.make_plan`` on the dark-corrected frame and the PSF (no time budget)."""
+    from recon.plan import make_plan
+
+    meas = np.clip(np.asarray(m.frame.pixels, dtype=np.float32) - _dark_level(m), 0, None)
+    return make_plan(np.asarray(m.psf, dtype=np.float32), meas)
 
 
 class _MessageLabel(QLabel):

@@ -1130,18 +1130,10 @@ class MainWindow(QMainWindow):
 
 
 def load_psf_any(path: str | Path) -> Any:
-    """A PSF (H, W) for the preview: a PSF calibration file, else any image file."""
-    p = Path(path)
-    from recon.formats import FormatError
+    """A PSF (H, W) for the preview: a PSF calibration file, else any image file.
 
-    try:
-        from recon.calibfile import load_psf_calibration
+    The one reader, :func:`recon.readers.load_psf_any`, which the CLI's plan and trade hash too.
+    """
+    from recon.readers import load_psf_any as _load
 
-        psf, _meta = load_psf_calibration(p)
-        return np.asarray(psf, dtype=np.float32)
-    except FormatError as exc:  # not a calibration file: read it as an image
-        _log.debug("%s is not a PSF calibration file: %s", p, exc)
-    from recon.io import load_psf
-
-    a = load_psf(p, normalise="sum")
-    return np.asarray(a, dtype=np.float32)[0]
+    return _load(path)

@@ -1,0 +1,213 @@
+"""UDN settings suggested for one measurement by a saved plan or trade (Qt-free).
+
+A plan (``recon.plan.Plan.to_json``) or a trade folder (``trade.csv``) is offered for a
+measurement only when it records the hashes of that measurement and its PSF
+(:func:`input_hashes`): a plan file carries them under ``"inputs"`` (``Plan.from_json``
+ignores the extra key), a trade folder in ``inputs.json`` beside ``trade.csv``. Plans and
+trades are read by their one reader each (``Plan.from_json``, ``recon.trade.read_trade_csv``).
+
+What each gives the UDN job (keys of :attr:`Suggestion.settings`):
+
+- plan: ``downsample`` (its resolution analysis holds for any method); a ``udn`` plan also its
+  ``iterations`` as ``max_iter`` (when > 0) and its budget as ``time_limit_s``.
+- trade: the UDN row of the best quality (true PSNR where every UDN row has it, else the
+  held-out proxy): ``channels``, ``precision``, ``downsample``, ``iterations`` as ``max_iter``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "INPUTS_FILE",
+    "Suggestion",
+    "find_suggestions",
+    "from_plan",
+    "from_trade_rows",
+    "input_hashes",
+    "input_hashes_of_files",
+    "inputs_match",
+    "write_plan_suggestion",
+    "write_trade_inputs",
+]
+
+#: Beside a ``trade.csv``: the hashes of the measurement and PSF the trade was measured on.
+INPUTS_FILE = "inputs.json"
+
+
+def input_hashes(meas: Any, psf: Any) -> dict[str, str]:
+    """Hashes of a raw measurement and its PSF (as float32, so uint16 and float agree)."""
+    import numpy as np
+
+    from recon.formats import array_hash
+
+    return {"measurement": array_hash(np.asarray(meas, dtype=np.float32)),
+            "psf": array_hash(np.asarray(psf, dtype=np.float32))}
+
+
+def input_hashes_of_files(meas_path: str | os.PathLike[str],
+                          psf_path: str | os.PathLike[str]) -> dict[str, str]:
+    """:func:`input_hashes` of a measurement file and a PSF file, read as the app holds them.
+
+    The measurement as its raw counts (a snapshot's ``frame.pixels``: no dark, no scaling;
+    the first channel of a colour file), the PSF through :func:`recon.readers.load_psf_any`,
+    the reader the app loads PSFs with; so ``plan --out`` and ``trade`` of a snapshot are
+    offered in the app's job dialog for that snapshot.
+    """
+    from recon.readers import load_measurement, load_psf_any
+
+    meas = load_measurement(meas_path, normalise=None)[0]
+    return input_hashes(meas, load_psf_any(psf_path))
+
+
+def inputs_match(recorded: Any, hashes: Mapping[str, str]) -> bool:
+    """True when ``recorded`` names the same measurement and PSF as ``hashes``."""
+    if not isinstance(recorded, Mapping):
+        return False
+    return all(recorded.get(k) == hashes.get(k) and hashes.get(k)
+               for k in ("measurement", "psf"))
+
+
+@dataclass(frozen=True)
+class Suggestion:
+    """UDN job settings from one plan or trade file, and where they came from."""
+
+    source: str  # "plan" | "trade"
+    path: Path
+    created: str  # ISO date-time (the file's record, else its modification time)
+    settings: dict[str, Any] = field(default_factory=dict)
+    detail: str = ""
+
+    @property
+    def origin(self) -> str:
+        """``from plan <file>, <date>`` / ``from trade <folder>, <date>``."""
+        name = self.path.name if self.source == "plan" else str(self.path.parent.name)
+        return f"from {self.source} {name}, {self.created[:16].replace('T', ' ')}"
+
+    @property
+    def label(self) -> str:
+        """One line for a list: kind, date, the values, the file."""
+        vals = ", ".join(f"{k}={v}" for k, v in self.settings.items())
+        when = self.created[:16].replace("T", " ")
+        name = self.path.name if self.source == "plan" else self.path.parent.name
+        return f"{self.source} {when}: {vals} ({name})"
+
+
+def _mtime(path: Path) -> str:
+    t = _dt.datetime.fromtimestamp(path.stat().st_mtime, _dt.UTC)
+    return t.isoformat(timespec="seconds")
+
+
+def from_plan(plan: Any, path: Path, created: str) -> Suggestion:
+    """The UDN settings a :class:`recon.plan.Plan` implies."""
+    s: dict[str, Any] = {"downsample": int(plan.downsample)}
+    if plan.method == "udn":
+        if plan.iterations > 0:
+            s["max_iter"] = int(plan.iterations)
+        if plan.budget_s is not None:
+            s["time_limit_s"] = float(plan.budget_s)
+    detail = f"{plan.model} plan, method {plan.method}"
+    return Suggestion("plan", Path(path), created, s, detail)
+
+
+def from_trade_rows(rows: Iterable[Any], path: Path, created: str) -> Suggestion | None:
+    """The best UDN setting of a trade's rows (None when the trade has no UDN row)."""
+    udn = [r for r in rows if r.method == "udn"]
+    if not udn:
+        return None
+    key = "psnr" if all(r.psnr is not None for r in udn) else "heldout_psnr"
+    best = max(udn, key=lambda r: float(getattr(r, key)))
+    s = {"channels": int(best.channels), "precision": str(best.precision),
+         "downsample": int(best.downsample), "max_iter": int(best.iterations)}
+    detail = (f"{best.setting}: {getattr(best, key):.2f} dB "
+              f"{'PSNR' if key == 'psnr' else 'held-out'} in {best.wall_s:.2f} s")
+    return Suggestion("trade", Path(path), created, s, detail)
+
+
+def _read_plan_file(path: Path, hashes: Mapping[str, str]) -> Suggestion | None:
+    from recon.plan import Plan
+
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(d, dict) or not inputs_match(d.get("inputs"), hashes):
+        return None
+    try:
+        plan = Plan.from_json(d)
+    except (ValueError, TypeError):
+        return None
+    created = str(d.get("created_utc") or _mtime(path))
+    return from_plan(plan, path, created)
+
+
+def _read_trade_folder(csv_path: Path, hashes: Mapping[str, str]) -> Suggestion | None:
+    from recon.trade import read_trade_csv
+
+    try:
+        rec = json.loads((csv_path.parent / INPUTS_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(rec, dict) or not inputs_match(rec, hashes):
+        return None
+    try:
+        rows = read_trade_csv(csv_path)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return from_trade_rows(rows, csv_path, str(rec.get("created_utc") or _mtime(csv_path)))
+
+
+def find_suggestions(folders: Iterable[str | os.PathLike[str]],
+                     hashes: Mapping[str, str]) -> list[Suggestion]:
+    """Plans (``*.json``) and trades (``*/trade.csv``) in ``folders`` made for ``hashes``.
+
+    Newest first; files for other measurements, unreadable files and trades without a UDN
+    row are left out.
+    """
+    found: list[Suggestion] = []
+    for folder in folders:
+        root = Path(folder)
+        if not root.is_dir():
+            continue
+        for p in sorted(root.glob("*.json")):
+            s = _read_plan_file(p, hashes)
+            if s is not None:
+                found.append(s)
+        for p in sorted([*root.glob("trade.csv"), *root.glob("*/trade.csv")]):
+            s = _read_trade_folder(p, hashes)
+            if s is not None:
+                found.append(s)
+    return sorted(found, key=lambda s: s.created, reverse=True)
+
+
+def write_plan_suggestion(folder: str | os.PathLike[str], plan: Any,
+                          hashes: Mapping[str, str]) -> Path:
+    """Save ``plan`` with the inputs' hashes in ``folder`` (``plan-<measurement>-<time>.json``)."""
+    from recon.atomic import atomic_write_json
+
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    now = _dt.datetime.now(_dt.UTC)
+    d = plan.to_json()
+    d["inputs"] = dict(hashes)
+    d["created_utc"] = now.isoformat(timespec="seconds")
+    stem = f"plan-{hashes['measurement'][:8]}-{now.strftime('%Y%m%d-%H%M%S')}"
+    path, n = Path(folder) / f"{stem}.json", 1
+    while path.exists():
+        n += 1
+        path = Path(folder) / f"{stem}-{n}.json"
+    return atomic_write_json(path, d)
+
+
+def write_trade_inputs(folder: str | os.PathLike[str], hashes: Mapping[str, str]) -> Path:
+    """Record beside a trade's ``trade.csv`` which measurement and PSF it was measured on."""
+    from recon.atomic import atomic_write_json
+
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    now = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+    return atomic_write_json(Path(folder) / INPUTS_FILE, {**hashes, "created_utc": now})

@@ -1,0 +1,185 @@
+"""The UDN job dialog offers the settings a plan or trade found for the selected measurement."""
+
+from __future__ import annotations
+
+import csv
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from recon.plan import Plan
+from recon.suggest import input_hashes, write_plan_suggestion, write_trade_inputs
+from recon.trade import TradeRow
+
+
+@dataclass
+class _Frame:
+    pixels: np.ndarray
+    frame_id: int = 7
+    backend: str = "test"
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.pixels.shape[0]), int(self.pixels.shape[1]))
+
+    def metadata(self) -> dict[str, Any]:
+        return {"frame_id": self.frame_id}
+
+
+def _measurement(seed: int) -> Any:
+    from app.gui.jobs_panel import Measurement
+
+    rng = np.random.default_rng(seed)
+    psf = np.zeros((48, 64), np.float32)
+    psf[rng.integers(0, 48, 30), rng.integers(0, 64, 30)] = 1.0
+    scene = np.zeros((48, 64), np.float32)
+    scene[16:32, 20:44] = 1.0
+    meas = np.real(np.fft.ifft2(np.fft.fft2(psf) * np.fft.fft2(scene)))
+    pixels = (100 + 3000 * meas / meas.max() + rng.normal(0, 5, meas.shape)).astype(np.uint16)
+    return Measurement(_Frame(pixels), psf, psf_source="test")
+
+
+def _plan(downsample: int, iterations: int = 1234) -> Plan:
+    return Plan(model="2d", k=1, sensor=(48, 64), field=(48, 64), region=(0, 0, 48, 64),
+                downsample=downsample, method="udn", iterations=iterations, budget_s=7200.0)
+
+
+def _hashes(m: Any) -> dict[str, str]:
+    return input_hashes(m.frame.pixels, m.psf)
+
+
+@pytest.fixture
+def panel(qtbot: Any, tmp_path: Path) -> Any:
+    from app.gui.jobs_panel import JobsPanel
+
+    state: dict[str, Any] = {"m": _measurement(0)}
+    p = JobsPanel(tmp_path / "jobs", lambda: state["m"], poll_ms=60_000)
+    p.state = state
+    qtbot.addWidget(p)
+    yield p
+    p.stop()
+    dlg = getattr(p, "dialog", None)
+    if dlg is not None:
+        dlg.close()
+
+
+def test_a_matching_plan_is_offered_and_fills_the_fields(panel: Any, qtbot: Any) -> None:
+    folder = panel.suggestion_dirs[0]
+    mine = write_plan_suggestion(folder, _plan(downsample=4), _hashes(panel.state["m"]))
+    write_plan_suggestion(folder, _plan(downsample=6, iterations=99),
+                          _hashes(_measurement(1)))  # another measurement: not offered
+    dlg = panel.new_job_dialog()
+    assert dlg is not None
+    assert dlg.suggestion_box.isEnabled() and dlg.apply_suggestion_button.isEnabled()
+    assert dlg.suggestion_box.count() == 1
+    assert mine.name in dlg.suggestion_box.itemText(0)
+    assert dlg.downsample.value() == 2  # nothing changes until Apply
+    qtbot.mouseClick(dlg.apply_suggestion_button, _left())
+    assert dlg.downsample.value() == 4
+    assert dlg.max_iter.value() == 1234
+    assert dlg.time_limit.value() == pytest.approx(2.0)
+    assert f"from plan {mine.name}" in dlg.suggestion_note.text()
+    # still editable, and what the user sets is what the job gets
+    dlg.max_iter.setValue(50)
+    assert dlg.sections()["stopping"]["max_iter"] == 50
+    assert dlg.sections()["stopping"]["time_limit_s"] == pytest.approx(7200.0)
+
+
+def test_a_matching_trade_sets_channels_and_precision(panel: Any, qtbot: Any) -> None:
+    m = panel.state["m"]
+    folder = panel.suggestion_dirs[0] / "trade-1"
+    folder.mkdir(parents=True)
+    rows = [TradeRow("current frame", "udn ch16", "udn", 0.0, "float32", 1, 16, 100, 2.0,
+                     None, 31.0, 0.1),
+            TradeRow("current frame", "udn ch24 bf16", "udn", 0.0, "bf16", 3, 24, 300, 5.0,
+                     None, 34.0, 0.1)]
+    with open(folder / "trade.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0].as_dict()))
+        w.writeheader()
+        for r in rows:
+            w.writerow(r.as_dict())
+    write_trade_inputs(folder, _hashes(m))
+    dlg = panel.new_job_dialog()
+    assert dlg.suggestion_box.count() == 1
+    assert "(trade-1)" in dlg.suggestion_box.itemText(0)
+    assert dlg.channels.value() != 24
+    dlg.apply_selected_suggestion()
+    assert (dlg.channels.value(), dlg.precision.currentText(), dlg.downsample.value(),
+            dlg.max_iter.value()) == (24, "bf16", 3, 300)
+    assert dlg.sections()["network"]["channels"] == 24
+    assert "from trade trade-1" in dlg.suggestion_note.text()
+
+
+def test_nothing_for_this_measurement_says_so(panel: Any) -> None:
+    write_plan_suggestion(panel.suggestion_dirs[0], _plan(downsample=6),
+                          _hashes(_measurement(1)))
+    dlg = panel.new_job_dialog()
+    assert not dlg.suggestion_box.isEnabled()
+    assert not dlg.apply_suggestion_button.isEnabled()
+    assert dlg.suggestion_note.text().startswith("no plan or trade found for this measurement")
+    assert "\n" not in dlg.suggestion_note.text()
+    assert dlg.plan_button.isEnabled()  # offers to compute
+    before = dlg.sections()
+    dlg.apply_selected_suggestion()  # nothing to apply: nothing changes
+    assert dlg.sections() == before
+
+
+def test_run_planner_off_the_gui_thread_then_offer_its_plan(qtbot: Any, tmp_path: Path) -> None:
+    from app.gui.jobs_panel import NewJobDialog
+
+    m = _measurement(0)
+    gui_thread = threading.get_ident()
+    ran_on: list[int] = []
+
+    def planner() -> Plan:
+        ran_on.append(threading.get_ident())
+        return _plan(downsample=3, iterations=777)
+
+    dlg = NewJobDialog((48, 64), "test", hashes=_hashes(m), suggestion_dirs=[tmp_path],
+                       run_planner=planner, save_dir=tmp_path)
+    qtbot.addWidget(dlg)
+    assert not dlg.suggestion_box.isEnabled()
+    qtbot.mouseClick(dlg.plan_button, _left())
+    qtbot.waitUntil(lambda: dlg.suggestion_box.isEnabled(), timeout=10_000)
+    assert ran_on and ran_on[0] != gui_thread
+    assert "plan saved as plan-" in dlg.suggestion_note.text()
+    dlg.apply_selected_suggestion()
+    assert (dlg.downsample.value(), dlg.max_iter.value()) == (3, 777)
+    assert len(list(tmp_path.glob("plan-*.json"))) == 1
+
+
+def test_the_real_planner_from_the_panel(panel: Any, qtbot: Any) -> None:
+    """`Run planner` runs recon.plan.make_plan on the dark-corrected frame and saves it."""
+    dlg = panel.new_job_dialog()
+    qtbot.mouseClick(dlg.plan_button, _left())
+    qtbot.waitUntil(lambda: dlg.suggestion_box.isEnabled(), timeout=60_000)
+    (saved,) = panel.suggestion_dirs[0].glob("plan-*.json")
+    plan = Plan.from_json(__import__("json").loads(saved.read_text()))
+    assert plan.sensor == (48, 64)
+    dlg.apply_selected_suggestion()
+    assert dlg.downsample.value() == plan.downsample
+    # the next dialog for the same measurement finds the plan; another measurement does not
+    dlg.close()
+    assert panel.new_job_dialog().suggestion_box.isEnabled()
+    panel.dialog.close()
+    panel.state["m"] = _measurement(2)
+    assert not panel.new_job_dialog().suggestion_box.isEnabled()
+
+
+def test_dialog_fits_1366x768(panel: Any) -> None:
+    write_plan_suggestion(panel.suggestion_dirs[0], _plan(downsample=4),
+                          _hashes(panel.state["m"]))
+    dlg = panel.new_job_dialog()
+    dlg.apply_selected_suggestion()  # the note after Apply is one line
+    hint = dlg.sizeHint()
+    assert hint.width() <= 1366 and hint.height() <= 768 - 80  # room for a title bar and panel
+
+
+def _left() -> Any:
+    from PySide6.QtCore import Qt
+
+    return Qt.MouseButton.LeftButton
