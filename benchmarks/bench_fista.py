@@ -12,6 +12,7 @@ PSF and measurement at 1/8 scale) with the policy's thread count against 1 threa
 the same way; the policy must never be slower than 1 thread.
 
     lenslesscam bench fista [--sizes 256,512,1024,2048] [--rounds 15] [--threads auto]
+                            [--admm-baseline OLD_ADMM.py]
 """
 
 from __future__ import annotations
@@ -44,6 +45,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="inner TV prox iterations (3)")
     p.add_argument("--threads-check", action="store_true",
                    help="also time the policy's thread count against 1 thread on the demo")
+    p.add_argument("--admm-baseline", default=None, metavar="FILE",
+                   help="also step the Admm class of this older admm.py (for example from "
+                   "`git show REV:recon/admm.py`) in the same rounds, as the row "
+                   "'admm-baseline' (it imports the current recon package otherwise)")
     p.add_argument("--json", default=None, help="also write the results as JSON here")
 
 
@@ -102,7 +107,20 @@ def ratio_stats(num: list[float], den: list[float]) -> dict[str, float]:
             "ratio_p75": round(_quantile(ratios, 0.75), 3)}
 
 
-def _case_2d(size: int, methods: list[str], rounds: int, prox_iters: int) -> list[dict[str, Any]]:
+def _load_admm(path: str) -> Any:
+    """The ``Admm`` class of an admm.py at ``path``, loaded as a separate module."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_admm_baseline", path)
+    if spec is None or spec.loader is None:
+        raise ValueError(f"cannot load {path} as a module")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.Admm
+
+
+def _case_2d(size: int, methods: list[str], rounds: int, prox_iters: int,
+             admm_baseline: str | None = None) -> list[dict[str, Any]]:
     import numpy as np
     import torch
 
@@ -129,6 +147,9 @@ def _case_2d(size: int, methods: list[str], rounds: int, prox_iters: int) -> lis
                                  prox_iters=prox_iters)
     if "admm" in methods:
         solvers["admm"] = Admm(model, b, tau=1e-3, max_iter=10**9, tol=0.0)
+    if admm_baseline is not None:
+        solvers["admm-baseline"] = _load_admm(admm_baseline)(model, b, tau=1e-3,
+                                                             max_iter=10**9, tol=0.0)
     for name, s in solvers.items():
         fns[name] = s.step
     times = interleave(fns, rounds, clock=work_clock())
@@ -233,7 +254,8 @@ def run(args: argparse.Namespace) -> int:
     load0 = os.getloadavg()[0]
     rows: list[dict[str, Any]] = []
     for size in sizes:
-        rows += _case_2d(size, methods, args.rounds, args.prox_iters)
+        rows += _case_2d(size, methods, args.rounds, args.prox_iters,
+                         getattr(args, "admm_baseline", None))
     if args.video and "fista" in methods:
         rows += _case_video(args.rounds, args.prox_iters)
     check = threads_check(choice.threads, args.rounds) if args.threads_check else None
