@@ -8,16 +8,20 @@ measurement normalised to max 1. Per case (scene, erasure, noise):
   measurement alone, then FISTA-TV from all measured pixels with the chosen tau and iterations;
 - **oracle**: the best PSNR over the tau grid ``ORACLE_TAUS`` at ``--iters`` (500) iterations
   (default restart rule);
-- **monotone**: the previous default restart rule (function-value test, monotone) at the oracle
-  tau, ``--iters`` iterations;
+- **monotone**: the restart rule before the gradient rule (function-value test, monotone; FISTA
+  momentum) at the oracle tau, ``--iters`` iterations;
+- **fista**: the previous default (FISTA momentum, gradient restart) at the oracle tau;
+- **pogm_norestart**: the default momentum (POGM) without restart, at the oracle tau;
 - **reference** (unless ``--no-reference``): an accurate FISTA-TV at the oracle tau, 1000
-  iterations with 50 inner prox iterations and no restart, plus the same with ``--iters``
+  iterations with 50 inner prox iterations, FISTA momentum and no restart, plus the same with
+  ``--iters``
   iterations (the convergence check at an equal iteration count).
 
 PSNR/SSIM after a least-squares gain fit against the truth. Each finished case is appended to
 a JSON-lines file (``--cache``), so an interrupted run resumes and a partial run can be tabled.
 
     lenslesscam bench protocol [--out docs/simulation-protocol.md] [--iters 500]
+    lenslesscam bench protocol --momentum-check   (the momentum ablation)
 """
 
 from __future__ import annotations
@@ -48,9 +52,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-reference", action="store_true",
                    help="skip the accurate reference runs (the most expensive part)")
     p.add_argument("--restart-check", action="store_true",
-                   help="instead: restart rules (monotone, gradient, none) against an accurate "
-                   "run (500 iterations x 50 inner prox steps) at tau 3e-5, noise 0.01, "
+                   help="instead: restart rules and momenta (monotone, gradient, none; FISTA, "
+                   "POGM) against an accurate FISTA run (500 iterations x 50 inner prox steps) "
+                   "at tau 3e-5, noise 0.01, "
                    "erasures 99 %% and 0 %%")
+    p.add_argument("--momentum-check", action="store_true",
+                   help="instead: momenta (FISTA, POGM; gradient restart or none) against the "
+                   "reference (1000 FISTA iterations x 50 inner prox steps) on nine cases at "
+                   "fixed tau")
     p.add_argument("--hand", action="store_true",
                    help="instead: the real DiffuserCam-Tutorial hand (no truth): the held-out "
                    "error over tau and the automatic choice")
@@ -101,6 +110,10 @@ def run_case(psf: Any, scene: Any, erasure: float, noise: float, iters: int,
                      "grid": [[t, *v] for t, v in grid.items()]}
     x, _ = _fista(model, b, best, iters, restart="monotone")
     out["monotone"] = {"psnr_ssim": _score(sim.truth, x)}
+    x, _ = _fista(model, b, best, iters, momentum="fista")
+    out["fista"] = {"psnr_ssim": _score(sim.truth, x)}
+    x, _ = _fista(model, b, best, iters, restart="none")
+    out["pogm_norestart"] = {"psnr_ssim": _score(sim.truth, x)}
     if reference:
         out.update(run_reference(psf, scene, erasure, noise, best, iters, seed))
     return out
@@ -117,9 +130,10 @@ def run_reference(psf: Any, scene: Any, erasure: float, noise: float, tau: float
     sim = simulate(build_model("2d", psf), scene, erasure=erasure, noise=noise, seed=seed)
     model = build_model("2d", psf, mask=sim.mask)
     b = torch.as_tensor(sim.meas)
-    x, wall = _fista(model, b, tau, 1000, restart="none", prox_iters=50)
+    acc = {"restart": "none", "prox_iters": 50, "momentum": "fista"}
+    x, wall = _fista(model, b, tau, 1000, **acc)
     out: dict[str, Any] = {"reference": {"psnr_ssim": _score(sim.truth, x), "wall_s": wall}}
-    x, _ = _fista(model, b, tau, iters, restart="none", prox_iters=50)
+    x, _ = _fista(model, b, tau, iters, **acc)
     out["reference_same_iters"] = {"psnr_ssim": _score(sim.truth, x)}
     return out
 
@@ -138,7 +152,8 @@ def tables(cases: list[dict[str, Any]]) -> str:
             "worst miss (dB) | auto tau (median) | oracle tau (median) | auto iterations | "
             "search s |")
     if ref:
-        head += " reference 1000x50 PSNR | ref 500x50 PSNR | old rule PSNR |"
+        head += (" reference 1000x50 PSNR | ref 500x50 PSNR | previous default (FISTA) PSNR |"
+                 " POGM no restart PSNR | monotone rule PSNR |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for (noise, er), cs in sorted(levels.items()):
         def m(key: str, i: int, cs: list[dict[str, Any]] = cs) -> float:
@@ -154,6 +169,7 @@ def tables(cases: list[dict[str, Any]]) -> str:
                f"{_mean([c['auto']['search_s'] for c in cs]):.1f} |")
         if ref:
             row += (f" {m('reference', 0):.2f} | {m('reference_same_iters', 0):.2f} | "
+                    f"{m('fista', 0):.2f} | {m('pogm_norestart', 0):.2f} | "
                     f"{m('monotone', 0):.2f} |")
         lines.append(row)
     misses = [c["oracle"]["psnr_ssim"][0] - c["auto"]["psnr_ssim"][0] for c in cases]
@@ -172,14 +188,23 @@ def tables(cases: list[dict[str, Any]]) -> str:
         gap = [c["reference"]["psnr_ssim"][0] - c["oracle"]["psnr_ssim"][0] for c in cases]
         gap_eq = [c["reference_same_iters"]["psnr_ssim"][0] - c["oracle"]["psnr_ssim"][0]
                   for c in cases]
-        gap_old = [c["reference"]["psnr_ssim"][0] - c["monotone"]["psnr_ssim"][0]
-                   for c in cases]
+        def below(key: str, sel: list[dict[str, Any]]) -> str:
+            g = [c["reference"]["psnr_ssim"][0] - c[key]["psnr_ssim"][0] for c in sel]
+            return f"{_mean(g):.2f} dB (worst {max(g):.2f})" if g else "n/a"
+
+        noisy = [c for c in cases if c["noise"] > 0]
+        clean = [c for c in cases if c["noise"] == 0]
         summary.append(
-            "At the oracle tau, the default rule after 500 iterations is "
-            f"{_mean(gap):.2f} dB below the reference (1000 iterations x 50 inner prox steps; "
-            f"worst {max(gap):.2f} dB) and {_mean(gap_eq):.2f} dB below the same reference "
-            f"stopped at 500 iterations (worst {max(gap_eq):.2f} dB); the previous monotone "
-            f"rule is {_mean(gap_old):.2f} dB below the reference (worst {max(gap_old):.2f}).")
+            "At the oracle tau, the default after 500 iterations is "
+            f"{_mean(gap):.2f} dB below the reference (1000 FISTA iterations x 50 inner prox "
+            f"steps; worst {max(gap):.2f} dB) and {_mean(gap_eq):.2f} dB below the same reference "
+            f"stopped at 500 iterations (worst {max(gap_eq):.2f} dB).")
+        summary.append(
+            "Below the reference, mean (worst) over the noise-free / noisy cases: default "
+            f"{below('oracle', clean)} / {below('oracle', noisy)}; previous default (FISTA "
+            f"momentum) {below('fista', clean)} / {below('fista', noisy)}; POGM without "
+            f"restart {below('pogm_norestart', clean)} / {below('pogm_norestart', noisy)}; "
+            f"monotone rule {below('monotone', clean)} / {below('monotone', noisy)}.")
     return "\n".join(lines + summary)
 
 
@@ -193,8 +218,12 @@ def restart_table(iters: int, tau: float = 3e-5) -> str:
     from recon.simulate import simulate
 
     psf = samples.tutorial_psf()
-    rules = {"monotone": {"restart": "monotone"}, "gradient": {"restart": "gradient"},
-             "none": {"restart": "none"}, "accurate": {"restart": "none", "prox_iters": 50}}
+    rules = {"monotone": {"restart": "monotone"},
+             "FISTA gradient": {"restart": "gradient", "momentum": "fista"},
+             "FISTA none": {"restart": "none", "momentum": "fista"},
+             "POGM gradient (default)": {"restart": "gradient"},
+             "POGM none": {"restart": "none"},
+             "accurate": {"restart": "none", "prox_iters": 50, "momentum": "fista"}}
     lines = ["| erasures | scene | " + " | ".join(f"{r} PSNR / objective / restarts"
                                                  for r in rules) + " |",
              "|---|---|" + "---|" * len(rules)]
@@ -211,6 +240,58 @@ def restart_table(iters: int, tau: float = 3e-5) -> str:
                 cells.append(f"{_score(sim.truth, solver.x.numpy())[0]:.2f} / "
                              f"{solver.objective:.4g} / {n}")
             lines.append(f"| {er:.0%} | {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+MOMENTUM_CASES = (("im408", 0.0, 0.0, 1e-6), ("im740", 0.0, 0.0, 1e-6), ("im65", 0.0, 0.0, 1e-6),
+                  ("im408", 0.5, 0.0, 3e-6), ("im740", 0.9, 0.0, 3e-6), ("im65", 0.99, 0.0, 3e-6),
+                  ("im408", 0.0, 0.01, 1e-4), ("im740", 0.9, 0.01, 3e-5),
+                  ("im65", 0.99, 0.01, 1e-5))
+
+
+def momentum_table(iters: int) -> str:
+    """PSNR after ``iters`` iterations minus the reference's, per variant and case."""
+    import torch
+
+    from recon import samples
+    from recon.fista import Fista
+    from recon.models import build_model
+    from recon.simulate import simulate
+
+    psf = samples.tutorial_psf()
+    variants: dict[str, dict[str, Any]] = {
+        "FISTA 1/L, gradient restart (previous default)": {"momentum": "fista"},
+        "FISTA 1/L, no restart": {"momentum": "fista", "restart": "none"},
+        "POGM 1/L, no restart": {"restart": "none"},
+        "POGM 1/L, gradient restart (default)": {},
+    }
+    cols = [f"{n} {er:.0%} {'noisy' if nz else 'clean'} tau {t:g}"
+            for n, er, nz, t in MOMENTUM_CASES]
+    cells: dict[str, list[float]] = {v: [] for v in variants}
+    refs = []
+    for name, er, noise, tau in MOMENTUM_CASES:
+        sim = simulate(build_model("2d", psf), samples.lensed_scene(name), erasure=er,
+                       noise=noise, seed=0)
+        model = build_model("2d", psf, mask=sim.mask)
+        b = torch.as_tensor(sim.meas)
+        ref = _score(sim.truth, _fista(model, b, tau, 1000, restart="none", prox_iters=50,
+                                       momentum="fista")[0])[0]
+        refs.append(ref)
+        for v, kw in variants.items():
+            solver = Fista(model.op, b, tau=tau, max_iter=iters, tol=0.0, **kw)
+            for _ in solver.steps():
+                pass
+            if solver.guard_resets:
+                raise AssertionError(f"divergence guard fired: {v}, {name} {er} {noise}")
+            cells[v].append(_score(sim.truth, solver.x.numpy())[0] - ref)
+    clean = [i for i, c in enumerate(MOMENTUM_CASES) if c[2] == 0]
+    noisy = [i for i, c in enumerate(MOMENTUM_CASES) if c[2] > 0]
+    lines = ["| variant | " + " | ".join(cols) + " | mean clean | mean noisy |",
+             "|---|" + "---|" * (len(cols) + 2),
+             "| reference PSNR (dB) | " + " | ".join(f"{r:.2f}" for r in refs) + " | | |"]
+    for v, d in cells.items():
+        lines.append(f"| {v} | " + " | ".join(f"{x:+.2f}" for x in d) + " | "
+                     f"{_mean([d[i] for i in clean]):+.2f} | {_mean([d[i] for i in noisy]):+.2f} |")
     return "\n".join(lines)
 
 
@@ -252,6 +333,12 @@ def run(args: argparse.Namespace) -> int:
 
         apply_threads(args.threads)
         print(hand_table(args.iters))
+        return 0
+    if args.momentum_check:
+        from recon.threads import apply_threads
+
+        apply_threads(args.threads)
+        print(momentum_table(args.iters))
         return 0
 
     from recon import samples

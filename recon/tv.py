@@ -130,7 +130,8 @@ class TVProx:
     The duals of all directions live in one stacked tensor (n_dirs, C, K, H, W), so the dual
     update, the projection and the momentum are one tensor operation each, and every shifted
     view the iteration uses is made once per shape, not per iteration: an inner iteration is
-    twelve in-place tensor operations (2D) and allocates nothing.
+    twelve in-place tensor operations (2D) and allocates nothing (the first one starts from the
+    warm-start dual itself, without a copy, and the last one skips the unused extrapolation).
 
     The duals' last entry along their own axis is always 0 (the gradient buffer's is never
     written, and the projection and momentum keep zeros), so ``D^T p`` is ``-sum(p)`` plus the
@@ -142,11 +143,14 @@ class TVProx:
         self.nonneg = nonneg
         self._p: torch.Tensor | None = None
         self._key: tuple[Any, ...] | None = None
+        self._out: torch.Tensor | None = None
+        self._out_views: list[tuple[torch.Tensor, torch.Tensor]] = []
 
     def reset(self) -> None:
         """Forget the warm-start dual."""
         self._p = None
         self._key = None
+        self._out, self._out_views = None, []
 
     def _buffers(self, z: torch.Tensor) -> None:
         key = (tuple(z.shape), z.dtype, z.device)
@@ -162,6 +166,8 @@ class TVProx:
         ay, ax, ak = _AXES["y"], _AXES["x"], _AXES["k"]
         self._dims = [ay, ax, ak][:n]
         self._shift = {id(t): self._shift_views(t) for t in (self._p, self._r)}
+        # each dual buffer's direction slices (and its first two), made once per shape
+        self._parts = {id(t): ([t[i] for i in range(n)], t[:2]) for t in (self._p, self._r)}
         g = self._g
         self._gviews = [g[i].narrow(d, 0, z.shape[d] - 1) for i, d in enumerate(self._dims)]
         self._xviews = self._diff_views(self._x)
@@ -181,10 +187,11 @@ class TVProx:
         """Set out = P_C(z - gamma D^T q) = P_C(z + gamma sum(w q) - gamma shifted(w q))."""
         w = self.tv.weight_k
         s = self._s
-        if q.shape[0] == 2:
-            torch.add(q[0], q[1], out=s)
+        qs = self._parts[id(q)][0] if id(q) in self._parts else list(q)
+        if len(qs) == 2:
+            torch.add(qs[0], qs[1], out=s)
         else:
-            torch.add(q[0], q[1], out=s).add_(q[2], alpha=w)
+            torch.add(qs[0], qs[1], out=s).add_(qs[2], alpha=w)
         torch.add(z, s, alpha=gamma, out=out)
         src = self._shift[id(q)] if id(q) in self._shift else self._shift_views(q)
         for i, (hi, _lo) in enumerate(out_views):
@@ -202,10 +209,14 @@ class TVProx:
 
     def _project(self, r: torch.Tensor) -> None:
         if self.tv.isotropic:
-            torch.hypot(r[0], r[1], out=self._n).clamp_(min=1.0)
-            r[:2].div_(self._n)
-            if r.shape[0] > 2:
-                r[2].clamp_(-1.0, 1.0)
+            # r / max(1, |r|) as r * rsqrt(max(1, |r|^2)): a quarter faster than hypot and a
+            # division on CPU; |r|^2 overflows only for |r| > 1e19, where r becomes 0 (the prox
+            # step is then below 1e-19 / |D x| and the prox is z itself to float precision)
+            rs, r2 = self._parts[id(r)] if id(r) in self._parts else (list(r), r[:2])
+            n = torch.mul(rs[0], rs[0], out=self._n).addcmul_(rs[1], rs[1])
+            r2.mul_(n.clamp_(min=1.0).rsqrt_())
+            if len(rs) > 2:
+                rs[2].clamp_(-1.0, 1.0)
         else:
             r.clamp_(-1.0, 1.0)
 
@@ -219,28 +230,38 @@ class TVProx:
         self._buffers(z)
         p, r = self._p, self._r
         assert p is not None  # set by _buffers
-        r.copy_(p)
         t = 1.0
         step = 1.0 / (gamma * self.tv.lipschitz)
-        for _ in range(iters):
-            self._primal(z, gamma, r, self._x, self._xviews)
+        q = p  # the point the dual step starts from: p itself first (no momentum yet)
+        for i in range(iters):
+            self._primal(z, gamma, q, self._x, self._xviews)
             self._grad_into_g(self._xviews)
-            r.add_(self._g, alpha=step)
+            if q is p:
+                torch.add(p, self._g, alpha=step, out=r)
+            else:
+                r.add_(self._g, alpha=step)
             self._project(r)  # r now holds p_new
+            if i == iters - 1:  # the last extrapolation would never be used
+                p, r = r, p
+                break
             t_new = (1.0 + math.sqrt(1.0 + 4.0 * t * t)) / 2.0
             # p <- p_new; r <- p_new + beta (p_new - p_old)  (lerp from p_old by 1 + beta)
             p.lerp_(r, 1.0 + (t - 1.0) / t_new)
             p, r = r, p  # now p holds p_new and r the extrapolated point
+            q = r
             t = t_new
         self._p, self._r = p, r
         if out is None:
             out = torch.empty_like(z)
-        return self._primal(z, gamma, p, out, self._diff_views(out))
+        # the output's difference views are kept with it: value(out), which FISTA asks for
+        # next (the objective), reuses them
+        self._out, self._out_views = out, self._diff_views(out)
+        return self._primal(z, gamma, p, out, self._out_views)
 
     def value(self, x: torch.Tensor) -> float:
         """TV(x), as :meth:`TV.value`, computed in this prox's buffers (no allocation)."""
         self._buffers(x)
-        self._grad_into_g(self._diff_views(x))
+        self._grad_into_g(self._out_views if x is self._out else self._diff_views(x))
         g = self._g
         if self.tv.isotropic:
             total = torch.hypot(g[0], g[1], out=self._n).sum()

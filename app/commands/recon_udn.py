@@ -42,7 +42,7 @@ def register_udn(methods: Any) -> None:
     o.add_argument("--iters", type=POSITIVE_INT, default=3000,
                    help="iteration limit (default 3000)")
     o.add_argument("--time-limit", type=POSITIVE, help="wall-time limit in seconds")
-    o.add_argument("--lr", type=POSITIVE, default=0.03, help="Adam learning rate (0.03)")
+    o.add_argument("--lr", type=POSITIVE, default=0.01, help="Adam learning rate (0.01)")
     o.add_argument("--reg-noise", type=NONNEG, default=0.05, help="input noise std (0.05)")
     o.add_argument("--loss", choices=["mse", "scale_invariant"], default="mse",
                    help="data term: mse, or scale_invariant (fits a gain first)")

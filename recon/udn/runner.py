@@ -117,7 +117,7 @@ class UDNConfig:
 
     """
 
-    lr: float = 0.03
+    lr: float = 0.01
     reg_noise: float = 0.05
     loss: LossKind = "mse"
     tv_weight: float = 0.0

@@ -35,7 +35,10 @@ def test_plan_prints_reasons_and_json(files, capsys):
                  "--set", "iterations=40"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["model"] == "video" and d["iterations"] == 40 and d["budget_s"] == 30.0
-    assert "iterations" in d["overridden"] and json.loads(out.read_text()) == d
+    saved = json.loads(out.read_text())
+    # the saved plan also records which measurement and PSF it is for (recon.suggest)
+    assert set(saved.pop("inputs")) == {"measurement", "psf"} and saved.pop("created_utc")
+    assert "iterations" in d["overridden"] and saved == d
 
 
 def test_recon_auto_runs_a_saved_plan_with_overrides(files, capsys):
