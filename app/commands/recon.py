@@ -31,7 +31,7 @@ def register(sub: Any) -> None:
                    help="weight of TV along k for video/spectral/depth (default 0.5)")
     f.add_argument("--prox-iters", type=POSITIVE_INT, default=3, help="inner TV prox iterations")
     f.add_argument("--no-restart", action="store_true",
-                   help="disable the gradient restart of the momentum")
+                   help="disable the gradient restart of the (POGM) momentum")
     f.set_defaults(func=run_fista)
     a = methods.add_parser("admm", help="ADMM-TV (2d model, with or without a mask)")
     _add_tv_solver_arguments(a)

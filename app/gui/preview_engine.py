@@ -13,8 +13,8 @@
 The forward model, its Lipschitz constant and the FISTA state (iterate, momentum, the TV
 prox's dual) are kept between frames of the same geometry (shape, ROI, downsampling, model):
 the new frame only replaces the measurement, so on a still scene the preview converges like one
-long run, and FISTA's monotone adaptive restart resets the momentum when a new frame makes a
-step go uphill (a moving scene). Changing the geometry or the PSF starts over from zero;
+long run, and the solver's gradient restart (``recon.fista``: POGM momentum) resets the
+momentum when a new frame turns the step against it (a moving scene). Changing the geometry or the PSF starts over from zero;
 changing tau or the prox iterations keeps the iterate but restarts the momentum.
 
 Models: ``2d`` (one PSF, one image) and ``video`` (dual rolling shutter: ``video_bins`` time
