@@ -14,16 +14,11 @@ from recon.models import build_model
 from recon.simulate import simulate, synthetic_psf
 from recon.stepwise import NumericalError, StopReason
 from recon.tv import TV
+from tests.scenes import blocks_scene
 
 
 def _scene(h, w, seed=0):
-    rng = np.random.default_rng(seed)
-    s = np.zeros((h, w))
-    for _ in range(4):
-        y0, x0 = rng.integers(0, h - 4), rng.integers(0, w - 4)
-        hh, ww = rng.integers(3, h // 2), rng.integers(3, w // 2)
-        s[y0 : y0 + hh, x0 : x0 + ww] += rng.uniform(0.3, 1)
-    return s
+    return blocks_scene(h, w, seed, count=4)
 
 
 def _psnr(ref, est):

@@ -12,16 +12,11 @@ from recon.fista import Fista
 from recon.models import build_model
 from recon.simulate import simulate, synthetic_psf
 from recon.tv import TV, TVProx
+from tests.scenes import blocks_scene
 
 
 def _scene(h, w, seed=0):
-    rng = np.random.default_rng(seed)
-    s = np.zeros((h, w))
-    for _ in range(5):
-        y0, x0 = rng.integers(0, h - 4), rng.integers(0, w - 4)
-        hh, ww = rng.integers(3, h // 2), rng.integers(3, w // 2)
-        s[y0 : y0 + hh, x0 : x0 + ww] += rng.uniform(0.3, 1)
-    return s[None, None]
+    return blocks_scene(h, w, seed)[None, None]
 
 
 def _problem(noise=0.0, erasure=0.0):

@@ -10,6 +10,7 @@ import torch
 
 from recon.models import build_model
 from recon.simulate import simulate, synthetic_psf
+from tests.scenes import blocks_scene
 
 H, W = 24, 28
 #: A small network that still has every part (3 scales, skips).
@@ -22,16 +23,6 @@ def _one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(old)
-
-
-def blocks_scene(h: int, w: int, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    s = np.zeros((h, w))
-    for _ in range(5):
-        y0, x0 = rng.integers(0, h - 4), rng.integers(0, w - 4)
-        dy, dx = rng.integers(3, h // 2), rng.integers(3, w // 2)
-        s[y0 : y0 + dy, x0 : x0 + dx] += rng.uniform(0.3, 1)
-    return s
 
 
 def tiny_problem(erasure: float = 0.5, h: int = H, w: int = W, seed: int = 0):
