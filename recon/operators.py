@@ -45,6 +45,26 @@ def _irfft2(x: torch.Tensor, s: tuple[int, int]) -> torch.Tensor:
     return cast(torch.Tensor, torch.fft.irfft2(x, s=s))
 
 
+def _in_layout(f: torch.Tensor, like: torch.Tensor,
+               cache: dict[str, tuple[torch.Tensor, torch.Tensor]], key: str) -> torch.Tensor:
+    """The constant factor ``f`` in the memory layout of the spectrum ``like`` it multiplies.
+
+    A transform along the rows (``fft(..., dim=-2)``) returns its spectrum column-major in the
+    last two axes; multiplying that by a row-major factor ran 3-4x slower than by one of the
+    same layout (1 thread, CPU: 27 vs 8 us at 256x129, 132 vs 31 us at 512x257). The
+    column-major copy is made once and cached (checked by identity, so a replaced factor is
+    copied anew); the values are the same, only the strides differ.
+    """
+    if (like.ndim < 2 or like.stride(-2) != 1 or like.shape[-1] == 1 or f.stride(-2) == 1
+            or f.requires_grad):
+        return f
+    hit = cache.get(key)
+    if hit is None or hit[0] is not f:
+        hit = (f, f.detach().transpose(-1, -2).contiguous().transpose(-1, -2))
+        cache[key] = hit
+    return hit[1]
+
+
 def _broadcast(a: tuple[int, ...], b: tuple[int, ...]) -> tuple[int, ...]:
     return tuple(cast(Any, torch.broadcast_shapes)(a, b))
 
@@ -257,24 +277,25 @@ class Conv2D(LinearOperator):
         super().__init__((c, k, hs, ws), (c, k, *pad), dtype, device)
         self.hf = _rfft2(h, s=pad)  # (1|C, 1|K, Py, Px//2+1)
         self.hf_conj = self.hf.conj()
+        self._layouts: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def apply(self, x: torch.Tensor) -> torch.Tensor:
         # the rfft2 of the zero-padded input, pruned: the row transforms run only on the
         # input's rows (the padding rows are zero), then the column transforms on all
         py, px = self.pad
         xf = cast(torch.Tensor, torch.fft.fft(torch.fft.rfft(x, n=px, dim=-1), n=py, dim=-2))
-        xf.mul_(self.hf)
+        xf.mul_(_in_layout(self.hf, xf, self._layouts, "hf"))
         return _irfft2(xf, s=self.pad)
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
         yf = _rfft2(y)
-        yf.mul_(self.hf_conj)
+        yf.mul_(_in_layout(self.hf_conj, yf, self._layouts, "hf_conj"))
         # the irfft2 pruned to the rows the crop to the input keeps: the column transforms on
         # all, the row transforms only on the kept rows
         hs, ws = self.in_shape[2], self.in_shape[3]
         t = torch.fft.ifft(yf, dim=-2)[..., :hs, :]
         out = cast(torch.Tensor, torch.fft.irfft(t, n=self.pad[1], dim=-1))
-        return out[..., :ws]
+        return out[..., :ws].contiguous()
 
 
 class StackConvSum(LinearOperator):
@@ -337,6 +358,7 @@ class _CropConv(LinearOperator):
         super().__init__(conv.in_shape, crop.out_shape, conv.dtype, conv.device)
         self.crop, self.conv = crop, conv
         self._hf_conj_shift: torch.Tensor | None = None
+        self._layouts: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def _shifted(self) -> torch.Tensor:
         if self._hf_conj_shift is None:
@@ -353,7 +375,7 @@ class _CropConv(LinearOperator):
     def apply(self, x: torch.Tensor) -> torch.Tensor:
         py, px = self.conv.pad
         xf = cast(torch.Tensor, torch.fft.fft(torch.fft.rfft(x, n=px, dim=-1), n=py, dim=-2))
-        xf.mul_(self.conv.hf)
+        xf.mul_(_in_layout(self.conv.hf, xf, self._layouts, "hf"))
         sy, sx = self.crop.sl
         t = torch.fft.ifft(xf, dim=-2)[..., sy, :]
         return cast(torch.Tensor, torch.fft.irfft(t, n=px, dim=-1))[..., sx]
@@ -361,10 +383,12 @@ class _CropConv(LinearOperator):
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
         py, px = self.conv.pad
         yf = cast(torch.Tensor, torch.fft.fft(torch.fft.rfft(y, n=px, dim=-1), n=py, dim=-2))
-        yf.mul_(self._shifted())
+        yf.mul_(_in_layout(self._shifted(), yf, self._layouts, "hf_conj_shift"))
         hs, ws = self.conv.in_shape[2], self.conv.in_shape[3]
         t = torch.fft.ifft(yf, dim=-2)[..., :hs, :]
-        return cast(torch.Tensor, torch.fft.irfft(t, n=px, dim=-1))[..., :ws]
+        # contiguous: the solvers' passes over the gradient then run 2-5% faster per step
+        # than the copy costs (FISTA, 1 thread, 256^2 to 1024^2 padded)
+        return cast(torch.Tensor, torch.fft.irfft(t, n=px, dim=-1))[..., :ws].contiguous()
 
 
 class Mask(LinearOperator):
@@ -407,6 +431,10 @@ class SumK(LinearOperator):
         super().__init__(ins, (ins[0], ins[2], ins[3]), dtype, device)
 
     def apply(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[1] == 1:
+            # one plane: a copy (a new tensor, as the sum gives), 2-3x faster than the sum over
+            # a length-1 axis of a strided input (the cropped convolution's output)
+            return x.squeeze(1).clone(memory_format=torch.contiguous_format)
         return x.sum(dim=1)
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
