@@ -128,10 +128,12 @@ def _case_2d(size: int, methods: list[str], rounds: int, prox_iters: int,
     from recon.fista import Fista
     from recon.models import build_model
     from recon.simulate import synthetic_psf
+    from recon.threads import fit_threads
 
     n = size // 2
     psf = synthetic_psf((n, n), n_points=200, seed=0)
     model = build_model("2d", psf)
+    fit_threads(model.scene_shape)  # as the commands do: small grids run on one thread
     pad = tuple(model.info["pad"])
     b = torch.as_tensor(np.random.default_rng(0).random(model.meas_shape, dtype=np.float32))
     x = torch.rand(model.scene_shape)
@@ -159,6 +161,7 @@ def _case_2d(size: int, methods: list[str], rounds: int, prox_iters: int,
     rows = []
     for name in solvers:
         rows.append({"case": f"2d {n}x{n}", "method": name, "pad": f"{pad[0]}x{pad[1]}",
+                     "threads": torch.get_num_threads(),
                      "iter_ms": round(1e3 * _quantile(times[name], 0.5), 2),
                      "floor_ms": round(1e3 * _quantile(times["floor"], 0.5), 2),
                      **ratio_stats(times[name], times["floor"])})
@@ -174,6 +177,7 @@ def _case_video(rounds: int, prox_iters: int) -> list[dict[str, Any]]:
     from recon.models import build_model
     from recon.preprocess import bin_time
     from recon.simulate import synthetic_psf
+    from recon.threads import fit_threads
     from recon.tv import TV
 
     n, k = 128, 16
@@ -182,6 +186,7 @@ def _case_video(rounds: int, prox_iters: int) -> list[dict[str, Any]]:
     full = timing.shutter(bin_lines=1)
     shutter = bin_time(full, -(-full.shape[0] // k))[:k]
     model = build_model("video", psf, shutter=shutter)
+    fit_threads(model.scene_shape)
     pad = tuple(model.info["pad"])
     b = torch.as_tensor(np.random.default_rng(0).random(model.meas_shape, dtype=np.float32))
     solver = Fista(model.op, b, tau=1e-3, tv=TV(weight_k=0.5), max_iter=10**9, tol=0.0,
@@ -194,6 +199,7 @@ def _case_video(rounds: int, prox_iters: int) -> list[dict[str, Any]]:
 
     times = interleave({"floor": floor, "fista": solver.step}, rounds, clock=work_clock())
     return [{"case": f"video {n}x{n} K={k}", "method": "fista", "pad": f"{pad[0]}x{pad[1]}",
+             "threads": torch.get_num_threads(),
              "iter_ms": round(1e3 * _quantile(times["fista"], 0.5), 2),
              "floor_ms": round(1e3 * _quantile(times["floor"], 0.5), 2),
              **ratio_stats(times["fista"], times["floor"])}]
@@ -201,6 +207,9 @@ def _case_video(rounds: int, prox_iters: int) -> list[dict[str, Any]]:
 
 def threads_check(chosen: int, rounds: int) -> dict[str, Any]:
     """FISTA on the demo problem: the policy's thread count, 1 thread and all cores, interleaved.
+
+    ``chosen`` is the process's count; an automatic one is fitted to the demo's size first
+    (:func:`recon.threads.fit_threads`), as the demo command does.
 
     Wall time (threads are what is compared). Returns per-count medians and the policy's
     ratio to 1 thread (<= 1: never slower than 1 thread).
@@ -210,10 +219,13 @@ def threads_check(chosen: int, rounds: int) -> dict[str, Any]:
     from recon import samples
     from recon.fista import Fista
     from recon.models import build_model
-    from recon.threads import machine_state
+    from recon.threads import fit_threads, machine_state
 
     psf, meas = samples.tutorial_psf(), samples.tutorial_measurement()
     model = build_model("2d", psf)
+    fitted = fit_threads(model.scene_shape)  # what `lenslesscam demo` runs this problem with
+    if fitted is not None:
+        chosen = fitted.threads
     counts = sorted({1, chosen, machine_state()[0]})
     solvers = {t: Fista(model.op, torch.as_tensor(meas), tau=1e-3, max_iter=10**9, tol=0.0)
                for t in counts}
@@ -260,16 +272,19 @@ def run(args: argparse.Namespace) -> int:
         rows += _case_video(args.rounds, args.prox_iters)
     check = threads_check(choice.threads, args.rounds) if args.threads_check else None
     load1 = os.getloadavg()[0]
+    fitted_note = (" (fitted to each case's size, the threads column)"
+                   if choice.source == "auto" else "")
     print(f"Time per iteration vs the FFT floor (2 rfft2/irfft2 pairs per k-slice), interleaved "
-          f"in one process, {args.rounds} rounds; {choice.reason}; TV prox inner iterations = "
+          f"in one process, {args.rounds} rounds; {choice.reason}"
+          f"{fitted_note}; TV prox inner iterations = "
           f"{args.prox_iters}; load average {load0:.2f} -> {load1:.2f} on "
           f"{os.cpu_count()} CPUs; clock: {clock_name}")
-    print("| case | method | padded FFT | iteration (ms) | FFT floor (ms) | ratio (median) | "
-          "ratio p25-p75 |")
-    print("|---|---|---|---|---|---|---|")
+    print("| case | method | padded FFT | threads | iteration (ms) | FFT floor (ms) | "
+          "ratio (median) | ratio p25-p75 |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['case']} | {r['method']} | {r['pad']} | {r['iter_ms']} | {r['floor_ms']} | "
-              f"{r['ratio']:.2f} | {r['ratio_p25']:.2f}-{r['ratio_p75']:.2f} |")
+        print(f"| {r['case']} | {r['method']} | {r['pad']} | {r['threads']} | {r['iter_ms']} | "
+              f"{r['floor_ms']} | {r['ratio']:.2f} | {r['ratio_p25']:.2f}-{r['ratio_p75']:.2f} |")
     if check is not None:
         verdict = "not slower" if check["ratio"] <= 1.0 + 0.05 else "SLOWER"
         per = ", ".join(f"{t} thread(s) {ms} ms" for t, ms in check["ms"].items())

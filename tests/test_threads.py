@@ -53,3 +53,42 @@ def test_apply_sets_torch() -> None:
         assert "requested" in str(c)
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize(
+    ("work", "expected"),
+    [
+        (150 * 200, 1),  # the demo (1/8-scale tutorial): one thread even on an idle machine
+        (256 * 256, 1),  # up to one FFT_PIXELS_PER_THREAD: one
+        (384 * 384, 2),
+        (16 * 128 * 128, 2),  # a 16-bin video counts its slices
+        (1024 * 1024, 2),  # never above the free cores
+    ],
+)
+def test_auto_is_capped_by_the_fft_work(work: int, expected: int) -> None:
+    c = choose_threads(None, cores=2, load=0.0, env={}, work=work)
+    assert (c.threads, c.source, c.work) == (expected, "auto", work)
+    assert f"{work} scene pixels" in c.reason
+    assert choose_threads(None, cores=2, load=1.5, env={}, work=10**7).threads == 1  # busy
+    assert choose_threads(2, cores=2, load=0.0, env={}, work=100).threads == 2  # asked: kept
+
+
+def test_fit_threads_refines_only_an_automatic_choice(monkeypatch: pytest.MonkeyPatch) -> None:
+    import recon.threads as th
+
+    before = torch.get_num_threads()
+    try:
+        monkeypatch.setattr(th, "_process_choice", None)
+        torch.set_num_threads(2)
+        assert th.fit_threads((1, 1, 64, 64)) is None  # the policy never applied: untouched
+        assert torch.get_num_threads() == 2
+        monkeypatch.setattr(th, "_process_choice", th.ThreadChoice(2, 2, 0.0, "auto"))
+        small = th.fit_threads((1, 1, 150, 200))
+        assert small is not None and small.threads == 1 == torch.get_num_threads()
+        big = th.fit_threads((3, 1, 256, 256))  # a later, larger problem: both threads again
+        assert big is not None and big.threads == 2 == torch.get_num_threads()
+        asked = th.ThreadChoice(2, 2, 0.0, "requested")
+        monkeypatch.setattr(th, "_process_choice", asked)
+        assert th.fit_threads((1, 1, 8, 8)) is asked and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

@@ -134,9 +134,13 @@ def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
     import torch
 
     from recon.io import reconstruction_paths, save_reconstruction
+    from recon.threads import fit_threads
 
     check_command_outputs(args, reconstruction_paths(args.out, kind))
     prob = load_problem(args)
+    fitted = fit_threads(prob.model.scene_shape)  # small grids: one thread (recon.threads)
+    if fitted is not None:
+        args.thread_choice = fitted
     dtype = torch.float64 if args.float64 else torch.float32
     b = torch.as_tensor(prob.meas, dtype=dtype)
     solver, tau, iters, tau_meta = make(prob.model, b)

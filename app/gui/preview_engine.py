@@ -14,8 +14,9 @@ The forward model, its Lipschitz constant and the FISTA state (iterate, momentum
 prox's dual) are kept between frames of the same geometry (shape, ROI, downsampling, model):
 the new frame only replaces the measurement, so on a still scene the preview converges like one
 long run, and the solver's gradient restart (``recon.fista``: POGM momentum) resets the
-momentum when a new frame turns the step against it (a moving scene). Changing the geometry or the PSF starts over from zero;
-changing tau or the prox iterations keeps the iterate but restarts the momentum.
+momentum when a new frame turns the step against it (a moving scene). Changing the geometry or
+the PSF starts over from zero; changing tau or the prox iterations keeps the iterate but
+restarts the momentum.
 
 Models: ``2d`` (one PSF, one image) and ``video`` (dual rolling shutter: ``video_bins`` time
 bins from the frame's :class:`~drivers.timing.SensorTiming`, shown side by side).
@@ -372,6 +373,8 @@ class PreviewEngine:
 
             self._threads_reason = apply_threads(s.threads).reason
             self._threads_set = s.threads
+            if self._model is not None:
+                self._fit_threads(self._model)
         if self._psf is None:
             raise PreviewError("no PSF: load or calibrate one to see a reconstruction")
         frame = np.asarray(pixels)
@@ -504,6 +507,14 @@ class PreviewEngine:
             if gen == self._auto_gen:  # not for an older geometry or PSF
                 self._auto_tau, self._auto_note = tau, note
 
+    def _fit_threads(self, model: Any) -> None:
+        """One thread for a small preview grid (recon.threads.fit_threads), said in the stats."""
+        from recon.threads import fit_threads
+
+        fitted = fit_threads(model.scene_shape)
+        if fitted is not None:
+            self._threads_reason = fitted.reason
+
     def _psf_at_binning(self, binning: int) -> F32:
         assert self._psf is not None
         if binning == 1:
@@ -545,6 +556,7 @@ class PreviewEngine:
         else:
             recipe = ("2d", {"psf": psf_d, "mask": mask})
         model = build_model(recipe[0], **recipe[1])
+        self._fit_threads(model)
         with self._lock:  # a new geometry or PSF: the next frame re-estimates tau
             self._build_args = recipe
             self._auto_gen += 1
