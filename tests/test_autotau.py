@@ -53,17 +53,50 @@ def test_auto_tau_within_a_decade_of_the_oracle(erasure):
     scores = {t: _psnr(sim, _run(model, b, t, iters)) for t in grid}
     oracle = max(scores, key=scores.__getitem__)
     choice = choose_tau(model, b, max_iter=iters, min_iter=50, patience=50)
-    assert isinstance(choice, AutoTau) and choice.rule == "heldout-pixels"
+    assert isinstance(choice, AutoTau) and choice.rule == "heldout-pixels-1se"
     assert abs(math.log10(choice.tau) - math.log10(oracle)) <= 1.0 + 1e-9, (choice, oracle)
     assert 50 <= choice.iterations <= iters
-    # the curve holds every tau tried, the choice is its minimum, and the cost is reported
+    # the curve holds every tau tried; the choice is at or above its minimum (one standard
+    # error rule), the minimum is recorded too, and the cost is reported
     taus = [t for t, _, _ in choice.curve]
     assert taus == sorted(taus) and len(taus) >= 5 and max(taus) >= 0.99e-2
-    assert choice.tau == min(choice.curve, key=lambda c: c[1])[0]
+    t_min = min(choice.curve, key=lambda c: c[1])[0]
+    assert choice.settings["tau_min_error"] == t_min and choice.settings["tau_one_se"] == choice.tau
+    assert choice.tau >= t_min and choice.tau in taus
     assert choice.cost_s > 0 and choice.total_iterations >= len(taus) * 50
     # and the reconstruction at the choice is close to the oracle's (within 1.5 dB)
     x = _run(model, b, choice.tau, choice.iterations)
     assert _psnr(sim, x) >= scores[oracle] - 1.5
+
+
+def test_one_standard_error_rule_prefers_the_larger_tau_it_cannot_tell_apart():
+    from recon.autotau import _one_standard_error
+
+    gen = torch.Generator().manual_seed(0)
+    base = torch.rand(400, generator=gen)
+    scores = {-6.0: (0.0, 0, False), -5.5: (0.0, 0, False), -5.0: (0.0, 0, False),
+              -4.0: (0.0, 0, False), -6.5: (0.0, 0, False)}
+    noise = 0.05 * torch.randn(400, generator=gen)
+    noise -= noise.mean()  # SE of the differences: 0.05 / 20 = 0.0025
+    errors = {-6.5: base + 0.3, -6.0: base, -5.5: base + noise + 0.001,  # within noise
+              -5.0: base + 0.2,  # clearly worse: the climb stops here
+              -4.0: base + noise}  # never reached: the rule goes up contiguously
+    assert _one_standard_error(scores, errors, -6.0) == -5.5
+    errors[-5.5] = base + 0.05  # clearly worse than the minimum: keep the minimum
+    assert _one_standard_error(scores, errors, -6.0) == -6.0
+
+
+@pytest.mark.parametrize("erasure", [0.0, 0.9])
+def test_both_rules_share_the_search(erasure):
+    _sim, model, b = _case(erasure)
+    kw = {"max_iter": 120, "min_iter": 30, "patience": 30}
+    lo = choose_tau(model, b, rule="min", **kw)
+    se = choose_tau(model, b, **kw)
+    assert lo.curve == se.curve and lo.rule == "heldout-pixels" != se.rule
+    assert lo.tau == min(lo.curve, key=lambda c: c[1])[0] == se.settings["tau_min_error"]
+    assert se.tau >= lo.tau and lo.settings["tau_one_se"] == se.tau
+    with pytest.raises(ValueError, match="rule must be one of"):
+        choose_tau(model, b, rule="smallest", **kw)
 
 
 def test_fixed_tau_chooses_only_iterations_and_bad_input_is_refused():
@@ -120,7 +153,7 @@ def test_cli_tau_auto_by_default_exact_when_given_and_recon_admm(tmp_path, capsy
     summary = json.loads(out.out)
     _x, meta = read_reconstruction(tmp_path / "auto.tif")
     reg = meta["regularisation"]
-    assert reg["tau_rule"] == "heldout-pixels" and reg["iterations_rule"] == "heldout-pixels"
+    assert reg["tau_rule"] == reg["iterations_rule"] == "heldout-pixels-1se"
     assert meta["parameters"]["tau"] == reg["tau"] == summary["tau"]
     assert 1e-7 <= reg["tau"] <= 1.1e-2 and reg["auto"]["curve"]
     assert meta["parameters"]["max_iter"] == reg["iterations"] <= 500
@@ -142,7 +175,7 @@ def test_cli_tau_auto_by_default_exact_when_given_and_recon_admm(tmp_path, capsy
                  str(tmp_path / "admm-auto.tif")]) == 0
     capsys.readouterr()
     _x, meta = read_reconstruction(tmp_path / "admm-auto.tif")
-    assert meta["regularisation"]["tau_rule"] == "heldout-pixels"
+    assert meta["regularisation"]["tau_rule"] == "heldout-pixels-1se"
     assert meta["parameters"]["tau"] == meta["regularisation"]["tau"]
     with pytest.raises(SystemExit):
         main(["recon", "fista", *inputs, "--tau", "often", "--out", str(tmp_path / "b.tif")])

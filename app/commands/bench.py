@@ -16,6 +16,7 @@ BENCHMARKS = {
     "udn-video": "benchmarks.udn_video",
     "udn-vs-fista": "benchmarks.udn_vs_fista",
     "real-pairs": "benchmarks.real_pairs",
+    "tau-rules": "benchmarks.tau_rules",
     "batch": "benchmarks.bench_batch",
 }
 
