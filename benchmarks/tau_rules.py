@@ -1,10 +1,10 @@
 """The automatic tau's two rules side by side: smallest held-out error against one standard error.
 
-Both rules share :func:`recon.autotau.choose_tau`'s search (the same held-out pixels, the same
-taus tried); they differ in the pick. ``min`` takes the tau of the smallest held-out error;
-``1se`` (the default) the largest tau, going up from it, whose held-out error is within one
-standard error of the minimum's (paired over the held-out pixels; the "one-standard-error
-rule" of cross-validation: prefer the more regularised setting the held-out data cannot tell
+Both picks come from one :func:`recon.autotau.choose_tau` search per case (the same held-out
+pixels, the same taus tried). ``min`` takes the tau of the smallest held-out error; ``1se``
+(the default) the largest tau, going up from it, whose held-out error is within one standard
+error of the minimum's (paired over the held-out pixels: the "one-standard-error rule" of
+cross-validation, which prefers the more regularised setting the held-out data cannot tell
 apart from the best). Each case: both choices, FISTA-TV from all measured pixels with each
 (its tau and iteration count), and an oracle grid of taus at the iteration limit, scored
 against the truth (PSNR after a least-squares gain fit).
@@ -80,28 +80,28 @@ def _cases(args: argparse.Namespace) -> Iterator[tuple[str, Any, Any, Any]]:
 
 
 def _psnr(model: Any, b: Any, truth: Any, tau: float, iters: int) -> float:
+    from benchmarks.real_pairs import psnr_only
     from recon.fista import Fista
-    from recon.metrics import gain_fit, psnr
 
     s = Fista(model.op, b, tau=tau, max_iter=iters, tol=0.0)
     s.run()
-    x = s.x.detach().numpy().reshape(truth.shape)  # (C, 1, H, W) against a (C, H, W) truth
-    return psnr(truth, gain_fit(truth, x)[0])
+    return psnr_only(truth, s.x.detach().numpy())
 
 
 def run_case(model: Any, b: Any, truth: Any, iters: int) -> dict[str, Any]:
-    """Both rules, their reconstructions and the oracle grid on one case."""
+    """Both rules' picks (one search), their reconstructions and the oracle grid on one case."""
     from recon.autotau import choose_tau
 
-    out: dict[str, Any] = {}
-    picks = {}
-    for rule in ("min", "1se"):
-        t0 = time.perf_counter()
-        c = choose_tau(model, b, max_iter=iters, min_iter=min(100, iters),  # as `resolve`
-                       patience=max(min(100, iters), 10), check_every=min(10, iters), rule=rule)
-        picks[rule] = (c.tau, c.iterations)
-        out[rule] = {"tau": c.tau, "iterations": c.iterations,
-                     "search_s": round(time.perf_counter() - t0, 2)}
+    t0 = time.perf_counter()
+    c = choose_tau(model, b, max_iter=iters, min_iter=min(100, iters),  # as `resolve` does
+                   patience=max(min(100, iters), 10), check_every=min(10, iters))
+    search_s = round(time.perf_counter() - t0, 2)
+    st = c.settings
+    picks = {"min": (st["tau_min_error"], st["iterations_min_error"]),
+             "1se": (st["tau_one_se"], st["iterations_one_se"])}
+    out: dict[str, Any] = {"search_s": search_s}
+    for rule, (tau, its) in picks.items():
+        out[rule] = {"tau": tau, "iterations": its}
     out["min"]["psnr"] = _psnr(model, b, truth, *picks["min"])
     out["1se"]["psnr"] = (out["min"]["psnr"] if picks["1se"] == picks["min"]
                           else _psnr(model, b, truth, *picks["1se"]))

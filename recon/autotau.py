@@ -27,8 +27,9 @@ per-pixel differences (the more regularised setting the held-out pixels cannot t
 best); ``"min"`` takes the minimum itself. Measured with ``lenslesscam bench tau-rules``
 (docs/auto-tau.md): on the real DiffuserCam pairs, where the model's mismatch makes the
 held-out error favour small taus, the rule gains up to 0.9 dB and never loses; on the
-simulation protocol it changes a few cases by -0.3 .. +0.14 dB. Both picks are stored
-(``settings``: ``tau_min_error``, ``tau_one_se``).
+simulation protocol it changes a few cases by -0.3 .. +0.14 dB. Both picks come from the one
+search and are stored (``settings``: ``tau_min_error`` / ``iterations_min_error``,
+``tau_one_se`` / ``iterations_one_se``).
 
 The held-out pixels only rank the settings; the caller reconstructs with the chosen tau and
 iteration count from all measured pixels (``recon fista`` does this by default).
@@ -182,6 +183,8 @@ def choose_tau(
         raise ValueError(f"need 1 <= min_iter <= max_iter, got {min_iter}, {max_iter}")
     if patience < check_every or check_every < 1:
         raise ValueError(f"need 1 <= check_every <= patience, got {check_every}, {patience}")
+    if rule not in RULES:
+        raise ValueError(f"rule must be one of {sorted(RULES)}, got {rule!r}")
     tv = tv if tv is not None else TV()
     b = b.to(dtype=model.op.dtype, device=model.op.device)
     measured = _measured_pixels(model, b)
@@ -202,8 +205,6 @@ def choose_tau(
     b_fit = keep.apply(b)
     b_hold = b[hold]
     scale = float(b.abs().max()) or 1.0
-    if rule not in RULES:
-        raise ValueError(f"rule must be one of {sorted(RULES)}, got {rule!r}")
     scores: dict[float, tuple[float, int, bool]] = {}
     errors: dict[float, torch.Tensor] = {}  # per held-out pixel, at each tau's best
     total = 0
@@ -247,22 +248,29 @@ def choose_tau(
                 score(e)
     min_e = min(scores, key=lambda k: scores[k][0])
     se_e = _one_standard_error(scores, errors, min_e)
+
+    def iterations_at(e: float) -> int:
+        # the held-out error rose: stop where it was best; on a plateau (or still improving)
+        # more iterations do not hurt the held-out pixels, and they sharpen: use them all
+        _, best_it, overfit = scores[e]
+        return max(best_it, min_iter) if overfit else max_iter
+
     best_e = se_e if rule == "1se" else min_e
-    _, best_it, overfit = scores[best_e]
-    # the held-out error rose: stop where it was best; on a plateau (or still improving)
-    # more iterations do not hurt the held-out pixels, and they sharpen: use them all
-    iterations = max(best_it, min_iter) if overfit else max_iter
     curve = tuple(sorted((scale * 10.0**k, v[0], v[1]) for k, v in scores.items()))
     return AutoTau(
         tau=fixed_tau if fixed_tau is not None else scale * 10.0**best_e,
-        iterations=iterations,
-        rule=RULES[rule] if fixed_tau is None else RULES[rule] + " (iterations)",
+        iterations=iterations_at(best_e),
+        # with a given tau there is nothing to pick: only the held-out iteration count
+        rule=RULES[rule] if fixed_tau is None else RULES["min"] + " (iterations)",
         cost_s=time.perf_counter() - t_start, curve=curve, heldout_pixels=n_hold,
         total_iterations=total,
         settings={"holdout": holdout, "seed": seed, "tau_range": [lo, hi], "scale": scale,
                   "max_iter": max_iter, "min_iter": min_iter, "patience": patience,
                   "check_every": check_every,
-                  "tau_min_error": scale * 10.0**min_e, "tau_one_se": scale * 10.0**se_e},
+                  # both rules' picks (tau, iterations) from this one search
+                  "tau_min_error": scale * 10.0**min_e, "iterations_min_error":
+                  iterations_at(min_e), "tau_one_se": scale * 10.0**se_e,
+                  "iterations_one_se": iterations_at(se_e)},
     )
 
 
@@ -276,9 +284,9 @@ def _one_standard_error(scores: dict[float, tuple[float, int, bool]],
     pick = min_e
     base = errors[min_e]
     for k in sorted(k for k in scores if k > min_e):
-        d = (errors[k] - base).double()
-        if d.numel() < 2 or d.shape != base.shape:
+        if errors[k].shape != base.shape or base.numel() < 2:  # a run with no finite error
             break
+        d = (errors[k] - base).double()
         if float(d.mean()) > float(d.std()) / math.sqrt(d.numel()):
             break
         pick = k

@@ -30,6 +30,7 @@ short string for logs and benchmark headers.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 
@@ -157,11 +158,9 @@ def fit_threads(scene_shape: tuple[int, ...] | list[int]) -> ThreadChoice | None
         return None
     if base.source != "auto":
         return base
-    work = 1
-    for n in scene_shape:
-        work *= int(n)
-    cap = max(1, work // FFT_PIXELS_PER_THREAD)
-    choice = ThreadChoice(min(base.threads, cap), base.cores, base.load, "auto", work)
+    # the same cores and load as the process's choice: only the work cap is new
+    choice = choose_threads(None, cores=base.cores, load=base.load, env={},
+                            work=math.prod(int(n) for n in scene_shape))
     _set_torch_threads(choice.threads)
     return choice
 

@@ -61,3 +61,15 @@ class ProgressBar:
     def close(self) -> None:
         """End the line."""
         self._bar.close()
+
+
+def fit_command_threads(args: Any, scene_shape: tuple[int, ...]) -> None:
+    """Fit the thread policy's choice to the built problem, kept in ``args.thread_choice``.
+
+    See :func:`recon.threads.fit_threads`; commands report ``args.thread_choice``.
+    """
+    from recon.threads import fit_threads
+
+    fitted = fit_threads(scene_shape)
+    if fitted is not None:
+        args.thread_choice = fitted

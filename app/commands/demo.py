@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from app.commands._common import fit_command_threads
 from app.commands._options import add_overwrite_option, check_command_outputs
 from app.commands._tau import iters_type, resolve_tau, tau_type
 
@@ -71,7 +72,7 @@ def run_depth(args: argparse.Namespace) -> int:
     stack = samples.depth_psf_stack()[DEPTH_PLANES]
     meas = samples.depth_measurement()
     model = build_model("depth", stack)
-    _fit_threads(args, model.scene_shape)
+    fit_command_threads(args, model.scene_shape)
     t0 = time.perf_counter()
     solver = Fista(model.op, torch.as_tensor(meas), tau=tau, tv=TV(weight_k=1.0),
                    max_iter=iters, tol=1e-7)
@@ -89,15 +90,6 @@ def run_depth(args: argparse.Namespace) -> int:
                       "wall_time_s": round(wall, 2)}))
     _maybe_open(args, paths[-1])
     return 0
-
-
-def _fit_threads(args: argparse.Namespace, scene_shape: tuple[int, ...]) -> None:
-    """Fit the thread policy's choice to this problem (recon.threads.fit_threads)."""
-    from recon.threads import fit_threads
-
-    fitted = fit_threads(scene_shape)
-    if fitted is not None:
-        args.thread_choice = fitted
 
 
 def _threads(args: argparse.Namespace) -> str:
@@ -133,7 +125,7 @@ def run_hand(args: argparse.Namespace) -> int:
     psf = samples.tutorial_psf()
     meas = samples.tutorial_measurement()
     model = build_model("2d", psf)
-    _fit_threads(args, model.scene_shape)
+    fit_command_threads(args, model.scene_shape)
     t0 = time.perf_counter()
     b = torch.as_tensor(meas)
     tv = TV()

@@ -9,7 +9,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from app.commands._common import ProgressBar
+from app.commands._common import ProgressBar, fit_command_threads
 from app.commands._inputs import add_layout_arguments, problem_spec
 from app.commands._options import (
     NONNEG,
@@ -134,13 +134,10 @@ def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
     import torch
 
     from recon.io import reconstruction_paths, save_reconstruction
-    from recon.threads import fit_threads
 
     check_command_outputs(args, reconstruction_paths(args.out, kind))
     prob = load_problem(args)
-    fitted = fit_threads(prob.model.scene_shape)  # small grids: one thread (recon.threads)
-    if fitted is not None:
-        args.thread_choice = fitted
+    fit_command_threads(args, prob.model.scene_shape)  # small grids: one thread
     dtype = torch.float64 if args.float64 else torch.float32
     b = torch.as_tensor(prob.meas, dtype=dtype)
     solver, tau, iters, tau_meta = make(prob.model, b)
