@@ -28,6 +28,7 @@ import json
 import os
 import platform
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -107,6 +108,23 @@ def is_disk_full(exc: BaseException | None) -> bool:
 # --------------------------------------------------------------------------------------------
 
 
+HOLDER_WAIT_S = 1.0
+"""How long a refused process waits for the holder to write its line (it writes it right
+after taking the lock; an empty line means the two processes started at the same moment)."""
+
+
+def _read_holder(fd: int) -> bytes:
+    """The holder's first line in the lock file, waiting briefly while it is still empty."""
+    deadline = time.monotonic() + HOLDER_WAIT_S
+    while True:
+        holder = b""
+        with contextlib.suppress(OSError):
+            holder = os.pread(fd, 200, 0).split(b"\n")[0].strip(b"\0 ")
+        if holder or time.monotonic() >= deadline:
+            return holder
+        time.sleep(0.02)
+
+
 class RunLock:
     """Exclusive OS lock on a run folder (``RUN_DIR/run.lock``), released by the kernel.
 
@@ -134,12 +152,11 @@ class RunLock:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
-            holder = b""
-            with contextlib.suppress(OSError):
-                holder = os.pread(fd, 200, 0).split(b"\n")[0]
-            os.close(fd)
             if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                os.close(fd)
                 raise
+            holder = _read_holder(fd)
+            os.close(fd)
             who = holder.decode("utf-8", "replace").strip() or "another process"
             raise RunFolderBusy(
                 f"{self.run_dir} is in use ({who}): one process at a time may write a run "
@@ -148,8 +165,10 @@ class RunLock:
         self._fd = fd
         self._holder = f"pid {os.getpid()} on {platform.node()} since {_now()}\n".encode()
         with contextlib.suppress(OSError):  # informative only; never fails the run
-            os.ftruncate(fd, 0)
+            # Write the holder line before cutting the old contents, so that a process refused
+            # meanwhile never reads an empty file (it would name no holder).
             os.pwrite(fd, self._holder, 0)
+            os.ftruncate(fd, len(self._holder))
             os.posix_fallocate(fd, 0, RESERVE_BYTES)
         return self
 

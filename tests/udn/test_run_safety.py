@@ -85,6 +85,30 @@ def test_the_lock_refuses_a_second_writer_in_one_process(tiny_data, tmp_path):
     assert (out / "run.lock").stat().st_size == 0
 
 
+def test_a_refused_writer_waits_for_the_holder_line(tmp_path, monkeypatch):
+    """The holder writes its line just after taking the lock; a process refused in between
+    waits for that line instead of naming no one (a race seen in CI)."""
+    import fcntl
+    import threading
+
+    out = tmp_path / "run"
+    out.mkdir()
+    fd = os.open(out / "run.lock", os.O_RDWR | os.O_CREAT)
+    fcntl.flock(fd, fcntl.LOCK_EX)  # locked, nothing written yet
+    late = threading.Timer(0.2, lambda: os.pwrite(fd, b"pid 4242 on bench since now\n", 0))
+    late.start()
+    try:
+        with pytest.raises(RunFolderBusy, match=r"in use \(pid 4242 on bench"):
+            RunLock(out).acquire()
+        os.ftruncate(fd, 0)  # a holder that never writes: named generically, after the wait
+        monkeypatch.setattr("recon.udn.rundir.HOLDER_WAIT_S", 0.05)
+        with pytest.raises(RunFolderBusy, match=r"in use \(another process\)"):
+            RunLock(out).acquire()
+    finally:
+        late.join()
+        os.close(fd)
+
+
 def test_two_resumes_at_once_one_runs_the_other_refuses(tiny_data, tmp_path):
     out = tmp_path / "run"
     small_run(tiny_data, out)
