@@ -74,6 +74,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--holdout", type=FRACTION, default=0.1,
                    help="held-out fraction of the measured pixels (0.1)")
     p.add_argument("--wmv-window", type=POSITIVE_INT, default=50, help="ES-WMV window (50)")
+    p.add_argument("--warm-start", type=NONNEG_INT, default=0, metavar="N",
+                   help="first fit the UDN's output to the automatic-tau FISTA-TV result of "
+                   "the fitted pixels for N iterations (0: none)")
     p.add_argument("--no-udn", action="store_true", help="FISTA and ADMM only")
     p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
     p.add_argument("--data", default=None, help="the dlmd folder (default: the shared one)")
@@ -329,6 +332,9 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     if args.no_udn:
         return row
     base = _reset_peak()
+    if getattr(args, "warm_start", 0):
+        row["udn_warm_start"] = {"iterations": args.warm_start,
+                                 "mse": runner.warm_start(x_fit, args.warm_start)}
     window: deque[Any] = deque(maxlen=args.wmv_window)
     wmv_best: tuple[float, int, Any] | None = None
     curve: dict[int, float] = {}
@@ -578,7 +584,8 @@ def run(args: argparse.Namespace) -> int:
                 row["settings"] = {k: getattr(args, k) for k in (
                     "downsample", "udn_iters", "channels", "scales", "skip", "headroom", "lr",
                     "ema",
-                    "tv_weight", "holdout", "wmv_window", "fista_iters", "threads")}
+                    "tv_weight", "holdout", "wmv_window", "fista_iters", "threads",
+                    "warm_start")}
                 with open(args.results, "a") as fh:
                     fh.write(json.dumps(row) + "\n")
                 _save_images(args.results, name, e, keep)

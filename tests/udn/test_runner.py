@@ -278,3 +278,33 @@ def test_headroom_scales_the_fitted_gain_only():
     for bad in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="headroom"):
             UDNConfig(headroom=bad)
+
+
+def test_warm_start_fits_the_output_to_the_image_and_leaves_the_run_at_iteration_zero():
+    r, sim = make_runner(erasure=0.0, max_iter=5, holdout=0.05)
+    truth = np.asarray(sim.truth, dtype=np.float32) * 3.0  # brighter than the fitted gain's cap
+    score = lambda x: psnr(truth, x)  # noqa: E731  (no gain fit: the level must match too)
+    before = score(r.final_estimate() if r.ema is not None else
+                   r.G.to_scene(r.G.raw()).detach().numpy())
+    g0 = r.G.gain
+    mse = r.warm_start(truth, 150)
+    after = score(r.G.to_scene(r.G.raw()).detach().numpy())
+    assert after > before + 6.0, (before, after)
+    assert math.isfinite(mse) and r.iteration == 0
+    assert r.G.gain > 1.5 * g0  # raised for the image's highlights (then learnt)
+    assert any("warm start: 150 iterations" in n for n in r.notes)
+    r.step()  # the data term takes over
+    with pytest.raises(RuntimeError, match="before the first iteration"):
+        r.warm_start(truth, 10)
+
+
+def test_warm_start_refuses_a_wrong_image():
+    r, sim = make_runner(erasure=0.0, max_iter=5)
+    with pytest.raises(ValueError, match="warm-start image has shape"):
+        r.warm_start(np.zeros((3, 4)), 5)
+    bad = np.asarray(sim.truth, dtype=np.float32).copy()
+    bad.flat[0] = np.nan
+    with pytest.raises(ValueError, match="NaN or inf"):
+        r.warm_start(bad, 5)
+    with pytest.raises(ValueError, match=">= 1"):
+        r.warm_start(sim.truth, 0)
