@@ -38,7 +38,7 @@ import platform
 import sys
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -77,6 +77,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--warm-start", type=NONNEG_INT, default=0, metavar="N",
                    help="first fit the UDN's output to the automatic-tau FISTA-TV result of "
                    "the fitted pixels for N iterations (0: none)")
+    p.add_argument("--seeds", type=POSITIVE_INT, default=1,
+                   help="UDN seeds: with N > 1, also the ensemble, the average of the N seeds' "
+                   "held-out choices (each seed holds out its own pixels; recon.udn.ensemble)")
     p.add_argument("--no-udn", action="store_true", help="FISTA and ADMM only")
     p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
     p.add_argument("--data", default=None, help="the dlmd folder (default: the shared one)")
@@ -380,6 +383,24 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     row["udn_clipped"] = clipped
     row["udn_notes"] = list(runner.notes)
     keep["udn"], keep["udn_blend"] = sel, blend
+    n_seeds = getattr(args, "seeds", 1)
+    if n_seeds > 1:
+        members, walls = [sel], [runner.elapsed_s]
+        for seed in range(1, n_seeds):
+            r = UDNRunner(model, b, network=net, config=replace(cfg, seed=seed))
+            if getattr(args, "warm_start", 0):  # its own fitted pixels: its held-out stay unseen
+                own = r.fit.cpu().numpy().astype(np.float32)
+                x_own = _fista(build_model("2d", pair.psf, mask=own, field=(h, w)), b * own,
+                               t_auto, auto.iterations)[auto.iterations][0]
+                r.warm_start(x_own, args.warm_start)
+            for _ in r.steps():
+                pass
+            members.append(r.best_estimate())
+            walls.append(r.elapsed_s)
+        avg = np.mean(np.stack(members), axis=0)
+        row["udn_ensemble"] = dict(scores(truth, avg), seeds=n_seeds, wall_s=sum(walls),
+                                   members=[psnr_only(truth, m) for m in members])
+        keep["udn_ensemble"] = avg
     return row
 
 
@@ -390,7 +411,8 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
 METHODS = (("fista_auto", "FISTA-TV auto tau"), ("fista_oracle", "FISTA-TV oracle tau"),
            ("admm", "ADMM-TV (oracle tau)"), ("udn", "UDN (held-out stop)"),
            ("udn_wmv", "UDN (ES-WMV stop)"), ("udn_final", "UDN (final)"),
-           ("udn_blend", "UDN+FISTA blend (held-out weight)"))
+           ("udn_blend", "UDN+FISTA blend (held-out weight)"),
+           ("udn_ensemble", "UDN seed ensemble (held-out stops)"))
 
 
 def read_results(path: str) -> list[dict[str, Any]]:
@@ -546,20 +568,25 @@ def time_threads(args: argparse.Namespace) -> dict[str, Any]:
             "load": os.getloadavg(), "cpus": os.cpu_count()}
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run the cases not yet in ``--results`` (unless --table-only), then write the table."""
-    import torch
-
+def fill_defaults(args: argparse.Namespace) -> None:
+    """Replace the UDN settings left at None by recon.udn's defaults."""
     from recon.udn.network import NetworkConfig
     from recon.udn.runner import UDNConfig
 
-    torch.set_num_threads(args.threads)
     net, cfg = NetworkConfig(), UDNConfig()
     for name, value in (("channels", net.channels), ("scales", net.scales),
                         ("skip", net.skip_channels), ("headroom", cfg.headroom),
                         ("lr", cfg.lr), ("ema", cfg.ema), ("tv_weight", cfg.tv_weight)):
         if getattr(args, name) is None:
             setattr(args, name, value)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the cases not yet in ``--results`` (unless --table-only), then write the table."""
+    import torch
+
+    torch.set_num_threads(args.threads)
+    fill_defaults(args)
     if not 0 < args.holdout < 0.5:
         raise SystemExit(f"--holdout must be in (0, 0.5), got {args.holdout}")
     for e in args.erasures:
@@ -585,7 +612,7 @@ def run(args: argparse.Namespace) -> int:
                     "downsample", "udn_iters", "channels", "scales", "skip", "headroom", "lr",
                     "ema",
                     "tv_weight", "holdout", "wmv_window", "fista_iters", "threads",
-                    "warm_start")}
+                    "warm_start", "seeds")}
                 with open(args.results, "a") as fh:
                     fh.write(json.dumps(row) + "\n")
                 _save_images(args.results, name, e, keep)

@@ -127,3 +127,27 @@ def test_tables_average_per_level_and_list_every_case() -> None:
     assert summary.splitlines()[-1].endswith("| 80 |")  # the UDN's peak memory
     cases = rp.case_table(rows)
     assert cases.count("\n") == 3 and "im408" in cases and "0.00%" in cases
+
+
+def test_one_case_with_warm_start_and_a_seed_ensemble_on_the_bundled_pair() -> None:
+    """The benchmark's row for one case: every method scored, the warm start recorded, and the
+    ensemble the average of its members (each member a different seed)."""
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    rp.add_arguments(parser)
+    args = parser.parse_args(["--fista-iters", "30", "--udn-iters", "8", "--warm-start", "4",
+                              "--seeds", "2", "--channels", "8", "--scales", "2"])
+    rp.fill_defaults(args)
+    pair = rp.load_pair("im65", dict(samples.dlmd_pair_paths()), 1)
+    keep: dict = {}
+    row = rp.run_case(pair, 0.9, args, keep)
+    for k in ("fista_auto", "fista_oracle", "admm", "udn", "udn_blend", "udn_ensemble"):
+        assert np.isfinite(row[k]["psnr"]), k
+    assert row["udn_warm_start"]["iterations"] == 4 and np.isfinite(row["udn_warm_start"]["mse"])
+    ens = row["udn_ensemble"]
+    assert ens["seeds"] == 2 and len(ens["members"]) == 2
+    assert ens["members"][0] != ens["members"][1]  # two different seeds
+    assert keep["udn_ensemble"].shape == keep["udn"].shape
+    np.testing.assert_allclose(rp.psnr_only(pair.truth, keep["udn"]), ens["members"][0],
+                               rtol=1e-6)
