@@ -292,6 +292,9 @@ def test_warm_start_fits_the_output_to_the_image_and_leaves_the_run_at_iteration
     assert after > before + 6.0, (before, after)
     assert math.isfinite(mse) and r.iteration == 0
     assert r.G.gain > 1.5 * g0  # raised for the image's highlights (then learnt)
+    # Adam's moments carry over to the data term (a fresh Adam's first steps, about lr in
+    # every weight, wreck a fitted network: see UDNRunner.warm_start)
+    assert all(len(r.opt.state[p]) for p in r.G.parameters() if p.requires_grad)
     assert any("warm start: 150 iterations" in n for n in r.notes)
     r.step()  # the data term takes over
     with pytest.raises(RuntimeError, match="before the first iteration"):
