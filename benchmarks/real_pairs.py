@@ -671,15 +671,20 @@ def run(args: argparse.Namespace) -> int:
             f"UDN {s['scales']} scales x {s['channels']} channels, skip {s['skip']}, headroom "
             f"{s['headroom']:g}, lr {s['lr']:g}, EMA {s.get('ema', 0.99):g}, "
             f"TV weight {s['tv_weight']:g}, "
-            f"{s['udn_iters']} iterations, {s['holdout']:.0%} of the measured pixels held out. "
+            f"{s['udn_iters']} iterations, {s['holdout']:.0%} of the measured pixels held out"
+            + (f", {s['seeds']} seeds (the ensemble row)" if s.get("seeds", 1) > 1 else "")
+            + (f", warm start {s['warm_start']} iterations" if s.get("warm_start") else "")
+            + ". "
             f"{s['threads']} torch thread(s); machine {platform.machine()}, load average "
             f"{min(loads, default=0):.1f}-{max(loads, default=0):.1f} during the runs "
             f"(shared 2-core VM).\n\n"
             "Mean over the pairs:\n\n" + summary + "\n\nPSNR (dB) per case:\n\n" + cases +
             "\n\n" + fig + f"Produced by `{cmd}` (the runs appended to the results file; "
             "this table and figure from all of them). In one go: `lenslesscam bench "
-            f"real-pairs --downsample {s['downsample']} --udn-iters {s['udn_iters']} --out "
-            "docs/real-pairs.md --figure docs/img/real-pairs.png`.\n"
+            f"real-pairs --downsample {s['downsample']} --udn-iters {s['udn_iters']}"
+            + (f" --seeds {s['seeds']}" if s.get("seeds", 1) > 1 else "")
+            + (f" --warm-start {s['warm_start']}" if s.get("warm_start") else "")
+            + f" --out {args.out} --figure {args.figure or 'FIGURE.png'}`.\n"
         )
         atomic_write_bytes(args.out, text.encode())
     print(f"total {time.perf_counter() - t_all:.0f} s", file=sys.stderr)
