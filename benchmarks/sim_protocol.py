@@ -255,14 +255,29 @@ MOMENTUM_CASES = (("im408", 0.0, 0.0, 1e-6), ("im740", 0.0, 0.0, 1e-6), ("im65",
                   ("im65", 0.99, 0.01, 1e-5))
 
 
-def momentum_table(iters: int) -> str:
-    """PSNR after ``iters`` iterations minus the reference's, per variant and case."""
+def _fixed_tau_case(psf: Any, name: str, erasure: float, noise: float, tau: float
+                    ) -> tuple[Any, Any, Any, float]:
+    """One fixed-tau case: the simulation, its model, the measurement and the reference PSNR
+    (1000 FISTA iterations x 50 inner prox steps, no restart)."""
     import torch
 
     from recon import samples
-    from recon.fista import Fista
     from recon.models import build_model
     from recon.simulate import simulate
+
+    sim = simulate(build_model("2d", psf), samples.lensed_scene(name), erasure=erasure,
+                   noise=noise, seed=0)
+    model = build_model("2d", psf, mask=sim.mask)
+    b = torch.as_tensor(sim.meas)
+    ref = _score(sim.truth, _fista(model, b, tau, 1000, restart="none", prox_iters=50,
+                                   momentum="fista")[0])[0]
+    return sim, model, b, ref
+
+
+def momentum_table(iters: int) -> str:
+    """PSNR after ``iters`` iterations minus the reference's, per variant and case."""
+    from recon import samples
+    from recon.fista import Fista
 
     psf = samples.tutorial_psf()
     variants: dict[str, dict[str, Any]] = {
@@ -276,12 +291,7 @@ def momentum_table(iters: int) -> str:
     cells: dict[str, list[float]] = {v: [] for v in variants}
     refs = []
     for name, er, noise, tau in MOMENTUM_CASES:
-        sim = simulate(build_model("2d", psf), samples.lensed_scene(name), erasure=er,
-                       noise=noise, seed=0)
-        model = build_model("2d", psf, mask=sim.mask)
-        b = torch.as_tensor(sim.meas)
-        ref = _score(sim.truth, _fista(model, b, tau, 1000, restart="none", prox_iters=50,
-                                       momentum="fista")[0])[0]
+        sim, model, b, ref = _fixed_tau_case(psf, name, er, noise, tau)
         refs.append(ref)
         for v, kw in variants.items():
             solver = Fista(model.op, b, tau=tau, max_iter=iters, tol=0.0, **kw)
@@ -351,13 +361,11 @@ def _precond_fb(model: Any, psf: Any, b: Any, tau: float, iters: int, kappa: flo
 def convergence_table() -> str:
     """The noise-free 0 % cases: spectrum, the default's PSNR over iterations, a preconditioner."""
     import numpy as np
-    import torch
 
     from recon import samples
     from recon.admm import Admm
     from recon.models import build_model
     from recon.operators import Conv2D
-    from recon.simulate import simulate
 
     psf = samples.tutorial_psf()
     lines = []
@@ -373,12 +381,7 @@ def convergence_table() -> str:
               "700 | 1000 | 1500 | preconditioned FB (kappa 0.01), 500 | ADMM-TV (rho 0.01), 500 |",
               "|---|---|---|---|---|---|---|---|"]
     for name, er, noise, tau in MOMENTUM_CASES[:3]:
-        sim = simulate(build_model("2d", psf), samples.lensed_scene(name), erasure=er,
-                       noise=noise, seed=0)
-        model = build_model("2d", psf, mask=sim.mask)
-        b = torch.as_tensor(sim.meas)
-        ref = _score(sim.truth, _fista(model, b, tau, 1000, restart="none", prox_iters=50,
-                                       momentum="fista")[0])[0]
+        sim, model, b, ref = _fixed_tau_case(psf, name, er, noise, tau)
         at: dict[int, float] = {}
         for n in (500, 700, 1000, 1500):  # separate runs: POGM's last step depends on max_iter
             at[n] = _score(sim.truth, _fista(model, b, tau, n)[0])[0] - ref
