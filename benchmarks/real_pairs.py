@@ -258,6 +258,22 @@ def _heldout_err(model: Any, x: Any, b: Any, heldout: Any) -> float:
     return float(np.mean(r * r))
 
 
+def _fitted_pixels_fista(pair: Pair, b: Any, fit: Any, args: argparse.Namespace,
+                         min_iter: int) -> Any:
+    """FISTA-TV with the automatic tau from a UDN run's fitted pixels only: the image its warm
+    start and its blend use, so that nothing tuned on its held-out pixels reaches them."""
+    import torch
+
+    from recon.autotau import choose_tau
+    from recon.models import build_model
+
+    model = build_model("2d", pair.psf, mask=fit, field=tuple(pair.truth.shape[1:]))
+    bf = b * fit
+    choice = choose_tau(model, torch.as_tensor(bf), max_iter=args.fista_iters,
+                        min_iter=min_iter, holdout=args.holdout, seed=0)
+    return _fista(model, bf, choice.tau, choice.iterations)[choice.iterations][0]
+
+
 def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
              keep: dict[str, Any]) -> dict[str, Any]:
     """Every method on one (pair, erasure level); returns the row, fills ``keep`` with images."""
@@ -286,7 +302,6 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     runner = UDNRunner(model, b, network=net, config=cfg)
     heldout = runner.heldout.cpu().numpy()
     fit_mask = (runner.fit.cpu().numpy()).astype(np.float32)
-    fit_model = build_model("2d", pair.psf, mask=fit_mask, field=(h, w))
     row["heldout_pixels"] = int(heldout.sum())
 
     # FISTA-TV over the tau grid on all measured pixels (the oracle picks from it)
@@ -315,10 +330,9 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     row["fista_auto"] = dict(scores(truth, x_auto), tau=t_auto, iterations=auto.iterations,
                              wall_s=time.perf_counter() - t0, rule=auto.rule,
                              note="wall: the tau search and the final run")
-    # the same tau from the UDN's fitted pixels only (for the blend weight, chosen on the
-    # UDN's held-out pixels, which this run must not see)
-    fit_run = _fista(fit_model, b * fit_mask, t_auto, auto.iterations)
-    x_fit = fit_run[auto.iterations][0]
+    # FISTA-TV from the UDN's fitted pixels only, its tau chosen on them too (for the warm
+    # start and the blend weight, chosen on the UDN's held-out pixels, which it must not see)
+    x_fit = _fitted_pixels_fista(pair, b, fit_mask, args, min(cps))
     row["fista_tau_curve"] = {f"{t:g}": psnr_only(truth, grid[t][last][0]) for t in TAUS}
     keep["truth"], keep["fista_auto"], keep["fista_oracle"] = truth, x_auto, x_or
 
@@ -390,9 +404,8 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
             r = UDNRunner(model, b, network=net, config=replace(cfg, seed=seed))
             if getattr(args, "warm_start", 0):  # its own fitted pixels: its held-out stay unseen
                 own = r.fit.cpu().numpy().astype(np.float32)
-                x_own = _fista(build_model("2d", pair.psf, mask=own, field=(h, w)), b * own,
-                               t_auto, auto.iterations)[auto.iterations][0]
-                r.warm_start(x_own, args.warm_start)
+                r.warm_start(_fitted_pixels_fista(pair, b, own, args, min(cps)),
+                             args.warm_start)
             for _ in r.steps():
                 pass
             members.append(r.best_estimate())
@@ -568,6 +581,17 @@ def time_threads(args: argparse.Namespace) -> dict[str, Any]:
             "load": os.getloadavg(), "cpus": os.cpu_count()}
 
 
+SETTING_KEYS = ("downsample", "udn_iters", "channels", "scales", "skip", "headroom", "lr",
+                "ema", "tv_weight", "holdout", "wmv_window", "fista_iters", "warm_start",
+                "seeds")
+"""The settings a results file's cases must share (threads may differ: they change the time)."""
+
+
+def _settings(args: argparse.Namespace) -> dict[str, Any]:
+    """The settings stored with each case."""
+    return {k: getattr(args, k) for k in (*SETTING_KEYS, "threads")}
+
+
 def fill_defaults(args: argparse.Namespace) -> None:
     """Replace the UDN settings left at None by recon.udn's defaults."""
     from recon.udn.network import NetworkConfig
@@ -598,8 +622,18 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.table_only:
         folder = data_dir(args.data)
-        done = {(r["pair"], r["erasure"]) for r in read_results(args.results)
-                if args.no_udn or "udn" in r}
+        previous = read_results(args.results)
+        settings = _settings(args)
+        for r in previous:
+            diff = sorted(k for k in SETTING_KEYS
+                          if k in r.get("settings", {}) and r["settings"][k] != settings[k])
+            if diff:
+                raise SystemExit(
+                    f"{args.results} holds a case run with other settings ({r['pair']} at "
+                    f"{r['erasure']:.0%}: " + ", ".join(
+                        f"{k} {r['settings'][k]} not {settings[k]}" for k in diff)
+                    + "): give another --results file")
+        done = {(r["pair"], r["erasure"]) for r in previous if args.no_udn or "udn" in r}
         for e in args.erasures:
             for name in args.pairs:
                 if (name, e) in done:
@@ -608,11 +642,7 @@ def run(args: argparse.Namespace) -> int:
                 keep: dict[str, Any] = {}
                 row = run_case(pair, e, args, keep)
                 row["load"] = os.getloadavg()
-                row["settings"] = {k: getattr(args, k) for k in (
-                    "downsample", "udn_iters", "channels", "scales", "skip", "headroom", "lr",
-                    "ema",
-                    "tv_weight", "holdout", "wmv_window", "fista_iters", "threads",
-                    "warm_start", "seeds")}
+                row["settings"] = _settings(args)
                 with open(args.results, "a") as fh:
                     fh.write(json.dumps(row) + "\n")
                 _save_images(args.results, name, e, keep)

@@ -149,5 +149,25 @@ def test_one_case_with_warm_start_and_a_seed_ensemble_on_the_bundled_pair() -> N
     assert ens["seeds"] == 2 and len(ens["members"]) == 2
     assert ens["members"][0] != ens["members"][1]  # two different seeds
     assert keep["udn_ensemble"].shape == keep["udn"].shape
-    np.testing.assert_allclose(rp.psnr_only(pair.truth, keep["udn"]), ens["members"][0],
+    assert not np.allclose(keep["udn_ensemble"], keep["udn"])  # the second seed counts
+    np.testing.assert_allclose(rp.psnr_only(pair.truth, keep["udn_ensemble"]), ens["psnr"],
                                rtol=1e-6)
+
+
+def test_a_results_file_of_other_settings_is_refused(tmp_path) -> None:
+    """Resuming into a results file whose cases ran with other settings would skip those cases
+    and mix settings in one table: refused with one line naming the difference."""
+    import argparse
+    import json
+
+    parser = argparse.ArgumentParser()
+    rp.add_arguments(parser)
+    results = tmp_path / "r.jsonl"
+    args = parser.parse_args(["--udn-iters", "3000", "--seeds", "2", "--results", str(results),
+                              "--data", str(tmp_path)])
+    rp.fill_defaults(args)
+    old = dict(rp._settings(args), udn_iters=300, seeds=1)
+    results.write_text(json.dumps({"pair": "im65", "erasure": 0.9, "udn": {},
+                                   "settings": old}) + "\n")
+    with pytest.raises(SystemExit, match="other settings .*seeds 1 not 2, udn_iters 300 not 3000"):
+        rp.run(args)

@@ -109,19 +109,32 @@ def is_disk_full(exc: BaseException | None) -> bool:
 
 
 HOLDER_WAIT_S = 1.0
-"""How long a refused process waits for the holder to write its line (it writes it right
-after taking the lock; an empty line means the two processes started at the same moment)."""
+"""How long a refused process waits for the holder's line (the holder writes it right after
+taking the lock; an empty file means it is starting or releasing just then)."""
 
 
-def _read_holder(fd: int) -> bytes:
-    """The holder's first line in the lock file, waiting briefly while it is still empty."""
+def _wait_for_holder(fd: int) -> bytes | None:
+    """After a refused flock: the holder's first line, or None if the lock came free.
+
+    Polls for up to :data:`HOLDER_WAIT_S` while the file is empty, trying the lock again each
+    time (a holder that was releasing leaves it free). Returns b"" if the file stays empty and
+    the lock held.
+    """
     deadline = time.monotonic() + HOLDER_WAIT_S
     while True:
         holder = b""
         with contextlib.suppress(OSError):
             holder = os.pread(fd, 200, 0).split(b"\n")[0].strip(b"\0 ")
-        if holder or time.monotonic() >= deadline:
+        if holder:
             return holder
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return None  # free now
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+        if time.monotonic() >= deadline:
+            return b""
         time.sleep(0.02)
 
 
@@ -150,23 +163,26 @@ class RunLock:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                os.close(fd)
-                raise
-            holder = _read_holder(fd)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                    raise
+                holder = _wait_for_holder(fd)
+                if holder is not None:
+                    who = holder.decode("utf-8", "replace").strip() or "another process"
+                    raise RunFolderBusy(
+                        f"{self.run_dir} is in use ({who}): one process at a time may write a "
+                        f"run folder; wait for it to end, or stop it with 'lenslesscam jobs "
+                        f"cancel {self.run_dir}'") from None
+        except BaseException:
             os.close(fd)
-            who = holder.decode("utf-8", "replace").strip() or "another process"
-            raise RunFolderBusy(
-                f"{self.run_dir} is in use ({who}): one process at a time may write a run "
-                f"folder; wait for it to end, or stop it with 'lenslesscam jobs cancel "
-                f"{self.run_dir}'") from None
+            raise
         self._fd = fd
         self._holder = f"pid {os.getpid()} on {platform.node()} since {_now()}\n".encode()
         with contextlib.suppress(OSError):  # informative only; never fails the run
-            # Write the holder line before cutting the old contents, so that a process refused
-            # meanwhile never reads an empty file (it would name no holder).
+            # Write the holder line before cutting the old contents (after a crash they are
+            # the dead holder's line); a process refused before this write waits for it.
             os.pwrite(fd, self._holder, 0)
             os.ftruncate(fd, len(self._holder))
             os.posix_fallocate(fd, 0, RESERVE_BYTES)

@@ -527,14 +527,30 @@ class UDNRunner(Stepwise[UDNStep]):
     def warm_start(self, x0: Any, iters: int) -> float:
         """Fit the network's output to the image ``x0`` before the data term; its final MSE.
 
+        Runs :meth:`warm_steps` to the end (iterate that generator instead for progress and
+        cancellation).
+        """
+        mse = math.nan
+        for step in self.warm_steps(x0, iters):
+            mse = step[1]
+        return mse
+
+    def warm_steps(self, x0: Any, iters: int) -> Iterator[tuple[int, float]]:
+        """Fit the network's output to ``x0`` step by step; yields (step, MSE) after each.
+
         ``iters`` Adam steps on mean((G(z + noise) - x0)^2) over the scene (for example x0 =
-        a FISTA-TV result of the same measurement, computed without the held-out pixels so
-        that the held-out choice stays unbiased). The gain is raised first if ``x0``'s
-        highlights (its 99.9th percentile) would sit above 0.9 of the network's cap. Adam's
-        moments are kept for the data term: reset, its first steps (about lr in every weight)
-        wreck the fitted network (on a real pair at 90 % erasures the loss jumped 2400-fold and
-        the divergence guard gave up). The iteration count stays 0: the run then proceeds as
-        usual from the warm network. Only before the first iteration.
+        a FISTA-TV result of the same measurement computed from the fitted pixels only, its
+        tau chosen on them too, so that the held-out choice stays unbiased). The gain is raised
+        first if ``x0``'s highlights (its 99.9th percentile) would sit above 0.9 of the
+        network's cap. Adam's moments are kept for the data term: reset, its first steps
+        (about lr in every weight) wreck the fitted network (on a real pair at 90 % erasures
+        the loss jumped 2400-fold and the divergence guard gave up). The iteration count
+        stays 0 and the run then proceeds as usual from the warm network; the time counts in
+        ``elapsed_s`` (and so towards ``time_limit_s``), ``initial_gain`` becomes the gain the
+        data term starts from, and a note records what was done. Stopping the iteration
+        early (cancel) keeps what was fitted so far. A non-finite loss restores the network
+        as it was before the warm start and raises :class:`NumericalError`. Only before the
+        first iteration.
         """
         if self.iteration:
             raise RuntimeError("warm_start is only possible before the first iteration")
@@ -547,26 +563,37 @@ class UDNRunner(Stepwise[UDNStep]):
                              f"{shape}")
         if not bool(torch.isfinite(xt).all()):
             raise ValueError("the warm-start image has NaN or inf values")
-        hi = float(torch.quantile(xt.flatten().double(), 0.999)) if xt.numel() > 1 else 0.0
+        before = self._take_snapshot()
+        flat = xt.flatten()
+        hi = float(torch.kthvalue(flat, max(1, math.ceil(0.999 * flat.numel()))).values)
         if hi > 0.9 * self.G.gain:
             self.G.set_gain(hi / 0.9)
-        start = time.perf_counter()
-        mse = math.nan
-        for _ in range(int(iters)):
-            self.opt.zero_grad(set_to_none=True)
-            d = self._forward(noise=True) - xt
-            loss = (d * d).mean()
-            loss.backward()  # type: ignore[no-untyped-call]
-            self.opt.step()
-            mse = float(loss.detach())
-        if not math.isfinite(mse):
-            raise NumericalError(f"UDN warm start: the loss is {mse}")
-        self.elapsed_s += time.perf_counter() - start
-        self.initial_gain = self.G.gain
-        self._snapshot = self._take_snapshot()
-        self.notes.append(f"warm start: {iters} iterations fitting the output to a given "
-                          f"image (final MSE {mse:.3g}, gain {self.G.gain:.4g})")
-        return mse
+        done, mse = 0, math.nan
+        try:
+            for i in range(1, int(iters) + 1):
+                start = time.perf_counter()
+                self.opt.zero_grad(set_to_none=True)
+                d = self._forward(noise=True) - xt
+                loss = (d * d).mean()
+                mse = float(loss.detach())
+                if not math.isfinite(mse):
+                    done = 0  # nothing kept: no note, no new snapshot
+                    self.G.load_state_dict(before["G"])
+                    self.opt.load_state_dict(_clone_to_cpu(before["opt"]))
+                    raise NumericalError(f"UDN warm start: the loss is {mse} at step {i}; "
+                                         "the network is as it was before the warm start")
+                loss.backward()  # type: ignore[no-untyped-call]
+                self.opt.step()
+                self.elapsed_s += time.perf_counter() - start
+                done = i
+                yield i, mse
+        finally:
+            if done:
+                self.initial_gain = self.G.gain
+                self._snapshot = self._take_snapshot()
+                self.notes.append(f"warm start: {done} of {iters} iterations fitting the "
+                                  f"output to a given image (last MSE {mse:.3g}, gain "
+                                  f"{self.G.gain:.4g})")
 
     # -- stepping ------------------------------------------------------------------------------
     def _eta(self) -> float | None:

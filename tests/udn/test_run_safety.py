@@ -87,25 +87,47 @@ def test_the_lock_refuses_a_second_writer_in_one_process(tiny_data, tmp_path):
 
 def test_a_refused_writer_waits_for_the_holder_line(tmp_path, monkeypatch):
     """The holder writes its line just after taking the lock; a process refused in between
-    waits for that line instead of naming no one (a race seen in CI)."""
+    waits for that line instead of naming no one (a race seen in CI), and takes the lock if
+    the holder was releasing it."""
     import fcntl
-    import threading
+
+    import recon.udn.rundir as rundir
 
     out = tmp_path / "run"
     out.mkdir()
     fd = os.open(out / "run.lock", os.O_RDWR | os.O_CREAT)
     fcntl.flock(fd, fcntl.LOCK_EX)  # locked, nothing written yet
-    late = threading.Timer(0.2, lambda: os.pwrite(fd, b"pid 4242 on bench since now\n", 0))
-    late.start()
+    monkeypatch.setattr(rundir, "HOLDER_WAIT_S", 60.0)  # never the limit on a loaded machine
+    real_sleep = rundir.time.sleep
+    polls = {"n": 0}
+
+    def holder_writes_late(dt):  # the holder writes its line during the third poll
+        polls["n"] += 1
+        if polls["n"] == 3:
+            os.pwrite(fd, b"pid 4242 on bench since now\n", 0)
+        real_sleep(dt)
+
+    monkeypatch.setattr(rundir.time, "sleep", holder_writes_late)
     try:
         with pytest.raises(RunFolderBusy, match=r"in use \(pid 4242 on bench"):
             RunLock(out).acquire()
+        assert polls["n"] == 3
         os.ftruncate(fd, 0)  # a holder that never writes: named generically, after the wait
-        monkeypatch.setattr("recon.udn.rundir.HOLDER_WAIT_S", 0.05)
+        monkeypatch.setattr(rundir, "HOLDER_WAIT_S", 0.05)
+        monkeypatch.setattr(rundir.time, "sleep", real_sleep)
         with pytest.raises(RunFolderBusy, match=r"in use \(another process\)"):
             RunLock(out).acquire()
+
+        def holder_releases(dt):  # releasing: the file is empty, then the lock is free
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            real_sleep(dt)
+
+        monkeypatch.setattr(rundir, "HOLDER_WAIT_S", 60.0)
+        monkeypatch.setattr(rundir.time, "sleep", holder_releases)
+        lock = RunLock(out).acquire()  # taken once free, not refused
+        assert lock.held
+        lock.release()
     finally:
-        late.join()
         os.close(fd)
 
 

@@ -284,8 +284,7 @@ def test_warm_start_fits_the_output_to_the_image_and_leaves_the_run_at_iteration
     r, sim = make_runner(erasure=0.0, max_iter=5, holdout=0.05)
     truth = np.asarray(sim.truth, dtype=np.float32) * 3.0  # brighter than the fitted gain's cap
     score = lambda x: psnr(truth, x)  # noqa: E731  (no gain fit: the level must match too)
-    before = score(r.final_estimate() if r.ema is not None else
-                   r.G.to_scene(r.G.raw()).detach().numpy())
+    before = score(r.G.to_scene(r.G.raw()).detach().numpy())
     g0 = r.G.gain
     mse = r.warm_start(truth, 150)
     after = score(r.G.to_scene(r.G.raw()).detach().numpy())
@@ -295,10 +294,36 @@ def test_warm_start_fits_the_output_to_the_image_and_leaves_the_run_at_iteration
     # Adam's moments carry over to the data term (a fresh Adam's first steps, about lr in
     # every weight, wreck a fitted network: see UDNRunner.warm_start)
     assert all(len(r.opt.state[p]) for p in r.G.parameters() if p.requires_grad)
-    assert any("warm start: 150 iterations" in n for n in r.notes)
+    assert any("warm start: 150 of 150 iterations" in n for n in r.notes)
     r.step()  # the data term takes over
     with pytest.raises(RuntimeError, match="before the first iteration"):
         r.warm_start(truth, 10)
+
+
+def test_warm_steps_report_progress_cancel_and_restore_on_nan(monkeypatch):
+    r, sim = make_runner(erasure=0.0, max_iter=5)
+    truth = np.asarray(sim.truth, dtype=np.float32)
+    t0 = r.elapsed_s
+    steps = r.warm_steps(truth, 50)
+    seen = [next(steps) for _ in range(5)]
+    steps.close()  # cancel after 5 of 50
+    assert [i for i, _ in seen] == [1, 2, 3, 4, 5] and all(math.isfinite(m) for _, m in seen)
+    assert any("warm start: 5 of 50 iterations" in n for n in r.notes) and r.elapsed_s > t0
+    # a non-finite loss: the network goes back to where the warm start found it
+    r2, _ = make_runner(erasure=0.0, max_iter=5)
+    w0 = weights(r2)
+    calls = {"n": 0}
+    real = r2._forward
+
+    def poisoned(noise):
+        calls["n"] += 1
+        out = real(noise)
+        return out * float("nan") if calls["n"] == 3 else out
+
+    monkeypatch.setattr(r2, "_forward", poisoned)
+    with pytest.raises(NumericalError, match="as it was before the warm start"):
+        r2.warm_start(truth, 10)
+    assert same(weights(r2), w0) and r2.notes == []
 
 
 def test_warm_start_refuses_a_wrong_image():
