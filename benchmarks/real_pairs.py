@@ -330,9 +330,6 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     row["fista_auto"] = dict(scores(truth, x_auto), tau=t_auto, iterations=auto.iterations,
                              wall_s=time.perf_counter() - t0, rule=auto.rule,
                              note="wall: the tau search and the final run")
-    # FISTA-TV from the UDN's fitted pixels only, its tau chosen on them too (for the warm
-    # start and the blend weight, chosen on the UDN's held-out pixels, which it must not see)
-    x_fit = _fitted_pixels_fista(pair, b, fit_mask, args, min(cps))
     row["fista_tau_curve"] = {f"{t:g}": psnr_only(truth, grid[t][last][0]) for t in TAUS}
     keep["truth"], keep["fista_auto"], keep["fista_oracle"] = truth, x_auto, x_or
 
@@ -348,8 +345,11 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
 
     if args.no_udn:
         return row
+    # FISTA-TV from the UDN's fitted pixels only, its tau chosen on them too (for the warm
+    # start and the blend weight, chosen on the UDN's held-out pixels, which it must not see)
+    x_fit = _fitted_pixels_fista(pair, b, fit_mask, args, min(cps))
     base = _reset_peak()
-    if getattr(args, "warm_start", 0):
+    if args.warm_start:
         row["udn_warm_start"] = {"iterations": args.warm_start,
                                  "mse": runner.warm_start(x_fit, args.warm_start)}
     window: deque[Any] = deque(maxlen=args.wmv_window)
@@ -397,12 +397,11 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     row["udn_clipped"] = clipped
     row["udn_notes"] = list(runner.notes)
     keep["udn"], keep["udn_blend"] = sel, blend
-    n_seeds = getattr(args, "seeds", 1)
-    if n_seeds > 1:
+    if args.seeds > 1:
         members, walls = [sel], [runner.elapsed_s]
-        for seed in range(1, n_seeds):
+        for seed in range(1, args.seeds):
             r = UDNRunner(model, b, network=net, config=replace(cfg, seed=seed))
-            if getattr(args, "warm_start", 0):  # its own fitted pixels: its held-out stay unseen
+            if args.warm_start:  # its own fitted pixels: its held-out stay unseen
                 own = r.fit.cpu().numpy().astype(np.float32)
                 r.warm_start(_fitted_pixels_fista(pair, b, own, args, min(cps)),
                              args.warm_start)
@@ -411,7 +410,7 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
             members.append(r.best_estimate())
             walls.append(r.elapsed_s)
         avg = np.mean(np.stack(members), axis=0)
-        row["udn_ensemble"] = dict(scores(truth, avg), seeds=n_seeds, wall_s=sum(walls),
+        row["udn_ensemble"] = dict(scores(truth, avg), seeds=args.seeds, wall_s=sum(walls),
                                    members=[psnr_only(truth, m) for m in members])
         keep["udn_ensemble"] = avg
     return row

@@ -337,6 +337,21 @@ def _spectrum(psf: Any, pad: tuple[int, int]) -> Any:
     return h2 / h2.max()
 
 
+def _fourier_scale(prec: Any, shape: tuple[int, ...]) -> Any:
+    """P^1/2 as a (self-adjoint) operator, for the project's power iteration."""
+    import torch
+
+    from recon.operators import LinearOperator
+
+    class FourierScale(LinearOperator):
+        def apply(self, x: Any) -> Any:
+            return prec(x, 0.5)
+
+        adjoint = apply
+
+    return FourierScale(shape, shape, torch.float32)
+
+
 def _precond_fb(model: Any, psf: Any, b: Any, tau: float, iters: int, kappa: float) -> Any:
     """FISTA with a Fourier-diagonal preconditioner P (p = min(1, kappa / r(f))) on the gradient
     and the usual (Euclidean) TV prox: the prox is then not the one of P's metric."""
@@ -357,12 +372,7 @@ def _precond_fb(model: Any, psf: Any, b: Any, tau: float, iters: int, kappa: flo
         return torch.fft.irfft2(torch.fft.rfft2(big) * p ** power,
                                 s=conv.pad)[..., :hs, :ws].contiguous()
 
-    v = torch.rand(model.scene_shape, generator=torch.Generator().manual_seed(0))
-    for _ in range(60):  # the Lipschitz constant of P^1/2 A^T A P^1/2
-        v = prec(model.op.adjoint(model.op.apply(prec(v, 0.5))), 0.5)
-        lip = float(v.norm())
-        v = v / lip
-    lip *= 1.02
+    lip = (model.op @ _fourier_scale(prec, model.op.in_shape)).lipschitz()  # of A P^1/2
     prox = TVProx(TV(), nonneg=True)
     x = torch.zeros(model.scene_shape)
     y, t = x.clone(), 1.0

@@ -169,5 +169,5 @@ def test_a_results_file_of_other_settings_is_refused(tmp_path) -> None:
     old = dict(rp._settings(args), udn_iters=300, seeds=1)
     results.write_text(json.dumps({"pair": "im65", "erasure": 0.9, "udn": {},
                                    "settings": old}) + "\n")
-    with pytest.raises(SystemExit, match="other settings .*seeds 1 not 2, udn_iters 300 not 3000"):
+    with pytest.raises(SystemExit, match=r"other settings .*seeds 1 not 2, udn_iters 300 not 3000"):
         rp.run(args)

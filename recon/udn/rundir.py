@@ -108,6 +108,9 @@ def is_disk_full(exc: BaseException | None) -> bool:
 # --------------------------------------------------------------------------------------------
 
 
+#: errno values of a lock another process holds
+_BUSY = (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
+
 HOLDER_WAIT_S = 1.0
 """How long a refused process waits for the holder's line (the holder writes it right after
 taking the lock; an empty file means it is starting or releasing just then)."""
@@ -131,7 +134,7 @@ def _wait_for_holder(fd: int) -> bytes | None:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             return None  # free now
         except OSError as exc:
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            if exc.errno not in _BUSY:
                 raise
         if time.monotonic() >= deadline:
             return b""
@@ -166,7 +169,7 @@ class RunLock:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError as exc:
-                if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                if exc.errno not in _BUSY:
                     raise
                 holder = _wait_for_holder(fd)
                 if holder is not None:
