@@ -10,8 +10,9 @@ measurement normalised to max 1. Per case (scene, erasure, noise):
   (default restart rule);
 - **monotone**: the restart rule before the gradient rule (function-value test, monotone; FISTA
   momentum) at the oracle tau, ``--iters`` iterations;
-- **fista**: the previous default (FISTA momentum, gradient restart) at the oracle tau;
-- **pogm_norestart**: the default momentum (POGM) without restart, at the oracle tau;
+- **unpreconditioned**: the previous default (POGM momentum, gradient restart, no Fourier
+  preconditioner) at the oracle tau;
+- **fista**: the default before that (FISTA momentum, gradient restart, no preconditioner);
 - **reference** (unless ``--no-reference``): an accurate FISTA-TV at the oracle tau, 1000
   iterations with 50 inner prox iterations, FISTA momentum and no restart, plus the same with
   ``--iters``
@@ -38,7 +39,8 @@ from typing import Any
 
 from app.commands._options import POSITIVE_INT
 
-ORACLE_TAUS = (1e-7, 1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4)
+CASE_VERSION = 3  # cached cases of another version (solver defaults, columns) are not reused
+ORACLE_TAUS = (1e-8, 3e-8, 1e-7, 3e-7, 1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4)
 ERASURES = (0.0, 0.5, 0.9, 0.95, 0.99)
 NOISES = (0.0, 0.01)
 
@@ -117,10 +119,10 @@ def run_case(psf: Any, scene: Any, erasure: float, noise: float, iters: int,
                      "grid": [[t, *v] for t, v in grid.items()]}
     x, _ = _fista(model, b, best, iters, restart="monotone")
     out["monotone"] = {"psnr_ssim": _score(sim.truth, x)}
-    x, _ = _fista(model, b, best, iters, momentum="fista")
+    x, _ = _fista(model, b, best, iters, precondition="off")
+    out["unpreconditioned"] = {"psnr_ssim": _score(sim.truth, x)}
+    x, _ = _fista(model, b, best, iters, momentum="fista", precondition="off")
     out["fista"] = {"psnr_ssim": _score(sim.truth, x)}
-    x, _ = _fista(model, b, best, iters, restart="none")
-    out["pogm_norestart"] = {"psnr_ssim": _score(sim.truth, x)}
     if reference:
         out.update(run_reference(psf, scene, erasure, noise, best, iters, seed))
     return out
@@ -137,7 +139,7 @@ def run_reference(psf: Any, scene: Any, erasure: float, noise: float, tau: float
     sim = simulate(build_model("2d", psf), scene, erasure=erasure, noise=noise, seed=seed)
     model = build_model("2d", psf, mask=sim.mask)
     b = torch.as_tensor(sim.meas)
-    acc = {"restart": "none", "prox_iters": 50, "momentum": "fista"}
+    acc = {"restart": "none", "prox_iters": 50, "momentum": "fista", "precondition": "off"}
     x, wall = _fista(model, b, tau, 1000, **acc)
     out: dict[str, Any] = {"reference": {"psnr_ssim": _score(sim.truth, x), "wall_s": wall}}
     x, _ = _fista(model, b, tau, iters, **acc)
@@ -159,8 +161,8 @@ def tables(cases: list[dict[str, Any]]) -> str:
             "worst miss (dB) | auto tau (median) | oracle tau (median) | auto iterations | "
             "search s |")
     if ref:
-        head += (" reference 1000x50 PSNR | ref 500x50 PSNR | previous default (FISTA) PSNR |"
-                 " POGM no restart PSNR | monotone rule PSNR |")
+        head += (" reference 1000x50 PSNR | ref 500x50 PSNR | unpreconditioned (previous default) "
+                 "PSNR | FISTA momentum PSNR | monotone rule PSNR |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for (noise, er), cs in sorted(levels.items()):
         def m(key: str, i: int, cs: list[dict[str, Any]] = cs) -> float:
@@ -176,7 +178,7 @@ def tables(cases: list[dict[str, Any]]) -> str:
                f"{_mean([c['auto']['search_s'] for c in cs]):.1f} |")
         if ref:
             row += (f" {m('reference', 0):.2f} | {m('reference_same_iters', 0):.2f} | "
-                    f"{m('fista', 0):.2f} | {m('pogm_norestart', 0):.2f} | "
+                    f"{m('unpreconditioned', 0):.2f} | {m('fista', 0):.2f} | "
                     f"{m('monotone', 0):.2f} |")
         lines.append(row)
     misses = [c["oracle"]["psnr_ssim"][0] - c["auto"]["psnr_ssim"][0] for c in cases]
@@ -208,9 +210,10 @@ def tables(cases: list[dict[str, Any]]) -> str:
             f"stopped at 500 iterations (worst {max(gap_eq):.2f} dB).")
         summary.append(
             "Below the reference, mean (worst) over the noise-free / noisy cases: default "
-            f"{below('oracle', clean)} / {below('oracle', noisy)}; previous default (FISTA "
-            f"momentum) {below('fista', clean)} / {below('fista', noisy)}; POGM without "
-            f"restart {below('pogm_norestart', clean)} / {below('pogm_norestart', noisy)}; "
+            f"{below('oracle', clean)} / {below('oracle', noisy)}; without the preconditioner "
+            f"(previous default) {below('unpreconditioned', clean)} / "
+            f"{below('unpreconditioned', noisy)}; FISTA momentum, no preconditioner "
+            f"{below('fista', clean)} / {below('fista', noisy)}; "
             f"monotone rule {below('monotone', clean)} / {below('monotone', noisy)}.")
     return "\n".join(lines + summary)
 
@@ -225,12 +228,15 @@ def restart_table(iters: int, tau: float = 3e-5) -> str:
     from recon.simulate import simulate
 
     psf = samples.tutorial_psf()
-    rules = {"monotone": {"restart": "monotone"},
-             "FISTA gradient": {"restart": "gradient", "momentum": "fista"},
-             "FISTA none": {"restart": "none", "momentum": "fista"},
-             "POGM gradient (default)": {"restart": "gradient"},
-             "POGM none": {"restart": "none"},
-             "accurate": {"restart": "none", "prox_iters": 50, "momentum": "fista"}}
+    off = {"precondition": "off"}
+    rules: dict[str, dict[str, Any]] = {"monotone": {"restart": "monotone"},
+             "FISTA gradient": {"restart": "gradient", "momentum": "fista", **off},
+             "FISTA none": {"restart": "none", "momentum": "fista", **off},
+             "POGM gradient": {"restart": "gradient", **off},
+             "POGM none": {"restart": "none", **off},
+             "POGM gradient, preconditioned (default)": {},
+             "accurate": {"restart": "none", "prox_iters": 50, "momentum": "fista",
+                          "precondition": "off"}}
     lines = ["| erasures | scene | " + " | ".join(f"{r} PSNR / objective / restarts"
                                                  for r in rules) + " |",
              "|---|---|" + "---|" * len(rules)]
@@ -271,7 +277,8 @@ def _fixed_tau_case(psf: Any, name: str, erasure: float, noise: float, tau: floa
                    noise=noise, seed=0)
     model = build_model("2d", psf, mask=sim.mask)
     b = torch.as_tensor(sim.meas)
-    ref_x = _fista(model, b, tau, 1000, restart="none", prox_iters=50, momentum="fista")[0]
+    ref_x = _fista(model, b, tau, 1000, restart="none", prox_iters=50, momentum="fista",
+                   precondition="off")[0]
     ref = _score(sim.truth, ref_x)[0]
     return (sim, model, b, ref, ref_x) if keep else (sim, model, b, ref)
 
@@ -296,11 +303,14 @@ def momentum_table(iters: int) -> str:
     from recon.fista import Fista
 
     psf = samples.tutorial_psf()
+    off = {"precondition": "off"}
     variants: dict[str, dict[str, Any]] = {
-        "FISTA 1/L, gradient restart (previous default)": {"momentum": "fista"},
-        "FISTA 1/L, no restart": {"momentum": "fista", "restart": "none"},
-        "POGM 1/L, no restart": {"restart": "none"},
-        "POGM 1/L, gradient restart (default)": {},
+        "FISTA 1/L, gradient restart": {"momentum": "fista", **off},
+        "FISTA 1/L, no restart": {"momentum": "fista", "restart": "none", **off},
+        "POGM 1/L, no restart": {"restart": "none", **off},
+        "POGM 1/L, gradient restart (previous default)": {**off},
+        "FISTA, gradient restart, preconditioned": {"momentum": "fista"},
+        "POGM, gradient restart, preconditioned (default)": {},
     }
     cols = [f"{n} {er:.0%} {'noisy' if nz else 'clean'} tau {t:g}"
             for n, er, nz, t in MOMENTUM_CASES]
@@ -337,55 +347,9 @@ def _spectrum(psf: Any, pad: tuple[int, int]) -> Any:
     return h2 / h2.max()
 
 
-def _fourier_scale(prec: Any, shape: tuple[int, ...]) -> Any:
-    """P^1/2 as a (self-adjoint) operator, for the project's power iteration."""
-    import torch
-
-    from recon.operators import LinearOperator
-
-    class FourierScale(LinearOperator):
-        def apply(self, x: Any) -> Any:
-            return prec(x, 0.5)
-
-        adjoint = apply
-
-    return FourierScale(shape, shape, torch.float32)
-
-
-def _precond_fb(model: Any, psf: Any, b: Any, tau: float, iters: int, kappa: float) -> Any:
-    """FISTA with a Fourier-diagonal preconditioner P (p = min(1, kappa / r(f))) on the gradient
-    and the usual (Euclidean) TV prox: the prox is then not the one of P's metric."""
-    import numpy as np
-    import torch
-
-    from recon.operators import Conv2D
-    from recon.tv import TV, TVProx
-
-    conv = next(o for o in model.op.ops if isinstance(o, Conv2D))
-    hs, ws = model.scene_shape[-2:]
-    r = _spectrum(psf, conv.pad)
-    p = torch.as_tensor(np.minimum(1.0, kappa / np.maximum(r, 1e-30)), dtype=torch.float32)
-
-    def prec(g: Any, power: float = 1.0) -> Any:
-        big = torch.zeros(g.shape[:-2] + tuple(conv.pad), dtype=g.dtype)
-        big[..., :hs, :ws] = g
-        return torch.fft.irfft2(torch.fft.rfft2(big) * p ** power,
-                                s=conv.pad)[..., :hs, :ws].contiguous()
-
-    lip = (model.op @ _fourier_scale(prec, model.op.in_shape)).lipschitz()  # of A P^1/2
-    prox = TVProx(TV(), nonneg=True)
-    x = torch.zeros(model.scene_shape)
-    y, t = x.clone(), 1.0
-    for _ in range(iters):
-        z = y - prec(model.op.adjoint(model.op.apply(y) - b)) / lip
-        xn = prox(z, tau / lip, 3, out=torch.empty_like(z))
-        tn = (1.0 + math.sqrt(1.0 + 4.0 * t * t)) / 2.0
-        y, x, t = xn + (t - 1.0) / tn * (xn - x), xn, tn
-    return x.numpy()
-
-
 def convergence_table() -> str:
-    """The noise-free 0 % cases: spectrum, the default's PSNR over iterations, a preconditioner."""
+    """The noise-free 0 % cases: spectrum, the plain step's PSNR over iterations, the Fourier
+    preconditioner at several damping levels (the solver's, recon.fista), ADMM-TV."""
     import numpy as np
 
     from recon import samples
@@ -403,22 +367,23 @@ def convergence_table() -> str:
                  f"{np.quantile(r, 0.999):.4f}, 99 % {np.quantile(r, 0.99):.4f}, 50 % "
                  f"{np.quantile(r, 0.5):.1e}; power-iteration L of the cropped operator "
                  f"{probe.op.lipschitz():.3f} (unit-sum PSF)")
-    pre_cols = " | ".join(f"preconditioned FB kappa {k:g}, 500" for k in KAPPAS)
+    pre_cols = " | ".join(f"preconditioned kappa {k:g}, 500" for k in KAPPAS)
     adm_cols = " | ".join(f"ADMM-TV rho {r:g}, 500" for r in RHOS)
     lines += ["", "PSNR minus the reference's (dB); objective relative to the reference's in "
               "brackets (+ = higher, i.e. worse)", "",
-              "| case (noise 0, 0 %, tau 1e-6) | reference 1000x50 PSNR | default at 500 | "
+              "| case (noise 0, 0 %, tau 1e-6) | reference 1000x50 PSNR | "
+              "unpreconditioned at 500 | "
               f"700 | 1000 | 1500 | {pre_cols} | {adm_cols} |",
               "|---|---|---|---|---|---|" + "---|" * (len(KAPPAS) + len(RHOS))]
     for name, er, noise, tau in MOMENTUM_CASES[:3]:
         sim, model, b, ref, ref_x = _fixed_tau_case(psf, name, er, noise, tau, keep=True)
         at: dict[int, float] = {}
         for n in (500, 700, 1000, 1500):  # separate runs: POGM's last step depends on max_iter
-            at[n] = _score(sim.truth, _fista(model, b, tau, n)[0])[0] - ref
+            at[n] = _score(sim.truth, _fista(model, b, tau, n, precondition="off")[0])[0] - ref
         f_ref = _objective_of(model, b, tau, ref_x)
         cells = []
         for kappa in KAPPAS:
-            x = _precond_fb(model, psf, b, tau, 500, kappa)
+            x = _fista(model, b, tau, 500, precondition=kappa)[0]
             cells.append(f"{_score(sim.truth, x)[0] - ref:+.2f} "
                          f"({_objective_of(model, b, tau, x) / f_ref - 1:+.1e})")
         for rho in RHOS:
@@ -430,15 +395,16 @@ def convergence_table() -> str:
                      + " | " + " | ".join(cells) + " |")
     lines += ["", "All nine fixed-tau cases of the momentum check, 500 iterations: PSNR minus the "
               "reference's (objective relative to the reference's)", "",
-              "| case | tau | reference PSNR | default | " + " | ".join(
+              "| case | tau | reference PSNR | unpreconditioned | " + " | ".join(
                   f"preconditioned kappa {k:g}" for k in KAPPAS_ALL) + " |",
               "|---|---|---|---|" + "---|" * len(KAPPAS_ALL)]
     for name, er, noise, tau in MOMENTUM_CASES:
         sim, model, b, ref, ref_x = _fixed_tau_case(psf, name, er, noise, tau, keep=True)
         f_ref = _objective_of(model, b, tau, ref_x)
-        cells = [f"{_score(sim.truth, _fista(model, b, tau, 500)[0])[0] - ref:+.2f}"]
+        plain = _fista(model, b, tau, 500, precondition="off")[0]
+        cells = [f"{_score(sim.truth, plain)[0] - ref:+.2f}"]
         for kappa in KAPPAS_ALL:
-            x = _precond_fb(model, psf, b, tau, 500, kappa)
+            x = _fista(model, b, tau, 500, precondition=kappa)[0]
             cells.append(f"{_score(sim.truth, x)[0] - ref:+.2f} "
                          f"({_objective_of(model, b, tau, x) / f_ref - 1:+.1e})")
         lines.append(f"| {name} {er:.0%} {'noisy' if noise else 'clean'} | {tau:g} | "
@@ -512,7 +478,7 @@ def run(args: argparse.Namespace) -> int:
         for line in cache.read_text().splitlines():
             if line.strip():
                 c = json.loads(line)
-                if c.get("iters") == args.iters:
+                if c.get("iters") == args.iters and c.get("version") == CASE_VERSION:
                     done[(c["scene"], c["erasure"], c["noise"])] = c
     t_all = time.perf_counter()
     for noise in sorted(noises, reverse=True):  # noisy cases first: they stop early
@@ -531,6 +497,7 @@ def run(args: argparse.Namespace) -> int:
                 res = run_case(psf, scene, er, noise, args.iters,
                                reference=not args.no_reference)
                 c = {"scene": name, "erasure": er, "noise": noise, "iters": args.iters,
+                     "version": CASE_VERSION,
                      "threads": args.threads, "wall_s": time.perf_counter() - t0,
                      "load": os.getloadavg()[0], **res}
                 done[(name, er, noise)] = c

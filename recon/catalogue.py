@@ -11,6 +11,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from recon.fista import _GramP, fourier_preconditioner
 from recon.models import build_model
 from recon.operators import (
     Compose,
@@ -73,8 +74,18 @@ OPERATOR_FACTORIES: dict[str, Factory] = {
     "model_depth_erasures": lambda dt: build_model(
         "depth", _rng().random((3, 12, 10)), mask=_erasure(12, 10), dtype=dt).op,
     "model_2d_region": lambda dt: _region_model("2d", dt),
+    "fourier_filter": lambda dt: _preconditioner(dt)[1],
+    "fista_gram_p": lambda dt: _GramP(*_preconditioner(dt)),
     "model_video_region": lambda dt: _region_model("video", dt),
 }
+
+
+def _preconditioner(dt: torch.dtype) -> tuple[LinearOperator, LinearOperator]:
+    """FISTA's Fourier preconditioner of an erased 2D model (recon.fista), with the model."""
+    op = build_model("2d", _psf(), mask=_erasure(12, 10), dtype=dt).op
+    found = fourier_preconditioner(op, 0.1)
+    assert found is not None
+    return op, found[0]
 
 
 def _region_model(kind: str, dt: torch.dtype) -> LinearOperator:

@@ -3,6 +3,29 @@
 Solves  min_x  0.5 ||A x - b||^2 + tau TV(x)  subject to x >= 0.
 
 - Gradient step 1/L with L = 1.02 ||A||^2 from power iteration on the full (masked) operator.
+- Fourier preconditioning, ``precondition=`` ("auto", the default; "off"; or a damping level
+  kappa in (0, 1]): a non-negative PSF puts its sum at the DC, so ||A||^2, and with it the
+  step, is set by a handful of frequencies next to the DC (99.9 % of the frequencies of the
+  tutorial PSF have under 0.6 % of the largest |H|^2), while the scene's detail converges at
+  the rate of the small ones. The gradient is multiplied by P = C F^H diag(p) F C^T on the
+  convolution's padded grid (C the crop to the scene), p(f) = min(1, kappa / r(f)),
+  r = |H(f)|^2 / max |H|^2: those few frequencies are damped to kappa, the rest untouched, and
+  the step 1/L_P, L_P = 1.02 lambda_max(A P A^T) by power iteration, grows about 4-fold at
+  kappa 0.1 (:func:`fourier_preconditioner`). The momentum (POGM or FISTA) is unchanged.
+  The prox stays the Euclidean TV prox (the exact one in P's metric would need P^-1 inside
+  the TV solver), so the preconditioned iteration alone has a biased fixed point and, where
+  the TV term is strong, need not settle. It is therefore only the first phase: it ends
+  after 50 iterations without a new lowest objective, when its relative change falls below
+  ``tol``, when the divergence guard fires, or max(50, max_iter // 5) iterations before
+  ``max_iter``, whichever comes first; from there on the iteration is the plain one (momentum
+  reset, step 1/L), whose fixed point is the minimiser. (The metric changes once, so the
+  limit is that of the plain method: the first phase is a warm start.) On the simulation
+  protocol's fixed-tau cases it turns 500 iterations from 0.60 dB below an accurate reference
+  into 0.08 dB above it on average (docs/simulation-protocol.md). Cost: one more pruned
+  FFT pair per preconditioned iteration. "auto" uses kappa 0.1 when the scene enters a 2D
+  convolution first (every model of :mod:`recon.models`) and the step of the median
+  frequency, p_median L / L_P, grows at least 1.5-fold (a flat spectrum gains nothing), and
+  not with the monotone rule or when ``max_iter`` leaves no room before the plain tail.
 - Momentum, ``momentum=``:
   ``"pogm"`` (default): the proximal optimized gradient method (POGM; Taylor, Hendrickx &
   Glineur 2017, Kim & Fessler 2018). With u_{k+1} = x_k - grad f(x_k) / L and theta as
@@ -52,11 +75,11 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from typing import Any, cast
 
 import torch
 
-from recon.operators import LinearOperator
+from recon.operators import Compose, Conv2D, FourierFilter, LinearOperator, power_norm
 from recon.stepwise import (
     NumericalError,
     SolverResult,
@@ -117,6 +140,73 @@ def constant_prox(tv: TV, z: torch.Tensor, gamma: float, nonneg: bool = True
     return out.clamp_(min=0.0) if nonneg else out
 
 
+class _GramP(LinearOperator):
+    """s A P A^T on the measurement space (self-adjoint): its norm over s is the preconditioned
+    step's L. The scale s = 1 / ||A||^2 keeps the power iteration (which squares the operator)
+    at values near 1 whatever the units of the PSF (float32 would underflow at PSF values of
+    1e-8)."""
+
+    def __init__(self, op: LinearOperator, prec: LinearOperator, scale: float = 1.0) -> None:
+        super().__init__(op.out_shape, op.out_shape, op.dtype, op.device)
+        self.op, self.prec, self.scale = op, prec, scale
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        return self.op.apply(self.prec.apply(self.op.adjoint(x))).mul_(self.scale)
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        return self.apply(y)
+
+
+def _kappa(precondition: float | str | None) -> float | None:
+    if precondition is None or precondition == "off":
+        return None
+    if precondition == "auto":
+        return AUTO_KAPPA
+    if isinstance(precondition, str):
+        raise ValueError(f"precondition must be 'auto', 'off' or a number in (0, 1], got "
+                         f"{precondition!r}")
+    kappa = float(precondition)
+    if not (math.isfinite(kappa) and 0.0 < kappa <= 1.0):
+        raise ValueError(f"precondition (kappa) must be in (0, 1], got {precondition}")
+    return kappa
+
+
+def fourier_preconditioner(op: LinearOperator, kappa: float, required: bool = True
+                           ) -> tuple[FourierFilter, float] | None:
+    """The Fourier-diagonal preconditioner P of ``op`` and the Lipschitz constant of its step.
+
+    p(f) = min(1, kappa / r(f)) with r = |H(f)|^2 / max |H|^2 of the model's convolution (per
+    PSF slice), on its padded grid: the few frequencies next to the DC that set the plain step
+    1/||A||^2 are damped to the level kappa, the rest is left alone. P is self-adjoint and
+    positive definite (:class:`recon.operators.FourierFilter`); the step of the preconditioned
+    gradient x - P grad f(x) / L is safe with L = 1.02 lambda_max(A P A^T) (power iteration).
+    Cached on ``op`` per kappa. A model whose scene does not enter a :class:`Conv2D` first has
+    no such P: ValueError, or None when not ``required``.
+    """
+    cache = op.__dict__.setdefault("_fourier_prec", {})
+    if kappa in cache:
+        return cast(tuple[FourierFilter, float], cache[kappa])
+    conv = (op.ops if isinstance(op, Compose) else [op])[-1]
+    if not isinstance(conv, Conv2D):
+        if not required:
+            return None
+        raise ValueError("precondition needs a model whose scene enters a 2D convolution first "
+                         f"(got {type(conv).__name__})")
+    r = conv.hf.real.square() + conv.hf.imag.square()
+    r = r / r.amax(dim=(-2, -1), keepdim=True).clamp_min(1e-30)
+    mult = torch.where(r > kappa, kappa / r.clamp_min(1e-30), torch.ones_like(r))
+    prec = FourierFilter(conv, mult)
+    unit = op.norm() ** 2
+    lip = 1.02 * unit * power_norm(_GramP(op, prec, 1.0 / unit))
+    cache[kappa] = (prec, lip)
+    return prec, lip
+
+
+AUTO_KAPPA = 0.1  # the damping level of precondition="auto" (docs/simulation-protocol.md)
+AUTO_MIN_GAIN = 1.5  # "auto" only where the median frequency's step grows this much
+STALL_WINDOW = 50  # plain steps after 50 preconditioned ones without a new lowest objective
+PREC_RISE = 0.1  # ...or once a preconditioned step would raise the objective 10 % above it
+
 RESTART_MODES = ("gradient", "monotone", "none")
 MOMENTA = ("pogm", "fista")
 
@@ -151,6 +241,7 @@ class Fista(StepwiseSolver):
         prox_iters: int = 3,
         lipschitz: float | None = None,
         momentum: str | None = None,
+        precondition: float | str | None = "auto",
     ) -> None:
         if tuple(b.shape) != op.out_shape:
             raise ValueError(
@@ -205,6 +296,20 @@ class Fista(StepwiseSolver):
                 "recon.io.normalise)"
             )
         self._b_norm = max(float(torch.linalg.vector_norm(self.b)), 1e-30)
+        self._L_plain = self.L
+        self._prec: LinearOperator | None = None
+        self._prec_until = 0  # the last preconditioned iteration (0: none)
+        self._f_best_it = 0
+        self.precondition: float | None = None
+        kappa = _kappa(precondition)
+        if kappa is not None and self.restart != "monotone" and self.max_iter > 0:
+            found = fourier_preconditioner(op, kappa, required=precondition != "auto")
+            # the step of the median frequency, relative to the plain step
+            if found is not None and (precondition != "auto" or float(found[0].mult.median())
+                                      * self._L_plain >= AUTO_MIN_GAIN * found[1]):
+                self._prec, self.L = found
+                self._prec_until = self.max_iter
+                self.precondition = kappa
         with torch.no_grad():
             if x0 is None:
                 self.x = op.zeros_in()
@@ -237,6 +342,7 @@ class Fista(StepwiseSolver):
         self.objective = self._objective(self.Ax, self.x)[0]
         # the divergence guard's bounds
         self._f_guard = 2.0 * max(self.objective, 0.5 * self._b_norm ** 2)
+        self._f_best = self.objective  # the lowest objective of the preconditioned phase
         # the constant-prox check is tried only while the iterate is constant (TV exactly 0):
         # that is where a huge tau keeps it, and it costs nothing on ordinary runs
         self._x_constant = self._last_tv == 0.0
@@ -259,6 +365,8 @@ class Fista(StepwiseSolver):
             "prox_iters": self.prox_iters,
             "lipschitz": self.L,
             "momentum": self.momentum,
+            "precondition": self.precondition,
+            "preconditioned_iterations": self._prec_until,
         }
 
     def _objective(self, ax: torch.Tensor, x: torch.Tensor) -> tuple[float, float]:
@@ -274,6 +382,7 @@ class Fista(StepwiseSolver):
         self.objective = self._objective(self.Ax, self.x)[0]  # of the kept iterate, new data
         self._stalls = 0
         self._f_guard = 2.0 * max(self.objective, 0.5 * self._b_norm ** 2)
+        self._f_best, self._f_best_it = self.objective, self.iteration
 
     def step(self) -> SolverStep:
         """Do one iteration and report it (raises RunFinished once done)."""
@@ -281,6 +390,8 @@ class Fista(StepwiseSolver):
         start = time.perf_counter()
         it = self.iteration + 1
         with torch.no_grad():
+            if self._prec is not None and it > self._prec_until:
+                self._end_preconditioning()
             if self.momentum == "pogm":
                 f_report, data, rel, restarted = self._step_pogm(it)
             else:
@@ -288,7 +399,11 @@ class Fista(StepwiseSolver):
         self.iteration = it
         self._elapsed += time.perf_counter() - start
         rejected = restarted and self.restart == "monotone"
-        if not rejected and rel < self.tol and it > 1:
+        if self._prec is not None:
+            self._watch_preconditioned(it, f_report, rel)
+        if not rejected and rel < self.tol and it > 1 and self._prec is not None:
+            self._prec_until = it  # the preconditioned phase has converged: plain steps next
+        elif not rejected and rel < self.tol and it > 1:
             self.reason = StopReason.CONVERGED
         elif self._stalls >= 3:
             self.reason = StopReason.STALLED
@@ -296,6 +411,34 @@ class Fista(StepwiseSolver):
             self.reason = StopReason.MAX_ITER
         residual = math.sqrt(2.0 * data) / self._b_norm
         return SolverStep(it, f_report, data, residual, rel, self._elapsed, restarted)
+
+    def _reset_momentum(self) -> None:
+        self.t = 1.0
+        if self.momentum == "fista":
+            self.y.copy_(self.x)
+            self.Ay.copy_(self.Ax)
+        else:
+            self._u.copy_(self.x)
+            self._w.zero_()
+            self._gamma = 1.0 / self.L
+
+    def _watch_preconditioned(self, it: int, f: float, rel: float) -> None:
+        """End the preconditioned phase once its objective stalls (see the module docstring)."""
+        if f < self._f_best * (1.0 - 1e-7):
+            self._f_best, self._f_best_it = f, it
+        elif it - self._f_best_it >= STALL_WINDOW:
+            self._prec_until = it
+
+    def _end_preconditioning(self) -> None:
+        """Plain steps from here on: the fixed point is then the minimiser (see the docstring)."""
+        self._prec = None
+        self._prec_until = min(self._prec_until, self.iteration)
+        self.L = self._L_plain
+        self._reset_momentum()
+
+    def _gradient(self, res: torch.Tensor) -> torch.Tensor:
+        grad = self.op.adjoint(res)
+        return grad if self._prec is None else self._prec.apply(grad)
 
     def _prox_step(self, z: torch.Tensor, gamma: float) -> torch.Tensor:
         """x_new = prox of gamma tau TV (+ x >= 0) at z, a new tensor."""
@@ -326,20 +469,20 @@ class Fista(StepwiseSolver):
         """
         if self.restart == "monotone":
             return False
+        # the curvature test is in the Euclidean metric: with the preconditioner the objective
+        # is tested against its lowest so far instead, and a failure ends the preconditioning
         rq = ((float(torch.dist(ax_new, self.Ax)) / dx) ** 2
-              if dx > 1e-4 * x_norm else 0.0)
-        if rq <= self.L and f_new <= self._f_guard:
+              if dx > 1e-4 * x_norm and self._prec is None else 0.0)
+        bound = (self._f_guard if self._prec is None
+                 else min(self._f_guard, (1.0 + PREC_RISE) * self._f_best))
+        if rq <= self.L and f_new <= bound:
             return False
         self.guard_resets += 1
-        self.L = max(1.5 * self.L, 1.02 * rq)
-        self.t = 1.0
-        if self.momentum == "fista":
-            self.y.copy_(self.x)
-            self.Ay.copy_(self.Ax)
+        if self._prec is not None:
+            self._end_preconditioning()
         else:
-            self._u.copy_(self.x)
-            self._w.zero_()
-            self._gamma = 1.0 / self.L
+            self.L = max(1.5 * self.L, 1.02 * rq)
+            self._reset_momentum()
         self.objective = self._objective(self.Ax, self.x)[0]  # leaves A x - b in self._res
         return True
 
@@ -347,7 +490,7 @@ class Fista(StepwiseSolver):
         inv_l = 1.0 / self.L
         # self._res holds A x - b already: every path leaves it there (the last _objective call
         # of a step, of the divergence guard, of a new measurement and of __init__ is on self.Ax)
-        grad = self.op.adjoint(self._res)
+        grad = self._gradient(self._res)
         th = self.t
         th_new = (1.0 + math.sqrt(1.0 + 4.0 * th * th)) / 2.0
         u_new = torch.add(self.x, grad, alpha=-inv_l, out=self._u_new)
@@ -388,7 +531,7 @@ class Fista(StepwiseSolver):
         return f_new, data, rel, restarted
 
     def _step_fista(self, it: int) -> tuple[float, float, float, bool]:
-        grad = self.op.adjoint(torch.sub(self.Ay, self.b, out=self._res))
+        grad = self._gradient(torch.sub(self.Ay, self.b, out=self._res))
         z = torch.add(self.y, grad, alpha=-1.0 / self.L, out=self._z)
         x_new = self._prox_step(z, 1.0 / self.L)
         ax_new, f_new, data = self._checked(it, grad, x_new)

@@ -11,7 +11,9 @@ The estimate counts what one iteration keeps alive, in elements of the solver's 
 - FISTA: the measurement-sized vectors (b, Ax, Ay, A x_new, ...), the iterates (x, y, the
   gradient step z, the prox output, the difference and the next y) and the TV prox's work
   buffers (the dual p, its extrapolation r and the dual gradient g, one per difference
-  direction, plus three scene-sized buffers);
+  direction, plus three scene-sized buffers); the Fourier preconditioner of its first phase
+  (a real multiplier per PSF slice in two memory layouts, one more spectrum and the
+  preconditioned gradient);
 - ADMM: eight grid-sized variables (v, M v, the data term's diagonal and right-hand side, the
   three dual variables, one per split) and about sixteen grid-sized transients of one step
   (the differences, the split variables, the shrinkage's temporaries, the next v and M v).
@@ -176,6 +178,10 @@ def estimate_solver_memory(
         # (the transform's output and the working copies of the 2D FFT's two passes); the
         # masked / expanded slices
         fft = 4 * grid + 3 * spec + 2 * per_k
+        # the Fourier preconditioner (recon.fista): its real multiplier in both memory
+        # layouts, one more spectrum and the preconditioned gradient
+        model += 2 * int(psf_channels) * int(psf_planes) * nf
+        fft += spec + scene
         iterates = 7 * scene + 6 * meas
         tv = (3 * int(tv_dirs) + 3) * scene
     else:

@@ -164,6 +164,13 @@ def test_cli_tau_auto_by_default_exact_when_given_and_recon_admm(tmp_path, capsy
     _x, meta = read_reconstruction(tmp_path / "given.tif")
     assert meta["parameters"]["tau"] == 2.5e-4 and meta["regularisation"]["tau_rule"] == "given"
     assert meta["iterations"] <= 30 and meta["parameters"]["max_iter"] == 30
+    # the Fourier preconditioner: on by default (recorded), off on request
+    assert meta["parameters"]["precondition"] == 0.1
+    assert main(["recon", "fista", *inputs, "--tau", "2.5e-4", "--iters", "30",
+                 "--precondition", "off", "--out", str(tmp_path / "plain.tif")]) == 0
+    capsys.readouterr()
+    _x, meta = read_reconstruction(tmp_path / "plain.tif")
+    assert meta["parameters"]["precondition"] is None
     # recon admm: the same options; tau auto chosen by the same rule, given tau exact
     assert main(["recon", "admm", *inputs, "--tau", "1e-4", "--iters", "20", "--out",
                  str(tmp_path / "admm.tif")]) == 0

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from recon.fista import Fista
+from recon.fista import Fista, fourier_preconditioner
 from recon.models import build_model
 from recon.simulate import simulate, synthetic_psf
 from recon.tv import TV, TVProx
@@ -76,9 +76,13 @@ def test_divergence_guard_recovers_from_a_too_small_lipschitz_constant(momentum)
 def test_no_guard_reset_on_ordinary_runs():
     for noise, erasure in [(0.0, 0.0), (0.01, 0.9)]:
         model, b = _problem(noise, erasure)
-        solver = Fista(model.op, b, tau=1e-5, max_iter=300, tol=0.0)
-        solver.run()
-        assert solver.guard_resets == 0 and solver.L == model.op.lipschitz()
+        for pre in ("auto", "off"):
+            solver = Fista(model.op, b, tau=1e-5, max_iter=300, tol=0.0, precondition=pre)
+            solver.run()
+            # the step's L is the plain one, or the preconditioned phase's (never raised)
+            expect = (model.op.lipschitz() if solver.params["preconditioned_iterations"] < 300
+                      else fourier_preconditioner(model.op, 0.1)[1])
+            assert solver.guard_resets == 0 and solver.L == expect
 
 
 def _plain_fgp(z, gamma, iters, p0, nonneg=True):

@@ -17,6 +17,7 @@ from app.commands._options import (
     POSITIVE_INT,
     add_overwrite_option,
     check_command_outputs,
+    finite_float,
 )
 from app.commands._tau import add_tau_arguments, resolve_tau
 
@@ -32,6 +33,9 @@ def register(sub: Any) -> None:
     f.add_argument("--prox-iters", type=POSITIVE_INT, default=3, help="inner TV prox iterations")
     f.add_argument("--no-restart", action="store_true",
                    help="disable the gradient restart of the (POGM) momentum")
+    f.add_argument("--precondition", type=_precondition, default="auto",
+                   help="Fourier preconditioning of the first iterations: auto (default: "
+                   "damping level 0.1 where it speeds the step up), off, or a level in (0, 1]")
     f.set_defaults(func=run_fista)
     a = methods.add_parser("admm", help="ADMM-TV (2d model, with or without a mask)")
     _add_tv_solver_arguments(a)
@@ -43,6 +47,14 @@ def register(sub: Any) -> None:
 
     register_udn(methods)
     register_auto(methods)
+
+
+_KAPPA = finite_float(0, 1, lo_open=True)
+
+
+def _precondition(text: str) -> str | float:
+    """``--precondition``: auto, off or a damping level in (0, 1]."""
+    return text if text in ("auto", "off") else _KAPPA(text)
 
 
 def _add_tv_solver_arguments(p: argparse.ArgumentParser) -> None:
@@ -97,7 +109,7 @@ def run_fista(args: argparse.Namespace) -> int:
         tau, iters, tau_meta = resolve_tau(args, model, b, tv)
         solver = Fista(model.op, b, tau=tau, tv=tv, max_iter=iters, tol=args.tol,
                        restart="none" if args.no_restart else "gradient",
-                       prox_iters=args.prox_iters)
+                       prox_iters=args.prox_iters, precondition=args.precondition)
         return solver, tau, iters, tau_meta
 
     return _solve_and_save(args, "fista-tv", kind, make)
