@@ -162,8 +162,8 @@ def _case_2d(size: int, methods: list[str], rounds: int, prox_iters: int,
     fns: dict[str, Callable[[], None]] = {"floor": floor}
     solvers: dict[str, Any] = {}
     if "fista" in methods:
-        # the two kinds of step a default run takes: preconditioned (its first iterations, up
-        # to 80 %), then plain
+        # the two kinds of step a default run takes: preconditioned (its first phase, until the
+        # objective stalls), then plain
         solvers["fista"] = Fista(model.op, b, tau=1e-3, max_iter=10**9, tol=0.0,
                                  prox_iters=prox_iters, precondition="off")
         solvers["fista-precond"] = Fista(model.op, b, tau=1e-3, max_iter=10**9, tol=0.0,

@@ -114,6 +114,7 @@ def _score_run(
     tau: float, *, tv: TV,
     lipschitz: float, max_iter: int, min_iter: int, patience: int, check_every: int,
     prox_iters: int, restart: str, cancel: Callable[[], bool] | None,
+    precondition: float | str | None = "auto",
 ) -> tuple[float, int, int, bool, torch.Tensor]:
     """One tau's run: (best held-out MSE, its iteration, iterations run, overfit, errors).
 
@@ -122,7 +123,8 @@ def _score_run(
     rising), rather than on a plateau.
     """
     solver = Fista(op, b_fit, tau=tau, tv=tv, max_iter=max_iter, tol=0.0,
-                   lipschitz=lipschitz, prox_iters=prox_iters, restart=restart)
+                   lipschitz=lipschitz, prox_iters=prox_iters, restart=restart,
+                   precondition=precondition)
     best, best_it, ref, err = math.inf, 0, math.inf, math.inf  # ref: the error at best_it
     best_sq = torch.empty(0)
     for step in solver.steps():
@@ -163,12 +165,14 @@ def choose_tau(
     fixed_tau: float | None = None,
     cancel: Callable[[], bool] | None = None,
     rule: str = "1se",
+    precondition: float | str | None = "auto",
 ) -> AutoTau:
     """Choose tau and the iteration count for FISTA-TV on ``model`` from ``b`` alone.
 
     ``model`` is the forward model of the measurement (its erasure mask included); ``b`` the
     measurement. See the module docstring for the rule. With ``fixed_tau`` only the iteration
-    count is chosen (one run at that tau).
+    count is chosen (one run at that tau). ``precondition`` is FISTA's (:class:`recon.fista.Fista`):
+    the search runs the iteration the reconstruction will run.
     """
     t_start = time.perf_counter()
     if tuple(b.shape) != model.meas_shape:
@@ -217,7 +221,7 @@ def choose_tau(
                 fit_op, model.op, b_fit, b_hold, hold, scale * 10.0**key, tv=tv,
                 lipschitz=lipschitz, max_iter=max_iter, min_iter=min_iter, patience=patience,
                 check_every=check_every, prox_iters=prox_iters, restart=restart,
-                cancel=cancel)
+                cancel=cancel, precondition=precondition)
             scores[key] = (err, best_it, overfit)
             total += ran
         return scores[key][0]
@@ -316,6 +320,7 @@ def resolve(
     max_iter: int = AUTO_MAX_ITER,
     seed: int = 0,
     log: Callable[[str], None] | None = None,
+    precondition: float | str | None = "auto",
 ) -> tuple[float, int, dict[str, Any]]:
     """The (tau, iterations) a command runs with, and the metadata that says how they came.
 
@@ -333,7 +338,7 @@ def resolve(
     limit = iterations or max_iter
     choice = choose_tau(model, b, tv=tv, max_iter=limit, min_iter=min(100, limit),
                         patience=max(min(100, limit), 10), check_every=min(10, limit),
-                        seed=seed, fixed_tau=tau)
+                        seed=seed, fixed_tau=tau, precondition=precondition)
     if log is not None:
         log(choice.describe())
     its = iterations if iterations is not None else choice.iterations

@@ -58,13 +58,17 @@ def test_default_momentum_and_validation():
 
 @pytest.mark.parametrize("momentum", ["pogm", "fista"])
 def test_divergence_guard_recovers_from_a_too_small_lipschitz_constant(momentum):
-    """L given 3x too small: the step is unstable; the guard raises L and starts again."""
+    """L given 3x too small: the step is unstable; the guard raises L and starts again.
+
+    Plain steps (``lipschitz=`` is the plain step's L; the preconditioned phase computes its
+    own, tests/test_fista_precondition.py covers its guard)."""
     model, b = _problem(0.01)
     true_l = model.op.lipschitz()
-    good = Fista(model.op, b, tau=1e-4, max_iter=300, tol=0.0, momentum=momentum)
+    good = Fista(model.op, b, tau=1e-4, max_iter=300, tol=0.0, momentum=momentum,
+                 precondition="off")
     good.run()
     solver = Fista(model.op, b, tau=1e-4, max_iter=300, tol=0.0, momentum=momentum,
-                   lipschitz=true_l / 3)
+                   lipschitz=true_l / 3, precondition="off")
     objs = [s.objective for s in solver.steps()]
     assert all(math.isfinite(o) for o in objs)
     assert solver.guard_resets >= 1

@@ -65,4 +65,5 @@ def resolve_tau(args: argparse.Namespace, model: Any, b: Any, tv: Any = None,
                                log=lambda s: print(s, file=sys.stderr))
         meta.update(iterations=AUTO_MAX_ITER, iterations_rule="limit")
         return tau, AUTO_MAX_ITER, meta
-    return resolve(model, b, tau, iters, tv=tv, log=lambda s: print(s, file=sys.stderr))
+    return resolve(model, b, tau, iters, tv=tv, log=lambda s: print(s, file=sys.stderr),
+                   precondition=getattr(args, "precondition", "auto"))

@@ -54,7 +54,13 @@ _KAPPA = finite_float(0, 1, lo_open=True)
 
 def _precondition(text: str) -> str | float:
     """``--precondition``: auto, off or a damping level in (0, 1]."""
-    return text if text in ("auto", "off") else _KAPPA(text)
+    if text in ("auto", "off"):
+        return text
+    try:
+        return _KAPPA(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"must be auto, off or a number > 0 and <= 1, got {text!r}") from None
 
 
 def _add_tv_solver_arguments(p: argparse.ArgumentParser) -> None:

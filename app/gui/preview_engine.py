@@ -415,9 +415,13 @@ class PreviewEngine:
             from recon.tv import TV
 
             tv = TV(weight_k=0.5) if s.model == "video" else TV()
+            # plain steps: a solver that never ends and is fed new frames would never leave
+            # the preconditioned first phase (its end rules need one measurement), whose
+            # fixed point is biased (recon/fista.py)
             solver = Fista(self._model.op, bt, tau=tau, tv=tv,
                                      x0=self._x if warm else None, max_iter=10**12, tol=0.0,
-                                     prox_iters=s.prox_iters, lipschitz=self._lipschitz)
+                                     prox_iters=s.prox_iters, lipschitz=self._lipschitz,
+                                     precondition="off")
             self._solver, self._solver_key = solver, key
         step = None
         n = 0
