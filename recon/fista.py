@@ -324,9 +324,8 @@ class Fista(StepwiseSolver):
         auto = precondition == "auto"
         # "auto" preconditions cold starts only: not a warm start (it is near the minimiser
         # already; the phase would first move away from it), and not a scene field larger
-        # than the sensor (there the
-        # convolution's spectrum describes A^T A poorly: on a 2x field the phase left damage
-        # its rise rule could not undo, docs/performance.md)
+        # than the sensor (there the convolution's spectrum describes A^T A poorly: on a 2x
+        # field the phase left damage its rise rule could not undo, docs/performance.md)
         auto_ok = (x0 is None and len(op.in_shape) == 4
                    and op.in_shape[-2] <= op.out_shape[-2]
                    and op.in_shape[-1] <= op.out_shape[-1])
