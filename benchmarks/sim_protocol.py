@@ -337,16 +337,6 @@ def momentum_table(iters: int) -> str:
     return "\n".join(lines)
 
 
-def _spectrum(psf: Any, pad: tuple[int, int]) -> Any:
-    """|H(f)|^2 / max on the padded grid (the normal operator's spectrum without the crop)."""
-    import numpy as np
-
-    p = np.asarray(psf, dtype=np.float64)
-    p = p.reshape(-1, *p.shape[-2:])[0]
-    h2 = np.abs(np.fft.rfft2(p, s=pad)) ** 2
-    return h2 / h2.max()
-
-
 def convergence_table() -> str:
     """The noise-free 0 % cases: spectrum, the plain step's PSNR over iterations, the Fourier
     preconditioner at several damping levels (the solver's, recon.fista), ADMM-TV."""
@@ -354,6 +344,7 @@ def convergence_table() -> str:
 
     from recon import samples
     from recon.admm import Admm
+    from recon.fista import relative_spectrum
     from recon.models import build_model
     from recon.operators import Conv2D
 
@@ -361,7 +352,7 @@ def convergence_table() -> str:
     lines = []
     probe = build_model("2d", psf)
     conv = next(o for o in probe.op.ops if isinstance(o, Conv2D))
-    r = np.sort(_spectrum(psf, conv.pad).ravel())[::-1]
+    r = np.sort(relative_spectrum(conv).double().numpy().ravel())[::-1]
     lines.append("Spectrum of the convolution on the padded grid (|H(f)|^2 / max): largest "
                  + ", ".join(f"{v:.2f}" for v in r[1:7]) + " after the DC; quantiles 99.9 % "
                  f"{np.quantile(r, 0.999):.4f}, 99 % {np.quantile(r, 0.99):.4f}, 50 % "

@@ -164,6 +164,16 @@ class _GramP(LinearOperator):
         return self.apply(y)
 
 
+def relative_spectrum(conv: Conv2D) -> torch.Tensor:
+    """r(f) = |H(f)|^2 / max |H|^2 of a convolution on its padded grid, per PSF slice.
+
+    The half spectrum of rfft2: what the preconditioner damps, and what the protocol's
+    convergence check reports.
+    """
+    r = conv.hf.real.square() + conv.hf.imag.square()
+    return r / r.amax(dim=(-2, -1), keepdim=True).clamp_min(1e-30)
+
+
 def _median_gain(op: LinearOperator, prec: FourierFilter, lip: float) -> float:
     """How much the preconditioned step grows for the median frequency: p_median L / L_P."""
     return float(prec.mult.median()) * op.lipschitz() / lip
@@ -207,8 +217,7 @@ def fourier_preconditioner(op: LinearOperator, kappa: float, required: bool = Tr
             return None
         raise ValueError("precondition needs a model whose scene enters a 2D convolution first "
                          f"(got {type(conv).__name__})")
-    r = conv.hf.real.square() + conv.hf.imag.square()
-    r = r / r.amax(dim=(-2, -1), keepdim=True).clamp_min(1e-30)
+    r = relative_spectrum(conv)
     mult = torch.where(r > kappa, kappa / r.clamp_min(1e-30), torch.ones_like(r))
     prec = FourierFilter(conv, mult)
     unit = op.norm() ** 2

@@ -166,9 +166,9 @@ class CVCandidate:
 
 def _fit(model: ForwardModel, b: torch.Tensor, tau: float, tv: TV, iters: int,
          x0: torch.Tensor | None) -> torch.Tensor:
-    # plain steps: the analysis compares short, fixed-budget fits (100-150 iterations) with
-    # thresholds set on them; with FISTA's Fourier preconditioner the 2x-field fit of a small
-    # object spreads over the whole field at 100 iterations (tests/plan/test_plan_cases.py)
+    # plain steps: the analysis compares candidates on short, fixed-budget fits (100-150
+    # iterations), the video ones warm-started from 2D pilots (which FISTA's "auto" leaves
+    # plain), with thresholds set on plain runs; every candidate takes the same kind of step
     solver = Fista(model.op, b, tau=tau, tv=tv, max_iter=iters, tol=1e-6, x0=x0,
                    precondition="off")
     return solver.run().x
