@@ -49,6 +49,8 @@ ERASURES = (0.0, 0.5, 0.9, 0.95, 0.99)
 TAUS = (1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
 FISTA_CHECKPOINTS = (100, 200)
 BLEND_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
+#: UDN variants of ``--lever`` (see make_runner)
+LEVERS = ("none", "precondition", "channel-gain")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -80,6 +82,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seeds", type=POSITIVE_INT, default=1,
                    help="UDN seeds: with N > 1, also the ensemble, the average of the N seeds' "
                    "held-out choices (each seed holds out its own pixels; recon.udn.ensemble)")
+    p.add_argument("--lever", choices=LEVERS, default="none",
+                   help="a UDN variant measured here, not in recon.udn: 'precondition' "
+                   "multiplies the gradient of the output by FISTA's Fourier preconditioner; "
+                   "'channel-gain' gives each colour channel its own learnable output gain "
+                   "(none)")
     p.add_argument("--no-udn", action="store_true", help="FISTA and ADMM only")
     p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
     p.add_argument("--data", default=None, help="the dlmd folder (default: the shared one)")
@@ -284,7 +291,7 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     from recon.models import build_model
     from recon.trade import _peak_mb, _reset_peak
     from recon.udn.network import NetworkConfig
-    from recon.udn.runner import UDNConfig, UDNRunner
+    from recon.udn.runner import UDNConfig
 
     truth = pair.truth
     h, w = truth.shape[1:]
@@ -299,7 +306,7 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     cfg = UDNConfig(max_iter=args.udn_iters, holdout=args.holdout, patience=10**9, min_iter=0,
                     headroom=args.headroom, lr=args.lr, ema=args.ema, tv_weight=args.tv_weight,
                     seed=0)
-    runner = UDNRunner(model, b, network=net, config=cfg)
+    runner = make_runner(model, b, net, cfg, args.lever)
     heldout = runner.heldout.cpu().numpy()
     fit_mask = (runner.fit.cpu().numpy()).astype(np.float32)
     row["heldout_pixels"] = int(heldout.sum())
@@ -391,6 +398,7 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     blend = a_best * sel + (1 - a_best) * x_auto
     row["udn_blend"] = dict(scores(truth, blend), weight=a_best)
     row["udn_curve"] = curve
+    row["udn_oracle_stop"] = _oracle_stop(curve)
     row["udn_heldout_curve"] = hcurve
     row["udn_wmv_curve"] = wmv_curve
     row["udn_gain"] = {"initial": runner.initial_gain, "final": runner.G.gain}
@@ -400,7 +408,7 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     if args.seeds > 1:
         members, walls = [sel], [runner.elapsed_s]
         for seed in range(1, args.seeds):
-            r = UDNRunner(model, b, network=net, config=replace(cfg, seed=seed))
+            r = make_runner(model, b, net, replace(cfg, seed=seed), args.lever)
             if args.warm_start:  # its own fitted pixels: its held-out stay unseen
                 own = r.fit.cpu().numpy().astype(np.float32)
                 r.warm_start(_fitted_pixels_fista(pair, b, own, args, min(cps)),
@@ -416,6 +424,79 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     return row
 
 
+def make_runner(model: Any, b: Any, net: Any, cfg: Any, lever: str = "none") -> Any:
+    """A UDN runner, plain or with one of the ``--lever`` variants (measured, not defaults).
+
+    - ``precondition``: the gradient that reaches the network from its output is multiplied by
+      FISTA's Fourier preconditioner P (``recon.fista.fourier_preconditioner`` at
+      ``AUTO_KAPPA``: the frequencies the PSF passes best damped to that level), so the
+      frequencies the measurement attenuates are fitted sooner; the loss is unchanged.
+    - ``channel-gain``: one learnable output gain per colour channel, each initialised by the
+      least-squares fit of that channel (the runner's scalar fit, per channel), instead of one.
+    """
+    import torch
+
+    from recon.udn.network import Generator
+    from recon.udn.runner import UDNRunner
+
+    if lever == "none":
+        return UDNRunner(model, b, network=net, config=cfg)
+    if lever == "precondition":
+        from recon.fista import AUTO_KAPPA, fourier_preconditioner
+
+        found = fourier_preconditioner(model.op, AUTO_KAPPA)
+        assert found is not None  # required=True raises instead of returning None
+        prec = found[0]
+
+        class _Precondition(torch.autograd.Function):
+            @staticmethod
+            def forward(ctx: Any, x: Any) -> Any:
+                return x.view_as(x)
+
+            @staticmethod
+            def backward(ctx: Any, g: Any) -> Any:
+                return prec.apply(g)
+
+        class _PreconditionedRunner(UDNRunner):
+            def _forward(self, noise: bool) -> Any:
+                x = super()._forward(noise)
+                return _Precondition.apply(x) if torch.is_grad_enabled() else x  # type: ignore[no-untyped-call]
+
+        return _PreconditionedRunner(model, b, network=net, config=cfg)
+    if lever == "channel-gain":
+        class _ChannelGain(Generator):
+            @property
+            def gain(self) -> float:  # the largest, for the runner's notes and cap check
+                return float(self.log_gain.detach().exp().max())
+
+        r = UDNRunner(model, b, network=net, config=cfg)
+        with torch.no_grad():
+            r.G.log_gain.fill_(0.0)
+            ax = model.apply(r._forward(noise=False))
+            w = r.fit.to(ax.dtype)
+            dims = tuple(range(1, ax.dim()))
+            g = (ax * r.b * w).sum(dim=dims) / (ax * ax * w).sum(dim=dims).clamp_min(1e-30)
+        if not bool(torch.isfinite(g).all() and (g > 0).all()):
+            raise ValueError(f"channel-gain: a least-squares gain is not positive ({g.tolist()})")
+        head = (-1,) + (1,) * (len(model.scene_shape) - 1)  # (C, 1, 1, 1): per channel
+        r.G.__class__ = _ChannelGain
+        r.G.log_gain = torch.nn.Parameter(
+            (g * cfg.headroom).log().reshape(head).to(torch.float32))
+        r.initial_gain = r.G.gain
+        r.opt = torch.optim.Adam(r.G.parameters(), lr=cfg.lr)
+        r._snapshot = r._take_snapshot()
+        return r
+    raise ValueError(f"lever must be one of {LEVERS}, got {lever!r}")
+
+
+def _oracle_stop(curve: dict[Any, float]) -> dict[str, Any] | None:
+    """The UDN's best PSNR along its curve (seen with the truth: a bound, not a method)."""
+    if not curve:
+        return None
+    it, best = max(((int(k), v) for k, v in curve.items()), key=lambda kv: kv[1])
+    return {"psnr": best, "iterations": it}
+
+
 # ---------------------------------------------------------------------------------------------
 # table and figure
 # ---------------------------------------------------------------------------------------------
@@ -424,7 +505,8 @@ METHODS = (("fista_auto", "FISTA-TV auto tau"), ("fista_oracle", "FISTA-TV oracl
            ("admm", "ADMM-TV (oracle tau)"), ("udn", "UDN (held-out stop)"),
            ("udn_wmv", "UDN (ES-WMV stop)"), ("udn_final", "UDN (final)"),
            ("udn_blend", "UDN+FISTA blend (held-out weight)"),
-           ("udn_ensemble", "UDN seed ensemble (held-out stops)"))
+           ("udn_ensemble", "UDN seed ensemble (held-out stops)"),
+           ("udn_oracle_stop", "UDN, best iteration seen with the truth (bound)"))
 
 
 def read_results(path: str) -> list[dict[str, Any]]:
@@ -436,6 +518,8 @@ def read_results(path: str) -> list[dict[str, Any]]:
     for line in p.read_text().splitlines():
         if line.strip():
             r = json.loads(line)
+            if "udn_oracle_stop" not in r and r.get("udn_curve"):  # rows of older runs
+                r["udn_oracle_stop"] = _oracle_stop(r["udn_curve"])
             rows[(r["pair"], r["erasure"])] = r
     return list(rows.values())
 
@@ -582,7 +666,7 @@ def time_threads(args: argparse.Namespace) -> dict[str, Any]:
 
 SETTING_KEYS = ("downsample", "udn_iters", "channels", "scales", "skip", "headroom", "lr",
                 "ema", "tv_weight", "holdout", "wmv_window", "fista_iters", "warm_start",
-                "seeds")
+                "seeds", "lever")
 """The settings a results file's cases must share (threads may differ: they change the time)."""
 
 
