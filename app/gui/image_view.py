@@ -12,8 +12,10 @@ The footer and header lines never widen the window: long text is cut, not laid o
 
 from __future__ import annotations
 
+import gc
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -35,14 +37,27 @@ from app.gui.widgets import never_wider
 __all__ = ["ImagePanel", "configure_pyqtgraph"]
 
 _configured = False
+_collector: Any = None  # the GUI-thread garbage collector (configure_pyqtgraph)
 
 
 def configure_pyqtgraph() -> None:
-    """Global pyqtgraph options, once per process: row-major images (``image[row, col]``)."""
-    global _configured
+    """Global GUI settings, once per process (call with the QApplication running).
+
+    Row-major images (``image[row, col]``) for pyqtgraph, and Python's cyclic garbage
+    collection moved to the GUI thread: automatic collection off, a 1 s timer collects
+    (pyqtgraph's ``GarbageCollector``). Otherwise a worker thread (the preview's tau search,
+    a driver's stream) can run the collector, destroy a Qt object caught in a reference
+    cycle and deadlock with the GUI thread: it waits for the GIL holding a Qt lock that the
+    GUI thread, holding the GIL, waits for (seen in the GUI tests as a hang in a paint event).
+    """
+    global _configured, _collector
     if not _configured:
         pg.setConfigOptions(imageAxisOrder="row-major", antialias=False)
+        from pyqtgraph.util.garbage_collector import GarbageCollector
+
+        _collector = GarbageCollector(interval=1.0)
         _configured = True
+    gc.disable()  # (again: a test harness may have turned it back on between windows)
 
 
 class ImagePanel(QWidget):

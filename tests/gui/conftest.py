@@ -68,3 +68,16 @@ def bench_window(make_window: Any, qtbot: Any) -> Any:
     qtbot.waitUntil(lambda: w.frames_shown >= 3, timeout=10_000)
     qtbot.waitUntil(lambda: w.light_state == "connected", timeout=15_000)
     return w
+
+
+@pytest.fixture(autouse=True)
+def _collect_in_the_gui_thread() -> Iterator[None]:
+    """The app collects garbage on a GUI-thread timer only (``configure_pyqtgraph`` turns
+    automatic collection off for the process); the event loop does not run between tests, so
+    collect here, in the GUI thread, after each one, and give the tests that follow (not GUI
+    tests) automatic collection back. The next window turns it off again."""
+    yield
+    import gc
+
+    gc.collect()
+    gc.enable()

@@ -179,3 +179,35 @@ def test_producer_warnings_are_logged_once(caplog: pytest.LogCaptureFixture,
     assert len(warned) == 1
     err = capfd.readouterr().err
     assert "DSGetNumFlows" not in err and err.count("another line") == 3
+
+
+def test_garbage_is_collected_in_the_gui_thread_only(live_window: Any, qtbot: Any) -> None:
+    """A worker thread that ran the cyclic collector could destroy a Qt object and deadlock with
+    the GUI thread (seen as a GUI test hung in a paint event): the window turns automatic
+    collection off and collects on a GUI-thread timer."""
+    import gc
+    import threading
+
+    from app.gui import image_view
+
+    assert not gc.isenabled()
+    assert image_view._collector is not None and image_view._collector.timer.isActive()
+    where: list[str] = []
+
+    class Cycle:
+        def __init__(self) -> None:
+            self.me = self
+
+        def __del__(self) -> None:
+            where.append(threading.current_thread().name)
+
+    Cycle()
+    kept: list[Any] = []  # live allocations raise the collector's count (freed ones do not)
+    worker = threading.Thread(target=lambda: kept.append([[] for _ in range(50_000)]),
+                              name="worker")  # would have run a collection there
+    worker.start()
+    worker.join()
+    assert where == []  # not collected in the worker
+    kept.append([[] for _ in range(3 * gc.get_threshold()[0])])
+    qtbot.waitUntil(lambda: bool(where), timeout=10_000)
+    assert where == [threading.main_thread().name]
