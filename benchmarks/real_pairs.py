@@ -50,7 +50,7 @@ TAUS = (1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
 FISTA_CHECKPOINTS = (100, 200)
 BLEND_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: UDN variants of ``--lever`` (see make_runner)
-LEVERS = ("none", "precondition", "channel-gain")
+LEVERS = ("none", "precondition", "channel-gain", "block-holdout")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -85,8 +85,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lever", choices=LEVERS, default="none",
                    help="a UDN variant measured here, not in recon.udn: 'precondition' "
                    "multiplies the gradient of the output by FISTA's Fourier preconditioner; "
-                   "'channel-gain' gives each colour channel its own learnable output gain "
-                   "(none)")
+                   "'channel-gain' gives each colour channel its own learnable output gain; "
+                   "'block-holdout' holds out whole blocks of the sensor (none)")
     p.add_argument("--no-udn", action="store_true", help="FISTA and ADMM only")
     p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
     p.add_argument("--data", default=None, help="the dlmd folder (default: the shared one)")
@@ -433,7 +433,11 @@ def make_runner(model: Any, b: Any, net: Any, cfg: Any, lever: str = "none") -> 
       frequencies the measurement attenuates are fitted sooner; the loss is unchanged.
     - ``channel-gain``: one learnable output gain per colour channel, each initialised by the
       least-squares fit of that channel (the runner's scalar fit, per channel), instead of one.
+    - ``block-holdout``: the held-out pixels (the stopping rule's) in whole blocks of the sensor
+      with all their channels (``recon.holdout``, as the automatic tau holds them out) instead
+      of single values.
     """
+    import numpy as np
     import torch
 
     from recon.udn.network import Generator
@@ -486,6 +490,18 @@ def make_runner(model: Any, b: Any, net: Any, cfg: Any, lever: str = "none") -> 
         r.opt = torch.optim.Adam(r.G.parameters(), lr=cfg.lr)
         r._snapshot = r._take_snapshot()
         return r
+    if lever == "block-holdout":
+        from recon.holdout import heldout_blocks
+
+        class _BlockHoldout(UDNRunner):
+            def _choose_heldout(self, measured: Any, n_hold: int) -> Any:
+                # whole blocks of the sensor, every channel of a held-out pixel (recon.holdout)
+                m = measured.reshape(-1, *measured.shape[-2:]).all(dim=0).numpy()
+                n = max(1, round(n_hold * m.sum() / int(measured.sum())))
+                hold, _ = heldout_blocks(m, n, np.random.default_rng(self.config.seed + 7919))
+                return torch.as_tensor(hold).expand(measured.shape) & measured
+
+        return _BlockHoldout(model, b, network=net, config=cfg)
     raise ValueError(f"lever must be one of {LEVERS}, got {lever!r}")
 
 

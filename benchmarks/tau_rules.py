@@ -3,17 +3,20 @@
 Both picks come from one :func:`recon.autotau.choose_tau` search per case (the same held-out
 pixels, the same taus tried). ``min`` takes the tau of the smallest held-out error; ``1se``
 (the default) the largest tau, going up from it, whose held-out error is within one standard
-error of the minimum's (paired over the held-out pixels: the "one-standard-error rule" of
-cross-validation, which prefers the more regularised setting the held-out data cannot tell
-apart from the best). Each case: both choices, FISTA-TV from all measured pixels with each
-(its tau and iteration count), and an oracle grid of taus at the iteration limit, scored
-against the truth (PSNR after a least-squares gain fit).
+error of the minimum's (paired over the held-out pixels, the held-out blocks as the sampling
+unit: the "one-standard-error rule" of cross-validation, which prefers the more regularised
+setting the held-out data cannot tell apart from the best). ``--block N`` sets the side of
+the held-out blocks (``recon.holdout``; 1: single scattered pixels, the design before). Each
+case: both choices, FISTA-TV from all measured pixels with each (its tau and iteration count),
+and an oracle grid of taus at the iteration limit, scored against the truth (PSNR after a
+least-squares gain fit).
 
 Cases: ``real`` the four real DiffuserCam pairs of ``../shared/data/dlmd`` at 1/4 resolution in
 colour (as ``bench real-pairs`` reads them), ``sim`` the simulation protocol (tutorial PSF at
 1/8 scale, the three lensed scenes, noise 0 and 0.01), at the erasure levels given.
 
-    lenslesscam bench tau-rules [--cases real sim] [--erasures 0 0.5 0.9 0.99] [--out FILE]
+    lenslesscam bench tau-rules [--cases real sim] [--erasures 0 0.5 0.9 0.99] [--block N]
+        [--out FILE]
 """
 
 from __future__ import annotations
@@ -38,6 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="erasure levels (0 0.5 0.9 0.99)")
     p.add_argument("--iters", type=POSITIVE_INT, default=500,
                    help="iteration limit of the search and the oracle grid (500, the default)")
+    p.add_argument("--block", type=POSITIVE_INT, default=None,
+                   help="side in pixels of the held-out blocks (default: recon.holdout's, 4 px "
+                   "on frames of 32 px and more; 1: single pixels, the search before blocks)")
     p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
     p.add_argument("--data", default=None, help="the dlmd folder (default: the shared one)")
     p.add_argument("--results", default=None, help="also append each case as JSON lines here")
@@ -88,18 +94,19 @@ def _psnr(model: Any, b: Any, truth: Any, tau: float, iters: int) -> float:
     return psnr_only(truth, s.x.detach().numpy())
 
 
-def run_case(model: Any, b: Any, truth: Any, iters: int) -> dict[str, Any]:
+def run_case(model: Any, b: Any, truth: Any, iters: int, block: int | None = None
+             ) -> dict[str, Any]:
     """Both rules' picks (one search), their reconstructions and the oracle grid on one case."""
     from recon.autotau import choose_tau
 
     t0 = time.perf_counter()
     c = choose_tau(model, b, max_iter=iters, min_iter=min(100, iters),  # as `resolve` does
-                   patience=max(min(100, iters), 10), check_every=min(10, iters))
+                   patience=max(min(100, iters), 10), check_every=min(10, iters), block=block)
     search_s = round(time.perf_counter() - t0, 2)
     st = c.settings
     picks = {"min": (st["tau_min_error"], st["iterations_min_error"]),
              "1se": (st["tau_one_se"], st["iterations_one_se"])}
-    out: dict[str, Any] = {"search_s": search_s}
+    out: dict[str, Any] = {"search_s": search_s, "block": st["holdout_block"]}
     for rule, (tau, its) in picks.items():
         out[rule] = {"tau": tau, "iterations": its}
     out["min"]["psnr"] = _psnr(model, b, truth, *picks["min"])
@@ -149,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     t0 = time.perf_counter()
     for label, model, b, truth in _cases(args):
-        row = {"case": label, **run_case(model, b, truth, args.iters)}
+        row = {"case": label, **run_case(model, b, truth, args.iters, args.block)}
         rows.append(row)
         print(f"{label}: min {row['min']['psnr']:.2f}, 1se {row['1se']['psnr']:.2f}, oracle "
               f"{row['oracle']['psnr']:.2f} dB", file=sys.stderr, flush=True)
@@ -157,7 +164,10 @@ def run(args: argparse.Namespace) -> int:
             with open(args.results, "a", encoding="utf-8") as f:
                 f.write(json.dumps(row) + "\n")
     text = (f"Automatic tau, smallest held-out error (min) against one standard error (1se); "
-            f"{args.iters} iterations, oracle grid {', '.join(f'{t:g}' for t in GRID)}; "
+            f"{args.iters} iterations, held-out blocks of "
+            f"{'the default side (recon.holdout)' if args.block is None else f'{args.block} px'}"
+            f" (side used: {sorted({r['block'] for r in rows})} px), "
+            f"oracle grid {', '.join(f'{t:g}' for t in GRID)}; "
             f"{choice.reason}; {time.perf_counter() - t0:.0f} s\n\n" + table(rows))
     print(text)
     if args.out:

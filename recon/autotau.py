@@ -1,7 +1,12 @@
 """Choose FISTA-TV's tau and iteration count from the measurement alone (held-out pixels).
 
 A random ``holdout`` fraction of the measured pixels (10 %, at least ``min_holdout`` pixels
-while that leaves three quarters to fit) is hidden from the solver; each candidate tau is run
+while that leaves three quarters to fit), in whole blocks of the sensor (:mod:`recon.holdout`:
+squares of 1/8 of the shorter side; ``block=1``: single pixels), is hidden from the solver.
+Blocks, because a real measurement's mismatch to the model is smooth across the sensor: single
+hidden pixels have their error predicted by their fitted neighbours and favour taus that fit
+the mismatch (on the four real DiffuserCam pairs the scattered pixels chose 3-100x below the
+truth's best tau at 0 and 50 % erasures; docs/auto-tau.md). Each candidate tau is run
 cold on the remaining pixels and scored by the mean squared error of its prediction ``A x`` on
 the hidden ones. The score of a tau is the best held-out error along its run, checked every
 ``check_every`` iterations; a run stops when that error has not improved by 0.1 % in all of the last
@@ -23,11 +28,9 @@ by max |b| otherwise.
 The pick (``rule``): ``"1se"``, the default, is the one-standard-error rule of
 cross-validation: going up from the tau of the smallest held-out error, the largest tau whose
 mean held-out error exceeds the minimum's by at most one standard error of the paired
-per-pixel differences (the more regularised setting the held-out pixels cannot tell from the
-best); ``"min"`` takes the minimum itself. Measured with ``lenslesscam bench tau-rules``
-(docs/auto-tau.md): on the real DiffuserCam pairs, where the model's mismatch makes the
-held-out error favour small taus, the rule gains up to 0.9 dB and never loses; on the
-simulation protocol it changes a few cases by -0.3 .. +0.14 dB. Both picks come from the one
+differences, taken over the held-out blocks (the more regularised setting the held-out pixels
+cannot tell from the best); ``"min"`` takes the minimum itself. Measured with ``lenslesscam
+bench tau-rules`` (docs/auto-tau.md). Both picks come from the one
 search and are stored (``settings``: ``tau_min_error`` / ``iterations_min_error``,
 ``tau_one_se`` / ``iterations_one_se``).
 
@@ -47,6 +50,7 @@ import numpy as np
 import torch
 
 from recon.fista import Fista
+from recon.holdout import block_mean_se, block_side, heldout_blocks
 from recon.models import ForwardModel
 from recon.operators import Compose, Mask
 from recon.tv import TV
@@ -56,7 +60,7 @@ __all__ = ["AUTO_MAX_ITER", "RULE", "AutoTau", "choose_tau", "parse_tau", "resol
 #: the rules ``choose_tau(rule=...)`` knows, and the short name each stores in result
 #: metadata: "min", the tau of the smallest held-out error; "1se" (the default), the largest
 #: tau within one standard error of it
-RULES = {"min": "heldout-pixels", "1se": "heldout-pixels-1se"}
+RULES = {"min": "heldout-blocks", "1se": "heldout-blocks-1se"}
 #: short name of the default rule, stored in result metadata
 RULE = RULES["1se"]
 #: iteration limit of the automatic search (and of the reconstruction it chooses for)
@@ -166,13 +170,15 @@ def choose_tau(
     cancel: Callable[[], bool] | None = None,
     rule: str = "1se",
     precondition: float | str | None = "auto",
+    block: int | None = None,
 ) -> AutoTau:
     """Choose tau and the iteration count for FISTA-TV on ``model`` from ``b`` alone.
 
     ``model`` is the forward model of the measurement (its erasure mask included); ``b`` the
     measurement. See the module docstring for the rule. With ``fixed_tau`` only the iteration
     count is chosen (one run at that tau). ``precondition`` is FISTA's (:class:`recon.fista.Fista`):
-    the search runs the iteration the reconstruction will run.
+    the search runs the iteration the reconstruction will run. ``block``: side in pixels of
+    the held-out blocks (None: :func:`recon.holdout.block_side`, 1: single pixels).
     """
     t_start = time.perf_counter()
     if tuple(b.shape) != model.meas_shape:
@@ -196,12 +202,15 @@ def choose_tau(
     if idx.size < 20:
         raise ValueError(f"only {idx.size} measured pixels: choosing tau from held-out pixels "
                          "needs at least 20 (give --tau)")
+    if block is not None and block < 1:
+        raise ValueError(f"block must be >= 1 pixel, got {block}")
     n_hold = max(round(holdout * idx.size), min(min_holdout, idx.size // 4), 5)
-    rng = np.random.default_rng(seed)
-    flat = np.zeros(measured.size, bool)
-    flat[rng.choice(idx, n_hold, replace=False)] = True
-    hold_np = flat.reshape(measured.shape)
+    side = block_side(*measured.shape) if block is None else block
+    hold_np, labels_np = heldout_blocks(measured, n_hold, np.random.default_rng(seed), side)
+    n_hold = int(hold_np.sum())
     hold = torch.as_tensor(hold_np, device=b.device).expand(b.shape)
+    # the block of every held-out value, in the order b[hold] lists them
+    hold_labels = torch.as_tensor(labels_np).expand(b.shape)[hold.cpu()].numpy()
     keep = Mask(torch.as_tensor(~hold_np, dtype=b.dtype), model.meas_shape, dtype=b.dtype,
                 device=b.device)
     fit_op = Compose([keep, model.op])
@@ -251,7 +260,7 @@ def choose_tau(
             if lo_e - 1e-9 <= e <= hi_e + 1e-9 and not (cancel is not None and cancel()):
                 score(e)
     min_e = min(scores, key=lambda k: scores[k][0])
-    se_e = _one_standard_error(scores, errors, min_e)
+    se_e = _one_standard_error(scores, errors, min_e, hold_labels)
 
     def iterations_at(e: float) -> int:
         # the held-out error rose: stop where it was best; on a plateau (or still improving)
@@ -268,7 +277,8 @@ def choose_tau(
         rule=RULES[rule] if fixed_tau is None else RULES["min"] + " (iterations)",
         cost_s=time.perf_counter() - t_start, curve=curve, heldout_pixels=n_hold,
         total_iterations=total,
-        settings={"holdout": holdout, "seed": seed, "tau_range": [lo, hi], "scale": scale,
+        settings={"holdout": holdout, "holdout_block": side, "seed": seed,
+                  "tau_range": [lo, hi], "scale": scale,
                   "max_iter": max_iter, "min_iter": min_iter, "patience": patience,
                   "check_every": check_every,
                   # both rules' picks (tau, iterations) from this one search
@@ -279,19 +289,21 @@ def choose_tau(
 
 
 def _one_standard_error(scores: dict[float, tuple[float, int, bool]],
-                        errors: dict[float, torch.Tensor], min_e: float) -> float:
+                        errors: dict[float, torch.Tensor], min_e: float,
+                        labels: np.ndarray) -> float:
     """The largest log10 tau within one standard error of the minimum's held-out error.
 
     Going up from the minimum, while each tau's mean error exceeds the minimum's by at most
-    one standard error of the paired differences over the same held-out pixels.
+    one standard error of the paired differences over the same held-out pixels, with the
+    held-out blocks (``labels``, one per value) as the sampling unit.
     """
     pick = min_e
     base = errors[min_e]
     for k in sorted(k for k in scores if k > min_e):
         if errors[k].shape != base.shape or base.numel() < 2:  # a run with no finite error
             break
-        d = (errors[k] - base).double()
-        if float(d.mean()) > float(d.std()) / math.sqrt(d.numel()):
+        mean, se = block_mean_se((errors[k] - base).double().cpu().numpy(), labels)
+        if mean > se:
             break
         pick = k
     return pick

@@ -53,7 +53,7 @@ def test_auto_tau_within_a_decade_of_the_oracle(erasure):
     scores = {t: _psnr(sim, _run(model, b, t, iters)) for t in grid}
     oracle = max(scores, key=scores.__getitem__)
     choice = choose_tau(model, b, max_iter=iters, min_iter=50, patience=50)
-    assert isinstance(choice, AutoTau) and choice.rule == "heldout-pixels-1se"
+    assert isinstance(choice, AutoTau) and choice.rule == "heldout-blocks-1se"
     assert abs(math.log10(choice.tau) - math.log10(oracle)) <= 1.0 + 1e-9, (choice, oracle)
     assert 50 <= choice.iterations <= iters
     # the curve holds every tau tried; the choice is at or above its minimum (one standard
@@ -64,9 +64,11 @@ def test_auto_tau_within_a_decade_of_the_oracle(erasure):
     assert choice.settings["tau_min_error"] == t_min and choice.settings["tau_one_se"] == choice.tau
     assert choice.tau >= t_min and choice.tau in taus
     assert choice.cost_s > 0 and choice.total_iterations >= len(taus) * 50
-    # and the reconstruction at the choice is close to the oracle's (within 1.5 dB)
+    # and the reconstruction at the choice is close to the oracle's: within 2 dB, what one
+    # half-decade step costs on the sharp peak of the noisy 0 % case (28.05 dB at 3.2e-4,
+    # 26.2 at 1e-3); the search seed decides on which side of it the one-SE rule lands
     x = _run(model, b, choice.tau, choice.iterations)
-    assert _psnr(sim, x) >= scores[oracle] - 1.5
+    assert _psnr(sim, x) >= scores[oracle] - 2.0
 
 
 def test_one_standard_error_rule_prefers_the_larger_tau_it_cannot_tell_apart():
@@ -81,9 +83,17 @@ def test_one_standard_error_rule_prefers_the_larger_tau_it_cannot_tell_apart():
     errors = {-6.5: base + 0.3, -6.0: base, -5.5: base + noise + 0.001,  # within noise
               -5.0: base + 0.2,  # clearly worse: the climb stops here
               -4.0: base + noise}  # never reached: the rule goes up contiguously
-    assert _one_standard_error(scores, errors, -6.0) == -5.5
+    pixels = np.arange(400)  # every value its own block: the plain standard error
+    assert _one_standard_error(scores, errors, -6.0, pixels) == -5.5
     errors[-5.5] = base + 0.05  # clearly worse than the minimum: keep the minimum
-    assert _one_standard_error(scores, errors, -6.0) == -6.0
+    assert _one_standard_error(scores, errors, -6.0, pixels) == -6.0
+    # errors shared within blocks of 20 (a smooth mismatch): the blocks are the sample, so
+    # a difference the 400 pixels would call significant is within the 20 blocks' SE
+    blocks = pixels // 20
+    shared = 0.05 * torch.randn(20, generator=gen)
+    errors[-5.5] = base + (shared - shared.mean()).repeat_interleave(20) + 0.006
+    assert _one_standard_error(scores, errors, -6.0, blocks) == -5.5
+    assert _one_standard_error(scores, errors, -6.0, pixels) == -6.0
 
 
 @pytest.mark.parametrize("erasure", [0.0, 0.9])
@@ -92,7 +102,7 @@ def test_both_rules_share_the_search(erasure):
     kw = {"max_iter": 120, "min_iter": 30, "patience": 30}
     lo = choose_tau(model, b, rule="min", **kw)
     se = choose_tau(model, b, **kw)
-    assert lo.curve == se.curve and lo.rule == "heldout-pixels" != se.rule
+    assert lo.curve == se.curve and lo.rule == "heldout-blocks" != se.rule
     assert lo.tau == min(lo.curve, key=lambda c: c[1])[0] == se.settings["tau_min_error"]
     assert se.tau >= lo.tau and lo.settings["tau_one_se"] == se.tau
     with pytest.raises(ValueError, match="rule must be one of"):
@@ -149,11 +159,11 @@ def test_cli_tau_auto_by_default_exact_when_given_and_recon_admm(tmp_path, capsy
     # no flags: tau (and iterations) chosen, printed, and stored with the rule
     assert main(["recon", "fista", *inputs, "--out", str(tmp_path / "auto.tif")]) == 0
     out = capsys.readouterr()
-    assert "tau auto (heldout-pixels" in out.err
+    assert "tau auto (heldout-blocks" in out.err
     summary = json.loads(out.out)
     _x, meta = read_reconstruction(tmp_path / "auto.tif")
     reg = meta["regularisation"]
-    assert reg["tau_rule"] == reg["iterations_rule"] == "heldout-pixels-1se"
+    assert reg["tau_rule"] == reg["iterations_rule"] == "heldout-blocks-1se"
     assert meta["parameters"]["tau"] == reg["tau"] == summary["tau"]
     assert 1e-7 <= reg["tau"] <= 1.1e-2 and reg["auto"]["curve"]
     assert meta["parameters"]["max_iter"] == reg["iterations"] <= 500
@@ -182,7 +192,7 @@ def test_cli_tau_auto_by_default_exact_when_given_and_recon_admm(tmp_path, capsy
                  str(tmp_path / "admm-auto.tif")]) == 0
     capsys.readouterr()
     _x, meta = read_reconstruction(tmp_path / "admm-auto.tif")
-    assert meta["regularisation"]["tau_rule"] == "heldout-pixels-1se"
+    assert meta["regularisation"]["tau_rule"] == "heldout-blocks-1se"
     assert meta["parameters"]["tau"] == meta["regularisation"]["tau"]
     with pytest.raises(SystemExit):
         main(["recon", "fista", *inputs, "--tau", "often", "--out", str(tmp_path / "b.tif")])
@@ -205,7 +215,7 @@ def test_preview_tau_auto_reestimates_on_a_scene_change_not_every_frame():
         assert time.monotonic() < deadline, "tau auto never finished"
         time.sleep(0.05)
         r = eng.process(frame)
-    assert "heldout-pixels" in r.tau_note and 1e-7 <= r.tau <= 1.1e-2
+    assert "heldout-blocks" in r.tau_note and 1e-7 <= r.tau <= 1.1e-2
     tau = r.tau
     rng = np.random.default_rng(0)
     for _ in range(3):  # the same scene, new noise: no new estimate
@@ -239,3 +249,24 @@ def test_plan_and_recon_auto_choose_tau_on_a_masked_measurement(tmp_path, capsys
     capsys.readouterr()
     _x, meta = read_reconstruction(tmp_path / "a.tif")
     assert meta["plan"]["tau"] == 2e-4  # given: exactly
+
+
+def test_blocks_see_a_smooth_model_mismatch_that_single_pixels_fit():
+    # a real camera departs from its model smoothly across the sensor (vignetting, the PSF's
+    # estimate): here a noise-free measurement times a smooth 20 % modulation. Single held-out
+    # pixels have that error predicted by their fitted neighbours and choose a tau that fits
+    # it; whole held-out blocks do not (recon.holdout)
+    sim, model, b = _case(0.0, noise=0.0)
+    y, x = np.mgrid[0:H, 0:W] / max(H, W)
+    bm = b * torch.as_tensor(1 + 0.2 * np.cos(3 * x + 1) * np.cos(2 * y), dtype=b.dtype)
+    grid = [10.0 ** e for e in np.arange(-7, -1.9, 0.5)]
+    oracle = max(_psnr(sim, _run(model, bm, t, 200)) for t in grid)
+    kw = {"max_iter": 200, "min_iter": 50, "patience": 50}
+    blocks = choose_tau(model, bm, **kw)
+    pixels = choose_tau(model, bm, block=1, **kw)
+    assert blocks.settings["holdout_block"] == 4 and pixels.settings["holdout_block"] == 1
+    got = {c.settings["holdout_block"]: _psnr(sim, _run(model, bm, c.tau, c.iterations))
+           for c in (blocks, pixels)}
+    assert got[4] >= oracle - 0.5 and got[4] >= got[1] + 1.0 and blocks.tau > 10 * pixels.tau
+    with pytest.raises(ValueError, match="block must be"):
+        choose_tau(model, bm, block=0, **kw)

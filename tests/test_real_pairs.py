@@ -177,7 +177,8 @@ def test_levers_change_what_they_say_and_the_oracle_stop_is_the_curve_max() -> N
     """``--lever``: 'channel-gain' starts with one least-squares gain per colour channel (not
     all equal on this pair, whose PSF gains differ by channel) and learns each; 'precondition'
     keeps the loss but changes the path (its estimate after a few steps differs from the plain
-    one's, from the same seed). The bound row is the maximum of the PSNR curve."""
+    one's, from the same seed); 'block-holdout' holds out whole blocks. The bound row is the
+    maximum of the PSNR curve."""
     import argparse
 
     from recon.models import build_model
@@ -207,6 +208,19 @@ def test_levers_change_what_they_say_and_the_oracle_stop_is_the_curve_max() -> N
     assert not torch.allclose(final, gains)  # learned, per channel
     plain, prec = runs["none"].final_estimate(), runs["precondition"].final_estimate()
     assert np.isfinite(prec).all() and not np.allclose(plain, prec, rtol=1e-3, atol=1e-6)
+    # 'block-holdout': every channel of whole 4x4 blocks of measured pixels, about as many
+    # values as the scattered design, which holds out values one by one
+    from recon.holdout import block_labels
+
+    held = runs["block-holdout"].heldout.numpy()
+    assert held.shape == (3, *mask.shape) and (held == held[:1]).all()  # all channels alike
+    lab = block_labels(*mask.shape, 4)
+    taken = np.unique(lab[held[0]])
+    assert np.array_equal(held[0], np.isin(lab, taken) & (mask > 0))
+    n_plain = runs["none"].n_heldout
+    assert n_plain * 0.9 <= runs["block-holdout"].n_heldout <= n_plain * 1.1 + 3 * 16
+    scattered = runs["none"].heldout.numpy()
+    assert not (scattered == scattered[:1]).all()  # the default: channels drawn apart
     with pytest.raises(ValueError, match="lever must be one of"):
         rp.make_runner(model, b, net, cfg, "bogus")
     assert rp._oracle_stop({"50": 14.0, "100": 15.5, "150": 15.0}) == {"psnr": 15.5,

@@ -351,22 +351,17 @@ class UDNRunner(Stepwise[UDNStep]):
             raise ValueError("no pixel is measured (the mask is all zero)")
         self.b = torch.where(measured, bt, torch.zeros_like(bt))
         self.measured = measured
-        # held-out pixels: a seeded random subset of the measured ones
         heldout = torch.zeros(meas_shape, dtype=torch.bool)
-        n_hold = 0
         if cfg.holdout > 0:
             n_hold = max(1, round(cfg.holdout * n_measured))
             if n_hold >= n_measured:
                 raise ValueError(f"holdout {cfg.holdout} leaves no measured pixel to fit "
                                  f"({n_measured} measured)")
-            idx = torch.nonzero(measured.cpu().reshape(-1)).reshape(-1).numpy()
-            pick = np.random.default_rng(cfg.seed + 7919).choice(idx, size=n_hold,
-                                                                  replace=False)
-            heldout.reshape(-1)[torch.as_tensor(pick)] = True
+            heldout = self._choose_heldout(measured.cpu(), n_hold)
         self.heldout = heldout.to(self.device)
         self.fit = measured & ~self.heldout
         self.n_fit = int(self.fit.sum())
-        self.n_heldout = n_hold
+        self.n_heldout = int(self.heldout.sum())
 
         with torch.random.fork_rng(devices=[]):  # seeded weights; the global RNG is untouched
             torch.manual_seed(cfg.seed)
@@ -440,6 +435,15 @@ class UDNRunner(Stepwise[UDNStep]):
             n = torch.randn(z.shape, generator=self._noise_gen, device=z.device, dtype=z.dtype)
             z = z + self.config.reg_noise * n
         return self.G.to_scene(self._call_net(z))
+
+    def _choose_heldout(self, measured: torch.Tensor, n_hold: int) -> torch.Tensor:
+        """Held-out values: a seeded random subset of ``n_hold`` of the measured ones."""
+        idx = torch.nonzero(measured.reshape(-1)).reshape(-1).numpy()
+        pick = np.random.default_rng(self.config.seed + 7919).choice(idx, size=n_hold,
+                                                                     replace=False)
+        heldout = torch.zeros(measured.shape, dtype=torch.bool)
+        heldout.reshape(-1)[torch.as_tensor(pick)] = True
+        return heldout
 
     def _fit_gain(self) -> float:
         """Gain that makes the first output explain the measured pixels in the mean."""
