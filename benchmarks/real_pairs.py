@@ -50,7 +50,7 @@ TAUS = (1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
 FISTA_CHECKPOINTS = (100, 200)
 BLEND_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: UDN variants of ``--lever`` (see make_runner)
-LEVERS = ("none", "precondition", "channel-gain", "block-holdout")
+LEVERS = ("none", "precondition", "channel-gain", "block-holdout", "deep-decoder")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -86,7 +86,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a UDN variant measured here, not in recon.udn: 'precondition' "
                    "multiplies the gradient of the output by FISTA's Fourier preconditioner; "
                    "'channel-gain' gives each colour channel its own learnable output gain; "
-                   "'block-holdout' holds out whole blocks of the sensor (none)")
+                   "'block-holdout' holds out whole blocks of the sensor; 'deep-decoder' "
+                   "replaces the network by a deep decoder (none)")
     p.add_argument("--no-udn", action="store_true", help="FISTA and ADMM only")
     p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
     p.add_argument("--data", default=None, help="the dlmd folder (default: the shared one)")
@@ -436,6 +437,8 @@ def make_runner(model: Any, b: Any, net: Any, cfg: Any, lever: str = "none") -> 
     - ``block-holdout``: the held-out pixels (the stopping rule's) in whole blocks of the sensor
       with all their channels (``recon.holdout``, as the automatic tau holds them out) instead
       of single values.
+    - ``deep-decoder``: another prior, the deep decoder (:func:`_deep_decoder_class`) in place
+      of the encoder-decoder; the rest of the runner (loss, gain, stop) unchanged.
     """
     import numpy as np
     import torch
@@ -490,6 +493,18 @@ def make_runner(model: Any, b: Any, net: Any, cfg: Any, lever: str = "none") -> 
         r.opt = torch.optim.Adam(r.G.parameters(), lr=cfg.lr)
         r._snapshot = r._take_snapshot()
         return r
+    if lever == "deep-decoder":
+        r = UDNRunner(model, b, network=net, config=cfg)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(cfg.seed)
+            dd = _deep_decoder_class()(r.G.net.head.out_channels, r.G.padded, seed=cfg.seed)
+        r.G.net = dd
+        r._net = dd
+        r.G.set_gain(r._fit_gain() * cfg.headroom)
+        r.initial_gain = r.G.gain
+        r.opt = torch.optim.Adam(r.G.parameters(), lr=cfg.lr)
+        r._snapshot = r._take_snapshot()
+        return r
     if lever == "block-holdout":
         from recon.holdout import heldout_blocks
 
@@ -503,6 +518,44 @@ def make_runner(model: Any, b: Any, net: Any, cfg: Any, lever: str = "none") -> 
 
         return _BlockHoldout(model, b, network=net, config=cfg)
     raise ValueError(f"lever must be one of {LEVERS}, got {lever!r}")
+
+
+def _deep_decoder_class() -> Any:
+    """The deep decoder (Heckel & Hand 2019, "Deep Decoder: concise image representations from
+    untrained non-convolutional networks"): a fixed random input at 1/2^depth of the padded
+    grid, then per level a 1x1 convolution, bilinear upsampling x2, ReLU and batch norm, and a
+    1x1 convolution with a sigmoid; no encoder, no 3x3 convolutions, fewer weights than the
+    image has values (64 channels, 4 levels: 17 k against 24 k at 1/4 resolution in colour).
+    It ignores the runner's input (and with it the regularisation noise): its own input is
+    fixed. ``head`` is the last 1x1 convolution, as the runner's clipping correction expects."""
+    import math as _math
+
+    import torch
+    from torch import nn
+    from torch.nn import functional as F
+
+    class DeepDecoder(nn.Module):
+        def __init__(self, out_channels: int, padded: tuple[int, ...], channels: int = 64,
+                     depth: int = 4, seed: int = 0) -> None:
+            super().__init__()
+            hp, wp = (int(v) for v in padded)
+            self.sizes = [(_math.ceil(hp / 2 ** (depth - i)), _math.ceil(wp / 2 ** (depth - i)))
+                          for i in range(1, depth)] + [(hp, wp)]
+            gen = torch.Generator().manual_seed(int(seed))
+            h0, w0 = _math.ceil(hp / 2 ** depth), _math.ceil(wp / 2 ** depth)
+            self.register_buffer("z0", torch.rand((1, channels, h0, w0), generator=gen))
+            self.convs = nn.ModuleList(nn.Conv2d(channels, channels, 1) for _ in self.sizes)
+            self.norms = nn.ModuleList(nn.BatchNorm2d(channels) for _ in self.sizes)
+            self.head = nn.Conv2d(channels, out_channels, 1)
+
+        def forward(self, z: Any) -> Any:
+            h = self.z0
+            for conv, norm, size in zip(self.convs, self.norms, self.sizes, strict=True):
+                h = norm(F.relu(F.interpolate(conv(h), size=size, mode="bilinear",
+                                              align_corners=False)))
+            return torch.sigmoid(self.head(h))
+
+    return DeepDecoder
 
 
 def _oracle_stop(curve: dict[Any, float]) -> dict[str, Any] | None:

@@ -221,6 +221,16 @@ def test_levers_change_what_they_say_and_the_oracle_stop_is_the_curve_max() -> N
     assert n_plain * 0.9 <= runs["block-holdout"].n_heldout <= n_plain * 1.1 + 3 * 16
     scattered = runs["none"].heldout.numpy()
     assert not (scattered == scattered[:1]).all()  # the default: channels drawn apart
+    # 'deep-decoder': another network, with fewer weights than the image has values, that
+    # ignores the runner's input (its own is fixed) and has learned after the steps
+    dd = runs["deep-decoder"]
+    assert type(dd.G.net).__name__ == "DeepDecoder"
+    n_weights = sum(p.numel() for p in dd.G.net.parameters())
+    assert n_weights < pair.truth.size and dd.G.gain > 0
+    out = dd.final_estimate()
+    assert out.shape == plain.shape and np.isfinite(out).all()
+    with torch.no_grad():
+        assert torch.equal(dd.G.net(dd.G.z), dd.G.net(dd.G.z + 1.0))  # the input is unused
     with pytest.raises(ValueError, match="lever must be one of"):
         rp.make_runner(model, b, net, cfg, "bogus")
     assert rp._oracle_stop({"50": 14.0, "100": 15.5, "150": 15.0}) == {"psnr": 15.5,
