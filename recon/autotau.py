@@ -2,7 +2,7 @@
 
 A random ``holdout`` fraction of the measured pixels (10 %, at least ``min_holdout`` pixels
 while that leaves three quarters to fit), in whole blocks of the sensor (:mod:`recon.holdout`:
-squares of 1/8 of the shorter side; ``block=1``: single pixels), is hidden from the solver.
+4x4-pixel squares; ``block=1``: single pixels), is hidden from the solver.
 Blocks, because a real measurement's mismatch to the model is smooth across the sensor: single
 hidden pixels have their error predicted by their fitted neighbours and favour taus that fit
 the mismatch (on the four real DiffuserCam pairs the scattered pixels chose 3-100x below the

@@ -20,8 +20,8 @@ unit that was drawn. The side was measured (``lenslesscam bench tau-rules --bloc
 docs/auto-tau.md): on the four real DiffuserCam pairs at 1/4 resolution the automatic tau
 gains 0.25 / 0.52 / 0.10 dB on average with sides 2 / 4 / 8 over single pixels; on the
 simulation protocol (1/8 scale) sides 4 / 9 / 19 cost 0.19 / 0.63 / 0.80 dB, the side-4 cost
-almost all in its noise-free 0 % cases (results of 33-43 dB), where the held-out blocks
-prefer 3-10x the best tau.
+almost all in its noise-free 0 % cases (results of 35-44 dB), where the held-out blocks
+prefer about 3x the best tau.
 
 The UDN's stopping rule (:mod:`recon.udn.runner`) keeps scattered held-out values: with blocks
 (``lenslesscam bench real-pairs --lever block-holdout``) its results on the real pairs moved by
