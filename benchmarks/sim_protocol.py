@@ -93,18 +93,23 @@ def _fista(model: Any, b: Any, tau: float, iters: int, **kw: Any) -> tuple[Any, 
     return solver.x.numpy(), time.perf_counter() - t0
 
 
-def run_case(psf: Any, scene: Any, erasure: float, noise: float, iters: int,
-             reference: bool = True, seed: int = 0) -> dict[str, Any]:
-    """Simulate one case and run auto, the oracle grid, the old rule and the reference."""
+def simulate_case(psf: Any, scene: Any, erasure: float, noise: float, seed: int = 0) -> Any:
+    """One protocol case: (the simulation, its forward model with the erasure mask, b)."""
     import torch
 
     from recon.models import build_model
     from recon.simulate import simulate
 
     sim = simulate(build_model("2d", psf), scene, erasure=erasure, noise=noise, seed=seed)
-    model = build_model("2d", psf, mask=sim.mask)
-    b = torch.as_tensor(sim.meas)
-    out: dict[str, Any] = {"auto": run_auto(psf, scene, erasure, noise, iters, seed)}
+    return sim, build_model("2d", psf, mask=sim.mask), torch.as_tensor(sim.meas)
+
+
+def run_case(psf: Any, scene: Any, erasure: float, noise: float, iters: int,
+             reference: bool = True, seed: int = 0) -> dict[str, Any]:
+    """Simulate one case and run auto, the oracle grid, the old rule and the reference."""
+    case = simulate_case(psf, scene, erasure, noise, seed)
+    sim, model, b = case
+    out: dict[str, Any] = {"auto": run_auto(case, iters)}
     grid = {}
     for tau in ORACLE_TAUS:
         x, _ = _fista(model, b, tau, iters)
@@ -119,22 +124,16 @@ def run_case(psf: Any, scene: Any, erasure: float, noise: float, iters: int,
     x, _ = _fista(model, b, best, iters, momentum="fista", precondition="off")
     out["fista"] = {"psnr_ssim": _score(sim.truth, x)}
     if reference:
-        out.update(run_reference(psf, scene, erasure, noise, best, iters, seed))
+        out.update(run_reference(case, best, iters))
     return out
 
 
-def run_auto(psf: Any, scene: Any, erasure: float, noise: float, iters: int,
-             seed: int = 0) -> dict[str, Any]:
-    """``recon fista``'s default on one case: the automatic choice, then FISTA-TV with it."""
-    import torch
-
+def run_auto(case: Any, iters: int) -> dict[str, Any]:
+    """``recon fista``'s default on one case (:func:`simulate_case`): the automatic choice,
+    then FISTA-TV with it."""
     from recon.autotau import choose_tau
-    from recon.models import build_model
-    from recon.simulate import simulate
 
-    sim = simulate(build_model("2d", psf), scene, erasure=erasure, noise=noise, seed=seed)
-    model = build_model("2d", psf, mask=sim.mask)
-    b = torch.as_tensor(sim.meas)
+    sim, model, b = case
     choice = choose_tau(model, b, max_iter=iters)
     x, wall = _fista(model, b, choice.tau, choice.iterations)
     return {"tau": choice.tau, "iterations": choice.iterations, "psnr_ssim": _score(
@@ -144,17 +143,10 @@ def run_auto(psf: Any, scene: Any, erasure: float, noise: float, iters: int,
         "curve": [[t, e] for t, e, _ in choice.curve]}
 
 
-def run_reference(psf: Any, scene: Any, erasure: float, noise: float, tau: float, iters: int,
-                  seed: int = 0) -> dict[str, Any]:
-    """The accurate reference at ``tau``: 1000 and ``iters`` iterations, 50 inner prox steps."""
-    import torch
-
-    from recon.models import build_model
-    from recon.simulate import simulate
-
-    sim = simulate(build_model("2d", psf), scene, erasure=erasure, noise=noise, seed=seed)
-    model = build_model("2d", psf, mask=sim.mask)
-    b = torch.as_tensor(sim.meas)
+def run_reference(case: Any, tau: float, iters: int) -> dict[str, Any]:
+    """The accurate reference at ``tau`` on one case (:func:`simulate_case`): 1000 and
+    ``iters`` iterations, 50 inner prox steps."""
+    sim, model, b = case
     acc = {"restart": "none", "prox_iters": 50, "momentum": "fista", "precondition": "off"}
     x, wall = _fista(model, b, tau, 1000, **acc)
     out: dict[str, Any] = {"reference": {"psnr_ssim": _score(sim.truth, x), "wall_s": wall}}
@@ -236,12 +228,8 @@ def tables(cases: list[dict[str, Any]]) -> str:
 
 def restart_table(iters: int, tau: float = 3e-5) -> str:
     """PSNR, final objective and restarts of each restart rule against an accurate run."""
-    import torch
-
     from recon import samples
     from recon.fista import Fista
-    from recon.models import build_model
-    from recon.simulate import simulate
 
     psf = samples.tutorial_psf()
     off = {"precondition": "off"}
@@ -258,13 +246,10 @@ def restart_table(iters: int, tau: float = 3e-5) -> str:
              "|---|---|" + "---|" * len(rules)]
     for er in (0.99, 0.0):
         for name in samples.lensed_scene_names():
-            sim = simulate(build_model("2d", psf), samples.lensed_scene(name), erasure=er,
-                           noise=0.01, seed=0)
-            model = build_model("2d", psf, mask=sim.mask)
+            sim, model, b = simulate_case(psf, samples.lensed_scene(name), er, 0.01)
             cells = []
             for kw in rules.values():
-                solver = Fista(model.op, torch.as_tensor(sim.meas), tau=tau, max_iter=iters,
-                               tol=0.0, **kw)
+                solver = Fista(model.op, b, tau=tau, max_iter=iters, tol=0.0, **kw)
                 n = sum(st.restarted for st in solver.steps())
                 cells.append(f"{_score(sim.truth, solver.x.numpy())[0]:.2f} / "
                              f"{solver.objective:.4g} / {n}")
@@ -283,16 +268,9 @@ def _fixed_tau_case(psf: Any, name: str, erasure: float, noise: float, tau: floa
     """One fixed-tau case: the simulation, its model, the measurement and the reference PSNR
     (1000 FISTA iterations x 50 inner prox steps, no restart); with ``keep`` also the
     reference's estimate."""
-    import torch
-
     from recon import samples
-    from recon.models import build_model
-    from recon.simulate import simulate
 
-    sim = simulate(build_model("2d", psf), samples.lensed_scene(name), erasure=erasure,
-                   noise=noise, seed=0)
-    model = build_model("2d", psf, mask=sim.mask)
-    b = torch.as_tensor(sim.meas)
+    sim, model, b = simulate_case(psf, samples.lensed_scene(name), erasure, noise)
     ref_x = _fista(model, b, tau, 1000, restart="none", prox_iters=50, momentum="fista",
                    precondition="off")[0]
     ref = _score(sim.truth, ref_x)[0]
@@ -496,11 +474,11 @@ def run(args: argparse.Namespace) -> int:
                     redo_auto = "holdout_block" not in c["auto"]  # scattered held-out pixels
                     if not redo_auto and (args.no_reference or "reference" in c):
                         continue
+                    case = simulate_case(psf, scene, er, noise)
                     if redo_auto:  # the rest of the case does not depend on the held-out design
-                        c["auto"] = run_auto(psf, scene, er, noise, args.iters)
+                        c["auto"] = run_auto(case, args.iters)
                     if not (args.no_reference or "reference" in c):
-                        c.update(run_reference(psf, scene, er, noise, c["oracle"]["tau"],
-                                               args.iters))
+                        c.update(run_reference(case, c["oracle"]["tau"], args.iters))
                     with cache.open("a") as fh:  # the later line wins when read back
                         fh.write(json.dumps(c) + "\n")
                     continue

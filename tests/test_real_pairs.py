@@ -222,7 +222,7 @@ def test_levers_change_what_they_say_and_the_oracle_stop_is_the_curve_max() -> N
     scattered = runs["none"].heldout.numpy()
     assert not (scattered == scattered[:1]).all()  # the default: channels drawn apart
     # 'deep-decoder': another network, with fewer weights than the image has values, that
-    # ignores the runner's input (its own is fixed) and has learned after the steps
+    # ignores the runner's input (its own is fixed) and gives a finite estimate of the scene
     dd = runs["deep-decoder"]
     assert type(dd.G.net).__name__ == "DeepDecoder"
     n_weights = sum(p.numel() for p in dd.G.net.parameters())
