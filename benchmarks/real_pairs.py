@@ -55,8 +55,8 @@ LEVERS = ("none", "precondition", "channel-gain", "block-holdout", "deep-decoder
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options."""
-    p.add_argument("--downsample", type=int, choices=[2, 4], default=4,
-                   help="4: 67x120, 2: 135x240 (4)")
+    p.add_argument("--downsample", type=int, choices=[1, 2, 4], default=4,
+                   help="4: 67x120, 2: 135x240, 1: the dataset's 270x480 (4)")
     p.add_argument("--pairs", nargs="+", default=list(PAIRS), choices=list(PAIRS),
                    help="which dlmd pairs to run (default all)")
     p.add_argument("--erasures", nargs="+", type=FRACTION, default=list(ERASURES),
@@ -90,6 +90,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "replaces the network by a deep decoder (none)")
     p.add_argument("--no-udn", action="store_true", help="FISTA and ADMM only")
     p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
+    p.add_argument("--device", default="cpu",
+                   help="where FISTA, ADMM and the UDN run: cpu, cuda, cuda:N, mps or auto "
+                   "(cpu; the scores are computed on the CPU either way)")
     p.add_argument("--data", default=None, help="the dlmd folder (default: the shared one)")
     p.add_argument("--results", default="real-pairs.jsonl",
                    help="JSON lines, one per case, appended (real-pairs.jsonl)")
@@ -97,7 +100,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--time-threads", type=POSITIVE_INT, default=0, metavar="N",
                    help="only time N UDN iterations per setting at 1 and 2 torch threads "
                    "(interleaved, 3 rounds) on the first pair, and print the seconds per "
-                   "iteration")
+                   "iteration; on a GPU (--device cuda) float32 against bf16 instead of threads, "
+                   "and N FISTA-TV iterations")
     p.add_argument("--table-only", action="store_true",
                    help="do not run: make the table (and figure) from --results")
     p.add_argument("--out", default=None, help="write the Markdown here")
@@ -236,6 +240,43 @@ def psnr_only(truth: Any, est: Any) -> float:
 # ---------------------------------------------------------------------------------------------
 
 
+def device_name(device: str) -> str:
+    """The device in words: ``cpu``, or the GPU's name."""
+    import torch
+
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        return f"cuda ({torch.cuda.get_device_name(dev)})"
+    return dev.type
+
+
+def _reset_peak(device: str) -> Any:
+    """Start a peak-memory measurement: the process's resident memory on a CPU, the device's
+    allocated memory on a GPU (``torch.cuda.max_memory_allocated``)."""
+    import torch
+
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+        torch.cuda.reset_peak_memory_stats(device)
+        return ("cuda", torch.cuda.memory_allocated(device))
+    from recon.trade import _reset_peak as reset_rss
+
+    return ("rss", reset_rss())
+
+
+def _peak_mb(base: Any, device: str) -> float | None:
+    """The peak since :func:`_reset_peak` above its start, MiB."""
+    import torch
+
+    kind, start = base
+    if kind == "cuda":
+        torch.cuda.synchronize(device)
+        return round(max(torch.cuda.max_memory_allocated(device) - start, 0) / 2**20, 1)
+    from recon.trade import _peak_mb as peak_rss
+
+    return peak_rss(start)
+
+
 def _fista(model: Any, b: Any, tau: float, iters: int) -> dict[int, tuple[Any, float]]:
     """FISTA-TV estimates (C, 1, h, w) and wall times at the checkpoints."""
     import torch
@@ -247,7 +288,8 @@ def _fista(model: Any, b: Any, tau: float, iters: int) -> dict[int, tuple[Any, f
     t0 = time.perf_counter()
     for step in solver.steps():
         if step.iteration in FISTA_CHECKPOINTS or step.iteration == iters or solver.done:
-            out[step.iteration] = (solver.x.detach().numpy().copy(), time.perf_counter() - t0)
+            out[step.iteration] = (solver.x.detach().cpu().numpy().copy(),
+                                   time.perf_counter() - t0)
     last = max(out)
     for c in FISTA_CHECKPOINTS:
         if c <= iters and c not in out:
@@ -261,7 +303,8 @@ def _heldout_err(model: Any, x: Any, b: Any, heldout: Any) -> float:
     import torch
 
     with torch.no_grad():
-        pred = model.op.apply(torch.as_tensor(np.asarray(x, dtype=np.float32))).numpy()
+        xt = torch.as_tensor(np.asarray(x, dtype=np.float32)).to(model.op.device)
+        pred = model.op.apply(xt).cpu().numpy()
     r = (pred - b)[heldout]
     return float(np.mean(r * r))
 
@@ -275,7 +318,8 @@ def _fitted_pixels_fista(pair: Pair, b: Any, fit: Any, args: argparse.Namespace,
     from recon.autotau import choose_tau
     from recon.models import build_model
 
-    model = build_model("2d", pair.psf, mask=fit, field=tuple(pair.truth.shape[1:]))
+    model = build_model("2d", pair.psf, mask=fit, field=tuple(pair.truth.shape[1:]),
+                        device=args.device)
     bf = b * fit
     choice = choose_tau(model, torch.as_tensor(bf), max_iter=args.fista_iters,
                         min_iter=min_iter, holdout=args.holdout, seed=0)
@@ -290,7 +334,6 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
 
     from recon.admm import Admm
     from recon.models import build_model
-    from recon.trade import _peak_mb, _reset_peak
     from recon.udn.network import NetworkConfig
     from recon.udn.runner import UDNConfig
 
@@ -298,9 +341,9 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     h, w = truth.shape[1:]
     mask = sensor_mask(pair, erasure)
     b = (pair.meas * mask).astype(np.float32)
-    model = build_model("2d", pair.psf, mask=mask, field=(h, w))
+    model = build_model("2d", pair.psf, mask=mask, field=(h, w), device=args.device)
     row: dict[str, Any] = {"pair": pair.name, "erasure": erasure, "shape": [3, h, w],
-                           "measured": int(mask.sum())}
+                           "measured": int(mask.sum()), "device": device_name(args.device)}
 
     # the held-out pixels: the UDN runner's own (so FISTA's tau and the blend use the same)
     net = NetworkConfig(channels=args.channels, scales=args.scales, skip_channels=args.skip)
@@ -316,10 +359,10 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     from recon.autotau import choose_tau
 
     grid: dict[float, dict[int, tuple[Any, float]]] = {}
-    base = _reset_peak()
+    base = _reset_peak(args.device)
     for tau in TAUS:
         grid[tau] = _fista(model, b, tau, args.fista_iters)
-    row["fista_peak_mb"] = _peak_mb(base)
+    row["fista_peak_mb"] = _peak_mb(base, args.device)
     last = args.fista_iters
     cps = sorted({c for c in FISTA_CHECKPOINTS if c <= last} | {last})
     best = max(((t, c) for t in TAUS for c in cps),
@@ -342,44 +385,51 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     keep["truth"], keep["fista_auto"], keep["fista_oracle"] = truth, x_auto, x_or
 
     # ADMM-TV at the oracle tau
-    base = _reset_peak()
+    base = _reset_peak(args.device)
     admm = Admm(model, torch.as_tensor(b), tau=t_or, max_iter=args.fista_iters, tol=0.0)
     t0 = time.perf_counter()
     for _ in admm.steps():
         pass
-    row["admm"] = dict(scores(truth, admm.x.detach().numpy()), tau=t_or,
+    row["admm"] = dict(scores(truth, admm.x.detach().cpu().numpy()), tau=t_or,
                        iterations=args.fista_iters, wall_s=time.perf_counter() - t0,
-                       peak_mb=_peak_mb(base))
+                       peak_mb=_peak_mb(base, args.device))
 
     if args.no_udn:
         return row
     # FISTA-TV from the UDN's fitted pixels only, its tau chosen on them too (for the warm
     # start and the blend weight, chosen on the UDN's held-out pixels, which it must not see)
     x_fit = _fitted_pixels_fista(pair, b, fit_mask, args, min(cps))
-    base = _reset_peak()
+    base = _reset_peak(args.device)
     if args.warm_start:
         row["udn_warm_start"] = {"iterations": args.warm_start,
                                  "mse": runner.warm_start(x_fit, args.warm_start)}
+    # the running variance of the estimate (ES-WMV) where the estimate is (on a GPU: there)
     window: deque[Any] = deque(maxlen=args.wmv_window)
     wmv_best: tuple[float, int, Any] | None = None
     curve: dict[int, float] = {}
+    curve_wall: dict[int, float] = {}
     hcurve: dict[int, float] = {}
     wmv_curve: dict[int, float] = {}
-    for s in runner.steps(preview_every=1):
-        x = s.preview
-        window.append(x)
+    for s in runner.steps():
+        # the runner's estimate (its EMA; ema 0 keeps the last output); None only before a
+        # first iteration that was not restored
+        est = runner.ema if runner.ema is not None else torch.as_tensor(
+            runner.final_estimate()).to(runner.device)
+        window.append(est.detach().clone())
         if len(window) == args.wmv_window:
-            stack = np.stack(list(window))
-            var = float(stack.var(axis=0).mean())
+            with torch.no_grad():
+                var = float(torch.stack(list(window)).var(dim=0, unbiased=False).mean())
             if s.iteration % 10 == 0:
                 wmv_curve[s.iteration] = var
             if wmv_best is None or var < wmv_best[0]:
-                wmv_best = (var, s.iteration, x)
+                wmv_best = (var, s.iteration, window[-1])
         if s.iteration % 50 == 0 or runner.done:
-            curve[s.iteration] = psnr_only(truth, x)
+            curve[s.iteration] = psnr_only(truth, est.detach().cpu().numpy())
+            curve_wall[s.iteration] = runner.elapsed_s
             if s.heldout is not None:
                 hcurve[s.iteration] = s.heldout
-    peak = _peak_mb(base)
+    window.clear()
+    peak = _peak_mb(base, args.device)
     final = runner.final_estimate()
     sel = runner.best_estimate()
     with torch.no_grad():
@@ -390,7 +440,7 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     row["udn_final"] = dict(scores(truth, final), iterations=runner.iteration,
                             wall_s=runner.elapsed_s)
     if wmv_best is not None:
-        row["udn_wmv"] = dict(scores(truth, wmv_best[2]), iterations=wmv_best[1])
+        row["udn_wmv"] = dict(scores(truth, wmv_best[2].cpu().numpy()), iterations=wmv_best[1])
     # blend with FISTA (auto tau), the weight chosen on the held-out pixels: the UDN's choice
     # never saw them, and FISTA's fitted-pixel run at the same tau did not either
     herr = {a: _heldout_err(model, a * sel + (1 - a) * x_fit, b, heldout)
@@ -399,6 +449,7 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     blend = a_best * sel + (1 - a_best) * x_auto
     row["udn_blend"] = dict(scores(truth, blend), weight=a_best)
     row["udn_curve"] = curve
+    row["udn_curve_wall"] = curve_wall
     row["udn_oracle_stop"] = _oracle_stop(curve)
     row["udn_heldout_curve"] = hcurve
     row["udn_wmv_curve"] = wmv_curve
@@ -704,9 +755,12 @@ def _load_images(results: str) -> dict[tuple[str, float], dict[str, Any]]:
 
 
 def time_threads(args: argparse.Namespace) -> dict[str, Any]:
-    """Seconds per UDN iteration (the configured network) at 1 and 2 threads, interleaved."""
+    """Seconds per UDN iteration (the configured network) on the first pair, interleaved
+    settings, 3 rounds: 1 and 2 torch threads on a CPU; float32 and bf16 on a GPU, and FISTA-TV
+    (the oracle grid's middle tau) beside them."""
     import torch
 
+    from recon.fista import Fista
     from recon.models import build_model
     from recon.udn.network import NetworkConfig
     from recon.udn.runner import UDNConfig, UDNRunner
@@ -714,34 +768,64 @@ def time_threads(args: argparse.Namespace) -> dict[str, Any]:
     name = args.pairs[0]
     pair = load_pair(name, pair_files(name, data_dir(args.data)), args.downsample)
     mask = sensor_mask(pair, 0.0)
-    model = build_model("2d", pair.psf, mask=mask, field=pair.truth.shape[1:])
+    model = build_model("2d", pair.psf, mask=mask, field=pair.truth.shape[1:],
+                        device=args.device)
     net = NetworkConfig(channels=args.channels, scales=args.scales, skip_channels=args.skip)
-    out: dict[int, list[float]] = {1: [], 2: []}
+    gpu = torch.device(args.device).type == "cuda"
+
+    def sync() -> None:
+        if gpu:
+            torch.cuda.synchronize(args.device)
+
+    settings: tuple[Any, ...] = ("float32", "bf16") if gpu else (1, 2)
+    out: dict[Any, list[float]] = {k: [] for k in settings}
+    fista: list[float] = []
+    b = pair.meas * mask
     for _ in range(3):
-        for threads in (1, 2):
-            torch.set_num_threads(threads)
-            r = UDNRunner(model, pair.meas * mask, network=net,
+        for setting in settings:
+            if not gpu:
+                torch.set_num_threads(setting)
+            r = UDNRunner(model, b, network=net,
                           config=UDNConfig(max_iter=args.time_threads + 1, lr=args.lr,
-                                           ema=args.ema, headroom=args.headroom))
+                                           ema=args.ema, headroom=args.headroom,
+                                           precision=setting if gpu else "float32"))
             r.step()  # warm-up
+            sync()
             t0 = time.perf_counter()
             for _ in range(args.time_threads):
                 r.step()
-            out[threads].append((time.perf_counter() - t0) / args.time_threads)
-    return {"pair": name, "shape": list(pair.truth.shape),
-            "s_per_iteration": {str(k): sorted(v) for k, v in out.items()},
-            "load": os.getloadavg(), "cpus": os.cpu_count()}
+            sync()
+            out[setting].append((time.perf_counter() - t0) / args.time_threads)
+        if gpu:
+            solver = Fista(model.op, torch.as_tensor(b), tau=TAUS[len(TAUS) // 2],
+                           max_iter=args.time_threads + 1, tol=0.0)
+            it = solver.steps()
+            next(it)
+            sync()
+            t0 = time.perf_counter()
+            for _ in it:
+                pass
+            sync()
+            fista.append((time.perf_counter() - t0) / args.time_threads)
+    res: dict[str, Any] = {
+        "pair": name, "shape": list(pair.truth.shape), "device": device_name(args.device),
+        "s_per_iteration": {str(k): sorted(v) for k, v in out.items()},
+        "load": os.getloadavg(), "cpus": os.cpu_count()}
+    if fista:
+        res["fista_s_per_iteration"] = sorted(fista)
+    return res
 
 
 SETTING_KEYS = ("downsample", "udn_iters", "channels", "scales", "skip", "headroom", "lr",
                 "ema", "tv_weight", "holdout", "wmv_window", "fista_iters", "warm_start",
                 "seeds", "lever")
-"""The settings a results file's cases must share (threads may differ: they change the time)."""
+"""The settings a results file's cases must share (threads and the device may differ: they
+change the time, and the scores only by rounding)."""
 
 
 def _settings(args: argparse.Namespace) -> dict[str, Any]:
     """The settings stored with each case."""
-    return {k: getattr(args, k) for k in (*SETTING_KEYS, "threads")}
+    return {k: getattr(args, k) for k in (*SETTING_KEYS, "threads", "device")}
 
 
 def fill_defaults(args: argparse.Namespace) -> None:
@@ -768,6 +852,12 @@ def run(args: argparse.Namespace) -> int:
     for e in args.erasures:
         if not 0 <= e < 1:
             raise SystemExit(f"--erasures must be in [0, 1), got {e}")
+    from recon.udn.runner import resolve_device
+
+    try:
+        args.device = str(resolve_device(args.device))
+    except (ValueError, RuntimeError) as exc:
+        raise SystemExit(f"--device: {exc}") from None
     t_all = time.perf_counter()
     if args.time_threads:
         print(json.dumps(time_threads(args)))
@@ -826,6 +916,13 @@ def run(args: argparse.Namespace) -> int:
                    "not run). Each image scaled to its own 99.5th percentile.\n\n")
         cmd = "lenslesscam bench real-pairs " + " ".join(sys.argv[3:] if sys.argv[1:3] == [
             "bench", "real-pairs"] else sys.argv[1:])
+        devices = sorted({r.get("device", "cpu") for r in rows})
+        load = (f"load average {min(loads, default=0):.1f}-{max(loads, default=0):.1f} during "
+                "the runs")
+        where = (f"{s['threads']} torch thread(s); machine {platform.machine()}, {load} "
+                 "(shared 2-core VM)." if devices == ["cpu"] else
+                 f"FISTA-TV, ADMM-TV and the UDN on {', '.join(devices)}; host {load} (the "
+                 "walls are of processes that may have shared the device: see the command).")
         n_udn = sum("udn" in r for r in rows)
         others = " (the others: FISTA and ADMM only, `--no-udn`)" if n_udn < len(rows) else ""
         text = (
@@ -857,9 +954,7 @@ def run(args: argparse.Namespace) -> int:
             + (f", {s['seeds']} seeds (the ensemble row)" if s.get("seeds", 1) > 1 else "")
             + (f", warm start {s['warm_start']} iterations" if s.get("warm_start") else "")
             + ". "
-            f"{s['threads']} torch thread(s); machine {platform.machine()}, load average "
-            f"{min(loads, default=0):.1f}-{max(loads, default=0):.1f} during the runs "
-            f"(shared 2-core VM).\n\n"
+            + where + "\n\n"
             "Mean over the pairs:\n\n" + summary + "\n\nPSNR (dB) per case:\n\n" + cases +
             "\n\n" + fig + f"Produced by `{cmd}` (the runs appended to the results file; "
             "this table and figure from all of them). In one go: `lenslesscam bench "

@@ -236,3 +236,49 @@ def test_levers_change_what_they_say_and_the_oracle_stop_is_the_curve_max() -> N
     assert rp._oracle_stop({"50": 14.0, "100": 15.5, "150": 15.0}) == {"psnr": 15.5,
                                                                         "iterations": 100}
     assert rp._oracle_stop({}) is None
+
+
+def test_es_wmv_stop_is_the_iteration_of_least_running_variance() -> None:
+    """The ES-WMV row (the running variance now computed where the estimate lives, on a GPU
+    there) is the estimate of the iteration whose window of estimates varies least: checked
+    against the same run's previews with the variance computed in NumPy."""
+    import argparse
+
+    from recon.models import build_model
+    from recon.udn.network import NetworkConfig
+    from recon.udn.runner import UDNConfig
+
+    parser = argparse.ArgumentParser()
+    rp.add_arguments(parser)
+    args = parser.parse_args(["--fista-iters", "30", "--udn-iters", "14", "--wmv-window", "3",
+                              "--channels", "8", "--scales", "2"])
+    rp.fill_defaults(args)
+    pair = rp.load_pair("im65", dict(samples.dlmd_pair_paths()), 1)
+    row = rp.run_case(pair, 0.9, args, {})
+    # the same run again (seeded), its previews, the variance in NumPy
+    mask = rp.sensor_mask(pair, 0.9)
+    b = (pair.meas * mask).astype(np.float32)
+    model = build_model("2d", pair.psf, mask=mask, field=pair.truth.shape[1:])
+    cfg = UDNConfig(max_iter=14, holdout=args.holdout, patience=10**9, min_iter=0,
+                    headroom=args.headroom, lr=args.lr, ema=args.ema, tv_weight=args.tv_weight,
+                    seed=0)
+    net = NetworkConfig(channels=8, scales=2, skip_channels=args.skip)
+    previews = [s.preview for s in rp.make_runner(model, b, net, cfg).steps(preview_every=1)]
+    var = {i + 1: float(np.stack(previews[i - 2:i + 1]).var(axis=0).mean())
+           for i in range(2, len(previews))}
+    it = min(var, key=var.__getitem__)
+    assert row["udn_wmv"]["iterations"] == it
+    np.testing.assert_allclose(row["udn_wmv"]["psnr"], rp.psnr_only(pair.truth, previews[it - 1]),
+                               rtol=1e-5)
+    walls = [row["udn_curve_wall"][k] for k in sorted(row["udn_curve_wall"], key=int)]
+    assert walls == sorted(walls) and walls[-1] > 0
+
+
+def test_an_unknown_device_is_one_line(tmp_path) -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    rp.add_arguments(parser)
+    args = parser.parse_args(["--device", "tpu", "--data", str(tmp_path), "--downsample", "1"])
+    with pytest.raises(SystemExit, match=r"--device: unknown device 'tpu'"):
+        rp.run(args)
