@@ -43,7 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="iteration limit of the search and the oracle grid (500, the default)")
     p.add_argument("--block", type=POSITIVE_INT, default=None,
                    help="side in pixels of the held-out blocks (default: recon.holdout's, 4 px "
-                   "on frames of 32 px and more; 1: single pixels, the search before blocks)")
+                   "on sensors of 32 to 159 px, 1/32 of the shorter side above; 1: single "
+                   "pixels, the search before blocks)")
     p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
     p.add_argument("--data", default=None, help="the dlmd folder (default: the shared one)")
     p.add_argument("--results", default=None, help="also append each case as JSON lines here")

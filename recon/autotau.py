@@ -2,7 +2,8 @@
 
 A random ``holdout`` fraction of the measured pixels (10 %, at least ``min_holdout`` pixels
 while that leaves three quarters to fit), in whole blocks of the sensor (:mod:`recon.holdout`:
-4x4-pixel squares; ``block=1``: single pixels), is hidden from the solver.
+4x4-pixel squares, 1/32 of a large sensor's shorter side; ``block=1``: single pixels), is
+hidden from the solver.
 Blocks, because a real measurement's mismatch to the model is smooth across the sensor: single
 hidden pixels have their error predicted by their fitted neighbours and favour taus that fit
 the mismatch (on the four real DiffuserCam pairs the scattered pixels chose 3-100x below the
@@ -50,7 +51,7 @@ import numpy as np
 import torch
 
 from recon.fista import Fista
-from recon.holdout import block_mean_se, block_side, heldout_blocks
+from recon.holdout import block_mean_se, block_side_for, heldout_blocks
 from recon.models import ForwardModel
 from recon.operators import Compose, Mask
 from recon.tv import TV
@@ -178,7 +179,8 @@ def choose_tau(
     measurement. See the module docstring for the rule. With ``fixed_tau`` only the iteration
     count is chosen (one run at that tau). ``precondition`` is FISTA's (:class:`recon.fista.Fista`):
     the search runs the iteration the reconstruction will run. ``block``: side in pixels of
-    the held-out blocks (None: :func:`recon.holdout.block_side`, 1: single pixels).
+    the held-out blocks (None: :func:`recon.holdout.block_side_for` the measured pixels, 1:
+    single pixels).
     """
     t_start = time.perf_counter()
     if tuple(b.shape) != model.meas_shape:
@@ -205,7 +207,7 @@ def choose_tau(
     if block is not None and block < 1:
         raise ValueError(f"block must be >= 1 pixel, got {block}")
     n_hold = max(round(holdout * idx.size), min(min_holdout, idx.size // 4), 5)
-    side = block_side(*measured.shape) if block is None else block
+    side = block_side_for(measured) if block is None else block
     hold_np, labels_np = heldout_blocks(measured, n_hold, np.random.default_rng(seed), side)
     n_hold = int(hold_np.sum())
     hold = torch.as_tensor(hold_np, device=b.device).expand(b.shape)

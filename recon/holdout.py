@@ -12,16 +12,24 @@ temporal, spatial, hierarchical, or phylogenetic structure", Ecography 40:913), 
 predictions that were not interpolated from fitted neighbours; with independent noise alone it
 chooses nearly as scattered pixels do.
 
-The blocks tile the sensor: squares of ``BLOCK_SIDE`` (4) pixels (smaller on a frame under 32
-pixels on its short side, so that it keeps 8 blocks across), drawn in a seeded random order
-until the held-out measured pixels reach the number asked for (erased pixels are never held
-out). Standard errors of held-out scores are taken over blocks (:func:`block_mean_se`), the
-unit that was drawn. The side was measured (``lenslesscam bench tau-rules --block N``,
-docs/auto-tau.md): on the four real DiffuserCam pairs at 1/4 resolution the automatic tau
-gains 0.25 / 0.52 / 0.10 dB on average with sides 2 / 4 / 8 over single pixels; on the
-simulation protocol (1/8 scale) sides 4 / 9 / 19 cost 0.19 / 0.63 / 0.80 dB, the side-4 cost
-almost all in its noise-free 0 % cases (results of 35-44 dB), where the held-out blocks
-prefer about 3x the best tau.
+The blocks tile the sensor: squares of ``BLOCK_SIDE`` (4) pixels, or 1/``FRAME_FRACTION``
+(1/32) of the sensor's shorter side (the extent of the measured pixels) where that is more
+(from 160 pixels up: 8 at 270x480), so that a block keeps its size on the sensor when the same
+optics is read at a higher resolution; smaller on a frame under 32 pixels on its short side, so
+that it keeps 8 blocks across. They are drawn in a seeded random order until the held-out
+measured pixels reach the number asked for (erased pixels are never held out). Standard errors
+of held-out scores are taken over blocks (:func:`block_mean_se`), the unit that was drawn. The
+side was measured (``lenslesscam bench tau-rules --block N``, docs/auto-tau.md): on the four
+real DiffuserCam pairs at 1/4 resolution the automatic tau gains 0.25 / 0.52 / 0.10 dB on
+average with sides 2 / 4 / 8 over single pixels; on the simulation protocol (1/8 scale) sides 4
+/ 9 / 19 cost 0.19 / 0.63 / 0.80 dB, the side-4 cost almost all in its noise-free 0 % cases
+(results of 35-44 dB), where the held-out blocks prefer about 3x the best tau. On the real
+pairs the best side grows with the resolution: 4 at 1/4 (67x120), 8 better than 4 by 0.14 dB at
+1/2, and at the full 270x480 sides 4 / 8 / 16 give 16.02 / 16.31 / 16.46 dB on average over
+five erasure levels (oracle 17.01): 1/16 of the shorter side is best at all three resolutions.
+The simulation (150x200, no model mismatch) prefers small blocks (side 9 costs it 0.44 dB), so
+the side is 1/32 of the shorter side with 4 pixels at least: unchanged wherever 4 was measured,
++0.29 dB at full resolution (docs/auto-tau.md, "Full resolution").
 
 The UDN's stopping rule (:mod:`recon.udn.runner`) keeps scattered held-out values: with blocks
 (``lenslesscam bench real-pairs --lever block-holdout``) its results on the real pairs moved by
@@ -36,17 +44,34 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["BLOCK_SIDE", "block_labels", "block_mean_se", "block_side", "heldout_blocks"]
+__all__ = ["BLOCK_SIDE", "FRAME_FRACTION", "block_labels", "block_mean_se", "block_side",
+           "block_side_for", "heldout_blocks"]
 
-#: Side in pixels of the held-out blocks.
+#: Side in pixels of the held-out blocks (at least; see FRAME_FRACTION).
 BLOCK_SIDE = 4
+#: On large frames the side is the shorter side over this, where that is above BLOCK_SIDE.
+FRAME_FRACTION = 32
 #: A frame keeps at least this many blocks across its shorter side.
 MIN_BLOCKS_ACROSS = 8
 
 
 def block_side(h: int, w: int) -> int:
     """Side in pixels of the held-out blocks of an ``h`` x ``w`` measurement."""
-    return max(1, min(BLOCK_SIDE, min(h, w) // MIN_BLOCKS_ACROSS))
+    short = min(h, w)
+    side = max(BLOCK_SIDE, short // FRAME_FRACTION)
+    return max(1, min(side, short // MIN_BLOCKS_ACROSS))
+
+
+def block_side_for(measured: npt.NDArray[np.bool_]) -> int:
+    """:func:`block_side` of the sensor's extent, the bounding box of the measured pixels.
+
+    A measurement embedded in a larger padded grid counts its window, not the grid.
+    """
+    m = np.asarray(measured, dtype=bool)
+    rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+    if rows.size == 0:
+        return block_side(*m.shape)
+    return block_side(int(rows[-1] - rows[0] + 1), int(cols[-1] - cols[0] + 1))
 
 
 def block_labels(h: int, w: int, side: int) -> npt.NDArray[np.int64]:
@@ -65,7 +90,7 @@ def heldout_blocks(measured: npt.NDArray[np.bool_], n_hold: int, rng: np.random.
 
     Blocks that hold measured pixels are taken in ``rng``'s random order until at least
     ``n_hold`` measured pixels are held out (so one block more than ``n_hold`` needs, at most);
-    ``side`` None: :func:`block_side`; 1: single pixels.
+    ``side`` None: :func:`block_side_for` the measured pixels; 1: single pixels.
     """
     measured = np.asarray(measured, dtype=bool)
     if measured.ndim != 2:
@@ -74,7 +99,7 @@ def heldout_blocks(measured: npt.NDArray[np.bool_], n_hold: int, rng: np.random.
     if not 0 < n_hold < n_meas:
         raise ValueError(f"cannot hold out {n_hold} of {n_meas} measured pixels")
     h, w = measured.shape
-    side = block_side(h, w) if side is None else side
+    side = block_side_for(measured) if side is None else side
     labels = block_labels(h, w, side)
     counts = np.bincount(labels[measured], minlength=int(labels.max()) + 1)
     order = rng.permutation(np.flatnonzero(counts))

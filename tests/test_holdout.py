@@ -7,12 +7,25 @@ import math
 import numpy as np
 import pytest
 
-from recon.holdout import block_labels, block_mean_se, block_side, heldout_blocks
+from recon.holdout import (
+    block_labels,
+    block_mean_se,
+    block_side,
+    block_side_for,
+    heldout_blocks,
+)
 
 
-def test_blocks_are_squares_of_four_pixels_and_eight_across_a_small_frame():
-    assert block_side(67, 120) == 4 == block_side(1080, 1920)
+def test_blocks_are_four_pixels_a_32nd_of_a_large_frame_and_eight_across_a_small_one():
+    assert block_side(67, 120) == 4 == block_side(150, 200) == block_side(159, 4000)
+    # the same optics read at full resolution: the block keeps its size on the sensor
+    assert block_side(270, 480) == 8 and block_side(1080, 1920) == 33
     assert block_side(24, 64) == 3 and block_side(5, 9) == 1
+    # a sensor embedded in a padded grid: its window's extent counts, not the grid's
+    window = np.zeros((540, 960), bool)
+    window[135:405, 240:720] = np.random.default_rng(0).random((270, 480)) >= 0.99
+    assert block_side(540, 960) == 16 and block_side_for(window) == 8
+    assert block_side_for(np.ones((67, 120), bool)) == 4
     lab = block_labels(67, 120, 8)
     assert lab.shape == (67, 120) and lab.max() + 1 == 9 * 15
     # a block is a square of side 8: its pixels share a label, its neighbours do not
