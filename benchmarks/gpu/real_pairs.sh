@@ -6,8 +6,9 @@
 #
 # 1. times the UDN (float32 and bf16) and FISTA-TV per iteration on the GPU (--time-threads);
 # 2. picks the UDN iteration count that fits the budget (at most max_iters, default 3000),
-#    assuming the four processes below slow each other down fourfold (the worst case);
-#    (ITERS=N skips 1 and 2);
+#    assuming the four processes below slow each other down fourfold (measured on an H100:
+#    four shared it at no slowdown, twelve at 2.9x); with GROUPS_OF_LEVELS give ITERS=N,
+#    which skips 1 and 2;
 # 3. runs the four pairs as four processes sharing the GPU, all five erasure levels each (or
 #    one process per pair and group of levels, GROUPS_OF_LEVELS="0 0.99;0.5 0.95;0.9"),
 #    every case appended to its results file as it ends (a case cut off by the budget is lost,
