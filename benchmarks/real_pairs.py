@@ -455,6 +455,7 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     row["udn_wmv_curve"] = wmv_curve
     row["udn_gain"] = {"initial": runner.initial_gain, "final": runner.G.gain}
     row["udn_clipped"] = clipped
+    row["udn_still_improving"] = runner.still_improving()
     row["udn_notes"] = list(runner.notes)
     keep["udn"], keep["udn_blend"] = sel, blend
     if args.seeds > 1:

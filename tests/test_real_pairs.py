@@ -270,6 +270,8 @@ def test_es_wmv_stop_is_the_iteration_of_least_running_variance() -> None:
     assert row["udn_wmv"]["iterations"] == it
     np.testing.assert_allclose(row["udn_wmv"]["psnr"], rp.psnr_only(pair.truth, previews[it - 1]),
                                rtol=1e-5)
+    # still improving: the held-out best in the last tenth (2 of 14 iterations)
+    assert row["udn_still_improving"] is (row["udn"]["iterations"] > 12)
     walls = [row["udn_curve_wall"][k] for k in sorted(row["udn_curve_wall"], key=int)]
     assert walls == sorted(walls) and walls[-1] > 0
 

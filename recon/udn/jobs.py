@@ -559,6 +559,28 @@ _DETAIL = {
 }
 
 
+def _limit_detail(job: _Job, reason: str, detail: str) -> str:
+    """The finish detail of a run that reached a limit: whether it was still improving.
+
+    A run whose held-out error was still improving says so, with the command that continues
+    it (``results.still_improving`` records it either way).
+    """
+    r = job.runner
+    assert r is not None
+    improving = r.still_improving()
+    if isinstance(job.record.get("results"), dict):
+        job.record["results"]["still_improving"] = improving
+    if not improving:
+        return detail
+    if reason == "max_iter":
+        more = f"--max-iter {2 * r.iteration}"
+    else:
+        more = f"--time-limit {2 * (r.config.time_limit_s or r.elapsed_s):.0f}"
+    return (f"{detail}; the held-out error was still improving (best at iteration "
+            f"{r.best_iteration} of {r.iteration}): more iterations would likely give a better "
+            f"result: lenslesscam jobs resume {job.run_dir} {more}")
+
+
 def _finish_reason(reason: str) -> FinishReason:
     """The job's finish reason for the solver's stop reason (limits count as completed)."""
     if reason in (FinishReason.STOPPED_EARLY, FinishReason.CANCELLED):
@@ -629,6 +651,8 @@ def _session(job: _Job, max_memory: int | None, resume_state: dict[str, Any] | N
             detail = (f"the held-out error has not improved for "
                       f"{job.runner.config.patience} iterations; best at iteration "
                       f"{job.runner.best_iteration}")
+        if reason in ("max_iter", "time_limit"):
+            detail = _limit_detail(job, reason, detail)
         rec.update(status=JobState.FINISHED, finish_reason=finish, detail=detail)
     except BaseException as exc:
         err: BaseException = exc
