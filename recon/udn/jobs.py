@@ -46,6 +46,7 @@ import json
 import math
 import os
 import platform
+import shlex
 import signal
 import threading
 import time
@@ -578,7 +579,7 @@ def _limit_detail(job: _Job, reason: str, detail: str) -> str:
         more = f"--time-limit {2 * (r.config.time_limit_s or r.elapsed_s):.0f}"
     return (f"{detail}; the held-out error was still improving (best at iteration "
             f"{r.best_iteration} of {r.iteration}): more iterations would likely give a better "
-            f"result: lenslesscam jobs resume {job.run_dir} {more}")
+            f"result: lenslesscam jobs resume {shlex.quote(str(job.run_dir))} {more}")
 
 
 def _finish_reason(reason: str) -> FinishReason:
