@@ -306,7 +306,7 @@ def run_udn_benchmark(args: argparse.Namespace) -> int:
         return 0
     import torch
 
-    from recon.udn.runner import resolve_device
+    from recon.udn.runner import describe_device, resolve_device
 
     device = resolve_device(args.device)
     cases = list(args.cases) + (["video3d-128x128x16"] if args.with_3d else [])
@@ -327,9 +327,7 @@ def run_udn_benchmark(args: argparse.Namespace) -> int:
                 rows.append(row)
                 print(_line(row), file=sys.stderr)
     threads = next((r["threads"] for r in rows if "threads" in r), torch.get_num_threads())
-    dev_name = str(device)
-    if device.type == "cuda":
-        dev_name += f" ({torch.cuda.get_device_name(device)})"
+    dev_name = describe_device(device)
     print(f"\nUDN iteration time on {dev_name}, {threads} torch threads, "
           f"{args.scales} scales x {args.channels} channels, skip 4, "
           f"{args.iters} timed iterations after {args.warmup} warm-up"

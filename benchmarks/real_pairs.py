@@ -240,43 +240,6 @@ def psnr_only(truth: Any, est: Any) -> float:
 # ---------------------------------------------------------------------------------------------
 
 
-def device_name(device: str) -> str:
-    """The device in words: ``cpu``, or the GPU's name."""
-    import torch
-
-    dev = torch.device(device)
-    if dev.type == "cuda":
-        return f"cuda ({torch.cuda.get_device_name(dev)})"
-    return dev.type
-
-
-def _reset_peak(device: str) -> Any:
-    """Start a peak-memory measurement: the process's resident memory on a CPU, the device's
-    allocated memory on a GPU (``torch.cuda.max_memory_allocated``)."""
-    import torch
-
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize(device)
-        torch.cuda.reset_peak_memory_stats(device)
-        return ("cuda", torch.cuda.memory_allocated(device))
-    from recon.trade import _reset_peak as reset_rss
-
-    return ("rss", reset_rss())
-
-
-def _peak_mb(base: Any, device: str) -> float | None:
-    """The peak since :func:`_reset_peak` above its start, MiB."""
-    import torch
-
-    kind, start = base
-    if kind == "cuda":
-        torch.cuda.synchronize(device)
-        return round(max(torch.cuda.max_memory_allocated(device) - start, 0) / 2**20, 1)
-    from recon.trade import _peak_mb as peak_rss
-
-    return peak_rss(start)
-
-
 def _fista(model: Any, b: Any, tau: float, iters: int) -> dict[int, tuple[Any, float]]:
     """FISTA-TV estimates (C, 1, h, w) and wall times at the checkpoints."""
     import torch
@@ -334,8 +297,9 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
 
     from recon.admm import Admm
     from recon.models import build_model
+    from recon.trade import peak_mb_since, peak_start
     from recon.udn.network import NetworkConfig
-    from recon.udn.runner import UDNConfig
+    from recon.udn.runner import UDNConfig, describe_device
 
     truth = pair.truth
     h, w = truth.shape[1:]
@@ -343,7 +307,7 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     b = (pair.meas * mask).astype(np.float32)
     model = build_model("2d", pair.psf, mask=mask, field=(h, w), device=args.device)
     row: dict[str, Any] = {"pair": pair.name, "erasure": erasure, "shape": [3, h, w],
-                           "measured": int(mask.sum()), "device": device_name(args.device)}
+                           "measured": int(mask.sum()), "device": describe_device(args.device)}
 
     # the held-out pixels: the UDN runner's own (so FISTA's tau and the blend use the same)
     net = NetworkConfig(channels=args.channels, scales=args.scales, skip_channels=args.skip)
@@ -359,10 +323,10 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     from recon.autotau import choose_tau
 
     grid: dict[float, dict[int, tuple[Any, float]]] = {}
-    base = _reset_peak(args.device)
+    base = peak_start(args.device)
     for tau in TAUS:
         grid[tau] = _fista(model, b, tau, args.fista_iters)
-    row["fista_peak_mb"] = _peak_mb(base, args.device)
+    row["fista_peak_mb"] = peak_mb_since(base)
     last = args.fista_iters
     cps = sorted({c for c in FISTA_CHECKPOINTS if c <= last} | {last})
     best = max(((t, c) for t in TAUS for c in cps),
@@ -385,21 +349,21 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     keep["truth"], keep["fista_auto"], keep["fista_oracle"] = truth, x_auto, x_or
 
     # ADMM-TV at the oracle tau
-    base = _reset_peak(args.device)
+    base = peak_start(args.device)
     admm = Admm(model, torch.as_tensor(b), tau=t_or, max_iter=args.fista_iters, tol=0.0)
     t0 = time.perf_counter()
     for _ in admm.steps():
         pass
     row["admm"] = dict(scores(truth, admm.x.detach().cpu().numpy()), tau=t_or,
                        iterations=args.fista_iters, wall_s=time.perf_counter() - t0,
-                       peak_mb=_peak_mb(base, args.device))
+                       peak_mb=peak_mb_since(base))
 
     if args.no_udn:
         return row
     # FISTA-TV from the UDN's fitted pixels only, its tau chosen on them too (for the warm
     # start and the blend weight, chosen on the UDN's held-out pixels, which it must not see)
     x_fit = _fitted_pixels_fista(pair, b, fit_mask, args, min(cps))
-    base = _reset_peak(args.device)
+    base = peak_start(args.device)
     if args.warm_start:
         row["udn_warm_start"] = {"iterations": args.warm_start,
                                  "mse": runner.warm_start(x_fit, args.warm_start)}
@@ -429,7 +393,7 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
             if s.heldout is not None:
                 hcurve[s.iteration] = s.heldout
     window.clear()
-    peak = _peak_mb(base, args.device)
+    peak = peak_mb_since(base)
     final = runner.final_estimate()
     sel = runner.best_estimate()
     with torch.no_grad():
@@ -764,7 +728,7 @@ def time_threads(args: argparse.Namespace) -> dict[str, Any]:
     from recon.fista import Fista
     from recon.models import build_model
     from recon.udn.network import NetworkConfig
-    from recon.udn.runner import UDNConfig, UDNRunner
+    from recon.udn.runner import UDNConfig, UDNRunner, describe_device
 
     name = args.pairs[0]
     pair = load_pair(name, pair_files(name, data_dir(args.data)), args.downsample)
@@ -809,7 +773,7 @@ def time_threads(args: argparse.Namespace) -> dict[str, Any]:
             sync()
             fista.append((time.perf_counter() - t0) / args.time_threads)
     res: dict[str, Any] = {
-        "pair": name, "shape": list(pair.truth.shape), "device": device_name(args.device),
+        "pair": name, "shape": list(pair.truth.shape), "device": describe_device(args.device),
         "s_per_iteration": {str(k): sorted(v) for k, v in out.items()},
         "load": os.getloadavg(), "cpus": os.cpu_count()}
     if fista:

@@ -200,6 +200,29 @@ def _peak_mb(base_kb: int | None) -> float | None:
     return round(max(hwm - base_kb, 0) / 1024.0, 1)
 
 
+def peak_start(device: Any = "cpu") -> tuple[Any, ...]:
+    """Start a peak-memory measurement of the work that follows on ``device``.
+
+    The process's resident memory on a CPU (:func:`_reset_peak`), the allocated memory on a
+    CUDA GPU (``torch.cuda.max_memory_allocated``). Read it with :func:`peak_mb_since`.
+    """
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+        torch.cuda.reset_peak_memory_stats(dev)
+        return ("cuda", dev, torch.cuda.memory_allocated(dev))
+    return ("rss", dev, _reset_peak())
+
+
+def peak_mb_since(start: tuple[Any, ...]) -> float | None:
+    """The peak since :func:`peak_start` above its level then, MiB (None where unsupported)."""
+    kind, dev, base = start
+    if kind == "cuda":
+        torch.cuda.synchronize(dev)
+        return round(max(torch.cuda.max_memory_allocated(dev) - base, 0) / 2**20, 1)
+    return _peak_mb(base)
+
+
 # --------------------------------------------------------------------------------------------
 # Running one configuration
 # --------------------------------------------------------------------------------------------

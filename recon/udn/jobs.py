@@ -542,6 +542,8 @@ class _Job:
             results[which] = str(paths[0].relative_to(self.run_dir))
         results["best_iteration"] = runner.best_iteration
         results["best_heldout"] = runner.best_heldout
+        if reason in ("max_iter", "time_limit"):
+            results["still_improving"] = runner.still_improving()
         if problem.truth is not None:
             from recon.metrics import metrics_report
 
@@ -564,14 +566,11 @@ def _limit_detail(job: _Job, reason: str, detail: str) -> str:
     """The finish detail of a run that reached a limit: whether it was still improving.
 
     A run whose held-out error was still improving says so, with the command that continues
-    it (``results.still_improving`` records it either way).
+    it (``results.still_improving``, written by ``finish``, records it either way).
     """
     r = job.runner
     assert r is not None
-    improving = r.still_improving()
-    if isinstance(job.record.get("results"), dict):
-        job.record["results"]["still_improving"] = improving
-    if not improving:
+    if not r.still_improving():
         return detail
     if reason == "max_iter":
         more = f"--max-iter {2 * r.iteration}"

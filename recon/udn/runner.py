@@ -225,6 +225,14 @@ class UDNResult:
     notes: list[str]
 
 
+def describe_device(device: torch.device | str) -> str:
+    """The device in words for tables and logs: ``cpu``, ``mps``, ``cuda (GPU name)``."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        return f"{dev} ({torch.cuda.get_device_name(dev)})"
+    return str(dev)
+
+
 def resolve_device(name: str = "auto") -> torch.device:
     """``auto`` picks cuda, then mps, then cpu; otherwise the named device (checked)."""
     if name == "auto":
