@@ -50,7 +50,15 @@ TAUS = (1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
 FISTA_CHECKPOINTS = (100, 200)
 BLEND_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: UDN variants of ``--lever`` (see make_runner)
-LEVERS = ("none", "precondition", "channel-gain", "block-holdout", "deep-decoder")
+LEVERS = ("none", "precondition", "channel-gain", "block-holdout", "deep-decoder", "sensor-gain")
+#: ``sensor-gain``: control points of the smooth gain field per colour channel along the
+#: measured extent's shorter side (bilinear between them, so it varies over about a quarter
+#: of that side: the scale of the shading in the error analysis)
+SENSOR_GAIN_POINTS = 5
+#: ``sensor-gain``: the field stays within [1 / this, this] (a free field fitted the scene's
+#: own smooth envelope: 0.15-1.48 on im65 at 0 %, 3.3 dB lost; the field FISTA-TV's oracle
+#: result asks for on the same pair lies within 0.77-1.02)
+SENSOR_GAIN_MAX = 1.25
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -87,7 +95,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "multiplies the gradient of the output by FISTA's Fourier preconditioner; "
                    "'channel-gain' gives each colour channel its own learnable output gain; "
                    "'block-holdout' holds out whole blocks of the sensor; 'deep-decoder' "
-                   "replaces the network by a deep decoder (none)")
+                   "replaces the network by a deep decoder; 'sensor-gain' learns a smooth "
+                   "gain field on the sensor with the network (none)")
     p.add_argument("--no-udn", action="store_true", help="FISTA and ADMM only")
     p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
     p.add_argument("--device", default="cpu",
@@ -105,6 +114,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--table-only", action="store_true",
                    help="do not run: make the table (and figure) from --results")
     p.add_argument("--out", default=None, help="write the Markdown here")
+    p.add_argument("--error-analysis", action="store_true",
+                   help="also where the error against the truth is, from the kept images: "
+                   "the share that varies slowly across the image, and the PSNR once the "
+                   "shading learned from the other pairs is removed (leave one pair out)")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -421,6 +434,8 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     row["udn_clipped"] = clipped
     row["udn_still_improving"] = runner.still_improving()
     row["udn_notes"] = list(runner.notes)
+    if hasattr(runner.model, "gain_range"):  # --lever sensor-gain: the field it learned
+        row["udn_sensor_gain_range"] = runner.model.gain_range()
     keep["udn"], keep["udn_blend"] = sel, blend
     if args.seeds > 1:
         members, walls = [sel], [runner.elapsed_s]
@@ -455,6 +470,12 @@ def make_runner(model: Any, b: Any, net: Any, cfg: Any, lever: str = "none") -> 
       of single values.
     - ``deep-decoder``: another prior, the deep decoder (:func:`_deep_decoder_class`) in place
       of the encoder-decoder; the rest of the runner (loss, gain, stop) unchanged.
+    - ``sensor-gain``: the forward model gets a smooth multiplicative field on the sensor, one
+      per colour channel, learned with the network (log-gains at ``SENSOR_GAIN_POINTS`` control
+      points along the measured extent's shorter side, bilinear between them, starting at 1,
+      bounded to [1 / ``SENSOR_GAIN_MAX``, ``SENSOR_GAIN_MAX``]):
+      a camera whose response departs smoothly from the model (the sensor side of the mismatch
+      the held-out pixels cannot tell from detail) is fitted by the field, not by the image.
     """
     import numpy as np
     import torch
@@ -518,6 +539,51 @@ def make_runner(model: Any, b: Any, net: Any, cfg: Any, lever: str = "none") -> 
         r._net = dd
         r.G.set_gain(r._fit_gain() * cfg.headroom)
         r.initial_gain = r.G.gain
+        r.opt = torch.optim.Adam(r.G.parameters(), lr=cfg.lr)
+        r._snapshot = r._take_snapshot()
+        return r
+    if lever == "sensor-gain":
+        import torch.nn.functional as F
+
+        r = UDNRunner(model, b, network=net, config=cfg)
+        measured = (r.fit | r.heldout).reshape(-1, *r.fit.shape[-2:]).any(dim=0)
+        rows = torch.nonzero(measured.any(dim=1)).flatten()
+        cols = torch.nonzero(measured.any(dim=0)).flatten()
+        r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+        hh, ww = r1 - r0, c1 - c0
+        ph, pw = measured.shape
+        n = SENSOR_GAIN_POINTS - 1  # intervals along the shorter side, as many per length
+        gh, gw = (n + 1, round(n * ww / hh) + 1) if hh <= ww else (round(n * hh / ww) + 1, n + 1)
+        nc = int(r.b.shape[0])
+        r.G.register_parameter("sensor_log_gain", torch.nn.Parameter(
+            torch.zeros(nc, 1, gh, gw, device=r.b.device)))
+
+        class _SensorGainModel:
+            """The model with the learned smooth sensor gain applied to its prediction."""
+
+            def __init__(self, base: Any, log_gain: Any) -> None:
+                self._base, self._log_gain = base, log_gain
+
+            def __getattr__(self, name: str) -> Any:
+                return getattr(self._base, name)
+
+            def field(self) -> Any:
+                bound = math.log(SENSOR_GAIN_MAX)
+                f = F.interpolate(bound * torch.tanh(self._log_gain), size=(hh, ww),
+                                  mode="bilinear", align_corners=True)
+                return F.pad(f, (c0, pw - c1, r0, ph - r1)).exp()  # 1 outside the extent
+
+            def apply(self, x: Any) -> Any:
+                ax = self._base.apply(x)
+                f = self.field()
+                return ax * f.reshape(nc, *([1] * (ax.dim() - 3)), ph, pw)
+
+            def gain_range(self) -> list[float]:
+                with torch.no_grad():
+                    f = self.field()[..., r0:r1, c0:c1]
+                return [float(f.min()), float(f.max())]
+
+        r.model = _SensorGainModel(model, r.G.sensor_log_gain)
         r.opt = torch.optim.Adam(r.G.parameters(), lr=cfg.lr)
         r._snapshot = r._take_snapshot()
         return r
@@ -656,6 +722,127 @@ def case_table(rows: list[dict[str, Any]]) -> str:
         out.append(f"| {r['pair']} | {r['erasure']:.0%} | " + " | ".join(cells) +
                    f" | {r['fista_auto']['tau']:g} / {r['fista_oracle']['tau']:g} | {its} | "
                    f"{clip} |")
+    return "\n".join(out)
+
+
+#: the scale of the shading in the error analysis: a Gaussian of this fraction of the frame's
+#: shorter side (8 px at 67x120)
+SHADING_FRACTION = 1 / 8
+#: the finest band of the error analysis: below a Gaussian of this fraction of the shorter side
+#: (about 1 px at 67x120, 4 px at the dataset's 270x480)
+FINE_FRACTION = 1 / 64
+#: the methods of the error analysis, from the images a run keeps
+ERROR_METHODS = (("fista_auto", "FISTA-TV auto tau"), ("fista_oracle", "FISTA-TV oracle tau"),
+                 ("udn", "UDN (held-out stop)"), ("udn_blend", "UDN+FISTA blend"),
+                 ("udn_ensemble", "UDN seed ensemble"))
+
+
+ERROR_TEXT = (
+    "Where the error is (`--error-analysis`, from the kept images). The error against the "
+    "truth (after the gain fit) split by scale with Gaussian blurs: *fine*, what a blur of "
+    "1/{fine} of the frame's shorter side removes; *smooth*, what is left after a blur of "
+    "1/{den} of it (the shading); *mid*, between the two; each as the mean squared value x "
+    "1000 (the bands overlap a little, so they do not add up to the total exactly). The row "
+    "*the truth's own content* gives the same bands of the truth less its mean per channel: "
+    "the error of an estimate without any of that content. Then the PSNR once a shading is "
+    "removed that was learned from the *other* pairs at that level (per colour channel, "
+    "blurred truth over blurred estimate; leave one pair out, so no case is corrected with "
+    "its own truth).\n\n")
+
+
+def _smooth(a: Any, sigma: float) -> Any:
+    """Each channel of (C, h, w) blurred by a Gaussian of ``sigma`` pixels (edges reflected)."""
+    import numpy as np
+    from scipy.ndimage import gaussian_filter
+
+    return np.stack([gaussian_filter(np.asarray(c, np.float64), sigma) for c in a])
+
+
+def _bands(err: Any, fine_sigma: float, sigma: float) -> list[float]:
+    """Mean squares of ``err`` below ``fine_sigma``, between, and above ``sigma``."""
+    import numpy as np
+
+    e1, es = _smooth(err, fine_sigma), _smooth(err, sigma)
+    return [float(np.mean(b ** 2)) for b in (err - e1, e1 - es, es)]
+
+
+def error_analysis(images: dict[tuple[str, float], dict[str, Any]]) -> list[dict[str, Any]]:
+    """Where the error against the truth is, per erasure level and method (mean over pairs).
+
+    ``psnr``: after the gain fit, as in the tables. ``fine`` / ``mid`` / ``smooth``: the mean
+    squared error in three bands of scale, split by Gaussian blurs of the error at
+    ``FINE_FRACTION`` and at ``SHADING_FRACTION`` of the frame's shorter side (fine = e -
+    blur_f e, mid = blur_f e - blur_s e, smooth = blur_s e). The row of method ``truth`` has
+    the same bands of the truth less its mean per channel (the error of an estimate without
+    any of that content), so a method's band reads as the part of it not recovered.
+    ``psnr_shaded``: after a shading correction learned from the *other* pairs at the same
+    level and applied to this one: s = sum_other blur_s(truth) / sum_other blur_s(gain-fitted
+    estimate), per colour channel, then the gain fit again (leave one pair out, so no case is
+    corrected with its own truth). A smooth error that the other scenes share is the camera's
+    (vignetting, the reference camera's shading), not the scene's: no prior can remove it
+    from one measurement, and if removing it lifts the methods alike it is not what separates
+    them. Levels with fewer than two pairs are left out.
+    """
+    import numpy as np
+
+    from recon.metrics import gain_fit, psnr
+
+    out: list[dict[str, Any]] = []
+    for e in sorted({e for _, e in images}):
+        cases = {p: imgs for (p, ee), imgs in images.items() if ee == e and "truth" in imgs}
+        if len(cases) < 2:
+            continue
+        short = min(next(iter(cases.values()))["truth"].shape[-2:])
+        fs, sigma = FINE_FRACTION * short, SHADING_FRACTION * short
+        fine, mid, smooth = (float(v) for v in np.mean(
+            [_bands(c["truth"] - c["truth"].mean(axis=(-2, -1), keepdims=True), fs, sigma)
+             for c in cases.values()], axis=0))
+        out.append({"erasure": e, "method": "truth", "label": "the truth's own content",
+                    "pairs": len(cases), "sigma": sigma, "psnr": None, "psnr_shaded": None,
+                    "fine": fine, "mid": mid, "smooth": smooth})
+        for key, label in ERROR_METHODS:
+            have = {p: c for p, c in cases.items() if key in c}
+            if len(have) < 2:
+                continue
+            fitted = {p: gain_fit(c["truth"], np.asarray(c[key]).reshape(c["truth"].shape))[0]
+                      for p, c in have.items()}
+            blur_t = {p: _smooth(c["truth"], sigma) for p, c in have.items()}
+            blur_f = {p: _smooth(f, sigma) for p, f in fitted.items()}
+            p0, p1, bands = [], [], []
+            for p, c in have.items():
+                t, f = c["truth"], fitted[p]
+                num = sum(blur_t[q] for q in have if q != p)
+                den = sum(blur_f[q] for q in have if q != p)
+                shade = num / np.maximum(den, 1e-6 * float(np.max(den)))
+                bands.append(_bands(t - f, fs, sigma))
+                p0.append(psnr(t, f))
+                p1.append(psnr(t, gain_fit(t, (shade * f).astype(np.float32))[0]))
+            fine, mid, smooth = (float(v) for v in np.mean(bands, axis=0))
+            out.append({"erasure": e, "method": key, "label": label, "pairs": len(have),
+                        "sigma": sigma, "psnr": float(np.mean(p0)),
+                        "psnr_shaded": float(np.mean(p1)),
+                        "fine": fine, "mid": mid, "smooth": smooth})
+    return out
+
+
+def error_table(rows: list[dict[str, Any]]) -> str:
+    """The error analysis as Markdown, with each method's distance to oracle FISTA-TV."""
+    ref = {r["erasure"]: r for r in rows if r["method"] == "fista_oracle"}
+    out = ["| erasure | method | pairs | PSNR (dB) | error x 1000: fine / mid / smooth | "
+           "PSNR, shading of the other pairs removed (dB) | gain (dB) | - oracle FISTA-TV, "
+           "before / after (dB) |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        bands = f"{1e3 * r['fine']:.2f} / {1e3 * r['mid']:.2f} / {1e3 * r['smooth']:.2f}"
+        if r["psnr"] is None:  # the truth's own content
+            out.append(f"| {r['erasure']:.0%} | {r['label']} | {r['pairs']} | - | {bands} | - "
+                       "| - | - |")
+            continue
+        o = ref.get(r["erasure"])
+        d = (f"{r['psnr'] - o['psnr']:+.2f} / {r['psnr_shaded'] - o['psnr_shaded']:+.2f}"
+             if o is not None else "-")
+        out.append(f"| {r['erasure']:.0%} | {r['label']} | {r['pairs']} | {r['psnr']:.2f} | "
+                   f"{bands} | {r['psnr_shaded']:.2f} | {r['psnr_shaded'] - r['psnr']:+.2f} | "
+                   f"{d} |")
     return "\n".join(out)
 
 
@@ -863,6 +1050,14 @@ def run(args: argparse.Namespace) -> int:
     summary, cases = make_tables(rows), case_table(rows)
     print(summary)
     print(cases)
+    errors = ""
+    if args.error_analysis:
+        erows = error_analysis(_load_images(args.results))
+        if not erows:
+            raise SystemExit(f"--error-analysis: {args.results} has no level with the images "
+                             "of two pairs or more")
+        errors = error_table(erows)
+        print(errors)
     if args.figure:
         write_figure(_load_images(args.results), args.figure)
     if args.out:
@@ -921,7 +1116,10 @@ def run(args: argparse.Namespace) -> int:
             + ". "
             + where + "\n\n"
             "Mean over the pairs:\n\n" + summary + "\n\nPSNR (dB) per case:\n\n" + cases +
-            "\n\n" + fig + f"Produced by `{cmd}` (the runs appended to the results file; "
+            "\n\n" + (ERROR_TEXT.format(
+                fine=round(1 / FINE_FRACTION), den=round(1 / SHADING_FRACTION)) + errors + "\n\n"
+                      if errors else "") + fig +
+            f"Produced by `{cmd}` (the runs appended to the results file; "
             "this table and figure from all of them). In one go: `lenslesscam bench "
             f"real-pairs --downsample {s['downsample']} --udn-iters {s['udn_iters']}"
             + (f" --seeds {s['seeds']}" if s.get("seeds", 1) > 1 else "")

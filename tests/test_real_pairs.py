@@ -196,6 +196,13 @@ def test_levers_change_what_they_say_and_the_oracle_stop_is_the_curve_max() -> N
     net = NetworkConfig(channels=8, scales=2)
     cfg = UDNConfig(max_iter=5, holdout=0.1, seed=0)
     runs = {lever: rp.make_runner(model, b, net, cfg, lever) for lever in rp.LEVERS}
+    # 'sensor-gain': the prediction starts as the plain model's (the field is 1), the field
+    # is a weight of the generator (snapshots and restores carry it), 1 outside the sensor
+    sg = runs["sensor-gain"]
+    x0 = sg._forward(noise=False).detach()
+    assert torch.equal(sg.model.apply(x0), model.apply(x0))
+    assert "sensor_log_gain" in sg.G.state_dict() and sg.model.gain_range() == [1.0, 1.0]
+    assert sg.G.sensor_log_gain.shape == (3, 1, 5, 8)  # 5 points on 67 rows, 8 on 120
     gains = runs["channel-gain"].G.log_gain.detach().exp().reshape(-1)
     assert gains.numel() == 3 and float(gains.max() / gains.min()) > 1.05
     assert runs["channel-gain"].initial_gain == pytest.approx(float(gains.max()))
@@ -205,6 +212,10 @@ def test_levers_change_what_they_say_and_the_oracle_stop_is_the_curve_max() -> N
         for _ in r.steps():
             pass
     final = runs["channel-gain"].G.log_gain.detach().exp().reshape(-1)
+    lo, hi = sg.model.gain_range()
+    assert lo < 1.0 < hi  # learned with the network
+    outside = sg.model.field()[..., mask.sum(axis=1) == 0, :]
+    assert torch.equal(outside, torch.ones_like(outside))
     assert not torch.allclose(final, gains)  # learned, per channel
     plain, prec = runs["none"].final_estimate(), runs["precondition"].final_estimate()
     assert np.isfinite(prec).all() and not np.allclose(plain, prec, rtol=1e-3, atol=1e-6)
@@ -284,3 +295,42 @@ def test_an_unknown_device_is_one_line(tmp_path) -> None:
     args = parser.parse_args(["--device", "tpu", "--data", str(tmp_path), "--downsample", "1"])
     with pytest.raises(SystemExit, match=r"--device: unknown device 'tpu'"):
         rp.run(args)
+
+
+def test_error_analysis_removes_a_shading_the_other_pairs_share_and_nothing_else() -> None:
+    """A camera shading shared by every scene (an estimate that is the truth divided by one
+    smooth field) is found from the *other* pairs and removed; an error of white noise is
+    not smooth and gains nothing; one pair alone is not analysed (nothing to learn from)."""
+    rng = np.random.default_rng(0)
+    h, w = 128, 192  # a fine band of 2 px, a shading scale of 16 px
+    yy, xx = np.mgrid[0:h, 0:w]
+    shade = 0.6 + 0.8 * (xx / w) * (1 - 0.5 * yy / h)  # 0.6 .. 1.4, the same for all scenes
+    images = {}
+    for i, name in enumerate(("a", "b", "c", "d")):
+        truth = np.clip(rng.random((3, h, w)) * 0.3 + 0.3 + 0.1 * i, 0, 1).astype(np.float32)
+        images[(name, 0.5)] = {
+            "truth": truth,
+            "fista_oracle": (truth / shade).astype(np.float32),
+            "udn": (truth + 0.05 * rng.standard_normal(truth.shape)).astype(np.float32)}
+    images[("a", 0.99)] = dict(images[("a", 0.5)])  # one pair at that level
+    # two pairs whose shadings are opposite: each is corrected with the other's, never its own
+    for name, est in (("a", lambda t: t / shade), ("b", lambda t: t * shade)):
+        t = images[(name, 0.5)]["truth"]
+        images[(name, 0.9)] = {"truth": t, "fista_oracle": est(t).astype(np.float32)}
+    out = rp.error_analysis(images)
+    assert {r["erasure"] for r in out} == {0.5, 0.9}
+    opposite = next(r for r in out if r["erasure"] == 0.9 and r["method"] == "fista_oracle")
+    assert opposite["psnr_shaded"] < opposite["psnr"] - 3
+    rows = {r["method"]: r for r in out if r["erasure"] == 0.5}
+    shaded, noisy, content = rows["fista_oracle"], rows["udn"], rows["truth"]
+    # the truths are white too (uniform, variance 0.3^2 / 12), so their own fine band is to the
+    # noise's as their variances are (clipping aside)
+    assert content["psnr"] is None
+    assert content["fine"] / noisy["fine"] == pytest.approx((0.3 ** 2 / 12) / 0.05 ** 2, rel=0.1)
+    assert shaded["smooth"] > 5 * (shaded["fine"] + shaded["mid"])  # a slow error
+    assert noisy["fine"] > 5 * (noisy["mid"] + noisy["smooth"])  # white noise: the finest
+    assert shaded["psnr_shaded"] > shaded["psnr"] + 10  # the shared shading is gone
+    assert abs(noisy["psnr_shaded"] - noisy["psnr"]) < 0.1  # nothing shared to remove
+    table = rp.error_table(list(rows.values()))
+    assert "| 50% | FISTA-TV oracle tau | 4 |" in table and "+0.00 / +0.00" in table
+    assert "| 50% | the truth's own content | 4 | - |" in table
