@@ -23,7 +23,9 @@ MS-SSIM with as many scales as the size allows):
   pixels (against a FISTA run at that tau that did not see them either).
 
 Each case is appended to ``--results`` (JSON lines) as soon as it is done, so a long run can be
-turned into the table at any time with ``--table-only``.
+turned into the table at any time with ``--table-only``. ``--error-analysis`` adds where the
+error against the truth is (by band of scale, and after removing a shading learned from the
+other pairs: :func:`error_analysis`), from the images each case keeps.
 
     lenslesscam bench real-pairs --downsample 4 --udn-iters 500 --out docs/real-pairs.md
 """
