@@ -118,8 +118,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None, help="write the Markdown here")
     p.add_argument("--error-analysis", action="store_true",
                    help="also where the error against the truth is, from the kept images: "
-                   "the share that varies slowly across the image, and the PSNR once the "
-                   "shading learned from the other pairs is removed (leave one pair out)")
+                   "by band of scale (fine / mid / smooth, beside the truth's own content), "
+                   "and the PSNR once the shading learned from the other pairs is removed "
+                   "(leave one pair out)")
 
 
 # ---------------------------------------------------------------------------------------------
