@@ -459,6 +459,16 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     return row
 
 
+def _restart(r: Any) -> Any:
+    """A runner whose generator a lever changed: a fresh optimizer over its weights now, and
+    the restore point taken again (so a divergence restores the changed generator)."""
+    import torch
+
+    r.opt = torch.optim.Adam(r.G.parameters(), lr=r.config.lr)
+    r._snapshot = r._take_snapshot()
+    return r
+
+
 def make_runner(model: Any, b: Any, net: Any, cfg: Any, lever: str = "none") -> Any:
     """A UDN runner, plain or with one of the ``--lever`` variants (measured, not defaults).
 
@@ -530,9 +540,7 @@ def make_runner(model: Any, b: Any, net: Any, cfg: Any, lever: str = "none") -> 
         r.G.log_gain = torch.nn.Parameter(
             (g * cfg.headroom).log().reshape(head).to(torch.float32))
         r.initial_gain = r.G.gain
-        r.opt = torch.optim.Adam(r.G.parameters(), lr=cfg.lr)
-        r._snapshot = r._take_snapshot()
-        return r
+        return _restart(r)
     if lever == "deep-decoder":
         r = UDNRunner(model, b, network=net, config=cfg)
         with torch.random.fork_rng(devices=[]):
@@ -542,9 +550,7 @@ def make_runner(model: Any, b: Any, net: Any, cfg: Any, lever: str = "none") -> 
         r._net = dd
         r.G.set_gain(r._fit_gain() * cfg.headroom)
         r.initial_gain = r.G.gain
-        r.opt = torch.optim.Adam(r.G.parameters(), lr=cfg.lr)
-        r._snapshot = r._take_snapshot()
-        return r
+        return _restart(r)
     if lever == "sensor-gain":
         import torch.nn.functional as F
 
@@ -587,9 +593,7 @@ def make_runner(model: Any, b: Any, net: Any, cfg: Any, lever: str = "none") -> 
                 return [float(f.min()), float(f.max())]
 
         r.model = _SensorGainModel(model, r.G.sensor_log_gain)
-        r.opt = torch.optim.Adam(r.G.parameters(), lr=cfg.lr)
-        r._snapshot = r._take_snapshot()
-        return r
+        return _restart(r)
     if lever == "block-holdout":
         from recon.holdout import heldout_blocks
 
