@@ -216,6 +216,10 @@ def test_levers_change_what_they_say_and_the_oracle_stop_is_the_curve_max() -> N
     assert lo < 1.0 < hi  # learned with the network
     outside = sg.model.field()[..., mask.sum(axis=1) == 0, :]
     assert torch.equal(outside, torch.ones_like(outside))
+    with torch.no_grad():  # however far its weights go, the field stays within its bounds
+        sg.G.sensor_log_gain[0].fill_(50.0)
+        sg.G.sensor_log_gain[1:].fill_(-50.0)
+    assert sg.model.gain_range() == pytest.approx([1 / rp.SENSOR_GAIN_MAX, rp.SENSOR_GAIN_MAX])
     assert not torch.allclose(final, gains)  # learned, per channel
     plain, prec = runs["none"].final_estimate(), runs["precondition"].final_estimate()
     assert np.isfinite(prec).all() and not np.allclose(plain, prec, rtol=1e-3, atol=1e-6)
