@@ -768,12 +768,17 @@ def _smooth(a: Any, sigma: float) -> Any:
     return np.stack([gaussian_filter(np.asarray(c, np.float64), sigma) for c in a])
 
 
+def _split(err: Any, fine_sigma: float, sigma: float) -> tuple[Any, Any, Any]:
+    """``err`` as fine + mid + smooth: below a blur of ``fine_sigma``, between, above ``sigma``."""
+    e1, es = _smooth(err, fine_sigma), _smooth(err, sigma)
+    return err - e1, e1 - es, es
+
+
 def _bands(err: Any, fine_sigma: float, sigma: float) -> list[float]:
-    """Mean squares of ``err`` below ``fine_sigma``, between, and above ``sigma``."""
+    """Mean squares of the three parts of ``err`` (:func:`_split`)."""
     import numpy as np
 
-    e1, es = _smooth(err, fine_sigma), _smooth(err, sigma)
-    return [float(np.mean(b ** 2)) for b in (err - e1, e1 - es, es)]
+    return [float(np.mean(b ** 2)) for b in _split(err, fine_sigma, sigma)]
 
 
 def _mid_factor(cases: list[tuple[Any, Any, float, float]], gain_db: float) -> float | None:
@@ -788,8 +793,8 @@ def _mid_factor(cases: list[tuple[Any, Any, float, float]], gain_db: float) -> f
 
     parts = []
     for t, err, fs, sigma in cases:
-        e1, es = _smooth(err, fs), _smooth(err, sigma)
-        parts.append((t, err - e1 + es, e1 - es))  # (truth, fine + smooth, mid)
+        fine, mid, smooth = _split(err, fs, sigma)
+        parts.append((t, fine + smooth, mid))
 
     def mean_psnr(a: float) -> float:
         return float(np.mean([psnr(t, (t - rest - a * mid).astype(np.float32))
