@@ -114,9 +114,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     mm = parse_bytes(args.max_memory) if args.max_memory else None
     total = _spec_max_iter(args.spec)
+    threads = getattr(args, "global_threads", None)  # lenslesscam --threads N: this session's
     return run_with_progress(
         lambda progress, cancel: run_job(args.spec, args.out, progress=progress, cancel=cancel,
-                                         max_memory=mm, seed=args.seed), args, total, args.out)
+                                         max_memory=mm, seed=args.seed, threads=threads),
+        args, total, args.out)
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
@@ -126,6 +128,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
 
     mm = parse_bytes(args.max_memory) if args.max_memory else None
     total = args.max_iter or job_status(args.run_dir).max_iter
+    threads = getattr(args, "global_threads", None)  # lenslesscam --threads N: this session's
 
     def notice(line: str) -> None:
         print(f"lenslesscam jobs resume: note: {line}", file=sys.stderr)
@@ -134,8 +137,8 @@ def cmd_resume(args: argparse.Namespace) -> int:
         lambda progress, cancel: resume_job(args.run_dir, max_iter=args.max_iter,
                                             time_limit_s=args.time_limit, progress=progress,
                                             cancel=cancel, max_memory=mm, restart=args.restart,
-                                            notice=notice), args, total,
-        args.run_dir)
+                                            notice=notice, threads=threads),
+        args, total, args.run_dir)
 
 
 def _spec_max_iter(path: str) -> int | None:

@@ -102,7 +102,8 @@ def build_spec(args: argparse.Namespace) -> dict[str, Any]:
                      "holdout": args.holdout, "patience": args.patience},
         "device": {"device": args.device, "precision": args.precision,
                    "compile": args.compile, "channels_last": args.channels_last,
-                   "threads": args.threads, "max_memory": args.max_memory},
+                   "threads": args.threads or getattr(args, "global_threads", None),
+                   "max_memory": args.max_memory},
         "output": {"checkpoint_every": args.checkpoint_every,
                    "preview_every": args.preview_every},
     }

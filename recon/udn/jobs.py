@@ -360,6 +360,8 @@ class _Job:
         self.cancel = _CancelCheck(cancel, run_dir)
         self.rows: list[dict[str, Any]] = []
         self.runner: UDNRunner | None = None
+        #: torch threads for this session given by the caller (overrides device.threads)
+        self.threads: int | None = None
         self.problem: Problem | None = None
         self.spec: dict[str, Any] = record["spec"]
         self._last_status = 0.0
@@ -440,7 +442,9 @@ class _Job:
         device = resolve_device(dev_name)
         from recon.threads import apply_threads
 
-        threads = apply_threads(spec["device"]["threads"])  # 0: the thread policy chooses
+        # 0: the thread policy chooses; the caller's count (--threads) overrides the spec's
+        want = self.threads if self.threads else spec["device"]["threads"]
+        threads = apply_threads(want)
         problem = _load_problem(spec, device)
         self.problem = problem
         model = problem.model
@@ -454,7 +458,8 @@ class _Job:
         self.runner = runner
         dev_info: dict[str, Any] = {
             "requested": dev_name, "device": str(device), "threads": torch.get_num_threads(),
-            "threads_reason": threads.reason,
+            "threads_reason": threads.reason if not self.threads else (
+                f"{threads.reason} (over the spec's {spec['device']['threads']})"),
             "precision": cfg.precision, "channels_last": cfg.channels_last,
             "compile": {"requested": cfg.compile, "active": bool(runner._compiled)},
             "machine": platform.machine(), "processor": platform.processor(),
@@ -752,7 +757,8 @@ def _start_notes(removed: list[str]) -> list[str]:
 
 def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: OnStep = None,
             cancel: Cancel = None, max_memory: int | None = None,
-            spec_text: str | None = None, seed: int | None = None) -> JobOutcome:
+            spec_text: str | None = None, seed: int | None = None,
+            threads: int | None = None) -> JobOutcome:
     """Run the job of ``spec_path`` into a new run folder ``run_dir``.
 
     Args:
@@ -764,6 +770,8 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: OnStep = No
         spec_text: the spec's text if it is not to be read from ``spec_path``.
         seed: overrides ``optimizer.seed`` (runs of one spec for an ensemble, see
             :mod:`recon.udn.ensemble`); recorded under ``overrides``.
+        threads: torch CPU threads for this run (overrides ``device.threads``; None or 0: the
+            spec's); recorded in the session's ``device``.
 
     Returns the outcome; on failure the run record says ``failed`` with the error, and the
     exception is raised again. Raises :class:`RunFolderBusy` while another process writes
@@ -781,13 +789,15 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: OnStep = No
         if (rd / RECORD_FILE).exists():  # written meanwhile by a process that held the lock
             raise ValueError(f"{rd} already holds a run: use 'jobs resume {rd}' or another "
                              "folder")
-        return _run_locked(sp, rd, lock, progress, cancel, max_memory, spec_text, seed)
+        return _run_locked(sp, rd, lock, progress, cancel, max_memory, spec_text, seed,
+                           threads)
     finally:
         lock.release()
 
 
 def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: OnStep, cancel: Cancel,
-                max_memory: int | None, spec_text: str, seed: int | None) -> JobOutcome:
+                max_memory: int | None, spec_text: str, seed: int | None,
+                threads: int | None = None) -> JobOutcome:
     removed = clean_temp_files(rd)
     copy = spec_text if seed is None else (
         f"# run with 'jobs run --seed {seed}': optimizer.seed = {seed} overrides this file "
@@ -810,6 +820,7 @@ def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: OnStep, cancel: Can
         "sessions": [],
     }
     job = _Job(rd, record, progress, cancel, lock)
+    job.threads = threads
     job.notes = _start_notes(removed)
     try:
         atomic_write_bytes(rd / SPEC_FILE, copy.encode("utf-8"))
@@ -846,7 +857,8 @@ def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: OnStep, cancel: Can
 def resume_job(run_dir: str | Path, *, max_iter: int | None = None,
                time_limit_s: float | None = None, progress: OnStep = None,
                cancel: Cancel = None, max_memory: int | None = None, restart: bool = False,
-               notice: Callable[[str], None] | None = None) -> JobOutcome:
+               notice: Callable[[str], None] | None = None,
+               threads: int | None = None) -> JobOutcome:
     """Continue a run from its newest verified checkpoint.
 
     ``max_iter`` / ``time_limit_s`` raise the limits (to continue a completed run). When the
@@ -854,6 +866,7 @@ def resume_job(run_dir: str | Path, *, max_iter: int | None = None,
     so. When no checkpoint is usable although one was written, the resume is refused unless
     ``restart`` (begin again from iteration 0); a run stopped before its first checkpoint starts
     again from 0 with a note. ``notice`` receives these notes (one line each) as they arise.
+    ``threads`` overrides ``device.threads`` for this session (as in :func:`run_job`).
 
     Refuses (:class:`RunFolderBusy`) while another process writes the folder, and inputs whose
     files changed since the run started.
@@ -863,14 +876,15 @@ def resume_job(run_dir: str | Path, *, max_iter: int | None = None,
     lock = RunLock(rd).acquire()
     try:
         return _resume_locked(rd, lock, max_iter, time_limit_s, progress, cancel, max_memory,
-                              restart, notice)
+                              restart, notice, threads)
     finally:
         lock.release()
 
 
 def _resume_locked(rd: Path, lock: RunLock, max_iter: int | None, time_limit_s: float | None,
                    progress: OnStep, cancel: Cancel, max_memory: int | None, restart: bool,
-                   notice: Callable[[str], None] | None) -> JobOutcome:
+                   notice: Callable[[str], None] | None,
+                   threads: int | None = None) -> JobOutcome:
     rec = read_record(rd)  # again, now that no other process writes it
     if rec.get("spec") is None:
         raise ValueError(f"{rd}: the run never started (its spec was invalid: "
@@ -926,6 +940,7 @@ def _resume_locked(rd: Path, lock: RunLock, max_iter: int | None, time_limit_s: 
         (rd / CANCEL_FILE).unlink()
     rec["resumes"] = int(rec.get("resumes", 0)) + 1
     job = _Job(rd, rec, progress, cancel, lock)
+    job.threads = threads
     job.notes = notes
     return _session(job, max_memory, state, info or None)
 

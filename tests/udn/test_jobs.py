@@ -384,3 +384,34 @@ def test_spec_headroom_reaches_the_runner_config(tiny_data, tmp_path):
     assert udn_config(load_spec(write_spec(tiny_data, "d.toml"))).headroom == 1.0
     with pytest.raises((SpecError, ValueError), match="headroom"):
         udn_config(load_spec(write_spec(tiny_data, "bad.toml", optimizer={"headroom": -1.0})))
+
+
+def test_global_threads_reach_jobs_run_resume_and_recon_udn(tiny_data, tmp_path, capsys):
+    """``lenslesscam --threads N`` sets the job's torch threads (the spec's count is the
+    default), says so in the record, and ``recon udn`` writes it into the spec it runs."""
+    before = torch.get_num_threads()
+    try:
+        spec = write_spec(tiny_data, stopping={"max_iter": 4})
+        assert "threads = 1" in spec.read_text()
+        out = tmp_path / "run"
+        assert cli_main(["--threads", "2", "jobs", "run", str(spec), "--out", str(out),
+                         "--quiet"]) == 0
+        dev = record(out)["device"]
+        assert dev["threads"] == 2 and "over the spec's 1" in dev["threads_reason"]
+        assert cli_main(["--threads", "3", "jobs", "resume", str(out), "--max-iter", "6",
+                         "--quiet"]) == 0
+        assert record(out)["device"]["threads"] == 3
+        # without the global option the spec's count applies again
+        assert cli_main(["jobs", "run", str(spec), "--out", str(tmp_path / "plain"),
+                         "--quiet"]) == 0
+        assert record(tmp_path / "plain")["device"]["threads"] == 1
+        one = tmp_path / "oneshot"
+        assert cli_main(["--threads", "2", "recon", "udn", "--psf", str(tiny_data / "psf.npy"),
+                         "--meas", str(tiny_data / "meas.npy"), "--iters", "2", "--scales", "3",
+                         "--net-channels", "8", "--input-channels", "4", "--quiet", "--out",
+                         str(one)]) == 0
+        assert record(one)["spec"]["device"]["threads"] == 2
+        assert "threads = 2" in (one / "job.toml").read_text()
+    finally:
+        torch.set_num_threads(before)
+        capsys.readouterr()
