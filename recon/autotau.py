@@ -99,6 +99,11 @@ class AutoTau:
 
     def describe(self) -> str:
         """One line for the terminal."""
+        if self.rule.endswith(" (iterations)"):
+            # a tau given by the user: only the iteration count was chosen
+            return (f"iterations auto ({self.rule}, {self.heldout_pixels} held-out pixels, "
+                    f"{self.cost_s:.1f} s): {self.iterations} iterations at the given tau "
+                    f"{self.tau:.3g}")
         return (f"tau auto ({self.rule}, {self.heldout_pixels} held-out pixels, "
                 f"{len(self.curve)} values tried in {self.cost_s:.1f} s): tau {self.tau:.3g}, "
                 f"{self.iterations} iterations")

@@ -113,6 +113,9 @@ def test_fixed_tau_chooses_only_iterations_and_bad_input_is_refused():
     _sim, model, b = _case(0.5)
     c = choose_tau(model, b, max_iter=60, min_iter=20, patience=20, fixed_tau=3e-4)
     assert c.tau == 3e-4 and len(c.curve) == 1 and 20 <= c.iterations <= 60
+    # the terminal line says the tau was given and only the iterations were chosen
+    assert c.describe().startswith("iterations auto (") and "given tau 0.0003" in c.describe()
+    assert "tau auto" not in c.describe()
     with pytest.raises(ValueError, match="holdout"):
         choose_tau(model, b, holdout=0.7)
     with pytest.raises(ValueError, match="measurement has shape"):
