@@ -143,8 +143,17 @@ def _read_cv(p: Path) -> Array:
 
 
 def _read_npy(p: Path) -> Array:
+    with open(p, "rb") as f:
+        magic = f.read(6)
+    if magic != b"\x93NUMPY":  # numpy would call anything else pickled data
+        raise ValueError(f"cannot read {p} as NPY: not a NumPy .npy file (no NPY header)")
     try:
         arr = np.load(p, allow_pickle=False)
+    except ValueError as exc:
+        if "allow_pickle" in str(exc):  # numpy's advice to unpickle: never taken here
+            raise ValueError(f"cannot read {p} as NPY: it holds Python objects, not numbers "
+                             "(pickled data is never loaded)") from exc
+        raise ValueError(f"cannot read {p} as NPY: {exc}") from exc
     except Exception as exc:
         raise ValueError(f"cannot read {p} as NPY: {exc}") from exc
     return np.asarray(arr)

@@ -128,7 +128,7 @@ def test_mat_v73_column_major(tmp_path: Path) -> None:
     [
         ("bad.tif", r"cannot read .*bad\.tif as TIFF"),
         ("bad.png", r"cannot read .*bad\.png as PNG"),
-        ("bad.npy", r"cannot read .*bad\.npy as NPY"),
+        ("bad.npy", r"cannot read .*bad\.npy as NPY: not a NumPy \.npy file \(no NPY header\)$"),
         ("bad.npz", r"cannot read .*bad\.npz as NPZ"),
         ("bad.mat", r"cannot read .*bad\.mat as MATLAB"),
     ],
@@ -138,6 +138,14 @@ def test_corrupt_files(tmp_path: Path, name: str, pattern: str) -> None:
     p.write_bytes(b"this is not an image at all" * 10)
     with pytest.raises(ValueError, match=pattern):
         rio.load_image(p)
+
+
+def test_npy_of_python_objects_is_refused_without_advice_to_unpickle(tmp_path: Path) -> None:
+    p = tmp_path / "obj.npy"
+    np.save(p, np.array([{"a": 1}], dtype=object))
+    with pytest.raises(ValueError, match="holds Python objects") as info:
+        rio.load_image(p)
+    assert "allow_pickle" not in str(info.value)
 
 
 def test_truncated_tiff(tmp_path: Path) -> None:
