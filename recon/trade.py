@@ -62,7 +62,11 @@ class Case:
     psf: F32  # (C, H, W), unit sum
     meas: F32  # (C, H, W)
     mask: F32 | None = None  # (H, W), 1 = measured
-    truth: F32 | None = None  # (C, 1, H, W)
+    truth: F32 | None = None  # (C, 1, Hs, Ws)
+    #: the scene field (Hs, Ws); None: the measurement's grid. A measurement embedded in a
+    #: padded PSF grid (the DiffuserCam dataset layout) is reconstructed on its sensor's field,
+    #: as ``recon fista`` does (``recon.problem``: the problem's ``model.info["field"]``)
+    field: tuple[int, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -248,14 +252,14 @@ def _upsample(x: F32, shape: tuple[int, int]) -> F32:
 
 
 def _iterate(cfg: Config, psf: F32, meas: F32, mask: F32, seed: int,
-             ) -> Iterator[tuple[int, F32, float]]:
-    """Yield (iteration, estimate, elapsed) at each checkpoint of one run."""
+             field: tuple[int, int] | None = None) -> Iterator[tuple[int, F32, float]]:
+    """Yield (iteration, estimate, elapsed) at each checkpoint of one run (scene ``field``)."""
     last = max(cfg.checkpoints)
     if cfg.method in ("fista", "admm"):
         dtype = torch.float64 if cfg.precision == "float64" else torch.float32
         if cfg.precision not in ("float32", "float64"):
             raise ValueError(f"{cfg.method} runs in float32 or float64, not {cfg.precision}")
-        model = build_model("2d", psf, mask=mask, dtype=dtype)
+        model = build_model("2d", psf, mask=mask, dtype=dtype, field=field)
         b = torch.as_tensor(meas, dtype=dtype)
         t0 = time.perf_counter()
         if cfg.method == "fista":
@@ -279,7 +283,7 @@ def _iterate(cfg: Config, psf: F32, meas: F32, mask: F32, seed: int,
     if cfg.method == "udn":
         from recon.udn import NetworkConfig, UDNConfig, UDNRunner
 
-        model = build_model("2d", psf, mask=mask)
+        model = build_model("2d", psf, mask=mask, field=field)
         net = NetworkConfig(scales=cfg.scales, channels=cfg.channels)
         conf = UDNConfig(max_iter=last, seed=seed, precision=cfg.precision,  # type: ignore[arg-type]
                          holdout=0.0)
@@ -317,10 +321,12 @@ def run_trade(
     hold[rng.choice(idx, n_hold, replace=False)] = True
     hold = hold.reshape(h, w)
     fit_mask = (measured > 0) & ~hold
-    full = build_model("2d", case.psf, dtype=torch.float64)
+    fh, fw = case.field if case.field is not None else (h, w)
+    full = build_model("2d", case.psf, dtype=torch.float64, field=(fh, fw))
     peak = float(np.abs(case.meas[:, hold]).max()) or 1.0
     # warm-up: one-time costs (thread pools, FFT plans) must not land on the first setting
-    for _ in _iterate(Config("fista", 0.0, (2,)), case.psf, case.meas, measured, seed):
+    for _ in _iterate(Config("fista", 0.0, (2,)), case.psf, case.meas, measured, seed,
+                      (fh, fw)):
         pass
     for cfg in grid:
         if cancel is not None and cancel():
@@ -328,9 +334,10 @@ def run_trade(
         psf_d, meas_d, mask_d = _downsample_case(case.psf, case.meas,
                                                  fit_mask.astype(np.float32), cfg.downsample)
         base = _reset_peak()
-        for it, x, elapsed in _iterate(cfg, psf_d, meas_d, mask_d, seed):
+        field_d = (fh // cfg.downsample, fw // cfg.downsample)
+        for it, x, elapsed in _iterate(cfg, psf_d, meas_d, mask_d, seed, field_d):
             mem = _peak_mb(base)
-            xf = _upsample(x, (h, w)) if cfg.downsample > 1 else x
+            xf = _upsample(x, (fh, fw)) if cfg.downsample > 1 else x
             with torch.no_grad():
                 pred = full.apply(torch.as_tensor(xf, dtype=torch.float64)).numpy()
             fit = pred[:, fit_mask]

@@ -44,6 +44,8 @@ def register(sub: Any) -> None:
     add_layout_arguments(p)
     p.add_argument("--downsample", type=POSITIVE_INT, default=1,
                    help="box downsampling factor (default 1)")
+    p.add_argument("--rgb", action="store_true", help="colour measurement and PSF")
+    p.add_argument("--field", default="sensor", help="scene field: sensor, full (2x) or HxW")
     p.add_argument("--quick", action="store_true", help="a small grid")
     p.add_argument("--no-udn", action="store_true", help="leave the UDN out of the grid")
     p.add_argument("--budgets", default="0.5,2,10,60", help="time budgets in seconds")
@@ -81,7 +83,8 @@ def _cases(args: argparse.Namespace) -> list[Any]:
         raise ValueError("--meas needs --psf")
     prob = load_problem(problem_spec(args, model="2d"))
     psf, meas, mask, truth = prob.psf, prob.meas, prob.mask, prob.truth
-    return [Case(Path(args.meas).stem, psf, meas, mask, truth)]
+    field = tuple(int(n) for n in prob.model.info["field"])
+    return [Case(Path(args.meas).stem, psf, meas, mask, truth, field)]  # type: ignore[arg-type]
 
 
 def run(args: argparse.Namespace) -> int:
