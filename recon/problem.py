@@ -91,6 +91,7 @@ __all__ = [
     "ProblemSpec",
     "load_problem",
     "load_truth",
+    "prepare_truth",
     "read_filters",
     "read_mask",
     "read_shutter",
@@ -403,20 +404,33 @@ def load_truth(spec: ProblemSpec, scene_shape: Sequence[int]) -> F32:
     """
     if spec.truth is None:
         raise ValueError("problem: no truth file given")
-    t = read_truth(spec.truth, color=spec.color, channel_order=spec.channel_order)
-    if spec.flip_rows:
+    return prepare_truth(spec.truth, scene_shape, color=spec.color,
+                         channel_order=spec.channel_order, flip_rows=spec.flip_rows,
+                         downsample=spec.downsample)
+
+
+def prepare_truth(path: PathLike, scene_shape: Sequence[int], *, color: str = "gray",
+                  channel_order: str = "rgb", flip_rows: bool = False,
+                  downsample: int = 1) -> F32:
+    """A truth file read and prepared as a measurement with these settings is (C, K, H, W).
+
+    :func:`load_truth` for a problem; ``lenslesscam metrics`` with the settings a
+    reconstruction's metadata records.
+    """
+    t = read_truth(path, color=color, channel_order=channel_order)
+    if flip_rows:
         t = np.ascontiguousarray(t[:, :, ::-1])
     scene = tuple(int(n) for n in scene_shape)
-    ds = int(spec.downsample)
+    ds = int(downsample)
     if t.shape[0] != scene[0] or t.shape[1] != scene[1]:
-        raise ValueError(f"truth file {spec.truth} has shape {t.shape}; the scene is "
+        raise ValueError(f"truth file {path} has shape {t.shape}; the scene is "
                          f"{scene} (C, K, H, W)")
     if t.shape[2:] == scene[2:]:
         return t
     if ds > 1 and (t.shape[2] // ds, t.shape[3] // ds) == scene[2:]:
         return np.asarray(box_downsample(t, ds), dtype=np.float32)
     more = f" or {scene[2] * ds}x{scene[3] * ds} (sensor resolution)" if ds > 1 else ""
-    raise ValueError(f"truth file {spec.truth} is {t.shape[2]}x{t.shape[3]}; the scene field "
+    raise ValueError(f"truth file {path} is {t.shape[2]}x{t.shape[3]}; the scene field "
                      f"is {scene[2]}x{scene[3]}{more}")
 
 

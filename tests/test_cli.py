@@ -222,3 +222,41 @@ def test_readme_command_list_matches_the_parser():
     filters = re.search(r"^lenslesscam calibrate filters (.*)$", readme, re.M)
     assert filters and "--camera" not in filters.group(1) and "--source" not in filters.group(1)
     assert "--cube" in filters.group(1)
+
+
+def test_metrics_reads_the_truth_like_the_reconstructions_measurement(tmp_path, capsys):
+    """A pair in the dataset layout (BGR, upside-down, truth at sensor resolution): metrics
+    prepares the truth as the reconstruction's metadata says its measurement was read (colour,
+    channel order, row flip, downsample), so the score is the one recon.problem's truth gives,
+    and says so; a flipped or channel-swapped truth would score far lower."""
+    import numpy as np
+
+    from recon.io import read_reconstruction
+    from recon.metrics import gain_fit, psnr
+    from recon.problem import ProblemSpec, load_problem
+    from tests.scenes import dataset_layout_pair
+
+    dataset_layout_pair(tmp_path)
+    files = {k: str(tmp_path / f"{k}.npy") for k in ("psf", "meas", "truth")}
+    rec = tmp_path / "rec.tif"
+    layout = ["--rgb", "--channel-order", "bgr", "--flip-rows", "--downsample", "2"]
+    code, _, err = _run(capsys, "recon", "fista", "--psf", files["psf"], "--meas", files["meas"],
+                        *layout, "--out", str(rec))
+    assert code == 0, err
+    code, out, err = _run(capsys, "metrics", "--ref", files["truth"], "--est", str(rec),
+                          "--gain-fit")
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["ref_prepared"] == {"color": "rgb", "channel_order": "bgr", "flip_rows": True,
+                                      "downsample": 2}
+    truth = load_problem(ProblemSpec(meas=files["meas"], psf=files["psf"], truth=files["truth"],
+                                     color="rgb", channel_order="bgr", flip_rows=True,
+                                     downsample=2)).truth
+    x = read_reconstruction(rec)[0]
+    assert report["psnr"] == pytest.approx(psnr(truth, gain_fit(truth, x)[0]), abs=1e-3)
+    wrong = np.ascontiguousarray(truth[::-1, :, ::-1])  # channels swapped, upside-down
+    assert report["psnr"] > psnr(wrong, gain_fit(wrong, x)[0]) + 3
+    # as stored, the truth is at sensor resolution: refused on the shapes, never scored wrong
+    code, _, err = _run(capsys, "metrics", "--ref", files["truth"], "--est", str(rec),
+                        "--gain-fit", "--ref-as-is")
+    assert code == 2 and "shapes differ" in err

@@ -115,24 +115,9 @@ def test_cli_on_a_colour_pair_in_the_dataset_layout_scores_the_sensor_field(tmp_
     DiffuserCam MirFlickr layout): trade reconstructs the sensor's field, as recon fista does,
     in colour, and scores it against the truth (it used to reconstruct the padded grid and stop
     on the shapes)."""
-    import torch
+    from tests.scenes import dataset_layout_pair
 
-    rng = np.random.default_rng(3)
-    psf = rng.random((48, 64)).astype(np.float32) ** 6
-    psf3 = np.stack([psf * g for g in (0.9, 1.0, 1.1)])  # (3, 48, 64), RGB
-    scene = np.zeros((3, 1, 24, 32), np.float32)
-    scene[0, :, 4:12, 5:20] = 1.0
-    scene[1, :, 10:20, 12:28] = 0.8
-    scene[2, :, 2:22, 2:8] = 0.6
-    full = build_model("2d", psf3, field=(24, 32)).apply(torch.as_tensor(scene)).numpy()
-    meas = full[:, 12:36, 16:48]  # the sensor: the central window of the padded grid
-
-    def stored(a):  # (3, H, W) RGB upright -> (H, W, 3) BGR upside-down
-        return np.ascontiguousarray(a[::-1, ::-1].transpose(1, 2, 0))
-
-    np.save(tmp_path / "psf.npy", stored(psf3))
-    np.save(tmp_path / "meas.npy", stored(meas))
-    np.save(tmp_path / "truth.npy", stored(scene[:, 0]))
+    dataset_layout_pair(tmp_path)
     code = main(["trade", "--meas", str(tmp_path / "meas.npy"), "--psf", str(tmp_path / "psf.npy"),
                  "--truth", str(tmp_path / "truth.npy"), "--rgb", "--channel-order", "bgr",
                  "--flip-rows", "--quick", "--no-udn", "--out", str(tmp_path / "out")])

@@ -39,14 +39,22 @@ def register(subparsers: Any) -> None:
         help="dynamic range L for PSNR/SSIM (default: range of the reference)",
     )
     p.add_argument("--key", default=None, help="variable name inside NPZ/MAT files")
+    p.add_argument("--ref-as-is", action="store_true",
+                   help="read GT exactly as stored; by default, when EST is a lenslesscam "
+                   "reconstruction, GT is prepared like the measurement it was made from (colour, "
+                   "--channel-order, --flip-rows, --downsample from EST's metadata; "
+                   "ref_prepared in the JSON)")
     p.add_argument("--spectral", action="store_true",
                    help="K is the spectral axis: also report the spectral cosine (automatic "
                    "for spectral reconstruction TIFFs)")
     p.set_defaults(func=run)
 
 
-def _load(path: Path, key: str | None) -> tuple[Any, str | None]:
-    """Load as (C, K, H, W) float64 and the reconstruction kind (None: not our TIFF)."""
+def _load(path: Path, key: str | None) -> tuple[Any, str | None, dict[str, Any] | None]:
+    """Load as (C, K, H, W) float64, the reconstruction kind and its metadata.
+
+    Kind and metadata are None for anything but a lenslesscam reconstruction TIFF.
+    """
     import numpy as np
 
     from recon import io as rio
@@ -55,7 +63,7 @@ def _load(path: Path, key: str | None) -> tuple[Any, str | None]:
     if path.suffix.lower() in (".tif", ".tiff"):
         try:
             arr, meta = rio.read_reconstruction(path)
-            return arr.astype(np.float64), meta.get("kind")
+            return arr.astype(np.float64), meta.get("kind"), meta
         except FormatError:
             pass  # a plain TIFF: read it as an image below
     a = np.asarray(rio.load_image(path, key=key))
@@ -63,16 +71,44 @@ def _load(path: Path, key: str | None) -> tuple[Any, str | None]:
         raise ValueError(f"{path}: not a numeric image (dtype {a.dtype})")
     a = a.astype(np.float64)
     if a.ndim == 2:
-        return a[np.newaxis, np.newaxis], None
+        return a[np.newaxis, np.newaxis], None, None
     if a.ndim == 3:
         if a.shape[0] in (1, 3) and a.shape[2] not in (3, 4):
-            return a[:, np.newaxis], None  # (C, H, W)
+            return a[:, np.newaxis], None, None  # (C, H, W)
         if a.shape[2] in (3, 4):
-            return np.moveaxis(a[..., :3], -1, 0)[:, np.newaxis], None  # (H, W, C) colour
-        return a[np.newaxis], None  # (K, H, W) stack
+            return np.moveaxis(a[..., :3], -1, 0)[:, np.newaxis], None, None  # (H, W, C)
+        return a[np.newaxis], None, None  # (K, H, W) stack
     if a.ndim == 4:
-        return a, None
+        return a, None, None
     raise ValueError(f"{path}: cannot interpret an image of shape {a.shape}")
+
+
+def _is_reconstruction(path: Path) -> bool:
+    """Whether ``path`` is a lenslesscam reconstruction TIFF (in the scene's frame already)."""
+    if path.suffix.lower() not in (".tif", ".tiff"):
+        return False
+    from recon import io as rio
+    from recon.formats import FormatError
+
+    try:
+        rio.read_reconstruction(path)
+    except (FormatError, ValueError, OSError):
+        return False
+    return True
+
+
+def _layout(meta: dict[str, Any] | None) -> dict[str, Any] | None:
+    """How the measurement of a reconstruction was read, as ``prepare_truth`` takes it.
+
+    From its metadata's ``preprocessing``; None when the metadata does not say.
+    """
+    pre = (meta or {}).get("preprocessing")
+    if not isinstance(pre, dict) or "channel_order" not in pre:
+        return None
+    return {"color": pre.get("color") or ("rgb" if pre.get("rgb") else "gray"),
+            "channel_order": pre.get("channel_order") or "rgb",
+            "flip_rows": bool(pre.get("flip_rows")),
+            "downsample": int(pre.get("downsample") or 1)}
 
 
 def _jsonable(v: Any) -> Any:
@@ -89,8 +125,17 @@ def run(args: argparse.Namespace) -> int:
 
     from recon.metrics import metrics_report, spectral_cosine_distance
 
-    ref, ref_kind = _load(args.ref, args.key)
-    est, est_kind = _load(args.est, args.key)
+    est, est_kind, est_meta = _load(args.est, args.key)
+    layout = _layout(est_meta)
+    prepared = None
+    if layout is not None and not args.ref_as_is and not _is_reconstruction(args.ref):
+        from recon.problem import prepare_truth
+
+        # the reference in the frame of the reconstruction: the one way a problem's truth is read
+        ref = prepare_truth(args.ref, est.shape, **layout).astype(np.float64)
+        ref_kind, prepared = None, layout
+    else:
+        ref, ref_kind, _ = _load(args.ref, args.key)
     if ref.shape != est.shape:
         raise ValueError(
             f"shapes differ: ref {args.ref} is {tuple(ref.shape)} (C, K, H, W), est {args.est} "
@@ -98,6 +143,8 @@ def run(args: argparse.Namespace) -> int:
         )
     report = metrics_report(ref, est, gain_fit=args.gain_fit, data_range=args.data_range)
     report = {"ref": str(args.ref), "est": str(args.est), **report}
+    if prepared is not None:
+        report["ref_prepared"] = prepared
     if args.spectral or "spectral" in (ref_kind, est_kind):
         if ref.shape[1] < 2:
             raise ValueError(f"a spectral score needs K >= 2 bands, got shape {ref.shape}")
