@@ -475,6 +475,15 @@ def _embed(a: Array, shape: tuple[int, int], offset: tuple[int, int]) -> Array:
     return out
 
 
+def _is_gray_image(path: Any) -> bool:
+    """Whether an image file holds one channel ((H, W), or a single plane)."""
+    try:
+        a = load_image(str(path))
+    except (OSError, ValueError):
+        return False  # load_psf names the problem
+    return a.ndim == 2 or (a.ndim == 3 and 1 in (a.shape[0], a.shape[2]))
+
+
 def _norm(mode: str) -> Any:
     return None if mode == "none" else mode
 
@@ -514,7 +523,10 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
         psf = load_psf_stack(list(stack_arg) if isinstance(stack_arg, tuple) else stack_arg,
                              dark=psf_dark, normalise=None)
     else:
-        psf = load_psf(str(spec.psf), dark=psf_dark, channels=color, channel_order=order,
+        # a gray PSF file with a colour measurement: one PSF shared by R, G and B (the layout
+        # of the MirFlickr dataset's original code); a colour file gives one PSF per channel
+        psf_color = "gray" if color == "rgb" and _is_gray_image(spec.psf) else color
+        psf = load_psf(str(spec.psf), dark=psf_dark, channels=psf_color, channel_order=order,
                        normalise=None)
     if spec.flip_rows:
         psf = np.ascontiguousarray(psf[:, ::-1])
@@ -670,6 +682,8 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
         "mask_hash": None if mask is None else array_hash(mask),
         "psf_normalise": pn, "meas_normalise": spec.meas_normalise,
     }
+    if spec.model != "depth" and color == "rgb" and psf.shape[0] == 1:
+        meta["psf_channels"] = "one gray PSF shared by R, G and B"
     if padded:
         meta["window"] = {"offset_sensor_px": list(offset), "sensor_px": [h_full, w_full]}
     if shutter_meta:

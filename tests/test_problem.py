@@ -186,8 +186,9 @@ def test_dlmd_truth_is_prepared_like_the_measurement():
                        psf=str(DLMD / "psf_estimated_270x480_gray.npy"),
                        truth=str(DLMD / "lensed_im408.npy"), downsample=6, color="rgb",
                        channel_order="bgr")
-    with pytest.raises(ValueError, match=r"psf_estimated_270x480_gray\.npy is grayscale"):
-        load_problem(spec)
+    shared = load_problem(spec)  # the gray PSF serves the three colour channels
+    assert shared.psf.shape == (1, 45, 80) and shared.meas.shape == (3, 45, 80)
+    assert shared.truth is not None and shared.truth.shape == (3, 1, 45, 80)
     prob = load_problem(spec.with_changes(color="gray"))
     assert prob.metadata["psf_grid"] == "sensor" and prob.meas.shape == (1, 45, 80)
     assert prob.truth is not None and prob.truth.shape == (1, 1, 45, 80)
@@ -287,3 +288,27 @@ def test_the_pixel_maps_file_of_calibrate_darks_is_a_mask(small, capsys):
     prob = load_problem(_spec(small, mask=str(pm), downsample=2))
     assert prob.mask is not None and prob.mask.shape == (12, 15) and prob.mask.all()
     assert prob.inputs["mask"]["file_hash"]
+
+
+def test_a_gray_psf_with_a_colour_measurement_is_shared_by_the_channels(tmp_path):
+    """The MirFlickr dataset's original code keeps one gray PSF for colour data: with --rgb a
+    gray PSF file serves R, G and B (said in the metadata), a colour file one per channel."""
+    from tests.scenes import dataset_layout_pair
+
+    dataset_layout_pair(tmp_path)
+    np.save(tmp_path / "psf_gray.npy", np.load(tmp_path / "psf.npy").sum(axis=2))
+    kw = dict(meas=str(tmp_path / "meas.npy"), truth=str(tmp_path / "truth.npy"), color="rgb",
+              channel_order="bgr", flip_rows=True)
+    gray = load_problem(ProblemSpec(psf=str(tmp_path / "psf_gray.npy"), **kw))
+    colour = load_problem(ProblemSpec(psf=str(tmp_path / "psf.npy"), **kw))
+    assert gray.psf.shape[0] == 1 and colour.psf.shape[0] == 3
+    assert gray.metadata["psf_channels"] == "one gray PSF shared by R, G and B"
+    assert "psf_channels" not in colour.metadata
+    assert gray.model.scene_shape == colour.model.scene_shape == (3, 1, 24, 32)
+    # the shared PSF predicts the colour measurement up to the per-channel gains it lacks
+    import torch
+
+    pred = gray.model.apply(torch.as_tensor(gray.truth)).numpy() * gray.mask
+    for ch in range(3):
+        r = np.corrcoef(pred[ch].ravel(), gray.meas[ch].ravel())[0, 1]
+        assert r > 0.99, (ch, r)
