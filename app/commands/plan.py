@@ -260,11 +260,23 @@ def run_plan(args: argparse.Namespace) -> int:
             d["inputs"] = input_hashes_of_files(args.meas, args.psf)
             d["created_utc"] = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
         atomic_write_json(args.out, d)
+    window = _window(inputs)
     if args.json:
-        print(json.dumps(plan.to_json(), indent=2, default=str))
+        d = plan.to_json()
+        if window is not None:  # "sensor" is the padded grid the plan runs on
+            d["measurement_window"] = list(window)
+        print(json.dumps(d, indent=2, default=str))
     else:
-        print(plan.describe())
+        print(plan.describe(window))
     return 0
+
+
+def _window(inputs: dict[str, Any]) -> tuple[int, int] | None:
+    """The real sensor's size on the plan's grid when the PSF is on a padded grid, else None."""
+    prob = inputs["problem"]
+    if prob.metadata.get("psf_grid") != "padded":
+        return None
+    return (int(prob.sensor[0]), int(prob.sensor[1]))
 
 
 def run_auto(args: argparse.Namespace) -> int:
@@ -292,7 +304,7 @@ def run_auto(args: argparse.Namespace) -> int:
     kind = {"2d": "image", "video": "video", "depth": "depth"}[plan.model]
     check_command_outputs(args, reconstruction_paths(args.out, kind))  # the plan's previews
     if not args.quiet:
-        print(plan.describe(), file=sys.stderr)
+        print(plan.describe(_window(inputs)), file=sys.stderr)
     bar = ProgressBar(max(plan.iterations, 1), f"recon auto ({plan.model}, K={plan.k})")
 
     def on_step(step: Any) -> None:

@@ -360,8 +360,12 @@ class Plan:
             kw[f.name] = v
         return cls(**kw)
 
-    def describe(self) -> str:
-        """Human-readable plan: each choice with its reason."""
+    def describe(self, window: tuple[int, int] | None = None) -> str:
+        """Human-readable plan: each choice with its reason.
+
+        ``window``: the real sensor's size when the measurement is embedded in a padded PSF
+        grid (``sensor`` is then that grid), so the first line names the measurement's size.
+        """
         g = self.grid_region
         h, w = self.sensor
         rows: list[tuple[str, str, str]] = []
@@ -382,7 +386,9 @@ class Plan:
         it = f"{self.iterations} iterations" if self.iterations else "until the budget"
         rows.append(("method", f"{self.method}, {it}{est}", self.reasons.get("method", "")))
         rows.append(("tau", f"{self.tau:g}", self.reasons.get("tau", "")))
-        lines = [f"Reconstruction plan for a {h}x{w} measurement ({self.channels} channel"
+        size = (f"{h}x{w} measurement" if window is None else
+                f"{window[0]}x{window[1]} measurement in a {h}x{w} padded PSF grid")
+        lines = [f"Reconstruction plan for a {size} ({self.channels} channel"
                  f"{'s' if self.channels > 1 else ''}), analysed in {self.plan_s:.2f} s"]
         for name, value, why in rows:
             user = " [user]" if name in self.overridden else ""

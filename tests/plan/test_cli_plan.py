@@ -80,3 +80,19 @@ def test_parsers():
 def test_bench_plan_is_registered():
     args = build_parser().parse_args(["bench", "plan", "--size", "48x64", "--markdown"])
     assert args.size == "48x64" and args.markdown and callable(args.func)
+
+
+def test_plan_names_the_measurement_not_the_padded_psf_grid(tmp_path, capsys):
+    """A measurement embedded in a padded PSF grid (the dataset layout): the plan says the
+    measurement's size and the grid it runs on (it used to call the grid the measurement)."""
+    from tests.scenes import dataset_layout_pair
+
+    dataset_layout_pair(tmp_path)
+    argv = ["plan", "--psf", str(tmp_path / "psf.npy"), "--meas", str(tmp_path / "meas.npy"),
+            "--rgb", "--channel-order", "bgr", "--flip-rows", "--no-probe"]
+    assert main(argv) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert "for a 24x32 measurement in a 48x64 padded PSF grid (3 channels)" in first
+    assert main([*argv, "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["measurement_window"] == [24, 32] and d["sensor"] == [48, 64]
