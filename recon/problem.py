@@ -518,16 +518,24 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
 
     # PSF or stack (full resolution, not normalised)
     psf_label = spec.psf_stack if spec.model == "depth" else spec.psf
-    if spec.model == "depth":
-        stack_arg: Any = spec.psf_stack
-        psf = load_psf_stack(list(stack_arg) if isinstance(stack_arg, tuple) else stack_arg,
-                             dark=psf_dark, normalise=None)
-    else:
-        # a gray PSF file with a colour measurement: one PSF shared by R, G and B (the layout
-        # of the MirFlickr dataset's original code); a colour file gives one PSF per channel
-        psf_color = "gray" if color == "rgb" and _is_gray_image(spec.psf) else color
-        psf = load_psf(str(spec.psf), dark=psf_dark, channels=psf_color, channel_order=order,
-                       normalise=None)
+    try:
+        if spec.model == "depth":
+            stack_arg: Any = spec.psf_stack
+            psf = load_psf_stack(list(stack_arg) if isinstance(stack_arg, tuple) else stack_arg,
+                                 dark=psf_dark, normalise=None)
+        else:
+            # a gray PSF file with a colour measurement: one PSF shared by R, G and B (the layout
+            # of the MirFlickr dataset's original code); a colour file gives one PSF per channel
+            psf_color = "gray" if color == "rgb" and _is_gray_image(spec.psf) else color
+            psf = load_psf(str(spec.psf), dark=psf_dark, channels=psf_color, channel_order=order,
+                           normalise=None)
+    except ValueError as exc:
+        if spec.psf_dark is None and dark is not None and "all zero" in str(exc):
+            # the measurement's dark level reached a PSF that has its own (or none)
+            raise ValueError(f"{exc}: the measurement's dark ({spec.dark}) is subtracted from "
+                             "the PSF too unless a PSF dark is given (--psf-dark, psf_dark; 0: "
+                             "none)") from None
+        raise
     if spec.flip_rows:
         psf = np.ascontiguousarray(psf[:, ::-1])
     psf_hw = (int(psf.shape[-2]), int(psf.shape[-1]))

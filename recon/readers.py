@@ -502,7 +502,9 @@ def load_psf_stack(
     stack = clip_nonneg(box_downsample(stack, downsample))
     for k in range(stack.shape[0]):
         if not np.any(stack[k] > 0):
-            raise ValueError(f"PSF stack plane {k} ({names[k]}) is all zero")
+            extra = (f" after dark subtraction (dark={_describe_dark(dark)})" if dark is not None
+                     else "")
+            raise ValueError(f"PSF stack plane {k} ({names[k]}) is all zero{extra}")
     if normalise is not None:
         stack = _normalise_fn(stack, normalise)
     return np.ascontiguousarray(stack, dtype=np.float32)

@@ -312,3 +312,20 @@ def test_a_gray_psf_with_a_colour_measurement_is_shared_by_the_channels(tmp_path
     for ch in range(3):
         r = np.corrcoef(pred[ch].ravel(), gray.meas[ch].ravel())[0, 1]
         assert r > 0.99, (ch, r)
+
+
+def test_a_measurement_dark_that_empties_the_psf_names_psf_dark(tmp_path):
+    """--dark applies to the PSF too unless --psf-dark is given: when that empties a PSF (a
+    float PSF under a count-level dark), the error says so and names the option."""
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "psf.npy", (rng.random((16, 20)) ** 4).astype(np.float32))  # max < 1
+    np.save(tmp_path / "meas.npy", (200 + 100 * rng.random((16, 20))).astype(np.float32))
+    for stack in (False, True):
+        kw = (dict(model="depth", psf_stack=(str(tmp_path / "psf.npy"),) * 2) if stack
+              else dict(psf=str(tmp_path / "psf.npy")))
+        spec = ProblemSpec(meas=str(tmp_path / "meas.npy"), dark=100.0, **kw)
+        with pytest.raises(ValueError, match=r"is all zero after dark subtraction \(dark=100"
+                           r"\.0\): the measurement's dark \(100\.0\) is subtracted from the "
+                           r"PSF too unless a PSF dark is given \(--psf-dark"):
+            load_problem(spec)
+        assert load_problem(spec.with_changes(psf_dark=0.0)).psf.max() > 0
