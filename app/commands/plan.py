@@ -238,7 +238,8 @@ def plan_from_trade(plan: Any, trade_csv: str) -> Any:
     if best.method == "admm":
         why += "; run as FISTA-TV, which minimises the same objective"
     reasons = {**new.reasons, "method": why, "tau": why, "iterations": why}
-    return dataclasses.replace(new, reasons=reasons)
+    # chosen from the trade's measurements, not set by the user
+    return dataclasses.replace(new, reasons=reasons, overridden=plan.overridden)
 
 
 def run_plan(args: argparse.Namespace) -> int:

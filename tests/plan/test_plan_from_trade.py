@@ -40,6 +40,7 @@ def test_plan_takes_the_best_setting_within_the_budget(tmp_path, capsys):
     assert plan["method"] == "fista-tv" and plan["tau"] == pytest.approx(3e-4)
     assert plan["iterations"] == 200
     assert "from the trade" in plan["reasons"]["method"] and "admm" in plan["reasons"]["method"]
+    assert plan["overridden"] == []  # measured, not set by the user: no [user] tag
     assert main([*base, "--budget", "10s"]) == 0
     plan = json.loads(capsys.readouterr().out)
     assert plan["tau"] == pytest.approx(1e-4) and plan["iterations"] == 500
