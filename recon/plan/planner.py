@@ -316,6 +316,11 @@ class Plan:
         for key in changes:
             old = getattr(self, key)
             reasons[key] = f"set by the user (the plan had {old!r})"
+        if model == "video" and "k" in changes and merged["k"] != changes["k"]:
+            # K frames are whole bins of the finest shutter function
+            reasons["k"] = (f"set by the user: {changes['k']!r} requested (the plan had "
+                            f"{self.k!r}); {self.base_bins} shutter bins in groups of "
+                            f"{merged['bin_factor']} make {merged['k']} frames")
         size_keys = {"model", "k", "bin_factor", "planes", "region", "field", "downsample"}
         if size_keys & set(changes) and "seconds_per_iter" not in changes:
             merged["seconds_per_iter"] = None

@@ -60,6 +60,9 @@ def test_overrides_follow_related_fields_and_say_so():
     assert (v.model, v.bin_factor, v.k) == ("video", 5, 8)  # ceil(36 / 8) = 5 -> 8 frames
     assert v.overridden == ("model", "k") and "set by the user" in v.reasons["k"]
     assert v.seconds_per_iter is None  # the size changed: the cost estimate is dropped
+    seven = p.override(model="video", k=7)  # ceil(36 / 7) = 6 -> 6 frames: the reason says why
+    assert seven.k == 6 and "7 requested" in seven.reasons["k"]
+    assert "36 shutter bins in groups of 6 make 6 frames" in seven.reasons["k"]
     back = v.override(model="2d")
     assert (back.k, back.bin_factor) == (1, None)
     r = p.override(region=(4, 6, 20, 30))
