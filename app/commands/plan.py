@@ -209,7 +209,8 @@ def auto_tau_plan(plan: Any, inputs: dict[str, Any]) -> Any:
            f"{len(choice.curve)} values of tau tried in {choice.cost_s:.1f} s; recon.autotau)")
     new = plan.override(tau=tau, iterations=iterations)
     reasons = {**new.reasons, "tau": why, "iterations": why,
-               "method": f"{new.reasons.get('method', '')}; iterations {why}"}
+               "method": f"{new.reasons.get('method', '')}; within that limit "
+                         f"{iterations} iterations were {why}"}
     # chosen by the planner, not set by the user
     return dataclasses.replace(new, reasons=reasons, overridden=plan.overridden)
 
