@@ -260,3 +260,17 @@ def test_metrics_reads_the_truth_like_the_reconstructions_measurement(tmp_path, 
     code, _, err = _run(capsys, "metrics", "--ref", files["truth"], "--est", str(rec),
                         "--gain-fit", "--ref-as-is")
     assert code == 2 and "shapes differ" in err
+    # a UDN job's results say how its inputs were read too: metrics agrees with the job's score
+    run = tmp_path / "udn"
+    code, _, err = _run(capsys, "recon", "udn", "--psf", files["psf"], "--meas", files["meas"],
+                        "--truth", files["truth"], *layout, "--iters", "4", "--scales", "2",
+                        "--net-channels", "4", "--input-channels", "4", "--threads", "1",
+                        "--quiet", "--out", str(run))
+    assert code == 0, err
+    code, out, err = _run(capsys, "metrics", "--ref", files["truth"], "--est",
+                          str(run / "final.tif"), "--gain-fit")
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["ref_prepared"]["flip_rows"] is True
+    job = json.loads((run / "run.json").read_text())["results"]["scores"]["final"]
+    assert report["psnr"] == pytest.approx(job["psnr"], abs=1e-3)

@@ -143,5 +143,7 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
         "method": "udn-ensemble", "model": meta0.get("model"), "estimate": estimate,
         "members": members, "inputs": rec0.get("inputs"), "scores": scores,
     }
+    if meta0.get("preprocessing") is not None:  # how the members read their inputs
+        metadata["preprocessing"] = meta0["preprocessing"]
     paths = save_reconstruction(out, x, metadata, kind=meta0.get("kind", "image"))
     return EnsembleResult(x, members, paths, scores)

@@ -124,6 +124,14 @@ Cancel = threading.Event | Callable[[], bool] | None
 OnStep = Callable[[UDNStep], None] | None
 
 
+def _preprocessing(problem: Any) -> dict[str, Any]:
+    """How the inputs were read, as ``recon fista`` records it.
+
+    ``metrics`` puts a truth in the result's frame with it.
+    """
+    return {**problem.metadata, "rgb": problem.spec.color == "rgb"}
+
+
 @dataclass(frozen=True)
 class JobOutcome:
     """How a job ended."""
@@ -536,7 +544,7 @@ class _Job:
             "finish_reason": reason, "network": self.record.get("network"),
             "optimizer": self.spec["optimizer"], "stopping": self.spec["stopping"],
             "inputs": self.record.get("inputs"), "device": self.record.get("device"),
-            "run_dir": str(self.run_dir),
+            "run_dir": str(self.run_dir), "preprocessing": _preprocessing(problem),
         }
         from recon.io import save_reconstruction
 
@@ -701,7 +709,8 @@ def _save_best_after_failure(job: _Job) -> None:
             job.run_dir / "best.tif", runner.best_estimate(),
             {"method": "udn", "model": problem.kind, "estimate": "best",
              "best_iteration": runner.best_iteration, "best_heldout": runner.best_heldout,
-             "finish_reason": FinishReason.FAILED, "run_dir": str(job.run_dir)},
+             "finish_reason": FinishReason.FAILED, "run_dir": str(job.run_dir),
+             "preprocessing": _preprocessing(problem)},
             kind=_RESULT_KIND[problem.kind])
     except (OSError, ValueError):
         return
