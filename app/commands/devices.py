@@ -144,7 +144,7 @@ def _snap(args: argparse.Namespace) -> int:
     path = _save_frame(args.out, frame)
     exposure = "?" if frame.exposure_us is None else f"{frame.exposure_us:g} us"
     print(
-        f"saved {path}: {frame.shape[1]}x{frame.shape[0]} {frame.pixels.dtype} "
+        f"saved {path}: {frame.shape[0]}x{frame.shape[1]} (HxW) {frame.pixels.dtype} "
         f"{frame.pixel_format}, exposure {exposure}, frame {frame.frame_id} ({frame.backend})"
     )
     return 0

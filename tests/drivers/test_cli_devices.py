@@ -49,9 +49,10 @@ def test_snap_sim_saves_frame_and_metadata(
     out = tmp_path / "f.tif"
     rc = app.cli.main(["snap", "--camera", "sim", "--exposure", "10ms", "--out", str(out)])
     assert rc == 0
-    assert "saved" in capsys.readouterr().out
+    printed = capsys.readouterr().out
     pixels, meta = _read_tiff(out)
     assert pixels.shape == (96, 128) and pixels.dtype == np.uint16
+    assert "saved" in printed and "96x128 (HxW)" in printed  # rows first, as everywhere
     assert pixels.max() > 200  # the demo scene, not a dark frame
     assert meta["format"] == "lenslesscam-frame" and meta["exposure_us"] == 10_000.0
     assert meta["backend"] == "sim" and meta["timing"]["exposure_lines"] == 1000
