@@ -30,7 +30,8 @@ Columns:
 - ``truth``: a ground-truth scene; the summary then has metrics (PSNR/SSIM after a
   least-squares gain fit, as ``lenslesscam metrics --gain-fit``).
 - ``spec`` (``udn`` only): a job spec (TOML) to start from; the item's data columns
-  (measurement, psf, mask, shutter, filters, dark, downsample, ...) replace its ``[data]``.
+  (measurement, psf, mask, shutter, filters, dark, downsample, rgb, channel_order, flip_rows,
+  ...) replace the same keys of its ``[data]``; the spec's other keys (its dark, say) stay.
 - every other column is an option of ``lenslesscam recon METHOD`` with ``-`` written as ``_``
   (``psf``, ``mask``, ``shutter``, ``filters``, ``dark``, ``downsample``, ``tau``, ``iters``,
   ``model``, ...); flags take ``true``/``false``. An empty CSV cell means "not set"; a TOML
@@ -74,6 +75,7 @@ SPEC_COLUMNS: dict[str, tuple[str, str]] = {
     "psf_dark": ("data", "psf_dark"), "downsample": ("data", "downsample"),
     "model": ("data", "model"), "field": ("data", "field"), "truth": ("data", "truth"),
     "iters": ("stopping", "max_iter"), "seed": ("optimizer", "seed"),
+    "channel_order": ("data", "channel_order"), "flip_rows": ("data", "flip_rows"),
 }
 _GLOB = re.compile(r"[*?\[]")
 _SAFE = re.compile(r"[^A-Za-z0-9._-]+")
@@ -304,6 +306,8 @@ def _item_from(row: dict[str, Any], meas: str, base: Path, where: str, name: str
                 except (TypeError, ValueError):
                     raise ValueError(f"{where}: column {col!r} must be a whole number, got "
                                      f"{value!r}") from None
+            if key == "flip_rows":
+                value = _flag(value, where, col)
             if col == "psf_stack":
                 spec_data.append(("data", "model", "depth"))
             spec_data.append((sec, key, value))

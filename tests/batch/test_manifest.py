@@ -63,6 +63,25 @@ def test_toml_defaults_items_and_overrides(data: Path) -> None:
     assert "--no-restart" in items[3].argv
 
 
+def test_dataset_layout_columns_reach_a_udn_spec(data: Path) -> None:
+    """channel_order and flip_rows from [defaults] reach a udn item's spec like rgb does (they
+    were dropped silently from TOML and refused from CSV)."""
+    write_udn_spec(data, 10, 5)
+    (data / "m.toml").write_text(
+        '[defaults]\npsf = "psf.npy"\nmethod = "fista"\nchannel_order = "bgr"\n'
+        'flip_rows = true\n\n'
+        '[[item]]\nmeasurement = "meas/m00.npy"\n\n'
+        '[[item]]\nmeasurement = "meas/m00.npy"\nmethod = "udn"\nspec = "udn.toml"\n')
+    fista, udn = read_manifest(data / "m.toml")
+    assert "--flip-rows" in fista.argv and "bgr" in fista.argv
+    assert ("data", "channel_order", "bgr") in udn.spec_data
+    assert ("data", "flip_rows", True) in udn.spec_data
+    (data / "m.csv").write_text("measurement,psf,method,spec,channel_order,flip_rows\n"
+                                "meas/m00.npy,psf.npy,udn,udn.toml,bgr,false\n")
+    (item,) = read_manifest(data / "m.csv")
+    assert ("data", "flip_rows", False) in item.spec_data
+
+
 def test_duplicate_names_are_numbered(data: Path) -> None:
     (data / "m.csv").write_text("measurement,psf,method,tau\nmeas/m00.npy,psf.npy,fista,1e-3\n"
                                 "meas/m00.npy,psf.npy,fista,1e-2\n")
