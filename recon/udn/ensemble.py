@@ -55,7 +55,12 @@ def _member(run_dir: Path, estimate: Estimate) -> tuple[dict[str, Any], F32, dic
         state = rec.get("finish_reason") or rec.get("status") or "unknown"
         raise ValueError(f"{run_dir}: the run has no {estimate} estimate yet ({state}); "
                          "let it finish or resume it")
-    x, meta = read_reconstruction(run_dir / results[estimate])
+    path = run_dir / results[estimate]
+    x, meta = read_reconstruction(path)
+    written = (results.get("data_hashes") or {}).get(estimate)
+    if meta.get("method") != "udn" or (written is not None and meta.get("data_hash") != written):
+        raise ValueError(f"{path} is not the {estimate} estimate this run wrote (replaced "
+                         "since?); rerun or resume the run to write it again")
     return rec, x, meta
 
 
@@ -93,6 +98,11 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
     if len({d.resolve() for d in dirs}) < len(dirs):
         raise ValueError("the same run folder is named twice")
     loaded = [_member(d, estimate) for d in dirs]
+    target = Path(out).resolve()
+    for d in dirs:  # a member's files are inputs of the ensemble: never written
+        if d.resolve() in target.parents:
+            raise ValueError(f"refusing to write {out} into the run folder {d}: its files are "
+                             "inputs of the ensemble; write it elsewhere")
     rec0, x0, meta0 = loaded[0]
     key0 = _inputs_key(rec0)
     seeds: dict[int, Path] = {}

@@ -70,6 +70,7 @@ from recon.udn.memory import check_memory, estimate_udn_memory
 from recon.udn.rundir import (
     CHECKPOINT_FILE,
     CHECKPOINT_FORMAT,
+    LOCK_FILE,
     PREVIOUS_CHECKPOINT_FILE,
     CheckpointError,
     DiskFull,
@@ -122,6 +123,13 @@ _RESULT_KIND: dict[str, Literal["image", "video", "spectral", "depth"]] = {
 F32 = npt.NDArray[np.float32]
 Cancel = threading.Event | Callable[[], bool] | None
 OnStep = Callable[[UDNStep], None] | None
+
+
+def _saved_hash(path: Path) -> str:
+    """The data hash a result file was written with (from its metadata)."""
+    from recon.io import read_reconstruction
+
+    return str(read_reconstruction(path)[1]["data_hash"])
 
 
 def _preprocessing(problem: Any) -> dict[str, Any]:
@@ -549,10 +557,14 @@ class _Job:
         from recon.io import save_reconstruction
 
         results: dict[str, Any] = {}
+        hashes: dict[str, str] = {}
         for which, x in (("final", final), ("best", best)):
             paths = save_reconstruction(self.run_dir / f"{which}.tif", x,
                                         {**base_meta, "estimate": which}, kind=kind)
             results[which] = str(paths[0].relative_to(self.run_dir))
+            hashes[which] = _saved_hash(paths[0])
+        # what the run wrote: a result file replaced later is told apart (jobs combine)
+        results["data_hashes"] = hashes
         results["best_iteration"] = runner.best_iteration
         results["best_heldout"] = runner.best_heldout
         if reason in ("max_iter", "time_limit"):
@@ -704,9 +716,12 @@ def _save_best_after_failure(job: _Job) -> None:
     runner, problem = job.runner, job.problem
     if runner is None or problem is None:
         return
+    best = runner.best_estimate()
+    if not np.all(np.isfinite(best)):  # never replace a good result by a broken one
+        return
     try:
         paths = save_reconstruction(
-            job.run_dir / "best.tif", runner.best_estimate(),
+            job.run_dir / "best.tif", best,
             {"method": "udn", "model": problem.kind, "estimate": "best",
              "best_iteration": runner.best_iteration, "best_heldout": runner.best_heldout,
              "finish_reason": FinishReason.FAILED, "run_dir": str(job.run_dir),
@@ -715,6 +730,7 @@ def _save_best_after_failure(job: _Job) -> None:
     except (OSError, ValueError):
         return
     job.record["results"] = {"best": str(paths[0].relative_to(job.run_dir)),
+                             "data_hashes": {"best": _saved_hash(paths[0])},
                              "best_iteration": runner.best_iteration,
                              "best_heldout": runner.best_heldout}
 
@@ -789,19 +805,41 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: OnStep = No
     """
     rd = Path(run_dir)
     sp = Path(spec_path)
-    if (rd / RECORD_FILE).exists():
-        raise ValueError(f"{rd} already holds a run: use 'jobs resume {rd}' or another folder")
+    _check_new_run_folder(rd)
     if spec_text is None:
         spec_text = _read_spec_text(sp)
     lock = RunLock(rd).acquire()
     try:
-        if (rd / RECORD_FILE).exists():  # written meanwhile by a process that held the lock
-            raise ValueError(f"{rd} already holds a run: use 'jobs resume {rd}' or another "
-                             "folder")
+        _check_new_run_folder(rd)  # again: a process that held the lock may have written it
         return _run_locked(sp, rd, lock, progress, cancel, max_memory, spec_text, seed,
                            threads)
     finally:
         lock.release()
+
+
+def _check_new_run_folder(rd: Path) -> None:
+    """Refuse a folder that holds a run, or files that are not a run's.
+
+    A run would overwrite them, inputs among them. A folder left by a run whose spec was
+    refused before it started holds only that attempt's record and spec: it may be used again.
+    """
+    if (rd / RECORD_FILE).exists():
+        try:
+            rec = read_record(rd)
+        except (OSError, ValueError):
+            rec = {}
+        if rec.get("spec") is not None or rec.get("finish_reason") != FinishReason.FAILED:
+            raise ValueError(f"{rd} already holds a run: use 'jobs resume {rd}' or another "
+                             "folder")
+        return  # a start that failed on its spec: run.json and job.toml are rewritten
+    if rd.is_dir():
+        others = sorted(p.name for p in rd.iterdir() if p.name != LOCK_FILE)
+        if others:
+            raise ValueError(f"{rd} is not empty and holds no run ({len(others)} entries, e.g. "
+                             f"{others[0]}): a run writes its files there; choose a new or "
+                             "empty folder")
+    elif rd.exists():
+        raise ValueError(f"{rd} exists and is not a folder")
 
 
 def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: OnStep, cancel: Cancel,

@@ -99,3 +99,20 @@ def test_combine_refuses_what_is_not_one_problem(three_runs, tiny_data, tmp_path
     assert not out.exists()
     assert cli_main(["jobs", "combine", str(runs[0]), str(runs[1]), "--out", str(out)]) != 0
     assert "no best estimate yet" in capsys.readouterr().err
+
+
+def test_combine_never_writes_into_a_member_nor_trusts_a_replaced_result(three_runs, tmp_path):
+    """A member's files are inputs: --out inside a member's folder is refused (it destroyed the
+    member's best estimate), and a result file that is not the one the run wrote (an earlier
+    ensemble, a FISTA result copied there) is refused by its data hash."""
+    import shutil
+
+    _spec, runs = three_runs
+    best = (runs[0] / "best.tif").read_bytes()
+    with pytest.raises(ValueError, match="into the run folder"):
+        combine_runs(runs[:2], runs[0] / "best.tif")
+    assert (runs[0] / "best.tif").read_bytes() == best
+    combine_runs(runs[:2], tmp_path / "ens.tif")
+    shutil.copy(tmp_path / "ens.tif", runs[1] / "best.tif")  # another file under its name
+    with pytest.raises(ValueError, match="is not the best estimate this run wrote"):
+        combine_runs(runs[:2], tmp_path / "ens2.tif")

@@ -415,3 +415,39 @@ def test_global_threads_reach_jobs_run_resume_and_recon_udn(tiny_data, tmp_path,
     finally:
         torch.set_num_threads(before)
         capsys.readouterr()
+
+
+def test_a_run_never_starts_in_a_folder_of_other_files(tiny_data, tmp_path, capsys):
+    """A folder with files that are not a run's is refused before anything is written (a run
+    overwrote final.tif, loss.csv and job.toml there, and an input named best.tif); a folder
+    left by a start refused on its spec may be used again."""
+    spec = write_spec(tiny_data, stopping={"max_iter": 3})
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "loss.csv").write_text("my notes\n")
+    with pytest.raises(ValueError, match=r"is not empty and holds no run \(1 entries, e\.g\. "
+                                         r"loss\.csv\)"):
+        run_job(spec, mine)
+    assert sorted(p.name for p in mine.iterdir()) == ["loss.csv"]
+    assert (mine / "loss.csv").read_text() == "my notes\n"
+    # recon udn with its measurement inside --out: refused, the measurement untouched
+    inside = tmp_path / "inside"
+    inside.mkdir()
+    meas = np.load(tiny_data / "meas.npy")
+    np.save(inside / "meas.npy", meas)
+    argv = ["recon", "udn", "--psf", str(tiny_data / "psf.npy"), "--meas",
+            str(inside / "meas.npy"), "--iters", "2", "--scales", "2", "--net-channels", "4",
+            "--input-channels", "4", "--threads", "1", "--quiet", "--out", str(inside)]
+    assert cli_main(argv) == 2
+    assert "is not empty and holds no run" in capsys.readouterr().err
+    assert np.array_equal(np.load(inside / "meas.npy"), meas)
+    # a start refused on its spec leaves run.json and job.toml; the folder may be used again
+    bad = write_spec(tiny_data, "bad.toml", stopping={"max_iter": -1})
+    again = tmp_path / "again"
+    with pytest.raises((SpecError, ValueError)):
+        run_job(bad, again)
+    assert record(again)["spec"] is None
+    assert run_job(spec, again).iterations == 3
+    assert record(again)["status"] == "finished"
+    with pytest.raises(ValueError, match="already holds a run"):
+        run_job(spec, again)
