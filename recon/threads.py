@@ -103,6 +103,19 @@ def _parse_request(value: int | str | None, what: str) -> int | None:
     return value or None
 
 
+#: a requested thread count may be at most this many times the machine's cores (more only
+#: slows the work down; tens of thousands made the OpenMP runtime hang, fail or crash)
+MAX_THREADS_PER_CORE = 4
+
+
+def _bounded(n: int, cores: int, name: str) -> int:
+    limit = MAX_THREADS_PER_CORE * max(1, cores)
+    if n > limit:
+        raise ValueError(f"{name} {n} is more than {MAX_THREADS_PER_CORE}x this machine's "
+                         f"{cores} cores ({limit}); use 0 to choose")
+    return n
+
+
 def choose_threads(requested: int | str | None = None, *, cores: int | None = None,
                    load: float | None = None, env: dict[str, str] | None = None,
                    work: int | None = None) -> ThreadChoice:
@@ -118,13 +131,14 @@ def choose_threads(requested: int | str | None = None, *, cores: int | None = No
     load = real_load if load is None else max(0.0, float(load))
     want = _parse_request(requested, "threads")
     if want is not None:
-        return ThreadChoice(want, cores, load, "requested")
+        return ThreadChoice(_bounded(want, cores, "threads"), cores, load, "requested")
     env = dict(os.environ) if env is None else env
     omp = env.get("OMP_NUM_THREADS")
     if omp:
         n = _parse_request(omp, "OMP_NUM_THREADS")
         if n is not None:
-            return ThreadChoice(n, cores, load, "OMP_NUM_THREADS")
+            return ThreadChoice(_bounded(n, cores, "OMP_NUM_THREADS"), cores, load,
+                                "OMP_NUM_THREADS")
     free = int(cores - load + 0.5)  # round half up; cores - load may be negative
     n = min(free, cores, MAX_AUTO_THREADS)
     if work is not None:

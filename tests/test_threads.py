@@ -92,3 +92,13 @@ def test_fit_threads_refines_only_an_automatic_choice(monkeypatch: pytest.Monkey
         assert th.fit_threads((1, 1, 8, 8)) is asked and torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_absurd_thread_counts_are_refused_before_reaching_openmp() -> None:
+    """--threads 5000 hung, 20000 failed in libgomp, 100000 crashed: more than 4 threads per
+    core is a one-line error, from the option and from OMP_NUM_THREADS alike."""
+    assert choose_threads(8, cores=2, load=0.0, env={}).threads == 8
+    with pytest.raises(ValueError, match=r"threads 9 is more than 4x this machine's 2 cores"):
+        choose_threads(9, cores=2, load=0.0, env={})
+    with pytest.raises(ValueError, match=r"OMP_NUM_THREADS 100000 is more than"):
+        choose_threads(None, cores=2, load=0.0, env={"OMP_NUM_THREADS": "100000"})
