@@ -266,6 +266,23 @@ class Plan:
         bad = set(changes) - names
         if bad:
             raise ValueError(f"cannot override {sorted(bad)}; fields: {sorted(names)}")
+        types = {f.name: str(f.type) for f in dataclasses.fields(self)}
+        for key, v in changes.items():  # one line naming the field, never a traceback
+            if not (key == "region" and v in (None, "whole")):
+                _check_plan_field(key, types[key], v)
+            if key in ("k", "downsample", "bin_factor") and v is not None and v < 1:
+                raise ValueError(f"plan field {key!r} must be >= 1, got {v!r}")
+            if key in ("iterations", "tau", "lambda_t", "tv_depth", "estimated_s") and (
+                    v is not None and v < 0):
+                raise ValueError(f"plan field {key!r} must be >= 0, got {v!r}")
+            if key in ("budget_s", "seconds_per_iter") and v is not None and v <= 0:
+                raise ValueError(f"plan field {key!r} must be > 0, got {v!r}")
+            if key in ("field", "planes") and v is not None and (
+                    min(v) < (1 if key == "field" else 0)):
+                raise ValueError(f"plan field {key!r} must be positive, got {v!r}")
+        if "k" in changes and (changes.get("model") or self.model) == "2d":
+            raise ValueError("k applies to a video or depth plan; a 2d plan has k = 1 "
+                             "(set model=video with it)")
         new: dict[str, Any] = {}
         for key, v in changes.items():
             if key in ("field",) and v is not None:

@@ -157,3 +157,26 @@ def test_udn_method_runs_through_the_runner(static_cap):
                   timing=cap.timing)
     assert res.x.shape == (1, 1, 48, 64) and res.iterations == 2
     assert res.params["method"] == "udn"
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"planes": 3}, "'planes' must be a list of 2 integers"),
+    ({"planes": [5]}, "'planes' must be a list of 2 integers"),
+    ({"region": 1}, "'region' must be a list of 4 integers"),
+    ({"region": [1, 2]}, "'region' must be a list of 4 integers"),
+    ({"k": [1]}, "'k' must be an integer"),
+    ({"tau": [1]}, "'tau' must be a number"),
+    ({"field": "full"}, "'field' must be a list of 2 integers"),
+    ({"budget_s": -1}, "'budget_s' must be > 0"),
+    ({"lambda_t": float("nan")}, "'lambda_t' must be a number"),
+    ({"bin_factor": 0}, "'bin_factor' must be >= 1"),
+    ({"tv_depth": -1}, "'tv_depth' must be >= 0"),
+    ({"k": -3, "model": "video"}, "'k' must be >= 1"),
+    ({"k": 4}, "k applies to a video or depth plan"),
+])
+def test_bad_overrides_are_one_line_errors(change, message):
+    """``--set`` values of the wrong kind were tracebacks (TypeError, IndexError) or silently
+    ignored (k on a 2d plan); each is now a ValueError naming the field."""
+    with pytest.raises(ValueError, match=message) as info:
+        _plan().override(**change)
+    assert "\n" not in str(info.value)
