@@ -81,6 +81,7 @@ from recon.udn.rundir import (
     is_disk_full,
     load_checkpoint,
     load_latest_checkpoint,
+    lock_is_held,
     write_checkpoint,
 )
 from recon.udn.runner import UDNRunner, UDNStep, resolve_device
@@ -202,13 +203,22 @@ def request_cancel(run_dir: str | Path, *, send_signal: bool = False) -> str:
     if rec.get("status") != "running":
         raise ValueError(f"{rd}: the run is not running (finish reason "
                          f"{rec.get('finish_reason')})")
+    pid = rec.get("pid")
+    here = rec.get("host") in (None, platform.node())
+    if here and not (isinstance(pid, int) and pid_alive(pid, rec.get("host"))):
+        raise ValueError(f"{rd}: the run is not running (its process {pid} is gone: it was "
+                         f"interrupted); continue it with 'lenslesscam jobs resume {rd}'")
     atomic_write_bytes(rd / CANCEL_FILE, f"cancel requested {_now()} by pid {os.getpid()}\n"
                        .encode())
     msg = f"cancel requested: the job in {rd} stops at its next iteration"
-    pid = rec.get("pid")
-    if send_signal and isinstance(pid, int) and pid_alive(pid, rec.get("host")):
-        os.kill(pid, signal.SIGTERM)
-        msg += f" (SIGTERM sent to pid {pid})"
+    if send_signal and isinstance(pid, int) and here:
+        # the pid in the record may since belong to another process: signal it only while
+        # the run's lock is held (by the run, which holds it for as long as it lives)
+        if lock_is_held(rd):
+            os.kill(pid, signal.SIGTERM)
+            msg += f" (SIGTERM sent to pid {pid})"
+        else:
+            msg += f" (no SIGTERM: no process holds the run's lock, pid {pid} is not the run)"
     return msg
 
 

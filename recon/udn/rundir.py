@@ -141,6 +141,28 @@ def _wait_for_holder(fd: int) -> bytes | None:
         time.sleep(0.02)
 
 
+def lock_is_held(run_dir: str | Path) -> bool:
+    """Whether some process holds the run folder's lock now.
+
+    A momentary probe: it takes the lock and gives it back at once, so call it only on a
+    user's action, never in a loop.
+    """
+    path = Path(run_dir) / LOCK_FILE
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as exc:
+        if exc.errno in _BUSY:
+            return True
+        raise
+    finally:
+        os.close(fd)  # closing releases a lock taken here
+    return False
+
+
 class RunLock:
     """Exclusive OS lock on a run folder (``RUN_DIR/run.lock``), released by the kernel.
 

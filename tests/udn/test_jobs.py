@@ -451,3 +451,30 @@ def test_a_run_never_starts_in_a_folder_of_other_files(tiny_data, tmp_path, caps
     assert record(again)["status"] == "finished"
     with pytest.raises(ValueError, match="already holds a run"):
         run_job(spec, again)
+
+
+def test_cancel_signals_only_the_process_that_holds_the_run(tiny_data, tmp_path):
+    """A record that still says running after its process was killed: cancel says the run is
+    gone (it claimed success); a pid reused by an unrelated process is never signalled (it
+    SIGTERMed whatever the record named)."""
+    out = tmp_path / "run"
+    run_job(write_spec(tiny_data, stopping={"max_iter": 3}), out)
+    rec = record(out)
+    rec["status"], rec["finish_reason"] = "running", None
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    rec["pid"] = dead.pid
+    (out / "run.json").write_text(json.dumps(rec))
+    with pytest.raises(ValueError, match="is gone: it was interrupted"):
+        request_cancel(out, send_signal=True)
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        rec["pid"] = other.pid  # alive, but not the run: it does not hold the run's lock
+        (out / "run.json").write_text(json.dumps(rec))
+        msg = request_cancel(out, send_signal=True)
+        assert "no SIGTERM" in msg
+        time.sleep(0.2)
+        assert other.poll() is None  # still alive
+    finally:
+        other.kill()
+        other.wait()
