@@ -830,18 +830,23 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: OnStep = No
 def _check_new_run_folder(rd: Path) -> None:
     """Refuse a folder that holds a run, or files that are not a run's.
 
-    A run would overwrite them, inputs among them. A folder left by a run whose spec was
-    refused before it started holds only that attempt's record and spec: it may be used again.
+    A run would overwrite them, inputs among them. A folder left by a start that failed before
+    its first iteration (a refused spec, a device or memory refusal) holds only that attempt's
+    record and spec: it may be used again.
     """
     if (rd / RECORD_FILE).exists():
         try:
             rec = read_record(rd)
         except (OSError, ValueError):
             rec = {}
-        if rec.get("spec") is not None or rec.get("finish_reason") != FinishReason.FAILED:
+        never_ran = rec.get("finish_reason") == FinishReason.FAILED and (
+            rec.get("spec") is None
+            or (not (rec.get("progress") or {}).get("iteration") and not rec.get("checkpoint")
+                and not (rd / CHECKPOINT_FILE).exists()))
+        if not never_ran:
             raise ValueError(f"{rd} already holds a run: use 'jobs resume {rd}' or another "
                              "folder")
-        return  # a start that failed on its spec: run.json and job.toml are rewritten
+        return  # a start that failed before its first iteration: its files are rewritten
     if rd.is_dir():
         others = sorted(p.name for p in rd.iterdir() if p.name != LOCK_FILE)
         if others:

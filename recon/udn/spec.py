@@ -70,6 +70,7 @@ class Key:
     required: bool = False
     path: bool = False
     minimum: float | None = None
+    maximum: float | None = None
 
 
 _NET = NetworkConfig()
@@ -134,7 +135,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "headroom": Key((float,), _UDN.headroom, "factor on the 'auto' gain (room for "
                         "highlights)"),
         "seed": Key((int,), _UDN.seed, "seed of z, weights, held-out pixels and noise",
-                    minimum=0),
+                    minimum=0, maximum=2**32 - 1),
         "lr_backoff": Key((float,), _UDN.lr_backoff, "learning-rate factor at a divergence"),
         "divergence_factor": Key((float,), _UDN.divergence_factor,
                                  "loss jump (x the recent loss) that counts as divergence"),
@@ -204,6 +205,8 @@ def _check_value(where: str, key: Key, value: Any) -> Any:
                         f"{value!r}")
     if key.minimum is not None and isinstance(value, int | float) and value < key.minimum:
         raise SpecError(f"{where} must be >= {key.minimum:g}, got {value!r}")
+    if key.maximum is not None and isinstance(value, int | float) and value > key.maximum:
+        raise SpecError(f"{where} must be <= {key.maximum:.0f}, got {value!r}")
     return value
 
 

@@ -165,6 +165,9 @@ def test_memory_refusal_fails_the_job_with_a_record(tiny_data, tmp_path):
         run_job(spec, tmp_path / "run")
     rec = record(tmp_path / "run")
     assert rec["finish_reason"] == "failed" and rec["error"]["type"] == "MemoryRefusal"
+    # it never ran an iteration: the folder takes a corrected spec
+    assert run_job(write_spec(tiny_data, "ok.toml", stopping={"max_iter": 2}),
+                   tmp_path / "run").iterations == 2
 
 
 def test_status_of_finished_and_interrupted_runs(tiny_data, tmp_path, capsys):
@@ -374,6 +377,11 @@ def test_recon_udn_one_shot(tiny_data, tmp_path, capsys):
     assert cli_main([*argv[:-2], "--write-spec", str(spec_file)]) == 0
     capsys.readouterr()
     assert run_job(spec_file, tmp_path / "from_spec").iterations == 6
+
+
+def test_a_seed_beyond_32_bits_is_a_spec_error(tiny_data, tmp_path):
+    with pytest.raises(SpecError, match=r"optimizer\.seed must be <= 4294967295"):
+        run_job(write_spec(tiny_data, optimizer={"seed": 2**64}), tmp_path / "run")
 
 
 def test_spec_headroom_reaches_the_runner_config(tiny_data, tmp_path):
