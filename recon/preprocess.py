@@ -218,6 +218,8 @@ def normalise(a: Array, mode: NormMode = "max") -> Array:
         raise ValueError(f"normalise mode must be 'max', 'sum' or 'l2', got {mode!r}")
     if not math.isfinite(s) or s <= 0:
         raise ValueError(f"cannot normalise by {mode}: it is {s} (must be positive)")
+    if s > float(np.finfo(arr.dtype).max):  # the factor itself overflows the array's type
+        return np.asarray(arr.astype(np.float64) / s).astype(arr.dtype)
     return np.asarray(arr / arr.dtype.type(s))
 
 

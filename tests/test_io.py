@@ -215,6 +215,10 @@ def test_normalise_clip_gray_layout() -> None:
     assert rio.normalise(c, "sum").dtype == np.float32
     with pytest.raises(ValueError, match="cannot normalise by max"):
         rio.normalise(np.zeros((3, 3)), "max")
+    # a sum beyond float32's range: the factor must not overflow to inf (it gave all zeros)
+    huge = np.full((4, 4), 3e38, dtype=np.float32)
+    n = rio.normalise(huge, "sum")
+    assert n.dtype == np.float32 and n.sum() == pytest.approx(1.0)
 
     rgb = np.zeros((3, 2, 2), dtype=np.float32)
     rgb[1] = 1.0  # pure green
