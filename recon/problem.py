@@ -354,6 +354,8 @@ def read_shutter(path: PathLike) -> tuple[F64, dict[str, Any]]:
         raise ValueError(f"shutter file {p} must be a (K, rows) array, got shape {m.shape}")
     if not np.all(np.isfinite(m)) or np.any(m < 0):
         raise ValueError(f"shutter file {p} must be finite and non-negative")
+    if not np.any(m > 0):
+        raise ValueError(f"shutter file {p} is all zero: no row integrates any light")
     return m, meta
 
 
@@ -365,6 +367,9 @@ def read_filters(path: PathLike) -> F64:
         raise ValueError(f"filter cube file {p} must be a (K, H, W) array, got shape {f.shape}")
     if not np.all(np.isfinite(f)):
         raise ValueError(f"filter cube file {p} has NaN or infinite values")
+    if not np.any(f > 0):
+        raise ValueError(f"filter cube file {p} is all zero (or negative): no band passes any "
+                         "light")
     return f
 
 

@@ -329,3 +329,15 @@ def test_a_measurement_dark_that_empties_the_psf_names_psf_dark(tmp_path):
                            r"PSF too unless a PSF dark is given \(--psf-dark"):
             load_problem(spec)
         assert load_problem(spec.with_changes(psf_dark=0.0)).psf.max() > 0
+
+
+def test_an_all_zero_shutter_or_filter_cube_is_named(tmp_path):
+    """They were blamed on the PSF ('operator norm is 0 ... normalise the PSF')."""
+    from recon.problem import read_filters, read_shutter
+
+    np.save(tmp_path / "m.npy", np.zeros((4, 16)))
+    np.save(tmp_path / "f.npy", np.zeros((3, 16, 20)))
+    with pytest.raises(ValueError, match=r"shutter file .*m\.npy is all zero"):
+        read_shutter(tmp_path / "m.npy")
+    with pytest.raises(ValueError, match=r"filter cube file .*f\.npy is all zero"):
+        read_filters(tmp_path / "f.npy")
