@@ -274,3 +274,26 @@ def test_metrics_reads_the_truth_like_the_reconstructions_measurement(tmp_path, 
     assert report["ref_prepared"]["flip_rows"] is True
     job = json.loads((run / "run.json").read_text())["results"]["scores"]["final"]
     assert report["psnr"] == pytest.approx(job["psnr"], abs=1e-3)
+
+
+def test_simulate_reads_its_own_truth_and_refuses_scenes_that_are_not_light(tmp_path, capsys):
+    """simulate's truth.npy (1, K, H, W) is a scene for another simulate; a negative or
+    all-zero scene is refused (they gave a negative or all-zero measurement silently)."""
+    first = tmp_path / "a"
+    code, _, err = _run(capsys, "simulate", "--psf", "sample:tutorial", "--scene",
+                        "sample:im65", "--downsample", "8", "--out", str(first))
+    assert code == 0, err
+    again = tmp_path / "b"
+    code, _, err = _run(capsys, "simulate", "--psf", "sample:tutorial", "--scene",
+                        str(first / "truth.npy"), "--downsample", "8", "--out", str(again))
+    assert code == 0, err
+    t0, t1 = np.load(first / "truth.npy"), np.load(again / "truth.npy")
+    assert t0.shape == t1.shape and np.corrcoef(t0.ravel(), t1.ravel())[0, 1] > 0.999
+    for name, arr, why in (("neg.npy", -np.ones((10, 12)), "negative values"),
+                           ("zero.npy", np.zeros((10, 12)), "all zero")):
+        np.save(tmp_path / name, arr)
+        code, _, err = _run(capsys, "simulate", "--psf", "sample:tutorial", "--scene",
+                            str(tmp_path / name), "--downsample", "8", "--out",
+                            str(tmp_path / name[:-4]))
+        assert code == 2 and why in err
+        assert not (tmp_path / name[:-4]).exists()

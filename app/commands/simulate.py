@@ -85,17 +85,26 @@ def load_scene(spec: str, shape: tuple[int, int], k: int = 1) -> Any:
         frames = samples.lensed_scene(spec.split(":", 1)[1])[0, :1]
     else:
         raw = np.asarray(load_image(spec), dtype=np.float64)
+        if raw.ndim == 4 and raw.shape[0] == 1:  # (1, K, H, W): a truth simulate wrote
+            raw = raw[0]
+        if raw.ndim == 3 and raw.shape[0] == 1:
+            raw = raw[0]
         if raw.ndim == 3 and raw.shape[-1] not in (3, 4):
             frames = raw  # a (K, H, W) stack
         elif raw.ndim in (2, 3):
             frames = to_gray(to_channel_first(raw))
         else:
-            raise ValueError(f"scene {spec} must be an image (H, W) or (H, W, 3), or a stack "
-                             f"(K, H, W); got shape {raw.shape}")
+            raise ValueError(f"scene {spec} must be an image (H, W) or (H, W, 3), a stack "
+                             f"(K, H, W) or a truth (1, K, H, W); got shape {raw.shape}")
         if not np.isfinite(frames).all():
             raise ValueError(f"scene {spec} contains NaN or inf values")
+        if frames.min() < 0:
+            raise ValueError(f"scene {spec} has negative values (min {frames.min():.3g}): a "
+                             "scene is light, >= 0")
         top = float(frames.max())
-        frames = frames / top if top > 0 else frames
+        if top <= 0:
+            raise ValueError(f"scene {spec} is all zero: its measurement would be too")
+        frames = frames / top
     if frames.shape[0] not in (1, k):
         raise ValueError(f"scene {spec} has {frames.shape[0]} frames; the model has K = {k}")
     out = np.stack([_resize(f, shape) for f in frames])
