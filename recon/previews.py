@@ -65,10 +65,30 @@ def _pil_image(chw8: npt.NDArray[np.uint8]) -> Any:
     raise ValueError(f"cannot preview {chw8.shape[0]} channels (need 1 or 3)")
 
 
+#: ``format`` of the text metadata every PNG written here carries
+PREVIEW_FORMAT = "lenslesscam.preview"
+
+
 def write_png(path: PathLike, chw8: npt.NDArray[np.uint8]) -> Path:
-    """Write a uint8 (1|3, H, W) image as PNG, atomically."""
+    """Write a uint8 (1|3, H, W) image as PNG, atomically, with text metadata.
+
+    The PNG's text chunk ``lenslesscam`` holds JSON: ``format`` (:data:`PREVIEW_FORMAT`),
+    ``format_version`` and ``provenance`` (versions, host, time), so a preview found alone
+    says what made it (a display image: contrast-stretched 8 bits, never data to reuse).
+    """
+    import json
+
+    from PIL.PngImagePlugin import PngInfo
+
+    from recon.formats import FORMAT_VERSION, provenance
+
     img = _pil_image(chw8)
-    return atomic_write(path, lambda tmp: img.save(tmp, format="PNG"))
+    info = PngInfo()
+    info.add_text("lenslesscam", json.dumps(
+        {"format": PREVIEW_FORMAT, "format_version": FORMAT_VERSION,
+         "note": "display image: contrast-stretched 8 bits, not data",
+         "provenance": provenance()}, default=str))
+    return atomic_write(path, lambda tmp: img.save(tmp, format="PNG", pnginfo=info))
 
 
 def _preview_channels(x: Array) -> Array:

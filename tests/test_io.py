@@ -544,3 +544,16 @@ def test_downsample_masked_ignores_erased_pixels():
     assert not m.any() and not out.any()
     with pytest.raises(ValueError, match="does not match"):
         downsample_masked(meas, np.ones((3, 4)), 2)
+
+
+def test_every_png_carries_format_and_provenance(tmp_path: Path) -> None:
+    """Previews are display images, but a file found alone still says what made it."""
+    import json
+
+    from recon.previews import PREVIEW_FORMAT, write_png
+
+    p = write_png(tmp_path / "p.png", np.zeros((3, 4, 5), np.uint8))
+    with Image.open(p) as im:
+        meta = json.loads(im.text["lenslesscam"])
+    assert meta["format"] == PREVIEW_FORMAT and meta["format_version"] >= 1
+    assert "lenslesscam" in meta["provenance"]["versions"]
