@@ -156,7 +156,18 @@ def check_outputs(
     with a one-line message naming the file and what to do.
     """
     named = [(k, Path(v)) for k, v in (inputs or {}).items() if v is not None]
-    for out in (Path(o) for o in outputs):
+    for o in outputs:
+        if str(o).strip() == "":
+            raise FileExistsError("the output path is empty: name a file")
+        out = Path(o)
+        if out.is_dir():
+            raise FileExistsError(f"{out} is a folder: name a file (for example {out / 'x'}"
+                                  f"{out.suffix or ''})")
+        for parent in out.parents:
+            if parent.exists():
+                if not parent.is_dir():
+                    raise FileExistsError(f"cannot write {out}: {parent} is a file, not a folder")
+                break
         for key, src in named:
             same = out.resolve() == src.resolve()
             if not same and out.exists() and src.exists():
@@ -166,6 +177,10 @@ def check_outputs(
                 raise FileExistsError(
                     f"refusing to write {out}: it is the input {key} of this command "
                     "(choose another output name)")
+            if src.is_dir() and src.resolve() in out.resolve().parents:
+                raise FileExistsError(
+                    f"refusing to write {out} inside the input folder {key} {src}: every file "
+                    "there is read as input (choose another folder)")
         if out.exists() and not overwrite:
             raise FileExistsError(
                 f"{out} exists: pass --overwrite to replace it, or choose another output")

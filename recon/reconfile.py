@@ -76,6 +76,8 @@ def reconstruction_paths(path: PathLike, kind: Kind = "image") -> list[Path]:
     Commands check these before computing (``recon.atomic.check_outputs``), so a preview
     cannot replace an input either (``--meas hand.png --out hand.tif``).
     """
+    if str(path).strip() == "" or Path(path).name in ("", ".", ".."):
+        raise ValueError(f"the output path {str(path)!r} names no file")
     target = Path(path)
     paths = [target, target.with_suffix(".png")]
     if kind == "video":

@@ -260,6 +260,19 @@ def test_check_outputs_unit(tmp_path):
     (tmp_path / "s.tif").symlink_to(a)
     with pytest.raises(FileExistsError, match="input --psf"):
         check_outputs([tmp_path / "s.tif"], {"--psf": a}, overwrite=True)
+    # paths that cannot be written are refused before any work, in words
+    (tmp_path / "d.tif").mkdir()
+    with pytest.raises(FileExistsError, match=r"d\.tif is a folder: name a file"):
+        check_outputs([tmp_path / "d.tif"], {}, overwrite=True)
+    with pytest.raises(FileExistsError, match=r"a\.tif is a file, not a folder"):
+        check_outputs([a / "x.tif"], {})
+    with pytest.raises(FileExistsError, match="output path is empty"):
+        check_outputs([""], {})
+    # nothing is written into a folder that is itself an input (a PSF stack's planes)
+    stack = tmp_path / "stack"
+    stack.mkdir()
+    with pytest.raises(FileExistsError, match="inside the input folder --psf-stack"):
+        check_outputs([stack / "rec.tif"], {"--psf-stack": stack})
 
 
 def test_reconstruction_paths_are_what_save_reconstruction_writes(tmp_path):
