@@ -8,6 +8,7 @@ back and checks it; :func:`reconstruction_paths` names the files it writes.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -175,7 +176,22 @@ def save_reconstruction(
             bigtiff=pages.nbytes > 2**31,
         )
 
-    written = [atomic_write(target, _write_tiff)]
+    new_files = [p for p in reconstruction_paths(target, kind) if not p.exists()]
+    try:
+        return _write_all(target, _write_tiff, arr, k, kind, weights)
+    except BaseException:
+        # a set written in part (a full disk at the preview): the files this call created go,
+        # so a rerun needs no --overwrite; files it replaced cannot come back
+        for p in new_files:
+            with contextlib.suppress(OSError):
+                p.unlink()
+        raise
+
+
+def _write_all(target: Path, write_tiff: Any, arr: F32, k: int, kind: str,
+               weights: Any) -> list[Path]:
+    """The TIFF, then its previews (see :func:`save_reconstruction`)."""
+    written = [atomic_write(target, write_tiff)]
 
     frames = preview_frames(arr)  # (K, C', H, W)
     still = frames[0] if k == 1 else _montage(frames)

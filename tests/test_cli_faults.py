@@ -508,3 +508,24 @@ def test_progress_bar_is_tqdm(capsys):
     # no hand-written bars left in the command line
     for f in (ROOT / "app" / "commands").glob("*.py"):
         assert 'write(f"\\r' not in f.read_text(), f
+
+
+def test_a_preview_that_fails_leaves_no_part_of_a_new_result(tmp_path, monkeypatch):
+    """A full disk at the PNG left the TIFF behind, so the rerun needed --overwrite; the files
+    a failed save created are removed, files it replaced are not touched again."""
+    import errno
+
+    import recon.reconfile as rf
+    from recon.io import save_reconstruction
+
+    def full(*_a, **_k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    x = np.random.default_rng(0).random((1, 1, 8, 8)).astype(np.float32)
+    monkeypatch.setattr(rf, "write_png", full)
+    with pytest.raises(OSError, match="No space"):
+        save_reconstruction(tmp_path / "r.tif", x, {})
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.undo()
+    save_reconstruction(tmp_path / "r.tif", x, {})  # the rerun: nothing in its way
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.png", "r.tif"]
