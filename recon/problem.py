@@ -662,6 +662,12 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
         fld = (2 * coarse[0], 2 * coarse[1])
     else:
         fld = (int(spec.field[0]), int(spec.field[1]))
+    # a scene point farther out than the PSF reaches sends no light to the sensor
+    reach = (coarse[0] + int(psf_d.shape[-2]), coarse[1] + int(psf_d.shape[-1]))
+    if fld[0] > reach[0] or fld[1] > reach[1]:
+        raise ValueError(f"scene field {fld[0]}x{fld[1]} is larger than the {reach[0]}x"
+                         f"{reach[1]} from which light reaches the {coarse[0]}x{coarse[1]} "
+                         "sensor through this PSF: nothing outside it can be reconstructed")
     psf_arg: Any = psf_d
     if spec.model != "depth" and psf_d.shape[0] == 1:
         psf_arg = psf_d[0]

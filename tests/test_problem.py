@@ -341,3 +341,16 @@ def test_an_all_zero_shutter_or_filter_cube_is_named(tmp_path):
         read_shutter(tmp_path / "m.npy")
     with pytest.raises(ValueError, match=r"filter cube file .*f\.npy is all zero"):
         read_filters(tmp_path / "f.npy")
+
+
+def test_a_field_beyond_the_psfs_reach_is_refused(tmp_path):
+    """--field 10000x10000 on a 37x50 sensor ran for minutes on unobservable pixels."""
+    rng = np.random.default_rng(1)
+    np.save(tmp_path / "psf.npy", rng.random((16, 20)).astype(np.float32))
+    np.save(tmp_path / "meas.npy", rng.random((16, 20)).astype(np.float32))
+    spec = ProblemSpec(meas=str(tmp_path / "meas.npy"), psf=str(tmp_path / "psf.npy"))
+    assert load_problem(spec.with_changes(field="full")).model.scene_shape[-2:] == (32, 40)
+    assert load_problem(spec.with_changes(field=(32, 40))).model.scene_shape[-2:] == (32, 40)
+    with pytest.raises(ValueError, match=r"scene field 33x40 is larger than the 32x40 from "
+                                         r"which light reaches the 16x20 sensor"):
+        load_problem(spec.with_changes(field=(33, 40)))
