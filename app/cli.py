@@ -9,7 +9,9 @@ those functions, never at module import, so ``lenslesscam --help`` stays fast.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
 import sys
 import warnings
 from collections.abc import Sequence
@@ -84,6 +86,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("lenslesscam: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # the reader of our output went away (``lenslesscam metrics ... | head``): not an error
+        # of ours; stop quietly, as a shell tool does, and keep Python from printing another
+        with contextlib.suppress(OSError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        return 141
     except MemoryError as exc:
         # recon.memory.ProblemTooLarge (the estimate says it will not fit) or a real failure
         print(f"lenslesscam {args.command}: error: {_one_line(exc) or 'out of memory'}",

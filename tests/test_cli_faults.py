@@ -529,3 +529,21 @@ def test_a_preview_that_fails_leaves_no_part_of_a_new_result(tmp_path, monkeypat
     monkeypatch.undo()
     save_reconstruction(tmp_path / "r.tif", x, {})  # the rerun: nothing in its way
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.png", "r.tif"]
+
+
+def test_a_sensor_size_of_zero_is_refused_in_words(tmp_path, capsys):
+    assert main(["calibrate", "darks", "--camera", "sim", "--sim-size", "0x0", "--frames", "1",
+                 "--no-prompt", "--out", str(tmp_path / "d.npz")]) == 2
+    assert "--sim-size must be at least 1x1 pixels" in capsys.readouterr().err
+
+
+def test_a_closed_output_pipe_ends_quietly(monkeypatch, capsys):
+    """``lenslesscam metrics ... | head``: the reader left; no 'error: [Errno 32]' line."""
+    import app.commands.metrics as metrics_cmd
+
+    def gone(_args):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(metrics_cmd, "run", gone)
+    assert main(["metrics", "--ref", "a.npy", "--est", "b.npy"]) == 141
+    assert capsys.readouterr().err == ""

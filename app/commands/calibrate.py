@@ -152,7 +152,10 @@ def _hw(value: str, what: str) -> tuple[int, int]:
     m = re.fullmatch(r"\s*(\d+)\s*[xX,]\s*(\d+)\s*", value)
     if not m:
         raise ValueError(f"{what} must be HxW (for example 64x80), got {value!r}")
-    return int(m.group(1)), int(m.group(2))
+    h, w = int(m.group(1)), int(m.group(2))
+    if h < 1 or w < 1:
+        raise ValueError(f"{what} must be at least 1x1 pixels, got {value!r}")
+    return h, w
 
 
 @contextlib.contextmanager
