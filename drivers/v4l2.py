@@ -22,6 +22,7 @@ no exposure, gain, ROI, binning, shutter or trigger: those raise
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import logging
 import math
@@ -181,6 +182,9 @@ class V4L2Camera(CameraBase):
     def _open(self) -> None:
         import cv2
 
+        # OpenCV's own warnings go straight to stderr; this driver reports failures itself
+        with contextlib.suppress(AttributeError):
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
         if self._is_file:
             src = str(self._source)
             if "%" in src:

@@ -121,3 +121,13 @@ def test_bad_producer_path_is_named(
         err = capsys.readouterr().err
         assert str(bad) in err and says in err and "Traceback" not in err
     assert not (tmp_path / "f.tif").exists()
+
+
+def test_a_camera_that_cannot_open_is_one_line(tmp_path: Path,
+                                               capfd: pytest.CaptureFixture[str]) -> None:
+    """OpenCV printed its own '[ WARN...]' line before the error."""
+    assert app.cli.main(["snap", "--camera", "v4l2:/dev/null", "--out",
+                         str(tmp_path / "v.tif")]) == 2
+    err = capfd.readouterr().err
+    assert err.strip().splitlines() == ["lenslesscam snap: error: cannot open v4l2 file "
+                                        "'/dev/null'"]
