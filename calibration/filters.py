@@ -74,6 +74,10 @@ def validate_filter_cube(
         raise ValueError(f"{what} must have 3 axes (bands and the sensor's 2), got {arr.shape}")
     h, w = int(sensor_shape[0]), int(sensor_shape[1])
     if layout == "auto":
+        if arr.shape[1:] == (h, w) and arr.shape[:2] == (h, w):
+            raise ValueError(
+                f"{what} of shape {arr.shape} fits the {h}x{w} sensor as (K, H, W) and as "
+                "(H, W, K): say which (layout 'khw' or 'hwk', --layout)")
         if arr.shape[1:] == (h, w):
             layout = "khw"
         elif arr.shape[:2] == (h, w):

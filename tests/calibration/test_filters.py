@@ -68,6 +68,11 @@ def test_validation_names_the_problem():
         validate_filter_cube(empty, (16, 20))
     with pytest.raises(ValueError, match="3 axes"):
         validate_filter_cube(np.ones((2, 2, 16, 20)), (16, 20))
+    # a cube that fits both layouts is not guessed: the caller says which
+    square = np.random.default_rng(0).random((4, 4, 4)) + 0.1
+    with pytest.raises(ValueError, match=r"as \(K, H, W\) and as \(H, W, K\)"):
+        validate_filter_cube(square, (4, 4))
+    assert validate_filter_cube(square, (4, 4), layout="hwk").shape == (4, 4, 4)
 
 
 def test_unnormalised_cube_must_be_in_range(tmp_path):
