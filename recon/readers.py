@@ -174,7 +174,8 @@ def _pick_key(p: Path, keys: Sequence[str], key: str | None, prefer: Sequence[st
     if not keys:
         raise ValueError(f"{p}: contains no arrays")
     raise ValueError(
-        f"{p}: contains several arrays ({', '.join(sorted(keys))}); choose one with key="
+        f"{p}: contains several arrays ({', '.join(sorted(keys))}) and none is named "
+        f"{' or '.join(prefer[:2])}: name the one to use so (or save it alone)"
     )
 
 

@@ -94,6 +94,9 @@ def test_npy_npz(tmp_path: Path) -> None:
     np.savez(tmp_path / "amb.npz", x=a, y=b)
     with pytest.raises(ValueError, match=r"several arrays \(x, y\)"):
         rio.load_image(tmp_path / "amb.npz")
+    # the command line has no key option: the message says which names are read
+    with pytest.raises(ValueError, match=r"none is named psf or arr_0: name the one"):
+        rio.load_psf(tmp_path / "amb.npz")
     with pytest.raises(ValueError, match=r"no variable 'z'; available: x, y"):
         rio.load_image(tmp_path / "amb.npz", key="z")
 
