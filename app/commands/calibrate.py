@@ -48,12 +48,17 @@ def _common(p: argparse.ArgumentParser, *, source: bool, source_required: bool) 
     g.add_argument("--gain", type=FINITE, default=None, help="camera gain (device units)")
     g.add_argument("--timeout", type=POSITIVE, default=5.0, help="seconds to wait for a frame")
     g.add_argument("--settle", type=NONNEG_INT, default=1, help="frames dropped after each change")
+    add_sim_camera_arguments(p)
+
+
+def add_sim_camera_arguments(p: Any) -> None:
+    """The simulated camera's options: the same camera for ``calibrate`` and ``snap``."""
     s = p.add_argument_group("simulated camera (--camera sim)")
     s.add_argument("--sim-size", help="sensor HxW (default: the --sim-psf's, else 64x80)")
     s.add_argument("--sim-psf", help="PSF file the simulator renders with (default synthetic)")
     s.add_argument("--sim-flux", type=POSITIVE, default=5e6, help="point source e-/ms (sim)")
     s.add_argument("--sim-seed", type=NONNEG_INT, default=0,
-                   help="seed of the simulated camera's noise (0)")
+                   help="seed of the simulated camera's PSF and noise (0)")
 
 
 def register(sub: Any) -> None:
@@ -182,7 +187,7 @@ def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
         else:
             port = src_spec
         if args.camera.strip().lower() == "sim":
-            camera = open_camera("sim", **_sim_camera_kwargs(args, state_path))
+            camera = open_camera("sim", **sim_camera_kwargs(args, state_path))
         else:
             camera = open_camera(args.camera)
         stack.callback(camera.close)
@@ -200,7 +205,8 @@ def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
         yield camera, source
 
 
-def _sim_camera_kwargs(args: argparse.Namespace, state_path: Path | None) -> dict[str, Any]:
+def sim_camera_kwargs(args: argparse.Namespace, state_path: Path | None) -> dict[str, Any]:
+    """The simulated camera of the ``--sim-*`` options (its size, PSF renderer and seed)."""
     from recon.simulate import render_frames, synthetic_psf
 
     if args.sim_psf:

@@ -68,6 +68,9 @@ def register(subparsers: Any) -> None:
     s.add_argument("--gain", type=FINITE, help="gain (device units)")
     s.add_argument("--timeout", type=POSITIVE, default=5.0, help="seconds to wait for the frame")
     s.add_argument("--light-state", help="sim only: state file of a simulated point source")
+    from app.commands.calibrate import add_sim_camera_arguments
+
+    add_sim_camera_arguments(s)  # the very camera calibrate --camera sim opens
     s.add_argument(
         "--producer", action="append", default=[], metavar="CTI", help="extra GenTL producer"
     )
@@ -121,9 +124,14 @@ def _snap(args: argparse.Namespace) -> int:
     kwargs: dict[str, Any] = {}
     name = args.camera.partition(":")[0].lower()
     if name == "sim":
+        # calibrate's simulated camera (same PSF, size and seed: a PSF calibrated on it fits
+        # this frame), looking at the demo scene: a lensless frame through its PSF
+        from app.commands.calibrate import sim_camera_kwargs
         from drivers.simcam import StillScene, demo_pattern
 
-        kwargs["scene"] = StillScene(demo_pattern(96, 128))
+        kwargs = sim_camera_kwargs(args, None)
+        kwargs.update(scene=StillScene(demo_pattern(kwargs["height"], kwargs["width"])),
+                      exposure_us=10_000.0)
         if args.light_state:
             kwargs["light_state"] = args.light_state
     elif args.light_state:

@@ -156,3 +156,21 @@ def test_calibrate_filters(tmp_path, capsys):
 def test_calibrate_needs_a_subcommand():
     with pytest.raises(SystemExit):
         main(["calibrate"])
+
+
+def test_snap_and_calibrate_use_one_simulated_camera(tmp_path, capsys):
+    """A PSF calibrated on the simulated camera reconstructs a frame snapped from it (the two
+    commands simulated different cameras: 64x80 through a PSF, 96x128 without one)."""
+    from drivers.simcam import demo_pattern
+    from recon.io import read_reconstruction
+
+    psf, frame, rec = tmp_path / "psf.tif", tmp_path / "f.tif", tmp_path / "r.tif"
+    assert main(["calibrate", "psf", "--camera", "sim", "--source", "sim", "--frames",
+                 "2", "--darks", "2", "--settle", "0", "--out", str(psf)]) == 0
+    assert main(["snap", "--camera", "sim", "--out", str(frame)]) == 0
+    assert main(["recon", "fista", "--psf", str(psf), "--meas", str(frame), "--dark",
+                 "100", "--out", str(rec)]) == 0
+    capsys.readouterr()
+    x = read_reconstruction(rec)[0][0, 0]
+    truth = demo_pattern(64, 80)
+    assert np.corrcoef(x.ravel(), truth.ravel())[0, 1] > 0.9

@@ -51,8 +51,8 @@ def test_snap_sim_saves_frame_and_metadata(
     assert rc == 0
     printed = capsys.readouterr().out
     pixels, meta = _read_tiff(out)
-    assert pixels.shape == (96, 128) and pixels.dtype == np.uint16
-    assert "saved" in printed and "96x128 (HxW)" in printed  # rows first, as everywhere
+    assert pixels.shape == (64, 80) and pixels.dtype == np.uint16
+    assert "saved" in printed and "64x80 (HxW)" in printed  # rows first, as everywhere
     assert pixels.max() > 200  # the demo scene, not a dark frame
     assert meta["format"] == "lenslesscam-frame" and meta["exposure_us"] == 10_000.0
     assert meta["backend"] == "sim" and meta["timing"]["exposure_lines"] == 1000
@@ -131,3 +131,4 @@ def test_a_camera_that_cannot_open_is_one_line(tmp_path: Path,
     err = capfd.readouterr().err
     assert err.strip().splitlines() == ["lenslesscam snap: error: cannot open v4l2 file "
                                         "'/dev/null'"]
+
