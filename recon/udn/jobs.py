@@ -815,24 +815,28 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: OnStep = No
     """
     rd = Path(run_dir)
     sp = Path(spec_path)
-    _check_new_run_folder(rd)
     if spec_text is None:
         spec_text = _read_spec_text(sp)
+    copy = spec_text if seed is None else (
+        f"# run with 'jobs run --seed {seed}': optimizer.seed = {seed} overrides this file "
+        "(run.json: overrides)\n" + spec_text)
+    _check_new_run_folder(rd, copy)
     lock = RunLock(rd).acquire()
     try:
-        _check_new_run_folder(rd)  # again: a process that held the lock may have written it
+        _check_new_run_folder(rd, copy)  # again: a process that held the lock may have written
         return _run_locked(sp, rd, lock, progress, cancel, max_memory, spec_text, seed,
-                           threads)
+                           threads, copy)
     finally:
         lock.release()
 
 
-def _check_new_run_folder(rd: Path) -> None:
+def _check_new_run_folder(rd: Path, spec_copy: str) -> None:
     """Refuse a folder that holds a run, or files that are not a run's.
 
     A run would overwrite them, inputs among them. A folder left by a start that failed before
     its first iteration (a refused spec, a device or memory refusal) holds only that attempt's
-    record and spec: it may be used again.
+    record and spec: it may be used again; so may one left by a start killed before its record
+    (the lock, temporary files, and a ``job.toml`` that is this very spec).
     """
     if (rd / RECORD_FILE).exists():
         try:
@@ -848,7 +852,13 @@ def _check_new_run_folder(rd: Path) -> None:
                              "folder")
         return  # a start that failed before its first iteration: its files are rewritten
     if rd.is_dir():
-        others = sorted(p.name for p in rd.iterdir() if p.name != LOCK_FILE)
+        from recon.atomic import is_temp_name
+
+        spec = rd / SPEC_FILE
+        ours = spec.is_file() and spec.read_bytes() == spec_copy.encode("utf-8")
+        others = sorted(p.name for p in rd.iterdir()
+                        if p.name != LOCK_FILE and not is_temp_name(p.name)
+                        and not (ours and p.name == SPEC_FILE))
         if others:
             raise ValueError(f"{rd} is not empty and holds no run ({len(others)} entries, e.g. "
                              f"{others[0]}): a run writes its files there; choose a new or "
@@ -859,11 +869,8 @@ def _check_new_run_folder(rd: Path) -> None:
 
 def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: OnStep, cancel: Cancel,
                 max_memory: int | None, spec_text: str, seed: int | None,
-                threads: int | None = None) -> JobOutcome:
+                threads: int | None, copy: str) -> JobOutcome:
     removed = clean_temp_files(rd)
-    copy = spec_text if seed is None else (
-        f"# run with 'jobs run --seed {seed}': optimizer.seed = {seed} overrides this file "
-        "(run.json: overrides)\n" + spec_text)
     record: dict[str, Any] = {
         "format": RUN_RECORD_FORMAT,
         "format_version": FORMAT_VERSION,

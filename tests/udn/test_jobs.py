@@ -459,6 +459,18 @@ def test_a_run_never_starts_in_a_folder_of_other_files(tiny_data, tmp_path, caps
     assert record(again)["status"] == "finished"
     with pytest.raises(ValueError, match="already holds a run"):
         run_job(spec, again)
+    # a start killed before its record (during setup) leaves the lock, its job.toml and maybe
+    # a temporary file: the same spec starts there again (a batch retry), another does not
+    killed = tmp_path / "killed"
+    killed.mkdir()
+    (killed / "job.toml").write_bytes(spec.read_bytes())
+    (killed / "run.lock").write_text("pid 1 on gone\n")
+    (killed / ".run.json.abc123.tmp").write_text("{")
+    other = write_spec(tiny_data, "other.toml", stopping={"max_iter": 2})
+    with pytest.raises(ValueError, match="is not empty and holds no run"):
+        run_job(other, killed)
+    assert run_job(spec, killed).iterations == 3
+    assert not (killed / ".run.json.abc123.tmp").exists()
 
 
 def test_cancel_signals_only_the_process_that_holds_the_run(tiny_data, tmp_path):
