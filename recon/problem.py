@@ -289,10 +289,10 @@ def _is_calibration_npz(p: Path) -> bool:
         return False
 
 
-def _read(path: PathLike, what: str, prefer: Sequence[str]) -> Array:
+def _read(path: PathLike, what: str, prefer: Sequence[str], key: str | None = None) -> Array:
     p = Path(path)
     try:
-        return np.asarray(load_image(p, prefer=prefer))
+        return np.asarray(load_image(p, key=key, prefer=prefer))
     except FileNotFoundError:
         raise FileNotFoundError(f"{what} file not found: {p}") from None
     except ValueError as exc:
@@ -373,13 +373,17 @@ def read_filters(path: PathLike) -> F64:
     return f
 
 
-def read_truth(path: PathLike, *, color: str = "gray", channel_order: str = "rgb") -> F32:
+def read_truth(path: PathLike, *, color: str = "gray", channel_order: str = "rgb",
+               key: str | None = None) -> F32:
     """A ground-truth scene as (C, K, H, W) float32, R, G, B (or gray) as ``color`` asks.
 
-    Accepts (H, W), (H, W, 3), (C, H, W) and (C, K, H, W).
+    Accepts (H, W), (H, W, 3|4) (alpha dropped), (C, H, W) and (C, K, H, W); ``key``: the
+    variable of an NPZ/MAT file.
     """
     p = Path(path)
-    t = _read(p, "truth", ("truth", "scene", "x", "arr_0", "data")).astype(np.float32)
+    t = _read(p, "truth", ("truth", "scene", "x", "arr_0", "data"), key=key).astype(np.float32)
+    if t.ndim == 3 and t.shape[-1] == 4 and t.shape[0] not in (1, 3, 4):
+        t = t[..., :3]  # RGBA: the alpha channel is not light
     if not np.all(np.isfinite(t)):
         raise ValueError(f"truth file {p} has NaN or infinite values")
     if t.ndim in (2, 3):
@@ -416,13 +420,13 @@ def load_truth(spec: ProblemSpec, scene_shape: Sequence[int]) -> F32:
 
 def prepare_truth(path: PathLike, scene_shape: Sequence[int], *, color: str = "gray",
                   channel_order: str = "rgb", flip_rows: bool = False,
-                  downsample: int = 1) -> F32:
+                  downsample: int = 1, key: str | None = None) -> F32:
     """A truth file read and prepared as a measurement with these settings is (C, K, H, W).
 
     :func:`load_truth` for a problem; ``lenslesscam metrics`` with the settings a
     reconstruction's metadata records.
     """
-    t = read_truth(path, color=color, channel_order=channel_order)
+    t = read_truth(path, color=color, channel_order=channel_order, key=key)
     if flip_rows:
         t = np.ascontiguousarray(t[:, :, ::-1])
     scene = tuple(int(n) for n in scene_shape)

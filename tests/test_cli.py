@@ -274,6 +274,33 @@ def test_metrics_reads_the_truth_like_the_reconstructions_measurement(tmp_path, 
     assert report["ref_prepared"]["flip_rows"] is True
     job = json.loads((run / "run.json").read_text())["results"]["scores"]["final"]
     assert report["psnr"] == pytest.approx(job["psnr"], abs=1e-3)
+    # --key picks the truth's variable in an NPZ on the prepared path too
+    stored = np.load(files["truth"])
+    np.savez(tmp_path / "two.npz", scene=np.random.default_rng(0).random(stored.shape),
+             gt=stored)
+    code, out, err = _run(capsys, "metrics", "--ref", str(tmp_path / "two.npz"), "--key", "gt",
+                          "--est", str(rec), "--gain-fit")
+    assert code == 0, err
+    assert json.loads(out)["psnr"] == pytest.approx(psnr(truth, gain_fit(truth, x)[0]), abs=1e-3)
+
+
+def test_metrics_scores_a_video_against_a_stack_of_frames(tmp_path, capsys):
+    """A (K, H, W) truth stack for a K-frame result is read as stored (the prepared path is for
+    images; it took the frames for colour channels)."""
+    from recon.io import save_reconstruction
+
+    rng = np.random.default_rng(0)
+    truth = rng.random((6, 24, 20)).astype(np.float32)
+    np.save(tmp_path / "t.npy", truth)
+    est = truth * 2 + 0.01 * rng.random(truth.shape).astype(np.float32)
+    save_reconstruction(tmp_path / "v.tif", est[None], {
+        "preprocessing": {"color": "gray", "channel_order": "rgb", "flip_rows": False,
+                          "downsample": 1}}, kind="video")
+    code, out, err = _run(capsys, "metrics", "--ref", str(tmp_path / "t.npy"), "--est",
+                          str(tmp_path / "v.tif"), "--gain-fit")
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["psnr"] > 40 and "ref_prepared" not in report
 
 
 def test_simulate_reads_its_own_truth_and_refuses_scenes_that_are_not_light(tmp_path, capsys):

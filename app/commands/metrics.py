@@ -41,7 +41,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--key", default=None, help="variable name inside NPZ/MAT files")
     p.add_argument("--ref-as-is", action="store_true",
                    help="read GT exactly as stored; by default, when EST is a lenslesscam "
-                   "reconstruction, GT is prepared like the measurement it was made from (colour, "
+                   "image reconstruction (K = 1), GT is prepared like the measurement it was "
+                   "made from (colour, "
                    "--channel-order, --flip-rows, --downsample from EST's metadata; "
                    "ref_prepared in the JSON)")
     p.add_argument("--spectral", action="store_true",
@@ -128,11 +129,14 @@ def run(args: argparse.Namespace) -> int:
     est, est_kind, est_meta = _load(args.est, args.key)
     layout = _layout(est_meta)
     prepared = None
-    if layout is not None and not args.ref_as_is and not _is_reconstruction(args.ref):
+    # an image result (K = 1; a stack of frames or bands is read as stored) from a measurement
+    # that says how it was read, scored against a plain file
+    if (layout is not None and not args.ref_as_is and est.shape[1] == 1
+            and not _is_reconstruction(args.ref)):
         from recon.problem import prepare_truth
 
         # the reference in the frame of the reconstruction: the one way a problem's truth is read
-        ref = prepare_truth(args.ref, est.shape, **layout).astype(np.float64)
+        ref = prepare_truth(args.ref, est.shape, key=args.key, **layout).astype(np.float64)
         ref_kind, prepared = None, layout
     else:
         ref, ref_kind, _ = _load(args.ref, args.key)
