@@ -81,7 +81,7 @@ from recon.udn.rundir import (
     is_disk_full,
     load_checkpoint,
     load_latest_checkpoint,
-    lock_is_held,
+    lock_holder,
     write_checkpoint,
 )
 from recon.udn.runner import UDNRunner, UDNStep, resolve_device
@@ -200,25 +200,31 @@ def request_cancel(run_dir: str | Path, *, send_signal: bool = False) -> str:
     """
     rd = Path(run_dir)
     rec = read_record(rd)
-    if rec.get("status") != "running":
+    here = rec.get("host") in (None, platform.node())
+    # on this host the run's lock says whether a process works on the run (a run, or a
+    # resume still in its setup, holds it for as long as it lives); the record's pid may be
+    # stale or reused
+    holder = lock_holder(rd) if here else None
+    if here and holder is None:
+        if rec.get("status") == "running":
+            raise ValueError(f"{rd}: the run is not running (its process {rec.get('pid')} is "
+                             f"gone: it was interrupted); continue it with 'lenslesscam jobs "
+                             f"resume {rd}'")
         raise ValueError(f"{rd}: the run is not running (finish reason "
                          f"{rec.get('finish_reason')})")
-    pid = rec.get("pid")
-    here = rec.get("host") in (None, platform.node())
-    if here and not (isinstance(pid, int) and pid_alive(pid, rec.get("host"))):
-        raise ValueError(f"{rd}: the run is not running (its process {pid} is gone: it was "
-                         f"interrupted); continue it with 'lenslesscam jobs resume {rd}'")
+    if not here and rec.get("status") != "running":
+        raise ValueError(f"{rd}: the run is not running (finish reason "
+                         f"{rec.get('finish_reason')})")
     atomic_write_bytes(rd / CANCEL_FILE, f"cancel requested {_now()} by pid {os.getpid()}\n"
                        .encode())
     msg = f"cancel requested: the job in {rd} stops at its next iteration"
-    if send_signal and isinstance(pid, int) and here:
-        # the pid in the record may since belong to another process: signal it only while
-        # the run's lock is held (by the run, which holds it for as long as it lives)
-        if lock_is_held(rd):
-            os.kill(pid, signal.SIGTERM)
+    if send_signal:
+        pid = holder[0] if holder else None
+        if isinstance(pid, int) and pid > 0:
+            os.kill(pid, signal.SIGTERM)  # the process that holds the lock, by its own line
             msg += f" (SIGTERM sent to pid {pid})"
         else:
-            msg += f" (no SIGTERM: no process holds the run's lock, pid {pid} is not the run)"
+            msg += " (no SIGTERM: the process holding the run is not known on this host)"
     return msg
 
 

@@ -27,6 +27,7 @@ import io
 import json
 import os
 import platform
+import re
 import tempfile
 import time
 from pathlib import Path
@@ -139,6 +140,25 @@ def _wait_for_holder(fd: int) -> bytes | None:
         if time.monotonic() >= deadline:
             return b""
         time.sleep(0.02)
+
+
+def lock_holder(run_dir: str | Path) -> tuple[int | None, str] | None:
+    """The process holding the run folder's lock: (pid, its line), or None when none does.
+
+    The pid comes from the holder's own line in the lock file (``pid N on HOST since T``,
+    written by :meth:`RunLock.acquire`); None in the tuple when the line cannot be read yet.
+    A momentary probe, as :func:`lock_is_held`.
+    """
+    if not lock_is_held(run_dir):
+        return None
+    try:
+        line = (Path(run_dir) / LOCK_FILE).read_bytes()[:200].decode("utf-8", "replace")
+    except OSError:
+        return (None, "")
+    m = re.match(r"pid (\d+) on (\S+)", line)
+    if m is None or m.group(2) != platform.node():
+        return (None, line.strip())
+    return (int(m.group(1)), line.strip())
 
 
 def lock_is_held(run_dir: str | Path) -> bool:
