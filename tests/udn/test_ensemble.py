@@ -113,6 +113,14 @@ def test_combine_never_writes_into_a_member_nor_trusts_a_replaced_result(three_r
         combine_runs(runs[:2], runs[0] / "best.tif")
     assert (runs[0] / "best.tif").read_bytes() == best
     combine_runs(runs[:2], tmp_path / "ens.tif")
-    shutil.copy(tmp_path / "ens.tif", runs[1] / "best.tif")  # another file under its name
+    # another run's UDN result under its name: refused by the data hash its run recorded
+    saved = (runs[1] / "best.tif").read_bytes()
+    shutil.copy(runs[2] / "best.tif", runs[1] / "best.tif")
     with pytest.raises(ValueError, match="is not the best estimate this run wrote"):
         combine_runs(runs[:2], tmp_path / "ens2.tif")
+    # an ensemble under its name: refused by its method
+    shutil.copy(tmp_path / "ens.tif", runs[1] / "best.tif")
+    with pytest.raises(ValueError, match="is not the best estimate this run wrote"):
+        combine_runs(runs[:2], tmp_path / "ens2.tif")
+    (runs[1] / "best.tif").write_bytes(saved)
+    combine_runs(runs[:2], tmp_path / "ens2.tif")
