@@ -86,10 +86,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("lenslesscam: interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:
+    except BrokenPipeError as exc:
+        if not _stdout_gone():  # a pipe of the work itself (a worker, a subprocess) broke
+            print(f"lenslesscam {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+            return 2
         # the reader of our output went away (``lenslesscam metrics ... | head``): not an error
         # of ours; stop quietly, as a shell tool does, and keep Python from printing another
-        with contextlib.suppress(OSError):
+        with contextlib.suppress(OSError, ValueError):
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())
         return 141
@@ -111,6 +114,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     finally:
         warnings.showwarning = saved_show
+
+
+def _stdout_gone() -> bool:
+    """Whether standard output is a pipe whose reader has closed it."""
+    import select
+
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(ev & select.POLLERR for _fd, ev in poller.poll(0))
+    except (OSError, ValueError, AttributeError):  # not a real file (a test's capture)
+        return False
 
 
 def _show_warning(message: Warning | str, category: type[Warning], filename: str,

@@ -539,11 +539,31 @@ def test_a_sensor_size_of_zero_is_refused_in_words(tmp_path, capsys):
 
 def test_a_closed_output_pipe_ends_quietly(monkeypatch, capsys):
     """``lenslesscam metrics ... | head``: the reader left; no 'error: [Errno 32]' line."""
+    import app.cli as app_cli
     import app.commands.metrics as metrics_cmd
 
     def gone(_args):
         raise BrokenPipeError(32, "Broken pipe")
 
     monkeypatch.setattr(metrics_cmd, "run", gone)
+    monkeypatch.setattr(app_cli, "_stdout_gone", lambda: True)
     assert main(["metrics", "--ref", "a.npy", "--est", "b.npy"]) == 141
     assert capsys.readouterr().err == ""
+    # a broken pipe of the work itself (stdout still open) is an error, in one line
+    monkeypatch.setattr(app_cli, "_stdout_gone", lambda: False)
+    assert main(["metrics", "--ref", "a.npy", "--est", "b.npy"]) == 2
+    assert "error: [Errno 32] Broken pipe" in capsys.readouterr().err
+
+
+def test_stdout_gone_sees_a_pipe_whose_reader_closed(monkeypatch):
+    import os
+
+    from app.cli import _stdout_gone
+
+    r, w = os.pipe()
+    with os.fdopen(w, "w") as out:
+        monkeypatch.setattr("sys.stdout", out)
+        assert not _stdout_gone()  # a reader is there
+        os.close(r)
+        assert _stdout_gone()
+        monkeypatch.undo()
