@@ -177,7 +177,8 @@ def check_outputs(
                 raise FileExistsError(
                     f"refusing to write {out}: it is the input {key} of this command "
                     "(choose another output name)")
-            if src.is_dir() and src.resolve() in out.resolve().parents:
+            # a folder input (a PSF stack's planes) reads the files directly in it
+            if src.is_dir() and Path(os.path.abspath(out)).parent.resolve() == src.resolve():
                 raise FileExistsError(
                     f"refusing to write {out} inside the input folder {key} {src}: every file "
                     "there is read as input (choose another folder)")

@@ -486,8 +486,10 @@ def _embed(a: Array, shape: tuple[int, int], offset: tuple[int, int]) -> Array:
 
 def _is_gray_image(path: Any) -> bool:
     """Whether an image file holds one channel ((H, W), or a single plane)."""
+    from recon.readers import _PSF_KEYS
+
     try:
-        a = load_image(str(path))
+        a = load_image(str(path), prefer=_PSF_KEYS)  # the array load_psf reads
     except (OSError, ValueError):
         return False  # load_psf names the problem
     return a.ndim == 2 or (a.ndim == 3 and 1 in (a.shape[0], a.shape[2]))

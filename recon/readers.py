@@ -175,7 +175,8 @@ def _pick_key(p: Path, keys: Sequence[str], key: str | None, prefer: Sequence[st
         raise ValueError(f"{p}: contains no arrays")
     raise ValueError(
         f"{p}: contains several arrays ({', '.join(sorted(keys))}) and none is named "
-        f"{' or '.join(prefer[:2])}: name the one to use so (or save it alone)"
+        f"{', '.join(prefer)}: choose one with --key where the command has it, or name it so "
+        "(or save it alone)"
     )
 
 

@@ -5,7 +5,9 @@ ran FISTA 7-77x slower than with 1 (the threads wait on each other while the oth
 a core). Extra threads only pay when cores are free. So the policy is:
 
 - an explicit request (``--threads N`` on the command line, a job spec's ``threads``, or the
-  ``OMP_NUM_THREADS`` environment variable) wins, as given;
+  ``OMP_NUM_THREADS`` environment variable) wins, up to ``MAX_THREADS_PER_CORE`` threads per
+  core (a request above that is an error; an ``OMP_NUM_THREADS`` above it, often set by a
+  scheduler for another machine, is cut to it with a note);
 - otherwise the number of *free* cores: the cores this process may run on
   (``os.sched_getaffinity``) minus the 1-minute load average (``os.getloadavg``), rounded to
   the nearest integer, at least 1 and at most ``MAX_AUTO_THREADS`` (small FFTs stop scaling
@@ -37,7 +39,7 @@ from dataclasses import dataclass
 __all__ = ["FFT_PIXELS_PER_THREAD", "MAX_AUTO_THREADS", "ThreadChoice", "apply_threads",
            "choose_threads", "fit_threads", "machine_state"]
 
-#: Upper bound of the automatic choice (explicit requests are not capped).
+#: Upper bound of the automatic choice (explicit requests: ``MAX_THREADS_PER_CORE``).
 MAX_AUTO_THREADS = 8
 
 #: Scene pixels (channels x slices x rows x columns) per thread of an FFT solver (see above).
@@ -137,8 +139,11 @@ def choose_threads(requested: int | str | None = None, *, cores: int | None = No
     if omp:
         n = _parse_request(omp, "OMP_NUM_THREADS")
         if n is not None:
-            return ThreadChoice(_bounded(n, cores, "OMP_NUM_THREADS"), cores, load,
-                                "OMP_NUM_THREADS")
+            limit = MAX_THREADS_PER_CORE * max(1, cores)
+            if n > limit:
+                return ThreadChoice(limit, cores, load,
+                                    f"OMP_NUM_THREADS {n} cut to {MAX_THREADS_PER_CORE}x cores")
+            return ThreadChoice(n, cores, load, "OMP_NUM_THREADS")
     free = int(cores - load + 0.5)  # round half up; cores - load may be negative
     n = min(free, cores, MAX_AUTO_THREADS)
     if work is not None:

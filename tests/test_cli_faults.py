@@ -273,6 +273,8 @@ def test_check_outputs_unit(tmp_path):
     stack.mkdir()
     with pytest.raises(FileExistsError, match="inside the input folder --psf-stack"):
         check_outputs([stack / "rec.tif"], {"--psf-stack": stack})
+    (stack / "sub").mkdir()  # the stack reader does not look into subfolders
+    check_outputs([stack / "sub" / "rec.tif"], {"--psf-stack": stack})
 
 
 def test_reconstruction_paths_are_what_save_reconstruction_writes(tmp_path):

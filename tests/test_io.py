@@ -95,7 +95,8 @@ def test_npy_npz(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"several arrays \(x, y\)"):
         rio.load_image(tmp_path / "amb.npz")
     # the command line has no key option: the message says which names are read
-    with pytest.raises(ValueError, match=r"none is named psf or arr_0: name the one"):
+    with pytest.raises(ValueError, match=r"none is named psf, arr_0, image, data: choose one "
+                                         r"with --key"):
         rio.load_psf(tmp_path / "amb.npz")
     with pytest.raises(ValueError, match=r"no variable 'z'; available: x, y"):
         rio.load_image(tmp_path / "amb.npz", key="z")

@@ -251,8 +251,11 @@ def run_plan(args: argparse.Namespace) -> int:
         check_command_outputs(args, [args.out])
     inputs = load_inputs(args)
     plan = _make(args, inputs, probe=not args.no_probe)
+    window = _window(inputs)
     if args.out:
         d = plan.to_json()
+        if window is not None:
+            d["measurement_window"] = list(window)
         if getattr(args, "meas", None) and getattr(args, "psf", None):
             import datetime as _dt
 
@@ -262,7 +265,6 @@ def run_plan(args: argparse.Namespace) -> int:
             d["inputs"] = input_hashes_of_files(args.meas, args.psf)
             d["created_utc"] = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
         atomic_write_json(args.out, d)
-    window = _window(inputs)
     if args.json:
         d = plan.to_json()
         if window is not None:  # "sensor" is the padded grid the plan runs on

@@ -743,10 +743,11 @@ def _save_best_after_failure(job: _Job) -> None:
              "finish_reason": FinishReason.FAILED, "run_dir": str(job.run_dir),
              "preprocessing": _preprocessing(problem)},
             kind=_RESULT_KIND[problem.kind])
+        written = _saved_hash(paths[0])
     except (OSError, ValueError):
         return
     job.record["results"] = {"best": str(paths[0].relative_to(job.run_dir)),
-                             "data_hashes": {"best": _saved_hash(paths[0])},
+                             "data_hashes": {"best": written},
                              "best_iteration": runner.best_iteration,
                              "best_heldout": runner.best_heldout}
 

@@ -96,3 +96,6 @@ def test_plan_names_the_measurement_not_the_padded_psf_grid(tmp_path, capsys):
     assert main([*argv, "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["measurement_window"] == [24, 32] and d["sensor"] == [48, 64]
+    assert main([*argv, "--out", str(tmp_path / "plan.json")]) == 0
+    capsys.readouterr()
+    assert json.loads((tmp_path / "plan.json").read_text())["measurement_window"] == [24, 32]
