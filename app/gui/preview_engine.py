@@ -382,7 +382,8 @@ class PreviewEngine:
             raise PreviewError(f"the preview takes 2D frames, got shape {frame.shape}")
         sensor_psf = self._psf_at_binning(binning)
         ph, pw = sensor_psf.shape
-        full_roi = roi is None or (roi[2] // binning, roi[3] // binning) == (ph, pw)
+        # roi is (x, y, width, height); the PSF (rows, columns)
+        full_roi = roi is None or (roi[3] // binning, roi[2] // binning) == (ph, pw)
         if full_roi:
             if frame.shape != (ph, pw):
                 raise PreviewError(
@@ -390,6 +391,13 @@ class PreviewEngine:
                     f"{ph}x{pw} (binning {binning}); calibrate a PSF for this sensor size"
                 )
             roi = None
+        else:
+            assert roi is not None
+            x, y, w, h = (int(v) for v in roi)
+            if (y + h) // binning > ph or (x + w) // binning > pw or x < 0 or y < 0:
+                raise PreviewError(
+                    f"the frame's region {w}x{h} at ({x}, {y}) lies outside the PSF's "
+                    f"{ph}x{pw} sensor (binning {binning}); calibrate a PSF for this sensor")
         timing_key = None
         if s.model == "video":
             if timing is None:

@@ -167,3 +167,20 @@ def test_tau_auto_estimate_runs_below_the_preview_priority(psf: np.ndarray, monk
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == before
     r = eng.process(_frame(psf))
     assert "tau auto" in r.tau_note and "estimating" not in r.tau_note
+
+
+def test_a_full_frame_roi_of_a_non_square_sensor_is_the_full_sensor(psf: np.ndarray) -> None:
+    """The ROI is (x, y, width, height), the PSF (rows, columns): a full 48x64 frame with its
+    ROI took the region path (the two were compared crosswise), and a PSF smaller than the
+    frame was accepted and gave a picture of the PSF's size."""
+    frame = _frame(psf)
+    eng = PreviewEngine(psf, PreviewSettings(iters_per_frame=2, downsample=1, dark=100.0))
+    res = eng.process(frame, roi=(0, 0, 64, 48))
+    assert eng._geometry.roi is None and eng._mask is None
+    assert res.image.shape[-2:] == (48, 64)
+    small = PreviewEngine(psf[:10, :20].copy(), PreviewSettings(downsample=1, dark=100.0))
+    with pytest.raises(PreviewError, match="lies outside the PSF's 10x20 sensor"):
+        small.process(frame, roi=(0, 0, 64, 48))
+    transposed = PreviewEngine(psf.T.copy(), PreviewSettings(downsample=1, dark=100.0))
+    with pytest.raises(PreviewError, match="outside the PSF's 64x48 sensor"):
+        transposed.process(frame, roi=(0, 0, 64, 48))
