@@ -404,7 +404,13 @@ def discover_jobs(jobs_dir: str | Path) -> list[JobView]:
         return []
     out = []
     for f in sorted(p for p in root.iterdir() if p.is_dir()):
-        v = job_view(f)
+        try:
+            v = job_view(f)
+        except (ValueError, KeyError, TypeError, AttributeError, IndexError) as exc:
+            # one damaged job file must not hide (or stop) the others: shown, never run
+            v = JobView(folder=f, name=f.name, device="?", state=AppJobState.FAILED_TO_START,
+                        detail=f"{APP_JOB_FILE} unreadable ({type(exc).__name__}: {exc}); "
+                               "the other jobs are not affected")
         if v is not None:
             out.append(v)
     return out

@@ -187,3 +187,21 @@ def test_job_dialog_defaults_come_from_the_spec(live_window: Any, tmp_path: Any)
                           base_dir=tmp_path)  # the dialog's sections are a valid job spec
     assert spec["optimizer"]["headroom"] == pytest.approx(1.5)
     dlg.reject()
+
+
+def test_one_damaged_job_file_does_not_hide_the_others(tmp_path):
+    """A launch entry with a pid that is not a number made discover_jobs raise, so the panel
+    showed nothing and no job was launched again."""
+    import json
+
+    from app.gui.jobs_core import APP_JOB_FILE, AppJobState, discover_jobs
+
+    for name, entry in (("a-bad", {"format": "lenslesscam.app_job", "name": "bad",
+                                   "state": "running", "launches": [{"pid": "abc"}]}),
+                        ("b-good", {"format": "lenslesscam.app_job", "name": "good",
+                                    "state": "queued"})):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / APP_JOB_FILE).write_text(json.dumps(entry))
+    bad, good = discover_jobs(tmp_path)
+    assert bad.state is AppJobState.FAILED_TO_START and "unreadable" in (bad.detail or "")
+    assert good.name == "good" and good.state is AppJobState.QUEUED
