@@ -465,6 +465,12 @@ def cancel_job(folder: str | Path) -> str:
     f = Path(folder)
     entry = _read_json(f / APP_JOB_FILE) or {}
     if entry.get("state") in (AppJobState.QUEUED, AppJobState.HELD):
+        if entry.get("action") == "resume" and (f / RUN_DIR / "run.json").is_file():
+            # a resume waiting in the queue: drop it; the run stays as it was (its results,
+            # resumable again)
+            entry.update(state=AppJobState.LAUNCHED.value, action="run", max_iter=None)
+            _write_entry(f, entry)
+            return f"{f.name}: the queued resume is withdrawn; the run is as it was"
         entry["state"] = AppJobState.WITHDRAWN.value
         _write_entry(f, entry)
         return f"{f.name}: withdrawn from the queue"

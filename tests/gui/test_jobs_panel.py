@@ -205,3 +205,33 @@ def test_one_damaged_job_file_does_not_hide_the_others(tmp_path):
     bad, good = discover_jobs(tmp_path)
     assert bad.state is AppJobState.FAILED_TO_START and "unreadable" in (bad.detail or "")
     assert good.name == "good" and good.state is AppJobState.QUEUED
+
+
+def test_cancelling_a_queued_resume_leaves_the_run_as_it_was(tmp_path, capsys):
+    """Cancel on a resume waiting in the queue marked the whole job withdrawn: no results,
+    no resume, although its checkpoint and results were on disk."""
+    import json
+
+    import numpy as np
+
+    from app.cli import main
+    from app.gui.jobs_core import APP_JOB_FILE, AppJobState, cancel_job, job_view
+    from recon.simulate import synthetic_psf
+
+    psf = synthetic_psf((24, 28), seed=0)
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "psf.npy", psf)
+    np.save(tmp_path / "meas.npy", rng.random((24, 28)).astype(np.float32))
+    job = tmp_path / "jobs" / "b"
+    assert main(["recon", "udn", "--psf", str(tmp_path / "psf.npy"), "--meas",
+                 str(tmp_path / "meas.npy"), "--iters", "3", "--scales", "2",
+                 "--net-channels", "4", "--input-channels", "4", "--threads", "1", "--quiet",
+                 "--out", str(job / "run")]) == 0
+    capsys.readouterr()
+    (job / APP_JOB_FILE).write_text(json.dumps({
+        "format": "lenslesscam.app_job", "name": "b", "state": "queued", "action": "resume",
+        "max_iter": 10, "launches": [{"action": "run", "pid": 1}]}))
+    assert "queued resume is withdrawn" in cancel_job(job)
+    v = job_view(job)
+    assert v is not None and v.state is not AppJobState.WITHDRAWN
+    assert v.finish_reason == "completed" and "best" in v.results
