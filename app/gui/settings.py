@@ -99,8 +99,19 @@ class AppSettings:
                 _log.warning("settings: ignoring %s=%r (expected %s)", f.name, value,
                              type(default).__name__)
                 continue
+            if f.name == "sim_scene" and value not in _sim_scenes():
+                # a scene that no longer exists would leave the simulated camera unable to
+                # connect, with its scene menu disabled while disconnected
+                _log.warning("settings: ignoring sim_scene=%r (not a bundled scene)", value)
+                continue
             setattr(out, f.name, value)
         return out
+
+
+def _sim_scenes() -> tuple[str, ...]:
+    from app.gui.devices import SCENES
+
+    return tuple(SCENES)
 
 
 def load_settings(path: Path | None = None) -> AppSettings:
@@ -118,7 +129,14 @@ def load_settings(path: Path | None = None) -> AppSettings:
     if not isinstance(raw, dict) or raw.get("format") != SETTINGS_FORMAT:
         _log.warning("%s is not a lenslesscam settings file; using defaults", p)
         return AppSettings()
-    if int(raw.get("format_version", 0)) > SETTINGS_VERSION:
+    version = raw.get("format_version", 0)
+    if not isinstance(version, int) or isinstance(version, bool):
+        _log.warning("settings file %s has format_version %r, not a number; using defaults",
+                     p, version)
+        with contextlib.suppress(OSError):
+            p.replace(p.with_suffix(".json.bad"))
+        return AppSettings()
+    if version > SETTINGS_VERSION:
         _log.warning("%s was written by a newer version; using defaults", p)
         return AppSettings()
     return AppSettings.from_dict(raw)

@@ -235,3 +235,21 @@ def test_cancelling_a_queued_resume_leaves_the_run_as_it_was(tmp_path, capsys):
     v = job_view(job)
     assert v is not None and v.state is not AppJobState.WITHDRAWN
     assert v.finish_reason == "completed" and "best" in v.results
+
+
+def test_settings_with_a_bad_version_or_an_unknown_scene_start_with_defaults(tmp_path):
+    """A format_version that is not a number stopped the app from starting; a saved scene
+    that does not exist left the simulated camera unable to connect."""
+    import json
+
+    from app.gui.settings import SETTINGS_FORMAT, AppSettings, load_settings
+
+    p = tmp_path / "app-settings.json"
+    p.write_text(json.dumps({"format": SETTINGS_FORMAT, "format_version": "x",
+                             "gain": 3.0}))
+    assert load_settings(p) == AppSettings()
+    assert (tmp_path / "app-settings.json.bad").exists()  # set aside, as docs/app.md says
+    p.write_text(json.dumps({"format": SETTINGS_FORMAT, "format_version": 1,
+                             "sim_scene": "nonexistent", "gain": 3.0}))
+    s = load_settings(p)
+    assert s.sim_scene == AppSettings().sim_scene and s.gain == 3.0
