@@ -20,6 +20,7 @@ per position of a user-driven series and saves one stack file.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from collections.abc import Callable, Sequence
@@ -554,6 +555,11 @@ def capture_psf(
     """
     s = settings or PsfSettings()
     light_on = False
+    done = False
+    try:
+        before_us: float | None = float(camera.exposure_us)
+    except Exception:  # no exposure control (or no answer): nothing to put back
+        before_us = None
     try:
         yield Progress("setup", "checking the point source", 0.0)
         identity = source_identity(source, stage="setup")
@@ -683,10 +689,16 @@ def capture_psf(
             yield Progress("save", f"saving {out}", 0.98)
             result = replace(result, path=result.save(out))
         yield Progress("done", "PSF calibration done: " + quality.summary(), 1.0)
+        done = True
         return result
     finally:
         if light_on:
             source_off_quietly(source)
+        if not done and before_us is not None and math.isfinite(before_us):
+            # a refused or cancelled capture leaves the camera as it found it (auto-exposure
+            # may have gone up to its limit looking for light)
+            with contextlib.suppress(Exception):
+                camera.exposure_us = before_us
 
 
 # --------------------------------------------------------------------------------------------

@@ -146,6 +146,7 @@ def test_saturated_psf_at_fixed_exposure_is_refused(make_camera, source, tmp_pat
 def test_source_that_never_turns_on_is_refused(make_camera, source, tmp_path):
     # the camera looks at another bench: it never sees this source's light
     cam = make_camera(light_state=tmp_path / "elsewhere.json")
+    before = cam.exposure_us
     out = tmp_path / "psf.tif"
     settings = PsfSettings(
         n_frames=4, n_darks=4, intensity=1.0, max_exposure_us=5000.0, settle_frames=0
@@ -155,6 +156,8 @@ def test_source_that_never_turns_on_is_refused(make_camera, source, tmp_path):
     assert "switched on" in str(info.value) and "5000 us" in str(info.value)
     assert out_dir_files(tmp_path) == ["light-state.json"]
     assert source.status().mode is LightMode.OFF
+    # auto-exposure went to its limit looking for light: the camera gets its exposure back
+    assert cam.exposure_us == before != 5000.0
 
 
 def test_camera_timeout_mid_capture_stops_cleanly(make_camera, source, true_psf, tmp_path):
