@@ -182,9 +182,10 @@ class ShutterSettings:
     """Settings of a strobe scan (times in microseconds; None: derived from the model).
 
     ``pulse_us`` defaults to one model line time (at most half the exposure), ``step_us`` to
-    half the pulse, ``span_us`` (the last delay) to 1.25 x the model's trigger delay + frame
-    time. A row is used when its plateau exceeds ``min_snr`` times its dark noise and
-    ``min_relative`` times the brightest row's plateau.
+    half the pulse (or the span over ``max_delays`` when that is longer), ``span_us`` (the
+    last delay) to 1.25 x the model's trigger delay + frame time. A row is used when its
+    plateau exceeds ``min_snr`` times its dark noise and ``min_relative`` times the brightest
+    row's plateau.
     """
 
     pulse_us: float | None = None
@@ -466,11 +467,13 @@ def measure_shutter(
         if pulse is None:
             assert model is not None
             pulse = min(model.line_time_us, model.exposure_us / 2.0)
-        step = s.step_us if s.step_us is not None else pulse / 2.0
         span = s.span_us
         if span is None:
             assert model is not None
             span = 1.25 * (model.trigger_delay_us + model.frame_time_us) + pulse
+        step = s.step_us
+        if step is None:  # half the pulse, coarser where the span needs more than max_delays
+            step = max(pulse / 2.0, span / max(1, s.max_delays - 1))
         if not (pulse > 0 and step > 0 and span > 0):
             raise ValueError(f"pulse, step and span must be > 0 (got {pulse}, {step}, {span})")
         delays = np.arange(0.0, span + step / 2.0, step)

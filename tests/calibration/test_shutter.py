@@ -155,3 +155,16 @@ def test_global_shutter_line_time_is_undetermined():
             pattern=ReadoutPattern.GLOBAL,
             sensor_rows=rows,
         )
+
+
+def test_automatic_step_fits_a_long_exposure_into_the_delay_limit(make_camera, source, tmp_path):
+    """At a 10 ms exposure the default step (half the pulse) needed thousands of delays and
+    the scan was refused; the automatic step grows to fit max_delays and still measures."""
+    cam = make_camera(line_time_us=12.5, trigger_delay_us=30.0, exposure_us=10_000.0)
+    settings = ShutterSettings(intensity=1.0, n_darks=4, settle_frames=0, max_delays=200)
+    wf = Workflow(measure_shutter(cam, source, settings, bin_lines=1, out=tmp_path / "s.npz"),
+                  "shutter")
+    list(wf)
+    m = wf.result.measurement
+    assert m is not None and m.delays_us.size <= 200
+    assert abs(m.line_time_us - 12.5) / 12.5 < 0.02
