@@ -113,7 +113,8 @@ class NewJobDialog(QDialog):
         self.downsample.setRange(1, 64)
         self.downsample.setValue(2)
         self.downsample.setToolTip("Box downsampling of frame and PSF (the job's [data] "
-                                   "downsample); the memory estimate follows it")
+                                   "downsample; 2 here for a live full-sensor frame, a spec's "
+                                   "default is 1); the memory estimate follows it")
         self.max_iter = SpinBox()
         self.max_iter.setRange(1, 10_000_000)
         self.max_iter.setValue(int(default("stopping", "max_iter")))
@@ -176,7 +177,7 @@ class NewJobDialog(QDialog):
         self.threads = SpinBox()
         self.threads.setRange(0, 256)
         self.threads.setValue(int(default("device", "threads")))
-        self.threads.setSpecialValueText("torch default")
+        self.threads.setSpecialValueText("auto (free cores)")
         self.precision = ComboBox()
         self.precision.addItems(list(SCHEMA["device"]["precision"].choices or ("float32",)))
         self.precision.setCurrentText(str(default("device", "precision")))

@@ -172,6 +172,8 @@ def test_job_dialog_defaults_come_from_the_spec(live_window: Any, tmp_path: Any)
     assert dlg.headroom.value() == pytest.approx(SCHEMA["optimizer"]["headroom"].default,
                                                  abs=0.005)
     assert dlg.patience.value() == SCHEMA["stopping"]["patience"].default
+    # the one default of its own: a live frame is the full sensor (docs/app.md says so)
+    assert dlg.downsample.value() == 2 != SCHEMA["data"]["downsample"].default
     dlg.lr.setValue(0.002)
     dlg.headroom.setValue(1.5)
     dlg.holdout.setValue(0.1)
