@@ -22,6 +22,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -541,9 +542,13 @@ class MainWindow(QMainWindow):
         self._show_psf_label()
 
     def _show_psf_label(self) -> None:
-        text = f"PSF: {self.psf_source}" if self.psf_source else (
-            "PSF: none – load one or run the calibration wizard")
+        # a long file name has no spaces to wrap at: allow breaks after _ - . / (zero-width
+        # spaces), or the label widens the controls past the window at 1366x768
+        src = str(self.psf_source or "")
+        shown = re.sub(r"([_\-./])", "\\1\u200b", src)
+        text = f"PSF: {shown}" if src else "PSF: none – load one or run the calibration wizard"
         self.preview_controls.psf_label.setText(text)
+        self.preview_controls.psf_label.setToolTip(src)
 
     def disconnect_camera(self) -> None:
         """Stop and close the camera (also stops reconnect attempts)."""

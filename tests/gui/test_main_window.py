@@ -161,3 +161,21 @@ def test_bad_serial_port_is_an_error_in_the_window(bench_window: Any, qtbot: Any
     qtbot.waitUntil(lambda: w.banner.isVisible(), timeout=10_000)
     assert "Point source /dev/does-not-exist: cannot connect" in w.banner.text()
     assert w.light_state == "disconnected" and w.camera_state == "live"
+
+
+def test_a_long_psf_file_name_wraps_inside_the_controls(live_window: Any, qtbot: Any,
+                                                       tmp_path: Any) -> None:
+    """An unbreakable file name widened the controls past their viewport at 1366x768, cutting
+    off buttons on the right."""
+    import numpy as np
+
+    w = live_window
+    w.resize(1366, 768)
+    qtbot.wait(300)
+    scroll = w.controls_dock.widget()
+    name = "psf_calibration_diffusercam_benchA_20261126-192351_final_v2.npy"
+    np.save(tmp_path / name, w.bench.sim_psf)
+    w._load_psf(str(tmp_path / name))
+    qtbot.wait(300)
+    assert name in w.preview_controls.psf_label.toolTip()
+    assert scroll.widget().width() <= scroll.viewport().width()
