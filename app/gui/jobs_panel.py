@@ -382,10 +382,13 @@ class NewJobDialog(QDialog):
         self.estimate_bytes = est.total_bytes
         fits = avail is None or est.total_bytes <= avail
         h, w = self.sensor[0] // self.downsample.value(), self.sensor[1] // self.downsample.value()
+        # one short line (the dialog fills a 768-pixel screen; a second line was cut off), the
+        # details in the tooltip
         self.memory.setText(
-            f"about {_fmt_bytes(est.total_bytes)} ({est.parameters:,} parameters, scene "
-            f"{w}x{h}); available {_fmt_bytes(avail)} ({source})"
+            f"about {_fmt_bytes(est.total_bytes)} of {_fmt_bytes(avail)} available"
             + ("" if fits else " – will NOT fit: fewer channels or more downsampling"))
+        self.memory.setToolTip(f"{est.parameters:,} parameters, scene {h}x{w} (HxW); "
+                               f"available memory from {source}")
         self.memory.setStyleSheet("" if fits else "color: #cf222e;")
 
 
