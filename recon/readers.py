@@ -399,7 +399,7 @@ def load_psf(
     )
     if not np.any(arr > 0):
         extra = f" after dark subtraction (dark={_describe_dark(dark)})" if dark is not None else ""
-        raise ValueError(f"PSF file {p} is all zero{extra}")
+        raise ValueError(f"PSF file {p} is all zero or negative{extra}")
     if normalise is not None:
         arr = _normalise_fn(arr, normalise)
     return np.ascontiguousarray(arr, dtype=np.float32)
@@ -506,7 +506,7 @@ def load_psf_stack(
         if not np.any(stack[k] > 0):
             extra = (f" after dark subtraction (dark={_describe_dark(dark)})" if dark is not None
                      else "")
-            raise ValueError(f"PSF stack plane {k} ({names[k]}) is all zero{extra}")
+            raise ValueError(f"PSF stack plane {k} ({names[k]}) is all zero or negative{extra}")
     if normalise is not None:
         stack = _normalise_fn(stack, normalise)
     return np.ascontiguousarray(stack, dtype=np.float32)

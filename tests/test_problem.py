@@ -324,9 +324,9 @@ def test_a_measurement_dark_that_empties_the_psf_names_psf_dark(tmp_path):
         kw = (dict(model="depth", psf_stack=(str(tmp_path / "psf.npy"),) * 2) if stack
               else dict(psf=str(tmp_path / "psf.npy")))
         spec = ProblemSpec(meas=str(tmp_path / "meas.npy"), dark=100.0, **kw)
-        with pytest.raises(ValueError, match=r"is all zero after dark subtraction \(dark=100"
-                           r"\.0\): the measurement's dark \(100\.0\) is subtracted from the "
-                           r"PSF too unless a PSF dark is given \(--psf-dark"):
+        with pytest.raises(ValueError, match=r"is all zero or negative after dark subtraction "
+                           r"\(dark=100\.0\): the measurement's dark \(100\.0\) is subtracted "
+                           r"from the PSF too unless a PSF dark is given \(--psf-dark"):
             load_problem(spec)
         assert load_problem(spec.with_changes(psf_dark=0.0)).psf.max() > 0
 

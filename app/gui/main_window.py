@@ -940,8 +940,14 @@ class MainWindow(QMainWindow):
 
     def _load_psf(self, path: str, *, quiet: bool = False) -> bool:
         """Use the PSF in ``path`` for the preview (a calibration file or an image)."""
+        import warnings
+
+        from recon.psfcheck import PsfWarning
+
         try:
-            psf = load_psf_any(path)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", PsfWarning)
+                psf = load_psf_any(path)
             self.engine.set_psf(psf)
         except Exception as exc:
             if not quiet:
@@ -951,6 +957,11 @@ class MainWindow(QMainWindow):
         self.settings.psf_path = str(path)
         self.psf_source = f"{Path(path).name} ({psf.shape[-2]}x{psf.shape[-1]})"
         self._show_psf_label()
+        doubts = [str(w.message) for w in caught if issubclass(w.category, PsfWarning)]
+        for d in doubts:
+            _log.warning("PSF %s: %s", path, d)
+        if doubts and not quiet:  # loaded, but the user should know (it went to stderr only)
+            self.show_error(f"PSF {Path(path).name} loaded, but: {'; '.join(doubts)}")
         return True
 
     def use_psf(self, psf: Any, source: str, path: str = "") -> None:

@@ -179,3 +179,17 @@ def test_a_long_psf_file_name_wraps_inside_the_controls(live_window: Any, qtbot:
     qtbot.wait(300)
     assert name in w.preview_controls.psf_label.toolTip()
     assert scroll.widget().width() <= scroll.viewport().width()
+
+
+def test_a_doubtful_psf_is_loaded_and_said_so_in_the_banner(live_window: Any,
+                                                           tmp_path: Any) -> None:
+    """A constant PSF (a flat or dark frame?) was accepted with its warning on stderr only."""
+    import numpy as np
+
+    w = live_window
+    np.save(tmp_path / "flat.npy", np.ones(w.bench.sim_psf.shape, np.float32))
+    assert w._load_psf(str(tmp_path / "flat.npy"))
+    assert "flat.npy loaded, but" in w.banner.text() and "constant" in w.banner.text()
+    np.save(tmp_path / "neg.npy", -np.ones(w.bench.sim_psf.shape, np.float32))
+    assert not w._load_psf(str(tmp_path / "neg.npy"))
+    assert "all zero or negative" in w.banner.text()
