@@ -422,21 +422,32 @@ _INT = {"downsample", "channels", "iterations"}
 def read_trade_csv(path: str | Path) -> list[TradeRow]:
     """Rows of a ``trade.csv`` written by ``lenslesscam trade``."""
     rows = []
+    needed = [f.name for f in dataclasses.fields(TradeRow) if f.name != "extra"
+              and f.default is dataclasses.MISSING]
     with open(path, newline="") as fh:
-        for rec in csv.DictReader(fh):
+        reader = csv.DictReader(fh)
+        missing = [n for n in needed if n not in (reader.fieldnames or [])]
+        if missing:
+            raise ValueError(f"{path}: not a trade.csv from lenslesscam trade (no column "
+                             f"{', '.join(missing)})")
+        for line, rec in enumerate(reader, start=2):
             kw: dict[str, Any] = {}
             for f in dataclasses.fields(TradeRow):
                 if f.name == "extra":
                     continue
                 v = rec.get(f.name, "")
-                if f.name in _FLOAT:
-                    kw[f.name] = float(v)
-                elif f.name in _INT:
-                    kw[f.name] = int(v)
-                elif f.name in ("psnr", "ssim", "peak_mem_mb"):
-                    kw[f.name] = float(v) if v not in ("", "None") else None
-                else:
-                    kw[f.name] = v
+                try:
+                    if f.name in _FLOAT:
+                        kw[f.name] = float(v)
+                    elif f.name in _INT:
+                        kw[f.name] = int(v)
+                    elif f.name in ("psnr", "ssim", "peak_mem_mb"):
+                        kw[f.name] = float(v) if v not in ("", "None") else None
+                    else:
+                        kw[f.name] = v
+                except (TypeError, ValueError):
+                    raise ValueError(f"{path} line {line}: column {f.name} is {v!r}, not a "
+                                     "number") from None
             rows.append(TradeRow(**kw))
     if not rows:
         raise ValueError(f"{path}: no rows (is it a trade.csv from lenslesscam trade?)")

@@ -127,3 +127,20 @@ def test_cli_on_a_colour_pair_in_the_dataset_layout_scores_the_sensor_field(tmp_
 
     best = max(r.psnr or 0.0 for r in read_trade_csv(tmp_path / "out" / "trade.csv"))
     assert best > 20, best  # the scene is found: the truth's frame and channels match
+
+
+def test_a_csv_that_is_not_a_trade_is_named(tmp_path):
+    """The trade panel showed only "could not convert string to float: ''"."""
+    from recon.trade import read_trade_csv
+
+    (tmp_path / "x.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(ValueError, match=r"not a trade\.csv from lenslesscam trade \(no column "
+                                         r"case, setting"):
+        read_trade_csv(tmp_path / "x.csv")
+    import dataclasses
+
+    header = ",".join(f.name for f in dataclasses.fields(TradeRow) if f.name != "extra")
+    (tmp_path / "t.csv").write_text(header + "\n" + ",".join(["c", "s", "fista", "oops"]
+                                                             + ["1"] * 10) + "\n")
+    with pytest.raises(ValueError, match=r"t\.csv line 2: column tau is 'oops', not a number"):
+        read_trade_csv(tmp_path / "t.csv")

@@ -259,7 +259,7 @@ class TradePanel(QWidget):
         if best is None:
             fastest = min(self.rows, key=lambda r: r.wall_s)
             self.suggestion.setText(f"nothing fits {budget:g} s; the fastest setting takes "
-                                    f"{fastest.wall_s:.2f} s ({fastest.setting})")
+                                    f"{fastest.wall_s:.3g} s ({fastest.setting})")
             self.apply_button.setEnabled(False)
             return
         self.suggestion.setText(
