@@ -307,6 +307,7 @@ class JobView:
     pid: int | None = None
     memory: dict[str, Any] = field(default_factory=dict)
     created_utc: str = ""
+    still_improving: bool = False
 
     @property
     def fraction(self) -> float:
@@ -327,12 +328,28 @@ class JobView:
 
     @property
     def can_resume(self) -> bool:
-        """An interrupted or cancelled run (with iterations left) can continue."""
+        """Whether the run can continue.
+
+        An interrupted or cancelled run (with iterations left), and one that reached its limit
+        still improving (with twice the iterations, :attr:`resume_max_iter`).
+        """
         if self.state is AppJobState.INTERRUPTED:
             return True
         return (self.state is AppJobState.FINISHED
-                and self.finish_reason in ("cancelled", "failed")
+                and (self.finish_reason in ("cancelled", "failed")
+                     or (self.finish_reason == "completed" and self.still_improving))
                 and (self.run_dir / "checkpoint.pt").is_file())
+
+    @property
+    def resume_max_iter(self) -> int | None:
+        """The iteration limit a resume asks for.
+
+        None (the run's own), or twice it for a run that reached it still improving (what its
+        detail line suggests).
+        """
+        if self.finish_reason == "completed" and self.max_iter:
+            return 2 * int(self.max_iter)
+        return None
 
 
 def job_view(folder: str | Path) -> JobView | None:
@@ -376,6 +393,7 @@ def job_view(folder: str | Path) -> JobView | None:
                     and last.get("action") == "resume" and _pid_alive(int(last["pid"]))):
                 v.state = AppJobState.STARTING
         rec = _read_json(record) or {}
+        v.still_improving = bool((rec.get("results") or {}).get("still_improving"))
         for which in ("final", "best"):
             r = (rec.get("results") or {}).get(which)
             if isinstance(r, str) and (f / RUN_DIR / r).is_file():

@@ -759,12 +759,14 @@ class JobsPanel(QWidget):
         v = self.selected()
         if v is None:
             return
+        more = v.resume_max_iter
         try:
-            queue_resume(v.folder)
+            queue_resume(v.folder, max_iter=more)
         except Exception as exc:
             self.message.setText(f"cannot resume: {exc}")
             return
-        self.message.setText(f"resume of {v.name} queued")
+        self.message.setText(f"resume of {v.name} queued"
+                             + (f" (to {more} iterations)" if more else ""))
         self.refresh()
 
     def open_selected(self) -> ResultDialog | None:

@@ -255,3 +255,37 @@ def test_settings_with_a_bad_version_or_an_unknown_scene_start_with_defaults(tmp
                              "sim_scene": "nonexistent", "gain": 3.0}))
     s = load_settings(p)
     assert s.sim_scene == AppSettings().sim_scene and s.gain == 3.0
+
+
+def test_a_run_that_ended_still_improving_can_be_resumed_with_more_iterations(tmp_path, capsys):
+    """Its detail line said 'jobs resume ... --max-iter N', but the app's Resume was off for
+    completed runs."""
+    import json
+
+    import numpy as np
+
+    from app.cli import main
+    from app.gui.jobs_core import APP_JOB_FILE, job_view, queue_resume
+    from recon.simulate import synthetic_psf
+
+    np.save(tmp_path / "psf.npy", synthetic_psf((24, 28), seed=0))
+    np.save(tmp_path / "meas.npy", np.random.default_rng(0).random((24, 28)).astype(np.float32))
+    job = tmp_path / "jobs" / "c"
+    assert main(["recon", "udn", "--psf", str(tmp_path / "psf.npy"), "--meas",
+                 str(tmp_path / "meas.npy"), "--iters", "3", "--scales", "2",
+                 "--net-channels", "4", "--input-channels", "4", "--threads", "1", "--quiet",
+                 "--out", str(job / "run")]) == 0
+    capsys.readouterr()
+    (job / APP_JOB_FILE).write_text(json.dumps({
+        "format": "lenslesscam.app_job", "name": "c", "state": "launched",
+        "launches": [{"action": "run", "pid": 1}]}))
+    rec = json.loads((job / "run" / "run.json").read_text())
+    for improving in (False, True):
+        rec["results"]["still_improving"] = improving
+        (job / "run" / "run.json").write_text(json.dumps(rec))
+        v = job_view(job)
+        assert v is not None and v.finish_reason == "completed"
+        assert v.can_resume is improving
+    assert v.resume_max_iter == 6
+    queue_resume(job, max_iter=v.resume_max_iter)
+    assert json.loads((job / APP_JOB_FILE).read_text())["max_iter"] == 6
