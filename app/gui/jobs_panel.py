@@ -481,6 +481,9 @@ class JobsPanel(QWidget):
         self.combine_button = QPushButton("Combine")
         self.combine_button.setToolTip("Average the best estimates of the selected finished "
                                        "jobs (same measurement, different seeds)")
+        for b in (self.cancel_button, self.resume_button, self.open_button,
+                  self.combine_button):
+            b.setEnabled(False)  # nothing is selected until the first listing
         self.folder_label = QLabel(f"jobs folder: {jobs_dir}")
         self.folder_label.setToolTip(str(jobs_dir))
         never_wider(self.folder_label)
