@@ -699,8 +699,9 @@ class JobsPanel(QWidget):
         frame, psf = m.frame, m.psf
         if frame.shape != psf.shape:
             self.message.setText(
-                f"the frame ({frame.shape}) and the PSF ({psf.shape}) differ in size: use a "
-                "full-sensor frame")
+                f"the frame ({frame.shape[0]}x{frame.shape[1]}) and the PSF "
+                f"({psf.shape[-2]}x{psf.shape[-1]}) differ in size: a UDN job needs a "
+                "full-sensor frame and a PSF calibrated for that sensor")
             return None
         dark = _dark_level(m)
         meta = {"frame": frame.metadata(), "psf_source": m.psf_source,
