@@ -212,27 +212,11 @@ def test_one_damaged_job_file_does_not_hide_the_others(tmp_path):
 def test_cancelling_a_queued_resume_leaves_the_run_as_it_was(tmp_path, capsys):
     """Cancel on a resume waiting in the queue marked the whole job withdrawn: no results,
     no resume, although its checkpoint and results were on disk."""
-    import json
+    from app.gui.jobs_core import AppJobState, cancel_job, job_view
 
-    import numpy as np
-
-    from app.cli import main
-    from app.gui.jobs_core import APP_JOB_FILE, AppJobState, cancel_job, job_view
-    from recon.simulate import synthetic_psf
-
-    psf = synthetic_psf((24, 28), seed=0)
-    rng = np.random.default_rng(0)
-    np.save(tmp_path / "psf.npy", psf)
-    np.save(tmp_path / "meas.npy", rng.random((24, 28)).astype(np.float32))
-    job = tmp_path / "jobs" / "b"
-    assert main(["recon", "udn", "--psf", str(tmp_path / "psf.npy"), "--meas",
-                 str(tmp_path / "meas.npy"), "--iters", "3", "--scales", "2",
-                 "--net-channels", "4", "--input-channels", "4", "--threads", "1", "--quiet",
-                 "--out", str(job / "run")]) == 0
-    capsys.readouterr()
-    (job / APP_JOB_FILE).write_text(json.dumps({
-        "format": "lenslesscam.app_job", "name": "b", "state": "queued", "action": "resume",
-        "max_iter": 10, "launches": [{"action": "run", "pid": 1}]}))
+    job = _finished_app_job(tmp_path, capsys, {
+        "name": "b", "state": "queued", "action": "resume", "max_iter": 10,
+        "launches": [{"action": "run", "pid": 1}]})
     assert "queued resume is withdrawn" in cancel_job(job)
     v = job_view(job)
     assert v is not None and v.state is not AppJobState.WITHDRAWN
@@ -262,23 +246,10 @@ def test_a_run_that_ended_still_improving_can_be_resumed_with_more_iterations(tm
     completed runs."""
     import json
 
-    import numpy as np
-
-    from app.cli import main
     from app.gui.jobs_core import APP_JOB_FILE, job_view, queue_resume
-    from recon.simulate import synthetic_psf
 
-    np.save(tmp_path / "psf.npy", synthetic_psf((24, 28), seed=0))
-    np.save(tmp_path / "meas.npy", np.random.default_rng(0).random((24, 28)).astype(np.float32))
-    job = tmp_path / "jobs" / "c"
-    assert main(["recon", "udn", "--psf", str(tmp_path / "psf.npy"), "--meas",
-                 str(tmp_path / "meas.npy"), "--iters", "3", "--scales", "2",
-                 "--net-channels", "4", "--input-channels", "4", "--threads", "1", "--quiet",
-                 "--out", str(job / "run")]) == 0
-    capsys.readouterr()
-    (job / APP_JOB_FILE).write_text(json.dumps({
-        "format": "lenslesscam.app_job", "name": "c", "state": "launched",
-        "launches": [{"action": "run", "pid": 1}]}))
+    job = _finished_app_job(tmp_path, capsys, {
+        "name": "c", "state": "launched", "launches": [{"action": "run", "pid": 1}]})
     rec = json.loads((job / "run" / "run.json").read_text())
     for improving in (False, True):
         rec["results"]["still_improving"] = improving
@@ -289,3 +260,26 @@ def test_a_run_that_ended_still_improving_can_be_resumed_with_more_iterations(tm
     assert v.resume_max_iter == 6
     queue_resume(job, max_iter=v.resume_max_iter)
     assert json.loads((job / APP_JOB_FILE).read_text())["max_iter"] == 6
+
+
+def _finished_app_job(tmp_path: Any, capsys: Any, entry: dict[str, Any]) -> Any:
+    """An app job folder whose run finished (3 iterations of a tiny network), ``entry`` its
+    app-job.json."""
+    import json
+
+    import numpy as np
+
+    from app.cli import main
+    from app.gui.jobs_core import APP_JOB_FILE
+    from recon.simulate import synthetic_psf
+
+    np.save(tmp_path / "psf.npy", synthetic_psf((24, 28), seed=0))
+    np.save(tmp_path / "meas.npy", np.random.default_rng(0).random((24, 28)).astype(np.float32))
+    job = tmp_path / "jobs" / str(entry["name"])
+    assert main(["recon", "udn", "--psf", str(tmp_path / "psf.npy"), "--meas",
+                 str(tmp_path / "meas.npy"), "--iters", "3", "--scales", "2",
+                 "--net-channels", "4", "--input-channels", "4", "--threads", "1", "--quiet",
+                 "--out", str(job / "run")]) == 0
+    capsys.readouterr()
+    (job / APP_JOB_FILE).write_text(json.dumps({"format": "lenslesscam.app_job", **entry}))
+    return job
