@@ -164,6 +164,27 @@ def _hw(value: str, what: str) -> tuple[int, int]:
 
 
 @contextlib.contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """Within the block, SIGTERM and SIGHUP raise KeyboardInterrupt (main thread only)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, _frame: Any) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    saved = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        yield
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+
+
+@contextlib.contextmanager
 def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
     """Open the camera and the source (spawning the simulated firmware for ``sim``)."""
     import tempfile
@@ -172,6 +193,9 @@ def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
     from drivers.registry import open_camera
 
     with contextlib.ExitStack() as stack:
+        # SIGTERM / SIGHUP (kill, timeout, a closed terminal) stop the command as Ctrl-C does,
+        # so the clean-up below runs: light off, firmware stopped, temporary files removed
+        stack.enter_context(_terminate_as_interrupt())
         src_spec: str | None = getattr(args, "source", None)
         state_path = None
         source = None

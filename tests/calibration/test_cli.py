@@ -174,3 +174,36 @@ def test_snap_and_calibrate_use_one_simulated_camera(tmp_path, capsys):
     x = read_reconstruction(rec)[0][0, 0]
     truth = demo_pattern(64, 80)
     assert np.corrcoef(x.ravel(), truth.ravel())[0, 1] > 0.9
+
+
+def test_sigterm_during_a_capture_cleans_up_like_ctrl_c(tmp_path):
+    """kill / timeout / a closed terminal left the light on, the simulated firmware running
+    and its temporary folder behind; SIGTERM now stops the command as Ctrl-C does."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    env = {**os.environ, "TMPDIR": str(tmp_path), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app", "calibrate", "psf", "--camera", "sim", "--source", "sim",
+         "--frames", "100000", "--settle", "0", "--out", str(tmp_path / "p.tif")],
+        cwd=Path(__file__).resolve().parents[2], env=env, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not list(tmp_path.glob("lenslesscam-cal-*/light-state.json")):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.2)
+        time.sleep(2.0)  # into the capture
+        proc.send_signal(signal.SIGTERM)
+        _out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "interrupted" in err
+    assert not list(tmp_path.glob("lenslesscam-cal-*"))  # firmware stopped, folder removed
+    assert not (tmp_path / "p.tif").exists()
