@@ -32,6 +32,7 @@ from app.batch.state import (
     BatchLock,
     BatchPaths,
     now_utc,
+    read_state,
     write_state,
 )
 from app.batch.summary import write_summary
@@ -284,6 +285,31 @@ class _Driver:
         self.write_state("cancelling")
 
 
+def _check_batch_folder(root: Path, manifest: Path) -> None:
+    """Refuse a folder that holds another manifest's batch, or files that are not a batch's.
+
+    Another manifest's results would be overwritten and orphaned; an input folder would be
+    read again by the manifest's glob.
+    """
+    if root.exists() and not root.is_dir():
+        raise ValueError(f"{root} exists and is not a folder: --out names the batch's folder")
+    st = read_state(root, missing_ok=True)
+    if st:
+        theirs = st.get("manifest")
+        if theirs and Path(theirs).resolve() != manifest:
+            raise ValueError(f"{root} is the batch of {theirs}; run that manifest there, or "
+                             "choose another --out")
+    elif root.is_dir():
+        # what a driver stopped before its first state.json leaves: its lock, empty folders
+        def ours(p: Path) -> bool:
+            return p.name == "run.lock" or (p.name in ("items", "results", "runs")
+                                            and p.is_dir() and not any(p.iterdir()))
+
+        if not all(ours(p) for p in root.iterdir()):
+            raise ValueError(f"{root} is not empty and holds no batch: choose a new or empty "
+                             "folder for --out")
+
+
 def run_batch(manifest: str | Path, out: str | Path,
               options: BatchOptions | None = None) -> BatchReport:
     """Run (or continue) the batch of ``manifest`` in the folder ``out``; see the module doc.
@@ -295,6 +321,7 @@ def run_batch(manifest: str | Path, out: str | Path,
     manifest = Path(manifest).resolve()
     items = read_manifest(manifest)
     root = Path(out).resolve()
+    _check_batch_folder(root, manifest)
     paths = BatchPaths(root)
     paths.make()
     lock = BatchLock(root).acquire()

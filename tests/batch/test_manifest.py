@@ -169,3 +169,31 @@ def test_udn_item_without_a_spec_gets_the_recon_udn_spec(data: Path) -> None:
     spec, _ = build_udn_spec(item, threads=1)
     assert spec["stopping"]["max_iter"] == 7 and spec["device"]["threads"] == 1
     assert "time_limit_s" not in spec["stopping"]  # not given: the spec's default applies
+
+
+def test_a_batch_folder_of_another_manifest_or_of_other_files_is_refused(data: Path,
+                                                                        tmp_path: Path) -> None:
+    """A second manifest run into a batch folder overwrote and orphaned the first batch's
+    results; an --out that is the input folder read the batch's own files as measurements on
+    the rerun. Both are refused before anything runs (no Ray is started)."""
+    import json
+
+    from app.batch.driver import _check_batch_folder, run_batch
+    from app.batch.state import STATE_FORMAT
+
+    for name in ("m1.csv", "m2.csv"):
+        (data / name).write_text("measurement,psf,method\nmeas/m00.npy,psf.npy,fista\n")
+    out = tmp_path / "b"
+    out.mkdir()
+    (out / "state.json").write_text(json.dumps({"format": STATE_FORMAT,
+                                                "manifest": str((data / "m1.csv").resolve())}))
+    with pytest.raises(ValueError, match=r"is the batch of .*m1\.csv; run that manifest"):
+        run_batch(data / "m2.csv", out)
+    with pytest.raises(ValueError, match="is not empty and holds no batch"):
+        run_batch(data / "m1.csv", data / "meas")
+    # what a driver stopped before its first state.json leaves is no obstacle
+    left = tmp_path / "left"
+    for d in ("items", "results", "runs"):
+        (left / d).mkdir(parents=True)
+    (left / "run.lock").write_text("")
+    _check_batch_folder(left, (data / "m1.csv").resolve())
