@@ -298,12 +298,12 @@ def _row_edges(d: np.ndarray, r: np.ndarray) -> tuple[float, float, float]:
     i = i_peak
     while i > 0 and r[i] >= half:
         i -= 1
-    if r[i] < half:
+    if r[i] < half and i + 1 < r.size:
         rise = _crossing(d[i], d[i + 1], r[i], r[i + 1], half)
     j = i_peak
     while j < r.size - 1 and r[j] >= half:
         j += 1
-    if r[j] < half:
+    if r[j] < half and j > 0:
         fall = _crossing(d[j - 1], d[j], r[j - 1], r[j], half)
     return plateau, rise, fall
 
@@ -331,6 +331,12 @@ def analyse_strobe_scan(
     """
     d = np.asarray(delays_us, dtype=np.float64)
     resp = np.asarray(row_response, dtype=np.float64)
+    if d.size < 4:
+        raise CalibrationError(
+            f"the scan has {d.size} delay(s): too few to find a row's rising and falling edge",
+            "Use a longer span or a shorter step (the span must cover the exposure window)",
+            stage="fit",
+        )
     n_rows = resp.shape[1]
     plateaus = np.zeros(n_rows)
     starts = np.full(n_rows, np.nan)
@@ -476,6 +482,13 @@ def measure_shutter(
             step = max(pulse / 2.0, span / max(1, s.max_delays - 1))
         if not (pulse > 0 and step > 0 and span > 0):
             raise ValueError(f"pulse, step and span must be > 0 (got {pulse}, {step}, {span})")
+        if model is not None and pulse > model.exposure_us / 2.0:
+            raise CalibrationError(
+                f"a {pulse:g} us pulse is longer than half the {model.exposure_us:g} us "
+                "exposure: the rows' edges cannot be told apart",
+                "Use a shorter pulse (default: one line time) or a longer exposure",
+                stage="setup",
+            )
         delays = np.arange(0.0, span + step / 2.0, step)
         if delays.size > s.max_delays:
             raise CalibrationError(

@@ -168,3 +168,19 @@ def test_automatic_step_fits_a_long_exposure_into_the_delay_limit(make_camera, s
     m = wf.result.measurement
     assert m is not None and m.delays_us.size <= 200
     assert abs(m.line_time_us - 12.5) / 12.5 < 0.02
+
+
+@pytest.mark.parametrize(("kw", "message"), [
+    ({"span_us": 1.0}, r"the scan has 1 delay\(s\): too few"),
+    ({"step_us": 400.0}, r"the scan has \d delay\(s\): too few"),
+    ({"pulse_us": 500.0}, "longer than half the 100 us exposure"),
+])
+def test_a_scan_that_cannot_find_edges_is_refused_in_words(make_camera, source, tmp_path, kw,
+                                                          message):
+    """A tiny span or a huge step raised IndexError; a pulse longer than the exposure gave a
+    line time 30 % off as a result."""
+    cam = make_camera()
+    settings = ShutterSettings(intensity=1.0, n_darks=2, settle_frames=0, **kw)
+    with pytest.raises(CalibrationError, match=message):
+        list(Workflow(measure_shutter(cam, source, settings, out=tmp_path / "s.npz"), "s"))
+    assert not (tmp_path / "s.npz").exists()
