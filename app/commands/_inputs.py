@@ -55,6 +55,8 @@ def problem_spec(args: Any, **changes: Any) -> Any:
     def path(value: Any) -> Any:
         return None if value is None else str(Path(value).expanduser().resolve())
 
+    if get("psf") and get("psf_stack"):
+        raise ValueError("give --psf or --psf-stack, not both (a stack makes a depth model)")
     model = get("model") or ("depth" if get("psf_stack") else "2d")
     kw: dict[str, Any] = {
         "meas": path(get("meas")), "model": model,

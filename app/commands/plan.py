@@ -120,6 +120,9 @@ def load_inputs(args: argparse.Namespace) -> dict[str, Any]:
     if not (args.psf or args.psf_stack):
         raise ValueError("give --psf (or --psf-stack for a depth measurement)")
     depth = bool(args.psf_stack)
+    if depth and (args.shutter or getattr(args, "timing", None)):
+        raise ValueError("a PSF stack (depth) plan takes no --shutter or --timing: give them "
+                         "with --psf for a video plan")
     spec = problem_spec(args, model="depth" if depth else "2d", downsample=1, shutter=None,
                         filters=None, truth=None)
     prob = load_problem(spec)

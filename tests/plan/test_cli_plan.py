@@ -99,3 +99,16 @@ def test_plan_names_the_measurement_not_the_padded_psf_grid(tmp_path, capsys):
     assert main([*argv, "--out", str(tmp_path / "plan.json")]) == 0
     capsys.readouterr()
     assert json.loads((tmp_path / "plan.json").read_text())["measurement_window"] == [24, 32]
+
+
+def test_inputs_that_would_be_ignored_are_refused(files, capsys):
+    """--psf beside --psf-stack, or a shutter for a depth plan, were ignored yet recorded as
+    the result's inputs."""
+    base = ["--meas", str(files / "meas.npy"), "--no-probe"]
+    assert main(["plan", "--psf", str(files / "psf.npy"), "--psf-stack",
+                 str(files / "psf.npy"), *base]) == 2
+    assert "give --psf or --psf-stack, not both" in capsys.readouterr().err
+    np.save(files / "sh.npy", np.ones((2, 4)))
+    assert main(["plan", "--psf-stack", str(files / "psf.npy"), "--shutter",
+                 str(files / "sh.npy"), *base]) == 2
+    assert "takes no --shutter or --timing" in capsys.readouterr().err
