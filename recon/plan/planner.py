@@ -280,6 +280,14 @@ class Plan:
             if key in ("field", "planes") and v is not None and (
                     min(v) < (1 if key == "field" else 0)):
                 raise ValueError(f"plan field {key!r} must be positive, got {v!r}")
+            if key == "planes" and v is not None:
+                n = len(self.evidence.get("depth", {}).get("energy_per_plane") or []) or None
+                if v[1] <= v[0]:
+                    raise ValueError(f"plan field 'planes' is [first, last) with first < last, "
+                                     f"got {v!r}")
+                if n is not None and v[1] > n:
+                    raise ValueError(f"plan field 'planes' {v!r} reaches past the {n}-plane "
+                                     "stack")
         if "k" in changes and (changes.get("model") or self.model) == "2d":
             raise ValueError("k applies to a video or depth plan; a 2d plan has k = 1 "
                              "(set model=video with it)")

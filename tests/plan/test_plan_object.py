@@ -173,6 +173,7 @@ def test_udn_method_runs_through_the_runner(static_cap):
     ({"tv_depth": -1}, "'tv_depth' must be >= 0"),
     ({"k": -3, "model": "video"}, "'k' must be >= 1"),
     ({"k": 4}, "k applies to a video or depth plan"),
+    ({"planes": [2, 0]}, r"\[first, last\) with first < last"),
 ])
 def test_bad_overrides_are_one_line_errors(change, message):
     """``--set`` values of the wrong kind were tracebacks (TypeError, IndexError) or silently
@@ -180,3 +181,20 @@ def test_bad_overrides_are_one_line_errors(change, message):
     with pytest.raises(ValueError, match=message) as info:
         _plan().override(**change)
     assert "\n" not in str(info.value)
+
+
+def test_planes_beyond_the_stack_are_refused():
+    """--set planes=[0,5] on a 3-plane stack ran, and the metadata said k 5."""
+    import torch
+
+    from recon.models import build_model
+    from recon.simulate import synthetic_psf
+
+    stack = np.stack([synthetic_psf((32, 40), seed=s) for s in range(3)]).astype(np.float32)
+    x = np.zeros((1, 3, 32, 40), np.float32)
+    x[0, 1, 10:20, 10:30] = 1
+    b = build_model("depth", stack).apply(torch.as_tensor(x)).numpy()[0]
+    p = make_plan(None, b, psf_stack=stack, probe=False)
+    with pytest.raises(ValueError, match=r"\[0, 5\] reaches past the 3-plane stack"):
+        p.override(planes=[0, 5])
+    assert p.override(model="depth", planes=[0, 2]).k == 2
