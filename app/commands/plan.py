@@ -136,7 +136,7 @@ def load_inputs(args: argparse.Namespace) -> dict[str, Any]:
         path = Path(args.timing)
         if not path.is_file():
             raise FileNotFoundError(f"timing file not found: {args.timing}")
-        data = json.loads(path.read_text())
+        data = _timing_source(path)
         raw = data.get("timing", data) if isinstance(data, dict) else None
         if not isinstance(raw, dict):
             raise ValueError(f"{args.timing}: expected a JSON object with the timing fields")
@@ -180,6 +180,26 @@ def _make(args: argparse.Namespace, inputs: dict[str, Any], probe: bool = True) 
             and "tau" not in overrides):
         plan = auto_tau_plan(plan, inputs)
     return plan
+
+
+def _timing_source(path: Path) -> Any:
+    """The JSON of a timing file.
+
+    A JSON file, or a saved frame (TIFF) whose metadata holds its ``timing``
+    (``lenslesscam snap``, the app's Snap & save).
+    """
+    if path.suffix.lower() in (".tif", ".tiff"):
+        import tifffile
+
+        try:
+            with tifffile.TiffFile(path) as tf:
+                return json.loads(tf.pages[0].description or "")
+        except Exception as exc:
+            raise ValueError(f"{path}: a TIFF without a frame's metadata ({exc})") from None
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except ValueError as exc:  # not UTF-8, not JSON
+        raise ValueError(f"{path}: not a JSON timing file or a saved frame ({exc})") from None
 
 
 def auto_tau_plan(plan: Any, inputs: dict[str, Any]) -> Any:

@@ -112,3 +112,20 @@ def test_inputs_that_would_be_ignored_are_refused(files, capsys):
     assert main(["plan", "--psf-stack", str(files / "psf.npy"), "--shutter",
                  str(files / "sh.npy"), *base]) == 2
     assert "takes no --shutter or --timing" in capsys.readouterr().err
+
+
+def test_timing_from_a_saved_frame_and_a_wrong_timing_file(tmp_path, capsys):
+    """docs/plan.md allows a frame's metadata as --timing; a TIFF gave 'utf-8 codec can't
+    decode' without the file's name."""
+    frame = tmp_path / "f.tif"
+    assert main(["snap", "--camera", "sim", "--out", str(frame)]) == 0
+    from recon.simulate import synthetic_psf
+
+    np.save(tmp_path / "psf.npy", synthetic_psf((64, 80), seed=0))
+    base = ["plan", "--psf", str(tmp_path / "psf.npy"), "--meas", str(frame), "--dark", "100",
+            "--psf-dark", "0",
+            "--no-probe", "--json"]
+    assert main([*base, "--timing", str(frame)]) == 0
+    capsys.readouterr()
+    assert main([*base, "--timing", str(tmp_path / "psf.npy")]) == 2
+    assert "psf.npy: not a JSON timing file or a saved frame" in capsys.readouterr().err
