@@ -144,3 +144,13 @@ def test_a_csv_that_is_not_a_trade_is_named(tmp_path):
                                                              + ["1"] * 10) + "\n")
     with pytest.raises(ValueError, match=r"t\.csv line 2: column tau is 'oops', not a number"):
         read_trade_csv(tmp_path / "t.csv")
+
+
+@pytest.mark.parametrize(("budgets", "message"), [
+    ("0", "finite and > 0"), ("1,nan", "finite and > 0"), ("abc", "seconds separated"),
+])
+def test_bad_budgets_are_refused_before_any_work(tmp_path, capsys, budgets, message):
+    assert main(["trade", "--sample", "tutorial", "--quick", "--no-udn", "--budgets", budgets,
+                 "--out", str(tmp_path / "t")]) == 2
+    assert f"--budgets must be {message}" in capsys.readouterr().err
+    assert not (tmp_path / "t").exists()

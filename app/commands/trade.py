@@ -56,6 +56,23 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
+def _budgets(text: str) -> list[float]:
+    """``--budgets``: comma-separated seconds, each finite and > 0."""
+    import math
+
+    out = []
+    for part in text.split(","):
+        try:
+            b = float(part)
+        except ValueError:
+            raise ValueError(f"--budgets must be seconds separated by commas, got {part!r}") \
+                from None
+        if not (math.isfinite(b) and b > 0):
+            raise ValueError(f"--budgets must be finite and > 0, got {part!r}")
+        out.append(b)
+    return out
+
+
 def _cases(args: argparse.Namespace) -> list[Any]:
 
     from recon import samples
@@ -101,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
 
     check_command_outputs(args, [Path(args.out) / n for n in TRADE_FILES])
     threads = apply_threads(args.threads)
-    budgets = [float(b) for b in args.budgets.split(",")]
+    budgets = _budgets(args.budgets)
     grid = default_grid(quick=args.quick, with_udn=not args.no_udn)
     out = Path(args.out)
     t_all = time.perf_counter()
@@ -128,7 +145,9 @@ def run(args: argparse.Namespace) -> int:
         # which measurement the trade was measured on: the app's job dialog offers it for that
         write_trade_inputs(out, input_hashes_of_files(args.meas, args.psf))
     # Markdown
-    md = [f"# Speed/accuracy trade\n\nProduced by `lenslesscam trade {' '.join(sys.argv[2:])}` "
+    argv = sys.argv[1:]
+    command = " ".join(argv[argv.index("trade"):] if "trade" in argv else ["trade"])
+    md = [f"# Speed/accuracy trade\n\nProduced by `lenslesscam {command}` "
           f"in {time.perf_counter() - t_all:.0f} s, {threads.reason}. Wall time "
           "is the time to reach the iteration count (one run per setting, scored at several "
           "counts); peak memory is the run's peak resident memory above its start.\n"]
