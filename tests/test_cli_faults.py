@@ -569,3 +569,10 @@ def test_stdout_gone_sees_a_pipe_whose_reader_closed(monkeypatch):
         os.close(r)
         assert _stdout_gone()
         monkeypatch.undo()
+
+
+def test_a_depth_position_named_twice_is_refused(tmp_path, capsys):
+    assert main(["calibrate", "depth", "--camera", "sim", "--source", "sim", "--positions",
+                 "10mm,10mm", "--no-prompt", "--out", str(tmp_path / "s.tif")]) == 2
+    assert "--positions names 10mm more than once" in capsys.readouterr().err
+    assert not (tmp_path / "s.tif").exists()

@@ -334,6 +334,10 @@ def run_depth(args: argparse.Namespace) -> int:
     positions = [p.strip() for p in args.positions.split(",") if p.strip()]
     if not positions:
         raise ValueError("--positions lists no position")
+    repeated = sorted({p for p in positions if positions.count(p) > 1})
+    if repeated:
+        raise ValueError(f"--positions names {', '.join(repeated)} more than once: each plane "
+                         "of the stack is one position")
     settings = _psf_settings(args)
 
     def prompt(index: int, position: str) -> None:
