@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+from pathlib import Path
 from typing import Any
 
 from app.commands._options import (
@@ -120,6 +121,12 @@ def _snap(args: argparse.Namespace) -> int:
     from drivers.camera import CameraError
     from drivers.registry import open_camera
 
+    if Path(args.out).suffix.lower() not in (".tif", ".tiff"):
+        raise CliError(f"--out {args.out}: a frame is saved as TIFF with its metadata; name "
+                       "it .tif")
+    if args.light_state and not Path(args.light_state).is_file():
+        raise CliError(f"--light-state {args.light_state}: no such file (the simulated "
+                       "source's state file)")
     check_command_outputs(args, [args.out])  # before the camera is opened
     kwargs: dict[str, Any] = {}
     name = args.camera.partition(":")[0].lower()

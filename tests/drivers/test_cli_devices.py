@@ -132,3 +132,14 @@ def test_a_camera_that_cannot_open_is_one_line(tmp_path: Path,
     assert err.strip().splitlines() == ["lenslesscam snap: error: cannot open v4l2 file "
                                         "'/dev/null'"]
 
+
+
+def test_snap_refuses_a_non_tiff_name_and_a_missing_light_state(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--out x.png wrote a TIFF under a PNG name; a missing --light-state was taken silently."""
+    assert app.cli.main(["snap", "--camera", "sim", "--out", str(tmp_path / "x.png")]) == 2
+    assert "name it .tif" in capsys.readouterr().err
+    assert app.cli.main(["snap", "--camera", "sim", "--light-state", str(tmp_path / "no.json"),
+                         "--out", str(tmp_path / "x.tif")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
