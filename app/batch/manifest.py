@@ -78,7 +78,8 @@ SPEC_COLUMNS: dict[str, tuple[str, str]] = {
     "channel_order": ("data", "channel_order"), "flip_rows": ("data", "flip_rows"),
 }
 _GLOB = re.compile(r"[*?\[]")
-_SAFE = re.compile(r"[^A-Za-z0-9._-]+")
+#: characters an item id keeps (letters and digits of any script, . _ -); others become _
+_SAFE = re.compile(r"[^\w.-]+")
 
 
 @dataclass(frozen=True)
@@ -356,6 +357,7 @@ def read_manifest(path: str | Path) -> list[Item]:
     path = Path(path)
     base = path.resolve().parent
     items: list[Item] = []
+    named: dict[str, str] = {}  # an explicit name (without a glob) -> where it was given
     for where, row, from_defaults in _read_rows(path):
         for col in ("measurement", "method"):
             if row.get(col) in (None, ""):
@@ -367,6 +369,10 @@ def read_manifest(path: str | Path) -> list[Item]:
             stem = Path(meas).stem
             if row.get("name"):
                 name = str(row["name"]) + (f"-{stem}" if _GLOB.search(pattern) else "")
+                if name in named:
+                    raise ValueError(f"{where}: name {name!r} is given to another item too "
+                                     f"({named[name]}): names identify results")
+                named[name] = where
             else:
                 name = f"{stem}-{row['method']}"
             items.append(_item_from(row, meas, base, where, _SAFE.sub("_", name),

@@ -197,3 +197,19 @@ def test_a_batch_folder_of_another_manifest_or_of_other_files_is_refused(data: P
         (left / d).mkdir(parents=True)
     (left / "run.lock").write_text("")
     _check_batch_folder(left, (data / "m1.csv").resolve())
+
+
+def test_ids_keep_letters_of_any_script_and_explicit_names_are_unique(data: Path) -> None:
+    """Non-ASCII letters became _ (two frames 'ä frame' and 'ö frame' got _frame and _frame-2,
+    renumbered when a third file sorted between them); two rows named alike were renamed."""
+    import shutil
+
+    for stem in ("ä frame", "ö frame"):
+        shutil.copy(data / "meas" / "m00.npy", data / "meas" / f"{stem}.npy")
+    (data / "m.csv").write_text("measurement,psf,method\nmeas/[äö] frame.npy,psf.npy,fista\n",
+                                encoding="utf-8")
+    assert [it.id for it in read_manifest(data / "m.csv")] == ["ä_frame-fista", "ö_frame-fista"]
+    (data / "n.csv").write_text("measurement,psf,method,name\nmeas/m00.npy,psf.npy,fista,same\n"
+                                "meas/m01.npy,psf.npy,fista,same\n")
+    with pytest.raises(ValueError, match=r"n\.csv:3: name 'same' is given to another item too"):
+        read_manifest(data / "n.csv")
