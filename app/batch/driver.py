@@ -320,6 +320,12 @@ def run_batch(manifest: str | Path, out: str | Path,
     opts = options or BatchOptions()
     manifest = Path(manifest).resolve()
     items = read_manifest(manifest)
+    if opts.address is None:  # embedded Ray: a task needing more CPUs than it has never starts
+        have = opts.num_cpus or os.cpu_count() or 1
+        need = max(opts.udn_cpus if it.method == "udn" else opts.cpus_per_item for it in items)
+        if need > have:
+            raise ValueError(f"an item needs {need} CPUs (--cpus-per-item / --udn-cpus) but "
+                             f"this batch's Ray has {have}: it would wait for ever")
     root = Path(out).resolve()
     _check_batch_folder(root, manifest)
     paths = BatchPaths(root)

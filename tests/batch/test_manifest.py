@@ -213,3 +213,14 @@ def test_ids_keep_letters_of_any_script_and_explicit_names_are_unique(data: Path
                                 "meas/m01.npy,psf.npy,fista,same\n")
     with pytest.raises(ValueError, match=r"n\.csv:3: name 'same' is given to another item too"):
         read_manifest(data / "n.csv")
+
+
+def test_an_item_needing_more_cpus_than_the_embedded_ray_has_is_refused(data: Path,
+                                                                        tmp_path: Path) -> None:
+    """--num-cpus 1 --cpus-per-item 3 waited for ever."""
+    from app.batch.driver import BatchOptions, run_batch
+
+    (data / "m.csv").write_text("measurement,psf,method\nmeas/m00.npy,psf.npy,fista\n")
+    with pytest.raises(ValueError, match="an item needs 3 CPUs .* has 1: it would wait"):
+        run_batch(data / "m.csv", tmp_path / "b", BatchOptions(num_cpus=1, cpus_per_item=3))
+    assert not (tmp_path / "b").exists()
