@@ -155,6 +155,12 @@ def load_filter_cube(
     if downsample > 1:
         if raw.ndim != 3:
             raise ValueError(f"filter cube {p} must have 3 axes, got {raw.shape}")
+        want = (sensor_shape[0] * downsample, sensor_shape[1] * downsample)
+        if raw.shape[1:] != want and raw.shape[:2] != want:
+            raise ValueError(
+                f"filter cube {p} of shape {raw.shape} is not the {sensor_shape[0]}x"
+                f"{sensor_shape[1]} sensor at {downsample}x: its bands must be {want[0]}x"
+                f"{want[1]} (as (K, H, W) or (H, W, K))")
         moved = layout == "hwk" or (
             layout == "auto"
             and raw.shape[:2] == (sensor_shape[0] * downsample, sensor_shape[1] * downsample)

@@ -47,6 +47,10 @@ def test_downsampled_cube(tmp_path):
     np.save(tmp_path / "big.npy", big)
     fc = load_filter_cube(tmp_path / "big.npy", (16, 20), downsample=2)
     assert fc.cube.shape == (6, 16, 20)
+    # a factor that does not fit the sensor is said so (it said "has bands of (10, 1)")
+    with pytest.raises(ValueError, match=r"is not the 16x20 sensor at 3x: its bands must be "
+                                         r"48x60"):
+        load_filter_cube(tmp_path / "big.npy", (16, 20), downsample=3)
 
 
 def test_validation_names_the_problem():
