@@ -15,7 +15,7 @@ import os
 import sys
 import warnings
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 from app.commands._options import NONNEG_INT
 
@@ -44,9 +44,16 @@ class CliError(Exception):
     """A user-facing error: printed as one line, exit code 2, no traceback."""
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error: the problem and where the usage is (not the usage)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """Parser with every registered subcommand."""
-    parser = argparse.ArgumentParser(
+    """Parser with every registered subcommand (their parsers are the same class)."""
+    parser = _Parser(
         prog="lenslesscam",
         description="Lensless compressive camera: capture, calibrate, reconstruct.",
     )

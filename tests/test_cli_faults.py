@@ -108,8 +108,11 @@ def test_numeric_options_are_range_checked(argv, option, rule, capsys):
     with pytest.raises(SystemExit) as info:
         main(argv)
     assert info.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()[-1]
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1, lines  # the problem, not the usage before it
+    err = lines[0]
     assert f"argument {option}" in err and "must be" in err and rule in err, err
+    assert "--help')" in err
 
 
 # ------------------------------------------------------------------------------------------
