@@ -328,6 +328,12 @@ def run_batch(manifest: str | Path, out: str | Path,
                              f"this batch's Ray has {have}: it would wait for ever")
     root = Path(out).resolve()
     _check_batch_folder(root, manifest)
+    for it in items:  # the batch writes its folder: nothing in it is an input
+        inside = [name for name, path in it.inputs
+                  if root == Path(path).resolve() or root in Path(path).resolve().parents]
+        if inside:
+            raise ValueError(f"{it.source}: item {it.id}'s {inside[0]} lies in the batch "
+                             f"folder {root}, which the batch writes: move it out")
     paths = BatchPaths(root)
     paths.make()
     lock = BatchLock(root).acquire()

@@ -191,6 +191,16 @@ def test_a_batch_folder_of_another_manifest_or_of_other_files_is_refused(data: P
         run_batch(data / "m2.csv", out)
     with pytest.raises(ValueError, match="is not empty and holds no batch"):
         run_batch(data / "m1.csv", data / "meas")
+    # an input inside the batch's own folder (a result fed back in) was retried three times
+    own = tmp_path / "own"
+    (own / "results").mkdir(parents=True)
+    np.save(own / "results" / "x.npy", np.load(data / "meas" / "m00.npy"))
+    (data / "m3.csv").write_text(f"measurement,psf,method\n{own / 'results' / 'x.npy'},"
+                                 "psf.npy,fista\n")
+    (own / "state.json").write_text(json.dumps({"format": STATE_FORMAT,
+                                                "manifest": str((data / "m3.csv").resolve())}))
+    with pytest.raises(ValueError, match="lies in the batch folder .* which the batch writes"):
+        run_batch(data / "m3.csv", own)
     # what a driver stopped before its first state.json leaves is no obstacle
     left = tmp_path / "left"
     for d in ("items", "results", "runs"):
