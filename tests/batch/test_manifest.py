@@ -199,7 +199,7 @@ def test_a_batch_folder_of_another_manifest_or_of_other_files_is_refused(data: P
                                  "psf.npy,fista\n")
     (own / "state.json").write_text(json.dumps({"format": STATE_FORMAT,
                                                 "manifest": str((data / "m3.csv").resolve())}))
-    with pytest.raises(ValueError, match="lies in the batch folder .* which the batch writes"):
+    with pytest.raises(ValueError, match=r"lies in the batch folder .* which the batch writes"):
         run_batch(data / "m3.csv", own)
     # what a driver stopped before its first state.json leaves is no obstacle
     left = tmp_path / "left"
@@ -231,6 +231,6 @@ def test_an_item_needing_more_cpus_than_the_embedded_ray_has_is_refused(data: Pa
     from app.batch.driver import BatchOptions, run_batch
 
     (data / "m.csv").write_text("measurement,psf,method\nmeas/m00.npy,psf.npy,fista\n")
-    with pytest.raises(ValueError, match="an item needs 3 CPUs .* has 1: it would wait"):
+    with pytest.raises(ValueError, match=r"an item needs 3 CPUs .* has 1: it would wait"):
         run_batch(data / "m.csv", tmp_path / "b", BatchOptions(num_cpus=1, cpus_per_item=3))
     assert not (tmp_path / "b").exists()
