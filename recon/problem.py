@@ -77,7 +77,13 @@ from recon.preprocess import (
     to_channel_first,
     to_gray,
 )
-from recon.readers import load_image, load_measurement, load_psf, load_psf_stack
+from recon.readers import (
+    EmptyPsfError,
+    load_image,
+    load_measurement,
+    load_psf,
+    load_psf_stack,
+)
 
 if TYPE_CHECKING:
     import torch
@@ -484,17 +490,6 @@ def _embed(a: Array, shape: tuple[int, int], offset: tuple[int, int]) -> Array:
     return out
 
 
-def _is_gray_image(path: Any) -> bool:
-    """Whether an image file holds one channel ((H, W), or a single plane)."""
-    from recon.readers import _PSF_KEYS
-
-    try:
-        a = load_image(str(path), prefer=_PSF_KEYS)  # the array load_psf reads
-    except (OSError, ValueError):
-        return False  # load_psf names the problem
-    return a.ndim == 2 or (a.ndim == 3 and 1 in (a.shape[0], a.shape[2]))
-
-
 def _norm(mode: str) -> Any:
     return None if mode == "none" else mode
 
@@ -537,11 +532,10 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
         else:
             # a gray PSF file with a colour measurement: one PSF shared by R, G and B (the layout
             # of the MirFlickr dataset's original code); a colour file gives one PSF per channel
-            psf_color = "gray" if color == "rgb" and _is_gray_image(spec.psf) else color
-            psf = load_psf(str(spec.psf), dark=psf_dark, channels=psf_color, channel_order=order,
-                           normalise=None)
-    except ValueError as exc:
-        if spec.psf_dark is None and dark is not None and "all zero" in str(exc):
+            psf = load_psf(str(spec.psf), dark=psf_dark, channels=color, channel_order=order,
+                           normalise=None, shared_gray=color == "rgb")
+    except EmptyPsfError as exc:
+        if spec.psf_dark is None and dark is not None:
             # the measurement's dark level reached a PSF that has its own (or none)
             raise ValueError(f"{exc}: the measurement's dark ({spec.dark}) is subtracted from "
                              "the PSF too unless a PSF dark is given (--psf-dark, psf_dark; 0: "

@@ -31,8 +31,8 @@ from recon.preprocess import (
     to_gray,
 )
 
-__all__ = ["DarkSpec", "PathLike", "load_image", "load_measurement", "load_psf", "load_psf_any",
-           "load_psf_stack"]
+__all__ = ["DarkSpec", "EmptyPsfError", "PathLike", "load_image", "load_measurement", "load_psf",
+           "load_psf_any", "load_psf_stack"]
 
 PathLike = str | os.PathLike[str]
 Array = npt.NDArray[Any]
@@ -48,6 +48,9 @@ _CV_EXT = (".png", ".jpg", ".jpeg", ".bmp")
 
 _ACCEPTED_INT = (np.uint8, np.uint16, np.uint32, np.int16, np.int32)
 
+
+class EmptyPsfError(ValueError):
+    """A PSF (or a stack plane) with no positive value after its dark was subtracted."""
 
 def load_image(
     path: PathLike, *, key: str | None = None, prefer: Sequence[str] | None = None
@@ -273,7 +276,8 @@ def _to_chw(a: Array, p: Path, what: str) -> Array:
 
 
 def _select_channels(
-    a: Array, channels: Channels, p: Path, what: str, order: ChannelOrder = "rgb"
+    a: Array, channels: Channels, p: Path, what: str, order: ChannelOrder = "rgb",
+    shared_gray: bool = False,
 ) -> Array:
     if order not in ("rgb", "bgr"):
         raise ValueError(f"channel order must be 'rgb' or 'bgr', got {order!r}")
@@ -282,6 +286,8 @@ def _select_channels(
     if channels == "gray":
         return to_gray(a)
     if channels == "rgb":
+        if a.shape[0] == 1 and shared_gray:
+            return a  # one plane for every colour channel (the caller shares it)
         if a.shape[0] == 1:
             raise ValueError(f"{what} file {p} is grayscale; cannot load it with channels='rgb'")
         return a[:3]
@@ -340,11 +346,12 @@ def _prepare(
     key: str | None,
     prefer: Sequence[str],
     order: ChannelOrder = "rgb",
+    shared_gray: bool = False,
 ) -> tuple[F32, Path]:
     p = Path(path)
     raw = _load_image(p, key=key, prefer=prefer)
     _validate_raw(raw, p, what)
-    chw = _select_channels(_to_chw(raw, p, what), channels, p, what, order)
+    chw = _select_channels(_to_chw(raw, p, what), channels, p, what, order, shared_gray)
     if what == "PSF" and np.any(raw):  # constant or clipped: a one-line PsfWarning (all zero:
         # the error below says more)
         from recon.psfcheck import check_psf
@@ -367,6 +374,7 @@ def load_psf(
     normalise: NormMode | None = "sum",
     key: str | None = None,
     channel_order: ChannelOrder = "rgb",
+    shared_gray: bool = False,
 ) -> F32:
     """Load a PSF as float32 ``(C, H, W)``: dark -> downsample -> clip at 0 -> normalise.
 
@@ -381,10 +389,12 @@ def load_psf(
         key: variable name in an ``.npz``/``.mat`` file.
         channel_order: ``'bgr'`` for files that store colour as B, G, R (the DiffuserCam
             Lensless MirFlickr dataset); the result is always R, G, B.
+        shared_gray: with ``channels='rgb'``, a grayscale file gives its one plane
+            (``C = 1``, a PSF the colour channels share) instead of an error.
 
     Raises:
         FileNotFoundError, ValueError: missing file, unreadable file, NaN/inf values, bad
-            dtype or shape, all-zero PSF.
+            dtype or shape; :class:`EmptyPsfError` for an all-zero PSF.
 
     """
     arr, p = _prepare(
@@ -396,10 +406,11 @@ def load_psf(
         key=key,
         prefer=_PSF_KEYS,
         order=channel_order,
+        shared_gray=shared_gray,
     )
     if not np.any(arr > 0):
         extra = f" after dark subtraction (dark={_describe_dark(dark)})" if dark is not None else ""
-        raise ValueError(f"PSF file {p} is all zero or negative{extra}")
+        raise EmptyPsfError(f"PSF file {p} is all zero or negative{extra}")
     if normalise is not None:
         arr = _normalise_fn(arr, normalise)
     return np.ascontiguousarray(arr, dtype=np.float32)
@@ -506,7 +517,8 @@ def load_psf_stack(
         if not np.any(stack[k] > 0):
             extra = (f" after dark subtraction (dark={_describe_dark(dark)})" if dark is not None
                      else "")
-            raise ValueError(f"PSF stack plane {k} ({names[k]}) is all zero or negative{extra}")
+            raise EmptyPsfError(
+                f"PSF stack plane {k} ({names[k]}) is all zero or negative{extra}")
     if normalise is not None:
         stack = _normalise_fn(stack, normalise)
     return np.ascontiguousarray(stack, dtype=np.float32)
