@@ -71,6 +71,11 @@ _RESERVED_KEYS = frozenset(
 )
 
 
+def data_hash(x: Any) -> str:
+    """The ``data_hash`` :func:`save_reconstruction` records for the estimate ``x``."""
+    return array_hash(np.ascontiguousarray(np.asarray(x), dtype=np.float32))
+
+
 def reconstruction_paths(path: PathLike, kind: Kind = "image") -> list[Path]:
     """The files :func:`save_reconstruction` writes for ``path`` and ``kind``, TIFF first.
 
@@ -155,7 +160,7 @@ def save_reconstruction(
         "shape": [c, k, h, w],
         "axes": "CKHW",
         "dtype": "float32",
-        "data_hash": array_hash(arr),
+        "data_hash": data_hash(arr),
         "provenance": provenance(),
     }
     meta.update(user)

@@ -126,13 +126,6 @@ Cancel = threading.Event | Callable[[], bool] | None
 OnStep = Callable[[UDNStep], None] | None
 
 
-def _saved_hash(path: Path) -> str:
-    """The data hash a result file was written with (from its metadata)."""
-    from recon.io import read_reconstruction
-
-    return str(read_reconstruction(path)[1]["data_hash"])
-
-
 def _preprocessing(problem: Any) -> dict[str, Any]:
     """How the inputs were read, as ``recon fista`` records it.
 
@@ -570,7 +563,7 @@ class _Job:
             "inputs": self.record.get("inputs"), "device": self.record.get("device"),
             "run_dir": str(self.run_dir), "preprocessing": _preprocessing(problem),
         }
-        from recon.io import save_reconstruction
+        from recon.io import data_hash, save_reconstruction
 
         results: dict[str, Any] = {}
         hashes: dict[str, str] = {}
@@ -578,7 +571,7 @@ class _Job:
             paths = save_reconstruction(self.run_dir / f"{which}.tif", x,
                                         {**base_meta, "estimate": which}, kind=kind)
             results[which] = str(paths[0].relative_to(self.run_dir))
-            hashes[which] = _saved_hash(paths[0])
+            hashes[which] = data_hash(x)
         # what the run wrote: a result file replaced later is told apart (jobs combine)
         results["data_hashes"] = hashes
         results["best_iteration"] = runner.best_iteration
@@ -727,7 +720,7 @@ def _session(job: _Job, max_memory: int | None, resume_state: dict[str, Any] | N
 
 def _save_best_after_failure(job: _Job) -> None:
     """Keep the best estimate of a run that diverged (it is often still worth having)."""
-    from recon.io import save_reconstruction
+    from recon.io import data_hash, save_reconstruction
 
     runner, problem = job.runner, job.problem
     if runner is None or problem is None:
@@ -743,7 +736,7 @@ def _save_best_after_failure(job: _Job) -> None:
              "finish_reason": FinishReason.FAILED, "run_dir": str(job.run_dir),
              "preprocessing": _preprocessing(problem)},
             kind=_RESULT_KIND[problem.kind])
-        written = _saved_hash(paths[0])
+        written = data_hash(best)
     except (OSError, ValueError):
         return
     job.record["results"] = {"best": str(paths[0].relative_to(job.run_dir)),
