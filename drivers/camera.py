@@ -29,6 +29,7 @@ import dataclasses
 import logging
 import math
 import numbers
+import os
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -59,6 +60,7 @@ __all__ = [
     "TriggerMode",
     "bit_depth_of",
     "protocol_members",
+    "read_frame_metadata",
 ]
 
 _log = logging.getLogger(__name__)
@@ -66,6 +68,26 @@ _log = logging.getLogger(__name__)
 #: Frame metadata format name and version (bumped on incompatible changes).
 FRAME_FORMAT = "lenslesscam-frame"
 FRAME_FORMAT_VERSION = 1
+
+
+def read_frame_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The metadata of a saved frame (a TIFF whose description is :meth:`Frame.metadata`).
+
+    Raises ValueError naming the file when it is not such a frame.
+    """
+    import json
+
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tf:
+            meta = json.loads(tf.pages[0].description or "")
+    except Exception as exc:
+        raise ValueError(f"{path}: not a saved frame with its metadata ({exc})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FRAME_FORMAT:
+        raise ValueError(f"{path}: not a saved frame with its metadata (format "
+                         f"{FRAME_FORMAT})")
+    return meta
 
 
 # --------------------------------------------------------------------------------------------

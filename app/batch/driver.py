@@ -301,9 +301,12 @@ def _check_batch_folder(root: Path, manifest: Path) -> None:
                              "choose another --out")
     elif root.is_dir():
         # what a driver stopped before its first state.json leaves: its lock, empty folders
+        from recon.udn.rundir import LOCK_FILE
+
+        made = {d.name for d in BatchPaths(root).folders()}
+
         def ours(p: Path) -> bool:
-            return p.name == "run.lock" or (p.name in ("items", "results", "runs")
-                                            and p.is_dir() and not any(p.iterdir()))
+            return p.name == LOCK_FILE or (p.name in made and p.is_dir() and not any(p.iterdir()))
 
         if not all(ours(p) for p in root.iterdir()):
             raise ValueError(f"{root} is not empty and holds no batch: choose a new or empty "

@@ -76,9 +76,13 @@ class BatchPaths:
         """runs/ID-HASH8/ (a new folder when the item's inputs change)."""
         return self.root / "runs" / f"{item_id}-{item_hash[:8]}"
 
+    def folders(self) -> tuple[Path, ...]:
+        """The folders :meth:`make` creates inside the batch folder."""
+        return (self.items_dir, self.root / "results", self.root / "runs")
+
     def make(self) -> None:
         """Create the folders."""
-        for d in (self.root, self.items_dir, self.root / "results", self.root / "runs"):
+        for d in (self.root, *self.folders()):
             d.mkdir(parents=True, exist_ok=True)
 
 

@@ -189,13 +189,9 @@ def _timing_source(path: Path) -> Any:
     (``lenslesscam snap``, the app's Snap & save).
     """
     if path.suffix.lower() in (".tif", ".tiff"):
-        import tifffile
+        from drivers.camera import read_frame_metadata
 
-        try:
-            with tifffile.TiffFile(path) as tf:
-                return json.loads(tf.pages[0].description or "")
-        except Exception as exc:
-            raise ValueError(f"{path}: a TIFF without a frame's metadata ({exc})") from None
+        return read_frame_metadata(path)
     try:
         return json.loads(path.read_text(encoding="utf-8"))
     except ValueError as exc:  # not UTF-8, not JSON
@@ -275,23 +271,21 @@ def run_plan(args: argparse.Namespace) -> int:
     inputs = load_inputs(args)
     plan = _make(args, inputs, probe=not args.no_probe)
     window = _window(inputs)
+    d = plan.to_json()
+    if window is not None:  # "sensor" is the padded grid the plan runs on
+        d["measurement_window"] = list(window)
     if args.out:
-        d = plan.to_json()
-        if window is not None:
-            d["measurement_window"] = list(window)
+        saved = dict(d)
         if getattr(args, "meas", None) and getattr(args, "psf", None):
             import datetime as _dt
 
             from recon.suggest import input_hashes_of_files
 
             # which measurement the plan is for: the app's job dialog offers it for that frame
-            d["inputs"] = input_hashes_of_files(args.meas, args.psf)
-            d["created_utc"] = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
-        atomic_write_json(args.out, d)
+            saved["inputs"] = input_hashes_of_files(args.meas, args.psf)
+            saved["created_utc"] = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+        atomic_write_json(args.out, saved)
     if args.json:
-        d = plan.to_json()
-        if window is not None:  # "sensor" is the padded grid the plan runs on
-            d["measurement_window"] = list(window)
         print(json.dumps(d, indent=2, default=str))
     else:
         print(plan.describe(window))
