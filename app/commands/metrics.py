@@ -84,20 +84,6 @@ def _load(path: Path, key: str | None) -> tuple[Any, str | None, dict[str, Any] 
     raise ValueError(f"{path}: cannot interpret an image of shape {a.shape}")
 
 
-def _is_reconstruction(path: Path) -> bool:
-    """Whether ``path`` is a lenslesscam reconstruction TIFF (in the scene's frame already)."""
-    if path.suffix.lower() not in (".tif", ".tiff"):
-        return False
-    from recon import io as rio
-    from recon.formats import FormatError
-
-    try:
-        rio.read_reconstruction(path)
-    except (FormatError, ValueError, OSError):
-        return False
-    return True
-
-
 def _layout(meta: dict[str, Any] | None) -> dict[str, Any] | None:
     """How the measurement of a reconstruction was read, as ``prepare_truth`` takes it.
 
@@ -127,19 +113,17 @@ def run(args: argparse.Namespace) -> int:
     from recon.metrics import metrics_report, spectral_cosine_distance
 
     est, est_kind, est_meta = _load(args.est, args.key)
+    ref, ref_kind, ref_meta = _load(args.ref, args.key)
     layout = _layout(est_meta)
     prepared = None
     # an image result (K = 1; a stack of frames or bands is read as stored) from a measurement
-    # that says how it was read, scored against a plain file
-    if (layout is not None and not args.ref_as_is and est.shape[1] == 1
-            and not _is_reconstruction(args.ref)):
+    # that says how it was read, scored against a plain file (not a reconstruction)
+    if layout is not None and not args.ref_as_is and est.shape[1] == 1 and ref_meta is None:
         from recon.problem import prepare_truth
 
         # the reference in the frame of the reconstruction: the one way a problem's truth is read
         ref = prepare_truth(args.ref, est.shape, key=args.key, **layout).astype(np.float64)
-        ref_kind, prepared = None, layout
-    else:
-        ref, ref_kind, _ = _load(args.ref, args.key)
+        prepared = layout
     if ref.shape != est.shape:
         raise ValueError(
             f"shapes differ: ref {args.ref} is {tuple(ref.shape)} (C, K, H, W), est {args.est} "
