@@ -110,8 +110,12 @@ def _parse_request(value: int | str | None, what: str) -> int | None:
 MAX_THREADS_PER_CORE = 4
 
 
+def _limit(cores: int) -> int:
+    return MAX_THREADS_PER_CORE * max(1, cores)
+
+
 def _bounded(n: int, cores: int, name: str) -> int:
-    limit = MAX_THREADS_PER_CORE * max(1, cores)
+    limit = _limit(cores)
     if n > limit:
         raise ValueError(f"{name} {n} is more than {MAX_THREADS_PER_CORE}x this machine's "
                          f"{cores} cores ({limit}); use 0 to choose")
@@ -139,9 +143,8 @@ def choose_threads(requested: int | str | None = None, *, cores: int | None = No
     if omp:
         n = _parse_request(omp, "OMP_NUM_THREADS")
         if n is not None:
-            limit = MAX_THREADS_PER_CORE * max(1, cores)
-            if n > limit:
-                return ThreadChoice(limit, cores, load,
+            if n > _limit(cores):
+                return ThreadChoice(_limit(cores), cores, load,
                                     f"OMP_NUM_THREADS {n} cut to {MAX_THREADS_PER_CORE}x cores")
             return ThreadChoice(n, cores, load, "OMP_NUM_THREADS")
     free = int(cores - load + 0.5)  # round half up; cores - load may be negative
