@@ -26,20 +26,41 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from app.commands._options import POSITIVE_INT
+from app.commands._options import POSITIVE_INT, integer
 
 #: Padded FFT sizes of the 2D cases (the sensor and the PSF are half of it).
 SIZES = (256, 512, 1024, 2048)
+METHODS = ("fista", "admm")
+
+
+def _sizes(text: str) -> list[int]:
+    """``--sizes``: comma-separated padded FFT sizes, each at least 16."""
+    parse = integer(16)
+    sizes = [parse(s.strip()) for s in text.split(",") if s.strip()]
+    if not sizes:
+        raise argparse.ArgumentTypeError(f"must list at least one size, got {text!r}")
+    return sizes
+
+
+def _methods(text: str) -> list[str]:
+    """``--methods``: fista, admm or both, comma-separated."""
+    methods = [m.strip() for m in text.split(",") if m.strip()]
+    bad = sorted(set(methods) - set(METHODS))
+    if bad or not methods:
+        raise argparse.ArgumentTypeError(f"must be fista, admm or fista,admm, got {text!r}")
+    return methods
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of ``lenslesscam bench fista``."""
-    p.add_argument("--sizes", default=",".join(str(s) for s in SIZES),
+    p.add_argument("--sizes", type=_sizes, default=list(SIZES),
                    help="padded FFT sizes of the 2D cases (default 256,512,1024,2048)")
     p.add_argument("--video", action="store_true",
                    help="add a video case (128x128 sensor, K=16 time bins; FISTA only)")
-    p.add_argument("--methods", default="fista,admm", help="fista, admm or both (default)")
-    p.add_argument("--rounds", type=POSITIVE_INT, default=15, help="timed rounds per case (15)")
+    p.add_argument("--methods", type=_methods, default=list(METHODS),
+                   help="fista, admm or both (default)")
+    p.add_argument("--rounds", type=integer(3), default=15,
+                   help="timed rounds per case, at least 3 (15)")
     p.add_argument("--threads", default=None,
                    help="torch threads: a number, or auto (default: the global --threads, else "
                    "the thread policy, recon.threads)")
@@ -277,15 +298,8 @@ def run(args: argparse.Namespace) -> int:
     choice = getattr(args, "thread_choice", None)  # set by the global --threads
     if args.threads is not None or choice is None:
         choice = apply_threads(args.threads)
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    bad = set(methods) - {"fista", "admm"}
-    if bad:
-        print(f"unknown method(s) {sorted(bad)}: use fista and/or admm", file=sys.stderr)
-        return 2
-    if args.rounds < 3:
-        print("--rounds must be at least 3", file=sys.stderr)
-        return 2
-    sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
+    methods = args.methods
+    sizes = args.sizes
     clock_name = ("CPU time of the one torch thread" if work_clock() is time.thread_time
                   else "wall time")
     load0 = os.getloadavg()[0]

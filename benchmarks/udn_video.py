@@ -191,9 +191,6 @@ def run(args: argparse.Namespace) -> int:
     """Simulate, reconstruct with the three methods, print / write the table."""
     import numpy as np
 
-    if not 2 <= args.frames <= 32:
-        print("--frames must be between 2 and 32", file=sys.stderr)
-        return 2
     from recon.threads import apply_threads
 
     apply_threads(args.threads)

@@ -99,6 +99,10 @@ BAD_VALUES = [
     (["calibrate", "darks", "--frames", "0"], "--frames", ">= 1"),
     (["jobs", "resume", "run", "--max-iter", "0"], "--max-iter", ">= 1"),
     (["--threads", "-1", "demo"], "--threads", ">= 0"),
+    (["bench", "fista", "--rounds", "2"], "--rounds", ">= 3"),
+    (["bench", "fista", "--sizes", "256,x"], "--sizes", ">= 16"),
+    (["bench", "fista", "--methods", "fista,lasso"], "--methods", "fista, admm"),
+    (["bench", "udn-video", "--frames", "1"], "--frames", ">= 2"),
 ]
 
 
