@@ -83,3 +83,15 @@ def test_wide_psf_plans_a_coarser_grid():
     assert "autocorrelation" in plan.reasons["downsample"]
     res = execute(plan.override(iterations=50), cap.psf, cap.meas, timing=cap.timing)
     assert res.x.shape == (1, 1, 16, 21) and np.isfinite(res.x).all()
+
+
+def test_a_small_sensor_keeps_enough_rows_for_the_time_analysis():
+    """On a 32x40 sensor the wide PSF allows a 16-row analysis grid; on so few rows the video
+    models' freedom fitted that grid's model error and a still scene was planned as video K=3
+    (38 % better held-out error). The time analysis keeps about ``analysis_rows`` (24) rows."""
+    cap = wide_psf_capture(32, 40, seed=0)
+    plan = make_plan(cap.psf, cap.meas, timing=cap.timing, probe=False)
+    assert plan.evidence["analysis_grid"]["shape"] == [16, 20]
+    assert plan.evidence["time"]["grid"] == {"factor": 1, "shape": [32, 40]}
+    assert plan.model == "2d" and not plan.evidence["time"]["motion"], plan.reasons["model"]
+    assert plan.downsample == 2  # the reconstruction grid still follows the PSF
