@@ -22,7 +22,12 @@ Fault injection for tests: ``DEBUG GARBAGE n`` (the next n replies are noise),
 ``--slow-ms`` and ``--silent`` at start. DEBUG commands themselves are never delayed or
 garbled.
 
-:func:`spawn_simulated_source` starts this process for tests, the CLI and the app.
+:func:`spawn_simulated_source` starts this process for tests, the CLI and the app, in its own
+session (``start_new_session``): a Ctrl-C, SIGHUP or ``timeout`` aimed at the terminal's
+foreground process group then reaches only the parent, which switches the light off *before*
+it stops the firmware (a firmware that died first made that clean-up fail and warn). Out of
+reach of those signals, the firmware watches its parent instead (``--parent-pid``) and exits
+when the parent is gone, so a parent killed outright leaves no orphan behind.
 """
 
 from __future__ import annotations
@@ -222,15 +227,19 @@ def _garbage_line() -> bytes:
     return bytes(b if 0x20 <= b < 0x7F and b != ord("@") else 0x80 | (b & 0x7F) for b in junk)
 
 
-def serve(fd: int, fw: Firmware, stop: list[bool], wakeup: int | None = None) -> None:
+def serve(fd: int, fw: Firmware, stop: list[bool], wakeup: int | None = None,
+          parent: int | None = None) -> None:
     """Read command lines from ``fd`` and answer them until ``stop[0]`` is set.
 
     ``wakeup``: a pipe that a signal handler writes to (``signal.set_wakeup_fd``), so a stop
-    request does not wait for the select timeout.
+    request does not wait for the select timeout. ``parent``: stop as well once this process
+    is no longer our parent (it exited or was killed; checked at least every 0.5 s).
     """
     buf = b""
     watch = [fd] if wakeup is None else [fd, wakeup]
     while not stop[0]:
+        if parent is not None and os.getppid() != parent:
+            break  # orphaned: whoever started us is gone
         try:
             ready, _, _ = select.select(watch, [], [], 0.5)
         except InterruptedError:
@@ -317,6 +326,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--garbage", type=int, default=0, help="garble the first N replies")
     p.add_argument("--slow-ms", type=float, default=0.0, help="delay every command")
     p.add_argument("--silent", type=int, default=0, help="do not answer the first N commands")
+    p.add_argument("--parent-pid", type=int,
+                   help="exit when process PARENT_PID is no longer this process's parent")
     args = p.parse_args(argv)
 
     keep: list[int] = []
@@ -357,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"PORT {port_shown}", flush=True)
     print("READY", flush=True)
     try:
-        serve(fd, fw, stop, wake_r)
+        serve(fd, fw, stop, wake_r, args.parent_pid)
     finally:
         with contextlib.suppress(OSError):
             fw.state = fw.state.evolve(mode=LightMode.OFF)
@@ -413,18 +424,24 @@ def spawn_simulated_source(
 
     ``state_path`` defaults to a new temporary folder's ``light-state.json``; ``link`` gives
     the port a stable name. Returns ``(port, process, state_path)``; call ``.stop()``.
+
+    The process runs in its own session, so the terminal's Ctrl-C (SIGINT to the foreground
+    process group) does not kill it before the caller has switched the light off; it exits by
+    itself when the caller's process ends without stopping it.
     """
     if state_path is None:
         state_path = Path(tempfile.mkdtemp(prefix="lenslesscam-light-")) / "light-state.json"
     state = Path(state_path)
-    cmd = [sys.executable, "-m", "drivers.pointsource_sim", "--pty", "--state-file", str(state)]
+    cmd = [sys.executable, "-m", "drivers.pointsource_sim", "--pty", "--state-file", str(state),
+           "--parent-pid", str(os.getpid())]
     if link is not None:
         cmd += ["--link", str(link)]
     cmd += list(extra_args)
     env = dict(os.environ)
     root = str(Path(__file__).resolve().parent.parent)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
-    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, env=env)
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, env=env,
+                            start_new_session=True)
     assert proc.stdout is not None
     out = b""
     port = None

@@ -10,6 +10,11 @@ at the end the summary tables. Ray's own retries handle lost workers and transie
 (``max_retries``); an item that still fails is recorded as failed with its error and the batch
 goes on.
 
+Joining a cluster at ``HOST:PORT`` first opens a plain TCP connection to that address, bounded
+by ``connect_timeout_s`` (``--connect-timeout``): ``ray.init`` itself retries an address where
+nothing listens for many minutes, so a wrong host or port, or a head that is not running, is
+reported as a one-line error within seconds instead of a silent hang.
+
 Ray is imported here only, inside the functions (``import ray`` takes seconds).
 """
 
@@ -20,6 +25,7 @@ import json
 import logging
 import os
 import platform
+import socket
 import sys
 import time
 from dataclasses import dataclass, field
@@ -45,6 +51,11 @@ __all__ = ["BatchOptions", "BatchReport", "run_batch", "start_ray"]
 CANCEL_GRACE_S = 60.0
 #: Object store of the embedded Ray (tasks exchange only small records).
 EMBEDDED_OBJECT_STORE = 128 * 1024 * 1024
+#: Seconds ``batch run --address HOST:PORT`` waits for the cluster's address to accept a TCP
+#: connection before it gives up (``--connect-timeout``).
+CONNECT_TIMEOUT_S = 10.0
+#: The port of ``ray start --head`` when none is given (named in the error messages).
+RAY_DEFAULT_PORT = 6379
 
 
 @dataclass(frozen=True)
@@ -52,6 +63,7 @@ class BatchOptions:
     """How to run a batch (the options of ``lenslesscam batch run``)."""
 
     address: str | None = None  # None: embedded Ray; "auto" or HOST:PORT: join a cluster
+    connect_timeout_s: float = CONNECT_TIMEOUT_S  # reaching a HOST:PORT address
     num_cpus: int | None = None  # embedded Ray's CPUs (None: all cores)
     cpus_per_item: int = 1  # CPUs (= torch threads) of a fista / auto / ... task
     udn_cpus: int = 1  # CPUs (= torch threads) of a udn task on a cluster without GPUs
@@ -73,8 +85,69 @@ class BatchReport:
     summary: list[Path] = field(default_factory=list)
 
 
-def start_ray(address: str | None, num_cpus: int | None) -> bool:
-    """Start embedded Ray or join a cluster; True when this call started it (and owns it)."""
+def split_address(address: str) -> tuple[str, int] | None:
+    """``(host, port)`` of a ``[ray://]HOST:PORT`` address, None for ``auto``.
+
+    Raises ValueError (a one-line message) for anything else.
+    """
+    if address.strip().lower() == "auto":
+        return None
+    target = address.strip()
+    if target.startswith("ray://"):
+        target = target[len("ray://"):]
+    host, sep, port_s = target.rpartition(":")
+    host = host.strip("[]")  # [::1]:6379
+    if not sep or not host or not port_s.isdigit() or not 0 < int(port_s) < 65536:
+        raise ValueError(f"--address must be 'auto' or HOST:PORT (for example "
+                         f"head.lab:{RAY_DEFAULT_PORT}), got {address!r}")
+    return host, int(port_s)
+
+
+def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """Raise a one-line :class:`~app.cli.CliError` unless ``address`` accepts a TCP connection.
+
+    ``auto`` is left to Ray (it finds a local cluster or fails at once). The probe goes where
+    Ray would connect: Ray's own reading of the address (a loopback host becomes this
+    machine's IP) when it can give one.
+    """
+    hp = split_address(address)
+    if hp is None:
+        return
+    host, port = hp
+    if not address.strip().startswith("ray://"):
+        with contextlib.suppress(Exception):  # Ray's private helper; the address as given else
+            from ray._private.services import canonicalize_bootstrap_address
+
+            canon = canonicalize_bootstrap_address(address.strip())
+            if canon:
+                host, port = split_address(canon) or (host, port)
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        if isinstance(exc, socket.gaierror):
+            why = f"cannot resolve the host {host!r}"
+        elif isinstance(exc, TimeoutError):
+            why = f"no answer from {host}:{port} within {timeout_s:g} s"
+        elif isinstance(exc, ConnectionRefusedError):
+            why = f"nothing listens on {host}:{port} (connection refused)"
+        else:
+            why = f"{host}:{port}: {exc.strerror or exc}"
+        from app.cli import CliError
+
+        raise CliError(f"cannot reach the Ray cluster at {address}: {why}; check that its head "
+                       f"runs there ('ray start --head --port={port}', 'ray status') and that "
+                       f"the port is right (the GCS port, default {RAY_DEFAULT_PORT}) and open "
+                       f"(firewall); --connect-timeout waits longer") from None
+
+
+def start_ray(address: str | None, num_cpus: int | None,
+              connect_timeout_s: float = CONNECT_TIMEOUT_S) -> bool:
+    """Start embedded Ray or join a cluster; True when this call started it (and owns it).
+
+    A ``HOST:PORT`` address that does not accept a TCP connection within ``connect_timeout_s``
+    is a one-line :class:`~app.cli.CliError` (see :func:`check_reachable`).
+    """
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no usage reports, ever
     try:
         import ray
@@ -87,7 +160,18 @@ def start_ray(address: str | None, num_cpus: int | None) -> bool:
     if ray.is_initialized():
         return False
     if address:
-        ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+        check_reachable(address, connect_timeout_s)
+        try:
+            ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+        except (ConnectionError, TimeoutError) as exc:  # reachable, but not a Ray it can join
+            from app.cli import CliError
+
+            hint = ("start one on this machine with 'ray start --head', or give HOST:PORT"
+                    if split_address(address) is None else
+                    f"is it a Ray head's GCS port (default {RAY_DEFAULT_PORT}), with the same "
+                    "Ray version as here?")
+            raise CliError(f"cannot join the Ray cluster at {address}: "
+                           f"{_first_line(exc).rstrip('.')}; {hint}") from None
     else:  # Ray's notices about its own defaults (auth token, ...) would only clutter the bar
         ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False,
                  object_store_memory=EMBEDDED_OBJECT_STORE, log_to_driver=False,
@@ -321,6 +405,8 @@ def run_batch(manifest: str | Path, out: str | Path,
     :class:`~app.batch.state.BatchBusy` when another driver holds the folder.
     """
     opts = options or BatchOptions()
+    if opts.address is not None:
+        split_address(opts.address)  # a malformed address is refused before anything is written
     manifest = Path(manifest).resolve()
     items = read_manifest(manifest)
     if opts.address is None:  # embedded Ray: a task needing more CPUs than it has never starts
@@ -359,7 +445,7 @@ def run_batch(manifest: str | Path, out: str | Path,
             print(f"batch: {len(items)} items, {len(items) - len(todo)} already done, "
                   f"{len(todo)} to run; {where if todo else 'nothing to run'}", file=sys.stderr)
         if todo:
-            owns_ray = start_ray(opts.address, opts.num_cpus)
+            owns_ray = start_ray(opts.address, opts.num_cpus, opts.connect_timeout_s)
             drv.execute(todo)
         counts: dict[str, int] = {}
         for s in drv.status.values():

@@ -14,7 +14,7 @@ import json
 import sys
 from typing import Any
 
-from app.commands._options import NONNEG_INT, POSITIVE_INT
+from app.commands._options import NONNEG_INT, POSITIVE, POSITIVE_INT
 
 
 def register(sub: Any) -> None:
@@ -29,6 +29,9 @@ def register(sub: Any) -> None:
     r.add_argument("--out", required=True, help="batch folder (results, records, summary)")
     r.add_argument("--address", help="join a Ray cluster: 'auto' or HOST:PORT (default: start "
                                      "Ray inside this command on this machine)")
+    r.add_argument("--connect-timeout", type=POSITIVE, default=10.0, metavar="SECONDS",
+                   help="with --address HOST:PORT: give up when the address does not accept a "
+                        "connection within this time (default 10)")
     r.add_argument("--num-cpus", type=POSITIVE_INT,
                    help="CPUs of the embedded Ray (default: all cores)")
     r.add_argument("--cpus-per-item", type=POSITIVE_INT, default=1,
@@ -54,7 +57,8 @@ def run_batch_cmd(args: argparse.Namespace) -> int:
     """``batch run``: exit 0 when every item is done, 1 when some failed, 130 if cancelled."""
     from app.batch.driver import BatchOptions, run_batch
 
-    opts = BatchOptions(address=args.address, num_cpus=args.num_cpus,
+    opts = BatchOptions(address=args.address, connect_timeout_s=args.connect_timeout,
+                        num_cpus=args.num_cpus,
                         cpus_per_item=args.cpus_per_item, udn_cpus=args.udn_cpus,
                         max_retries=args.max_retries, progress=False if args.quiet else None)
     rep = run_batch(args.manifest, args.out, opts)

@@ -207,3 +207,105 @@ def test_sigterm_during_a_capture_cleans_up_like_ctrl_c(tmp_path):
     assert "interrupted" in err
     assert not list(tmp_path.glob("lenslesscam-cal-*"))  # firmware stopped, folder removed
     assert not (tmp_path / "p.tif").exists()
+
+
+def _live_children(pid: int) -> list[int]:
+    """Live (not zombie) child processes of ``pid``, from /proc."""
+    from pathlib import Path
+
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        if int(fields[1]) == pid and fields[0] != "Z":
+            out.append(int(d.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    from pathlib import Path
+
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(")") + 2 :].split()[0] != "Z"
+
+
+def _start_capture(tmp_path):
+    """A ``calibrate psf`` run with the simulated source, as the foreground job of a terminal
+    (its own process group); returns it and its firmware's pid once it is capturing."""
+    import os
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    env = {**os.environ, "TMPDIR": str(tmp_path), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app", "calibrate", "psf", "--camera", "sim", "--source", "sim",
+         "--frames", "100000", "--settle", "0", "--out", str(tmp_path / "p.tif")],
+        cwd=Path(__file__).resolve().parents[2], env=env, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not list(tmp_path.glob("lenslesscam-cal-*/light-state.json")):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.2)
+        firmware = _live_children(proc.pid)
+        assert len(firmware) == 1, firmware
+        time.sleep(2.0)  # into the capture
+    except BaseException:
+        proc.kill()
+        proc.communicate()
+        raise
+    return proc, firmware[0]
+
+
+def test_ctrl_c_in_the_terminal_switches_the_source_off_quietly(tmp_path):
+    """Ctrl-C sends SIGINT to the whole foreground process group: the simulated firmware died
+    first and the clean-up then warned "could not switch the point source off". The firmware
+    now runs in its own session: the light goes off, then the firmware is stopped."""
+    import os
+    import signal
+
+    proc, fw = _start_capture(tmp_path)
+    try:
+        os.killpg(proc.pid, signal.SIGINT)  # what the terminal does on Ctrl-C
+        _out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130, err
+    assert "interrupted" in err
+    assert "could not switch the point source off" not in err, err
+    assert not _alive(fw)  # no orphan firmware
+    assert not list(tmp_path.glob("lenslesscam-cal-*"))  # folder removed
+    assert not (tmp_path / "p.tif").exists()
+
+
+def test_firmware_exits_when_the_calibrate_process_is_killed(tmp_path):
+    """SIGKILL gives the command no clean-up: its firmware (in its own session, out of reach
+    of the terminal's signals) notices that its parent is gone and exits by itself."""
+    import os
+    import signal
+    import time
+
+    proc, fw = _start_capture(tmp_path)
+    try:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=60)
+        deadline = time.monotonic() + 10
+        while _alive(fw) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _alive(fw), "the simulated firmware outlived its parent"
+    finally:
+        if _alive(fw):
+            os.kill(fw, signal.SIGKILL)
+        proc.communicate(timeout=30)  # the firmware held its stderr open
