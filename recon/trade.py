@@ -17,16 +17,21 @@ Where that is unavailable (not Linux) the column is empty.
 
 Everything here is stepwise: :func:`run_trade` is a generator of rows (progress and a
 cancellation point between configurations); nothing prints or plots.
+
+``trade.csv`` (:func:`write_trade_csv`; its one reader :func:`read_trade`) is a table with a
+``# key: value`` header (:mod:`recon.csvmeta`): its format and version, provenance, and one
+``case`` line per case (:func:`case_record`: shapes, field, PSF and measurement hashes,
+erasure, where the case came from), so a plan can tell whether a trade was measured on its
+kind of data (:func:`case_differences`).
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import functools
 import math
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,21 +40,31 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
+from recon.formats import FORMAT_VERSION, FormatError, array_hash
 from recon.metrics import gain_fit, psnr, ssim
 from recon.models import build_model
 from recon.preprocess import box_downsample, downsample_masked
 
 __all__ = [
+    "TRADE_FORMAT",
     "Case",
     "Config",
+    "TradeFile",
     "TradeRow",
     "best_for_budgets",
+    "case_differences",
+    "case_record",
     "default_grid",
     "pareto_front",
     "rank_correlation",
+    "read_trade",
     "read_trade_csv",
     "run_trade",
+    "write_trade_csv",
 ]
+
+#: ``format`` of a ``trade.csv`` header (its ``format_version`` is :data:`FORMAT_VERSION`).
+TRADE_FORMAT = "lenslesscam.trade"
 
 F32 = npt.NDArray[np.float32]
 
@@ -67,6 +82,9 @@ class Case:
     #: padded PSF grid (the DiffuserCam dataset layout) is reconstructed on its sensor's field,
     #: as ``recon fista`` does (``recon.problem``: the problem's ``model.info["field"]``)
     field: tuple[int, int] | None = None
+    #: where the case comes from, recorded in trade.csv: the files and their hashes
+    #: (``psf_file_hash``, ...), or the simulation (scene, erasure, noise, seed)
+    source: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -419,36 +437,141 @@ _FLOAT = {"tau", "wall_s", "heldout_psnr", "residual"}
 _INT = {"downsample", "channels", "iterations"}
 
 
-def read_trade_csv(path: str | Path) -> list[TradeRow]:
-    """Rows of a ``trade.csv`` written by ``lenslesscam trade``."""
-    rows = []
+# --------------------------------------------------------------------------------------------
+# trade.csv
+# --------------------------------------------------------------------------------------------
+
+
+def case_record(case: Case) -> dict[str, Any]:
+    """What ``trade.csv`` records about the data of ``case`` (one ``case`` header line).
+
+    ``shape`` (C, H, W) of the measurement as reconstructed, ``channels``, ``field`` (the scene
+    field), ``psf_shape`` and ``psf_hash`` (:func:`recon.formats.array_hash` of the float32
+    PSF as reconstructed), ``meas_hash``, ``measured_fraction`` and ``erasure`` (1 - it),
+    ``truth`` (scored against one) and ``source`` (the files and their hashes, or the
+    simulation) where the case names it.
+    """
+    meas = np.asarray(case.meas)
+    h, w = meas.shape[-2:]
+    measured = 1.0 if case.mask is None else float((np.asarray(case.mask) > 0).mean())
+    rec: dict[str, Any] = {
+        "name": case.name,
+        "shape": [int(n) for n in meas.shape],
+        "channels": int(meas.shape[0]) if meas.ndim >= 3 else 1,
+        "field": [int(n) for n in (case.field if case.field is not None else (h, w))],
+        "psf_shape": [int(n) for n in np.shape(case.psf)],
+        "psf_hash": array_hash(np.asarray(case.psf, dtype=np.float32)),
+        "meas_hash": array_hash(meas.astype(np.float32, copy=False)),
+        "measured_fraction": round(measured, 6),
+        "erasure": round(1.0 - measured, 6),
+        "truth": case.truth is not None,
+    }
+    if case.source:
+        rec["source"] = dict(case.source)
+    return rec
+
+
+def _dims(v: Any) -> str:
+    return "x".join(str(n) for n in v) if isinstance(v, list | tuple) else str(v)
+
+
+def case_differences(recorded: Mapping[str, Any], data: Mapping[str, Any]) -> list[str]:
+    """How the data a trade case was measured on differs from ``data``; [] when they match.
+
+    Both are :func:`case_record` dicts. They match when the measurement's shape (channels,
+    rows, columns as reconstructed), the scene field and the PSF are the same: what a trade's
+    timings and its tau (per pixel of a unit-sum PSF) are measured on. The PSF is the same
+    when its array hash is, or when both name the same PSF file (``source['psf_file_hash']``;
+    read with other dark or downsampling options, the shape check tells). The scene, its
+    erasure and noise move the best setting by degrees and are not compared. A value the
+    trade does not record is not compared.
+    """
+    out = []
+    for key, label in (("shape", "measurement"), ("field", "scene field")):
+        if recorded.get(key) is not None and recorded.get(key) != data.get(key):
+            out.append(f"{label} {_dims(recorded.get(key))} (here {_dims(data.get(key))})")
+    if recorded.get("psf_hash") is not None and recorded.get("psf_hash") != data.get("psf_hash"):
+        rf = (recorded.get("source") or {}).get("psf_file_hash")
+        df = (data.get("source") or {}).get("psf_file_hash")
+        if not (rf and rf == df):
+            out.append("another PSF")
+    return out
+
+
+@dataclass
+class TradeFile:
+    """A ``trade.csv`` as read: its rows, and the header of a file that has one."""
+
+    path: Path
+    rows: list[TradeRow]
+    format_version: int  # 0: a file from before the header (no metadata, no cases)
+    meta: dict[str, Any]  # the header's values (provenance, command, ...)
+    cases: list[dict[str, Any]]  # the case_record of each case measured
+
+
+def write_trade_csv(path: str | Path, rows: Sequence[TradeRow], cases: Sequence[Case],
+                    **meta: Any) -> Path:
+    """Write ``trade.csv`` atomically: the header (format, provenance, ``meta``, cases), rows."""
+    from recon.atomic import atomic_write_bytes
+    from recon.csvmeta import format_table
+    from recon.formats import provenance
+
+    prov = provenance()
+    items: list[tuple[str, Any]] = [("created_utc", prov["created_utc"]),
+                                    ("host", prov["host"]), ("versions", prov["versions"])]
+    items += [(k, v) for k, v in meta.items() if v is not None]
+    items += [("case", case_record(c)) for c in cases]
+    fields = [f.name for f in dataclasses.fields(TradeRow) if f.name != "extra"]
+    text = format_table(TRADE_FORMAT, FORMAT_VERSION, items, fields,
+                        [r.as_dict() for r in rows])
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def read_trade(path: str | Path) -> TradeFile:
+    """Read a ``trade.csv`` written by ``lenslesscam trade``, with or without its header.
+
+    The one reader of the file kind: a file from before the header (format version 0) reads
+    with no cases; a newer format version or another file is refused (FormatError).
+    """
+    from recon.csvmeta import read_table
+
+    table = read_table(path, TRADE_FORMAT, FORMAT_VERSION, "trade.csv", repeated=("case",))
+    cases = table.meta.pop("case")
+    for c in cases:
+        if not isinstance(c, dict):
+            raise FormatError(f"{path}: a case line of the header is not a JSON object: "
+                              f"{c!r:.60}")
     needed = [f.name for f in dataclasses.fields(TradeRow) if f.name != "extra"
               and f.default is dataclasses.MISSING]
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        missing = [n for n in needed if n not in (reader.fieldnames or [])]
-        if missing:
-            raise ValueError(f"{path}: not a trade.csv from lenslesscam trade (no column "
-                             f"{', '.join(missing)})")
-        for line, rec in enumerate(reader, start=2):
-            kw: dict[str, Any] = {}
-            for f in dataclasses.fields(TradeRow):
-                if f.name == "extra":
-                    continue
-                v = rec.get(f.name, "")
-                try:
-                    if f.name in _FLOAT:
-                        kw[f.name] = float(v)
-                    elif f.name in _INT:
-                        kw[f.name] = int(v)
-                    elif f.name in ("psnr", "ssim", "peak_mem_mb"):
-                        kw[f.name] = float(v) if v not in ("", "None") else None
-                    else:
-                        kw[f.name] = v
-                except (TypeError, ValueError):
-                    raise ValueError(f"{path} line {line}: column {f.name} is {v!r}, not a "
-                                     "number") from None
-            rows.append(TradeRow(**kw))
+    missing = [n for n in needed if n not in table.fieldnames]
+    if missing:
+        raise ValueError(f"{path}: not a trade.csv from lenslesscam trade (no column "
+                         f"{', '.join(missing)})")
+    rows = []
+    for line, rec in table.rows:
+        kw: dict[str, Any] = {}
+        for f in dataclasses.fields(TradeRow):
+            if f.name == "extra":
+                continue
+            v = rec.get(f.name, "")
+            try:
+                if f.name in _FLOAT:
+                    kw[f.name] = float(v)
+                elif f.name in _INT:
+                    kw[f.name] = int(v)
+                elif f.name in ("psnr", "ssim", "peak_mem_mb"):
+                    kw[f.name] = float(v) if v not in ("", "None") else None
+                else:
+                    kw[f.name] = v
+            except (TypeError, ValueError):
+                raise ValueError(f"{path} line {line}: column {f.name} is {v!r}, not a "
+                                 "number") from None
+        rows.append(TradeRow(**kw))
     if not rows:
         raise ValueError(f"{path}: no rows (is it a trade.csv from lenslesscam trade?)")
-    return rows
+    return TradeFile(Path(path), rows, table.format_version, table.meta, cases)
+
+
+def read_trade_csv(path: str | Path) -> list[TradeRow]:
+    """Rows of a ``trade.csv`` written by ``lenslesscam trade`` (:func:`read_trade`)."""
+    return read_trade(path).rows

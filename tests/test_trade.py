@@ -9,6 +9,7 @@ import pytest
 from scipy.stats import spearmanr
 
 from app.cli import main
+from recon.formats import FORMAT_VERSION, FormatError, array_hash, file_hash
 from recon.models import build_model
 from recon.simulate import simulate, synthetic_psf
 from recon.trade import (
@@ -16,9 +17,14 @@ from recon.trade import (
     Config,
     TradeRow,
     best_for_budgets,
+    case_differences,
+    case_record,
     pareto_front,
     rank_correlation,
+    read_trade,
+    read_trade_csv,
     run_trade,
+    write_trade_csv,
 )
 
 
@@ -103,8 +109,19 @@ def test_cli_writes_csv_markdown_and_plot(tmp_path, capsys):
     assert code == 0
     out = capsys.readouterr().out
     assert "Spearman rank correlation" in out and "Best setting per time budget" in out
-    header = (tmp_path / "out" / "trade.csv").read_text().splitlines()[0].split(",")
+    text = (tmp_path / "out" / "trade.csv").read_text()
+    assert text.startswith(f"# format: lenslesscam.trade\n# format_version: {FORMAT_VERSION}\n")
+    header = next(ln for ln in text.splitlines() if not ln.startswith("#")).split(",")
     assert {"wall_s", "peak_mem_mb", "heldout_psnr", "psnr"} <= set(header)
+    # the header records the case it was measured on, as the loader gave it to the solvers
+    trade = read_trade(tmp_path / "out" / "trade.csv")
+    assert trade.format_version == FORMAT_VERSION and len(trade.cases) == 1
+    rec = trade.cases[0]
+    assert rec["shape"] == [1, 24, 32] and rec["field"] == [24, 32] and rec["truth"] is True
+    assert rec["psf_hash"] == array_hash(case.psf)
+    assert rec["erasure"] == pytest.approx(0.5, abs=0.02)
+    assert rec["source"]["psf_file_hash"] == file_hash(tmp_path / "psf.npy")
+    assert trade.meta["command"].startswith("lenslesscam trade") and "created_utc" in trade.meta
     png = (tmp_path / "out" / "trade_pareto.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
     json.dumps(out)  # printable
@@ -154,3 +171,79 @@ def test_bad_budgets_are_refused_before_any_work(tmp_path, capsys, budgets, mess
                  "--out", str(tmp_path / "t")]) == 2
     assert f"--budgets must be {message}" in capsys.readouterr().err
     assert not (tmp_path / "t").exists()
+
+
+def _rows(case_name="c"):
+    return [TradeRow(case_name, "fista tau=1e-05", "fista", 1e-5, "float32", 1, 0, 50, 0.1, 4.0,
+                     30.0, 0.01, psnr=20.5, ssim=0.5),
+            TradeRow(case_name, "udn ch16", "udn", 0.0, "bf16", 2, 16, 100, 3.0, None, 31.0,
+                     0.02)]
+
+
+def test_trade_csv_header_round_trip(tmp_path):
+    """Format, version, provenance and a case line per case; rows read back unchanged, a
+    '#' in a cell quoted (pandas' comment="#" would cut an unquoted row there)."""
+    case = _case()
+    rows = _rows("scene #2, left")
+    path = write_trade_csv(tmp_path / "trade.csv", rows, [case], command="lenslesscam trade x")
+    lines = path.read_text().splitlines()
+    assert lines[:2] == ["# format: lenslesscam.trade", f"# format_version: {FORMAT_VERSION}"]
+    assert "# command: lenslesscam trade x" in lines
+    table = [ln for ln in lines if not ln.startswith("#")]
+    assert table[0].startswith("case,setting,") and len(table) == 3
+    assert all(ln.startswith('"scene #2, left","') for ln in table[1:])
+    trade = read_trade(path)
+    assert [r.as_dict() for r in trade.rows] == [r.as_dict() for r in rows]
+    assert trade.cases == [json.loads(json.dumps(case_record(case)))]
+    assert trade.meta["command"] == "lenslesscam trade x" and trade.format_version == 1
+
+
+def test_old_trade_csv_without_header_is_still_read(tmp_path):
+    """Files written before the header (on users' disks): version 0, no cases."""
+    import csv
+
+    rows = _rows()
+    with open(tmp_path / "trade.csv", "w", newline="") as fh:  # the old writer, verbatim
+        w = csv.DictWriter(fh, fieldnames=list(rows[0].as_dict()))
+        w.writeheader()
+        for r in rows:
+            w.writerow(r.as_dict())
+    trade = read_trade(tmp_path / "trade.csv")
+    assert trade.format_version == 0 and trade.cases == [] and trade.meta == {}
+    assert [r.as_dict() for r in trade.rows] == [r.as_dict() for r in rows]
+    assert [r.as_dict() for r in read_trade_csv(tmp_path / "trade.csv")] == [
+        r.as_dict() for r in rows]
+
+
+def test_a_newer_or_foreign_trade_csv_is_refused_in_one_line(tmp_path):
+    path = write_trade_csv(tmp_path / "trade.csv", _rows(), [_case()])
+    text = path.read_text()
+    path.write_text(text.replace(f"# format_version: {FORMAT_VERSION}\n",
+                                 f"# format_version: {FORMAT_VERSION + 1}\n"))
+    with pytest.raises(FormatError) as err:
+        read_trade(path)
+    msg = str(err.value)
+    assert "\n" not in msg and str(path) in msg
+    assert f"format version {FORMAT_VERSION + 1} is newer than this lenslesscam reads" in msg
+    path.write_text(text.replace("# format: lenslesscam.trade", "# format: lenslesscam.other"))
+    with pytest.raises(FormatError, match=r"not a trade\.csv \(its format is "
+                                          r"'lenslesscam\.other'"):
+        read_trade(path)
+
+
+def test_case_differences_compare_shape_field_and_psf():
+    case = _case()
+    rec = case_record(case)
+    same = case_record(Case("other scene", case.psf, case.meas * 0.5))  # no mask: erasure 0
+    assert case_differences(rec, same) == []
+    other_psf = case_record(Case("p", synthetic_psf((24, 32), seed=7)[None], case.meas))
+    assert case_differences(rec, other_psf) == ["another PSF"]
+    # the same PSF file read with other options (another array) is the same PSF
+    rec_f = {**rec, "source": {"psf_file_hash": "abc"}}
+    assert case_differences(rec_f, {**other_psf, "source": {"psf_file_hash": "abc"}}) == []
+    big = case_record(Case("b", synthetic_psf((48, 64), seed=0)[None],
+                           np.zeros((1, 48, 64), np.float32)))
+    assert case_differences(rec, big) == ["measurement 1x24x32 (here 1x48x64)",
+                                          "scene field 24x32 (here 48x64)", "another PSF"]
+    full = case_record(Case("f", case.psf, case.meas, field=(48, 64)))
+    assert case_differences(rec, full) == ["scene field 24x32 (here 48x64)"]

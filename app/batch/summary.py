@@ -1,17 +1,24 @@
-"""The summary tables of a batch: ``summary.csv`` and ``summary.md`` (one row per item)."""
+"""The summary tables of a batch: ``summary.csv`` and ``summary.md`` (one row per item).
+
+``summary.csv`` starts with ``# key: value`` lines (:mod:`recon.csvmeta`): ``format``
+(:data:`SUMMARY_FORMAT`), ``format_version``, provenance, the batch folder, its manifest and the
+counts; then the table (:data:`COLUMNS`). pandas reads it with ``comment="#"``;
+:func:`read_summary` is its one reader (a file from before the header reads as version 0).
+"""
 
 from __future__ import annotations
 
-import csv
-import io
+import contextlib
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from app.batch.manifest import Item
 
-__all__ = ["COLUMNS", "summary_rows", "write_summary"]
+__all__ = ["COLUMNS", "SUMMARY_FORMAT", "SummaryFile", "read_summary", "summary_rows",
+           "write_summary"]
 
 SUMMARY_FORMAT = "lenslesscam.batch_summary"
 #: Columns of the tables, in order.
@@ -53,22 +60,29 @@ def summary_rows(items: list[Item], records: dict[str, dict[str, Any]],
 def write_summary(root: Path, items: list[Item], records: dict[str, dict[str, Any]],
                   status: dict[str, str]) -> list[Path]:
     """Write ``summary.csv`` and ``summary.md`` in ``root`` (atomically); their paths."""
-    from app.batch.state import now_utc
+    from app.batch.state import read_state
     from recon.atomic import atomic_write_bytes
-    from recon.formats import FORMAT_VERSION
+    from recon.csvmeta import format_table
+    from recon.formats import FORMAT_VERSION, provenance
 
     rows = summary_rows(items, records, status)
-    buf = io.StringIO()
-    wr = csv.DictWriter(buf, fieldnames=COLUMNS, lineterminator="\n")
-    wr.writeheader()
-    wr.writerows(rows)
-    csv_path = atomic_write_bytes(root / "summary.csv", buf.getvalue().encode("utf-8"))
     counts: dict[str, int] = {}
     for r in rows:
         counts[r["status"]] = counts.get(r["status"], 0) + 1
+    state: dict[str, Any] = {}
+    with contextlib.suppress(OSError, ValueError):  # the summary does not need the state
+        state = read_state(root, missing_ok=True)
+    prov = provenance()
+    meta = [("created_utc", prov["created_utc"]), ("host", prov["host"]),
+            ("versions", prov["versions"]), ("batch", str(root)),
+            ("manifest", state.get("manifest")), ("started_utc", state.get("started_utc")),
+            ("items", len(rows)), ("counts", dict(sorted(counts.items())))]
+    text = format_table(SUMMARY_FORMAT, FORMAT_VERSION,
+                        [(k, v) for k, v in meta if v is not None], COLUMNS, rows)
+    csv_path = atomic_write_bytes(root / "summary.csv", text.encode("utf-8"))
     md = [f"# Batch summary: {root.name}", "",
-          f"(format {SUMMARY_FORMAT}, version {FORMAT_VERSION}, written {now_utc()}; the item "
-          "records are in items/ID.json)", "",
+          f"(format {SUMMARY_FORMAT}, version {FORMAT_VERSION}, written {prov['created_utc']}; "
+          "the item records are in items/ID.json)", "",
           f"{len(rows)} items: " + ", ".join(f"{n} {k}" for k, n in sorted(counts.items())),
           "", "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     for r in rows:
@@ -76,3 +90,30 @@ def write_summary(root: Path, items: list[Item], records: dict[str, dict[str, An
         md.append("| " + " | ".join(cells) + " |")
     md_path = atomic_write_bytes(root / "summary.md", ("\n".join(md) + "\n").encode("utf-8"))
     return [csv_path, md_path]
+
+
+@dataclass
+class SummaryFile:
+    """A batch's ``summary.csv`` as read."""
+
+    path: Path
+    format_version: int  # 0: a file from before the header (no metadata)
+    meta: dict[str, Any]  # the header's values (batch, manifest, counts, provenance)
+    rows: list[dict[str, str]]  # one per item, keyed by COLUMNS (and any later columns)
+
+
+def read_summary(path: str | Path) -> SummaryFile:
+    """Read a batch's ``summary.csv``, with or without its header.
+
+    The one reader of the file kind: a newer format version or another file is refused
+    (:class:`recon.formats.FormatError`, naming the file).
+    """
+    from recon.csvmeta import read_table
+    from recon.formats import FORMAT_VERSION
+
+    table = read_table(path, SUMMARY_FORMAT, FORMAT_VERSION, "batch summary.csv")
+    missing = [c for c in COLUMNS if c not in table.fieldnames]
+    if missing:
+        raise ValueError(f"{path}: not a batch summary.csv (no column {', '.join(missing)})")
+    return SummaryFile(Path(path), table.format_version, table.meta,
+                       [row for _, row in table.rows])

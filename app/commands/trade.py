@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import sys
 import time
 from pathlib import Path
@@ -82,17 +80,19 @@ def _cases(args: argparse.Namespace) -> list[Any]:
 
     if args.protocol:
         psf = samples.tutorial_psf()
+        psf_src = _sample_files(psf="tutorial_psf")
         cases = []
         for er in PROTOCOL_ERASURES:
             for name in PROTOCOL_SCENES:
                 sim = simulate(build_model("2d", psf), samples.lensed_scene(name), erasure=er,
                                noise=0.01, seed=0)
-                cases.append(Case(f"{name} {er:.0%}", psf, sim.meas, sim.mask, sim.truth))
-        cases.append(Case("tutorial hand (real)", psf, samples.tutorial_measurement()))
+                cases.append(Case(f"{name} {er:.0%}", psf, sim.meas, sim.mask, sim.truth,
+                                  source={**psf_src, "scene": f"sample {name}", "erasure": er,
+                                          "noise": 0.01, "seed": 0}))
+        cases.append(_tutorial_case())
         return cases
     if args.sample == "tutorial":
-        return [Case("tutorial hand (real)", samples.tutorial_psf(),
-                     samples.tutorial_measurement())]
+        return [_tutorial_case()]
     from app.commands._inputs import problem_spec
     from recon.problem import load_problem
 
@@ -101,7 +101,37 @@ def _cases(args: argparse.Namespace) -> list[Any]:
     prob = load_problem(problem_spec(args, model="2d"))
     psf, meas, mask, truth = prob.psf, prob.meas, prob.mask, prob.truth
     field = tuple(int(n) for n in prob.model.info["field"])
-    return [Case(Path(args.meas).stem, psf, meas, mask, truth, field)]  # type: ignore[arg-type]
+    source: dict[str, Any] = {}
+    for key, path in (("psf", args.psf), ("meas", args.meas), ("mask", args.mask),
+                      ("truth", args.truth)):
+        if path:
+            source[key] = str(path)
+            source[f"{key}_file_hash"] = prob.hashes.get(key)
+    source.update({k: prob.metadata.get(k) for k in ("downsample", "dark", "psf_dark", "color",
+                                                     "channel_order", "flip_rows", "psf_grid")})
+    return [Case(Path(args.meas).stem, psf, meas, mask, truth, field,  # type: ignore[arg-type]
+                 source=source)]
+
+
+def _sample_files(**files: str) -> dict[str, str]:
+    """A case's ``source`` for bundled sample files: ``KEY: sample NAME``, ``KEY_file_hash``."""
+    from recon import samples
+    from recon.formats import file_hash
+
+    out = {}
+    for key, name in files.items():
+        out[key] = f"sample {name}"
+        out[f"{key}_file_hash"] = file_hash(samples.sample_path(name))
+    return out
+
+
+def _tutorial_case() -> Any:
+    """The real DiffuserCam-Tutorial hand (no truth), with where it comes from."""
+    from recon import samples
+    from recon.trade import Case
+
+    return Case("tutorial hand (real)", samples.tutorial_psf(), samples.tutorial_measurement(),
+                source=_sample_files(psf="tutorial_psf", meas="tutorial_measurement"))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -114,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
         pareto_front,
         rank_correlation,
         run_trade,
+        write_trade_csv,
     )
 
     check_command_outputs(args, [Path(args.out) / n for n in TRADE_FILES])
@@ -131,22 +162,17 @@ def run(args: argparse.Namespace) -> int:
                   f"{row.wall_s:8.2f} s  held-out {row.heldout_psnr:6.2f} dB"
                   + (f"  PSNR {row.psnr:6.2f} dB" if row.psnr is not None else ""),
                   file=sys.stderr)
-    # CSV
-    buf = io.StringIO()
-    fields = list(rows[0].as_dict())
-    writer = csv.DictWriter(buf, fieldnames=fields)
-    writer.writeheader()
-    for r in rows:
-        writer.writerow(r.as_dict())
-    atomic_write_bytes(out / "trade.csv", buf.getvalue().encode())
+    argv = sys.argv[1:]
+    command = " ".join(argv[argv.index("trade"):] if "trade" in argv else ["trade"])
+    # CSV, with the data of every case in its header (plan --trade checks them)
+    write_trade_csv(out / "trade.csv", rows, cases, command=f"lenslesscam {command}",
+                    threads=threads.threads)
     if getattr(args, "meas", None) and getattr(args, "psf", None):
         from recon.suggest import input_hashes_of_files, write_trade_inputs
 
         # which measurement the trade was measured on: the app's job dialog offers it for that
         write_trade_inputs(out, input_hashes_of_files(args.meas, args.psf))
     # Markdown
-    argv = sys.argv[1:]
-    command = " ".join(argv[argv.index("trade"):] if "trade" in argv else ["trade"])
     md = [f"# Speed/accuracy trade\n\nProduced by `lenslesscam {command}` "
           f"in {time.perf_counter() - t_all:.0f} s, {threads.reason}. Wall time "
           "is the time to reach the iteration count (one run per setting, scored at several "

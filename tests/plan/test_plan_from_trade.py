@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from app.cli import main
+from recon.formats import FORMAT_VERSION
 from recon.simulate import synthetic_psf
 from recon.trade import TradeRow
 
@@ -46,3 +47,62 @@ def test_plan_takes_the_best_setting_within_the_budget(tmp_path, capsys):
     assert plan["tau"] == pytest.approx(1e-4) and plan["iterations"] == 500
     assert main([*base, "--budget", "0.01s"]) == 2
     assert "no measured setting fits" in capsys.readouterr().err
+
+
+def _save_pair(folder, shape, seed):
+    folder.mkdir(parents=True, exist_ok=True)
+    np.save(folder / "psf.npy", synthetic_psf(shape, seed=seed))
+    np.save(folder / "meas.npy", np.random.default_rng(seed).random(shape).astype(np.float32))
+    return folder / "psf.npy", folder / "meas.npy"
+
+
+def _plan_stderr(capsys, psf, meas, trade):
+    assert main(["plan", "--psf", str(psf), "--meas", str(meas), "--trade", str(trade),
+                 "--budget", "10s", "--json", "--no-probe"]) == 0
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["reasons"]["method"].startswith("from the trade")
+    return [ln for ln in cap.err.splitlines() if "warning" in ln]
+
+
+def test_plan_warns_when_the_trade_was_measured_on_other_data(tmp_path, capsys):
+    """The trade's header records its case; plan compares shape, field and PSF with its own
+    data and warns in one line (the plan is still made), and is silent when they match."""
+    psf, meas = _save_pair(tmp_path / "a", (32, 40), 1)
+    assert main(["trade", "--meas", str(meas), "--psf", str(psf), "--quick", "--no-udn",
+                 "--budgets", "10", "--out", str(tmp_path / "t")]) == 0
+    capsys.readouterr()
+    trade = tmp_path / "t" / "trade.csv"
+    # the data it was measured on (another scene of the same size and PSF matches too)
+    assert _plan_stderr(capsys, psf, meas, trade) == []
+    np.save(tmp_path / "a" / "scene2.npy",
+            np.random.default_rng(9).random((32, 40)).astype(np.float32))
+    assert _plan_stderr(capsys, psf, tmp_path / "a" / "scene2.npy", trade) == []
+    # another PSF of the same size
+    other_psf, _ = _save_pair(tmp_path / "b", (32, 40), 2)
+    warn = _plan_stderr(capsys, other_psf, meas, trade)
+    assert warn == [f"plan: warning: {trade} was measured on other data than this plan's "
+                    "(case 'meas': another PSF); its timings and tau may not hold here"]
+    # other data: another size (and so another PSF)
+    psf_c, meas_c = _save_pair(tmp_path / "c", (48, 64), 3)
+    warn = _plan_stderr(capsys, psf_c, meas_c, trade)
+    assert len(warn) == 1
+    assert "measurement 1x32x40 (here 1x48x64), scene field 32x40 (here 48x64), another PSF" \
+        in warn[0]
+
+
+def test_plan_on_an_old_or_newer_trade_csv(tmp_path, capsys):
+    """A trade.csv from before the header is used, with a note that it cannot be checked; a
+    newer format version is refused with a one-line error naming the file."""
+    psf, meas = _save_pair(tmp_path, (48, 64), 1)
+    _write_trade(tmp_path / "trade.csv")
+    warn = _plan_stderr(capsys, psf, meas, tmp_path / "trade.csv")
+    assert len(warn) == 1 and "records no data it was measured on" in warn[0]
+    text = (tmp_path / "trade.csv").read_text()
+    (tmp_path / "new.csv").write_text(f"# format: lenslesscam.trade\n# format_version: "
+                                      f"{FORMAT_VERSION + 1}\n" + text)
+    assert main(["plan", "--psf", str(psf), "--meas", str(meas), "--trade",
+                 str(tmp_path / "new.csv"), "--budget", "10s", "--json", "--no-probe"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"lenslesscam plan: error: {tmp_path / 'new.csv'}: trade.csv format version "
+                   f"{FORMAT_VERSION + 1} is newer than this lenslesscam reads "
+                   f"({FORMAT_VERSION}); update lenslesscam to read it")
