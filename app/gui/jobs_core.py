@@ -21,7 +21,6 @@ from the last checkpoint), finished.
 
 from __future__ import annotations
 
-import csv
 import datetime as _dt
 import enum
 import json
@@ -460,21 +459,23 @@ def combine_jobs(views: list[JobView], jobs_dir: str | Path) -> Any:
 
 def read_loss(folder: str | Path) -> tuple[npt.NDArray[np.float64], ...]:
     """(iterations, loss, held-out error) from the run's ``loss.csv`` (empty arrays if none)."""
-    p = Path(folder) / RUN_DIR / "loss.csv"
+    from recon.formats import FormatError
+    from recon.udn.jobs import read_loss_rows
+
     its: list[float] = []
     loss: list[float] = []
     held: list[float] = []
     try:
-        with open(p, encoding="utf-8", newline="") as fh:
-            for row in csv.DictReader(fh):
-                try:
-                    its.append(float(row["iteration"]))
-                    loss.append(float(row["loss"]))
-                    held.append(float(row["heldout"]) if row.get("heldout") else np.nan)
-                except (KeyError, ValueError):
-                    continue
-    except OSError:
-        pass
+        rows = read_loss_rows(Path(folder) / RUN_DIR)
+    except (OSError, FormatError):
+        rows = []
+    for row in rows:
+        try:
+            its.append(float(row["iteration"]))
+            loss.append(float(row["loss"]))
+            held.append(float(row["heldout"]) if row["heldout"] else np.nan)
+        except ValueError:
+            continue
     return np.array(its), np.array(loss), np.array(held)
 
 

@@ -7,6 +7,7 @@ Run folder layout (``RUN_DIR``)::
                        paths), input hashes, versions, device, memory estimate, timings,
                        progress (iteration, loss, held-out error, ETA), checkpoint, results
     loss.csv           iteration, loss, heldout, best_heldout, lr, gain, elapsed_s, restored
+                       (after '# format: lenslesscam.udn_loss', '# format_version', ... lines)
     checkpoint.pt      latest checkpoint (weights, Adam state, RNG states, EMA, best, ...)
     checkpoint.prev.pt the checkpoint before it (used when the latest is damaged or missing)
     checkpoints.json   SHA-256 and iteration of the checkpoints written (checked on resume)
@@ -38,10 +39,8 @@ says which), ``stopped_early``, ``cancelled``, ``failed`` (with ``error``: type 
 from __future__ import annotations
 
 import contextlib
-import csv
 import datetime as _dt
 import hashlib
-import io
 import json
 import math
 import os
@@ -114,6 +113,8 @@ RUN_RECORD_FORMAT = "lenslesscam.udn_run"
 SPEC_FILE = "job.toml"
 RECORD_FILE = "run.json"
 LOSS_FILE = "loss.csv"
+#: ``loss.csv``'s format name (its leading ``# key: value`` lines, :mod:`recon.csvmeta`)
+LOSS_FORMAT = "lenslesscam.udn_loss"
 CANCEL_FILE = "CANCEL"
 PREVIEW_DIR = "previews"
 
@@ -362,6 +363,29 @@ def pid_alive(pid: int, host: Any = None) -> bool:
     return True
 
 
+def read_loss_rows(run_dir: str | os.PathLike[str]) -> list[dict[str, str]]:
+    """The rows of a run's ``loss.csv`` (its one reader).
+
+    Each row has every column of the file (an absent one as ""); the iteration is checked to
+    be an integer. Reads the file with its header (format version 1) and without (written
+    before the header existed); a newer format or a damaged file is a
+    :class:`~recon.formats.FormatError` naming the file and line.
+    """
+    from recon.csvmeta import read_table
+
+    p = Path(run_dir) / LOSS_FILE
+    table = read_table(p, LOSS_FORMAT, FORMAT_VERSION, "UDN loss.csv")
+    rows = []
+    for line, row in table.rows:
+        try:
+            int(row["iteration"])
+        except (KeyError, TypeError, ValueError):
+            raise FormatError(f"{p}: line {line}: field 'iteration' should be an integer, got "
+                              f"{row.get('iteration')!r:.40}") from None
+        rows.append({k: row.get(k) or "" for k in _CSV_FIELDS})
+    return rows
+
+
 def _spec_hash(spec: Mapping[str, Any]) -> str:
     return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -399,29 +423,17 @@ class _Job:
         atomic_write_json(self.run_dir / RECORD_FILE, self.record)
 
     def write_csv(self) -> None:
-        buf = io.StringIO()
-        wr = csv.DictWriter(buf, fieldnames=_CSV_FIELDS, lineterminator="\n")
-        wr.writeheader()
-        wr.writerows(self.rows)
-        atomic_write_bytes(self.run_dir / LOSS_FILE, buf.getvalue().encode())
+        from recon.csvmeta import format_table
+
+        meta = [("spec_hash", _spec_hash(self.spec)), ("written_utc", _now())]
+        text = format_table(LOSS_FORMAT, FORMAT_VERSION, meta, _CSV_FIELDS, self.rows)
+        atomic_write_bytes(self.run_dir / LOSS_FILE, text.encode())
 
     def read_csv(self, upto: int) -> None:
         p = self.run_dir / LOSS_FILE
         self.rows = []
-        if not p.is_file():
-            return
-        try:
-            with open(p, encoding="utf-8", newline="") as fh:
-                for line, row in enumerate(csv.DictReader(fh), start=2):
-                    try:
-                        it = int(row["iteration"])
-                    except (KeyError, TypeError, ValueError):
-                        raise FormatError(f"{p}: line {line}: field 'iteration' should be an "
-                                          f"integer, got {row.get('iteration')!r:.40}") from None
-                    if it <= upto:
-                        self.rows.append({k: row.get(k, "") for k in _CSV_FIELDS})
-        except UnicodeDecodeError as exc:
-            raise FormatError(f"{p}: not UTF-8 text (offset {exc.start})") from None
+        if p.is_file():
+            self.rows = [r for r in read_loss_rows(self.run_dir) if int(r["iteration"]) <= upto]
 
     def checkpoint(self) -> None:
         runner = self.runner

@@ -22,6 +22,7 @@ from recon.udn.jobs import (
     format_status,
     job_status,
     load_checkpoint,
+    read_loss_rows,
     request_cancel,
     resume_job,
     run_job,
@@ -64,8 +65,11 @@ def test_run_folder_layout_and_record(tiny_data, tmp_path):
     assert rec["timings"]["per_iteration_s"] > 0 and rec["checkpoint"]["iteration"] == 40
     assert rec["memory"]["estimate"]["total_bytes"] > 0
     assert rec["results"]["scores"]["best"]["psnr"] > 5
-    rows = (out / "loss.csv").read_text().splitlines()
+    text = (out / "loss.csv").read_text()
+    assert text.startswith("# format: lenslesscam.udn_loss\n# format_version: 1\n")
+    rows = [ln for ln in text.splitlines() if not ln.startswith("#")]
     assert rows[0].startswith("iteration,loss,heldout") and len(rows) == 41
+    assert [int(r["iteration"]) for r in read_loss_rows(out)] == list(range(1, 41))
     x, meta = read_reconstruction(out / "best.tif")
     assert x.shape == (1, 1, 24, 28)
     assert meta["method"] == "udn" and meta["estimate"] == "best"
@@ -266,7 +270,7 @@ def test_resume_rules(tiny_data, tmp_path):
         resume_job(out)
     outcome = resume_job(out, max_iter=30)
     assert outcome.iterations == 30 and record(out)["resumes"] == 1
-    assert len((out / "loss.csv").read_text().splitlines()) == 31
+    assert len(read_loss_rows(out)) == 30
     with pytest.raises(ValueError, match="already holds a run"):
         run_job(write_spec(tiny_data), out)
     np.save(tiny_data / "meas.npy", np.load(tiny_data / "meas.npy") * 2)
@@ -315,7 +319,7 @@ def test_kill_and_resume_ends_with_identical_weights(tiny_data, tmp_path, job_se
         proc.kill()
     assert proc.wait(60) == -signal.SIGKILL
     assert record(out)["checkpoint"]["iteration"] == 20
-    assert len((out / "loss.csv").read_text().splitlines()) == 28
+    assert len(read_loss_rows(out)) == 27
     pid, log = job_server.start(["jobs", "resume", out, "--quiet"], {}, tmp_path / "resume.log")
     assert job_server.wait(pid) == 0, log.read_text(errors="replace")
     a = load_checkpoint(tmp_path / "whole" / "checkpoint.pt")["state"]
@@ -328,9 +332,8 @@ def test_kill_and_resume_ends_with_identical_weights(tiny_data, tmp_path, job_se
     assert a["best_iteration"] == b["best_iteration"]
     for sa, sb in zip(a["opt"]["state"].values(), b["opt"]["state"].values(), strict=True):
         assert all(torch.equal(sa[k], sb[k]) for k in sa)
-    ra, rb = (np.genfromtxt(p / "loss.csv", delimiter=",", names=True)
-              for p in (tmp_path / "whole", out))
-    np.testing.assert_array_equal(ra["loss"], rb["loss"])  # the same history, no gaps
+    ra, rb = ([float(r["loss"]) for r in read_loss_rows(p)] for p in (tmp_path / "whole", out))
+    np.testing.assert_array_equal(ra, rb)  # the same history, no gaps
     rec = record(out)
     assert rec["finish_reason"] == "completed" and rec["resumes"] == 1
     assert [s["start_iteration"] for s in rec["sessions"]] == [0, 20]
@@ -518,3 +521,28 @@ def test_cancel_signals_only_the_process_that_holds_the_run(tiny_data, tmp_path)
         other.kill()
         other.wait()
 
+
+
+def test_loss_csv_reader_reads_old_files_and_refuses_newer_ones(tmp_path):
+    """loss.csv has one reader (the job's resume and the app's plot): a file from before the
+    header still reads; a newer format version is refused naming the file."""
+    from recon.formats import FormatError
+    from recon.udn.jobs import LOSS_FILE
+
+    run = tmp_path / "run"
+    run.mkdir()
+    cols = "iteration,loss,heldout,best_heldout,lr,gain,elapsed_s,restored"
+    (run / LOSS_FILE).write_text(f"{cols}\n1,0.5,0.4,0.4,0.01,1.0,0.1,0\n2,0.3,,0.4,0.01,1,0.2,0\n")
+    rows = read_loss_rows(run)
+    assert [r["iteration"] for r in rows] == ["1", "2"] and rows[1]["heldout"] == ""
+    from app.gui.jobs_core import read_loss
+
+    its, loss, held = read_loss(tmp_path)  # the app's view: folder/run/loss.csv
+    assert list(its) == [1, 2] and list(loss) == [0.5, 0.3] and np.isnan(held[1])
+    (run / LOSS_FILE).write_text(f"# format: lenslesscam.udn_loss\n# format_version: 99\n{cols}\n")
+    with pytest.raises(FormatError, match=r"loss.csv: UDN loss.csv format version 99 is newer"):
+        read_loss_rows(run)
+    assert read_loss(tmp_path)[0].size == 0  # the app shows no curve, it does not fail
+    (run / LOSS_FILE).write_text(f"{cols}\nx,0.5,,,,,,\n")
+    with pytest.raises(FormatError, match="line 2: field 'iteration'"):
+        read_loss_rows(run)
