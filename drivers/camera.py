@@ -61,11 +61,13 @@ __all__ = [
     "bit_depth_of",
     "protocol_members",
     "read_frame_metadata",
+    "sensor_from_metadata",
 ]
 
 _log = logging.getLogger(__name__)
 
-#: Frame metadata format name and version (bumped on incompatible changes).
+#: Frame metadata format name and version (bumped on incompatible changes; an added key that
+#: readers may lack, such as ``sensor``, is not one).
 FRAME_FORMAT = "lenslesscam-frame"
 FRAME_FORMAT_VERSION = 1
 
@@ -88,6 +90,28 @@ def read_frame_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise ValueError(f"{path}: not a saved frame with its metadata (format "
                          f"{FRAME_FORMAT})")
     return meta
+
+
+def sensor_from_metadata(meta: Mapping[str, Any]) -> tuple[int, int] | None:
+    """The ``sensor`` (rows, columns, unbinned) of frame metadata; None when it is not recorded.
+
+    Frames saved before the sensor size was recorded have no ``sensor`` key (or ``null``).
+    Raises ValueError when the value is not two positive integers.
+    """
+    value = meta.get("sensor")
+    return None if value is None else _check_sensor(value)
+
+
+def _check_sensor(value: Any) -> tuple[int, int]:
+    try:
+        rows, cols = value
+        if int(rows) != rows or int(cols) != cols or rows < 1 or cols < 1:
+            raise ValueError
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"sensor size must be (rows, columns) of positive integers, got {value!r}"
+        ) from None
+    return int(rows), int(cols)
 
 
 # --------------------------------------------------------------------------------------------
@@ -276,6 +300,9 @@ class Frame:
     ``timestamp`` is host time (``time.time()``) when the frame reached the driver;
     device timestamps, when there are any, go into ``extra``. ``exposure_us`` and ``gain``
     are ``None`` when the device cannot report them.
+    ``sensor`` is (rows, columns) of the whole sensor the frame came from, in unbinned pixels
+    (the backends fill it from :meth:`Camera.capabilities`); ``None`` when unknown. It tells
+    a region of interest from a frame of another, smaller sensor; ``roi`` must lie inside it.
     """
 
     pixels: np.ndarray
@@ -291,11 +318,20 @@ class Frame:
     backend: str
     camera_id: str
     extra: Mapping[str, Any] = field(default_factory=dict)
+    sensor: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         arr = self.pixels
         if not isinstance(arr, np.ndarray):
             raise TypeError(f"Frame.pixels must be a numpy array, got {type(arr).__name__}")
+        if self.sensor is not None:
+            sensor = _check_sensor(self.sensor)
+            r = self.roi
+            if r.y + r.height > sensor[0] or r.x + r.width > sensor[1]:
+                raise ValueError(
+                    f"frame ROI {r} lies outside its {sensor[0]}x{sensor[1]} (rows x columns) "
+                    "sensor")
+            object.__setattr__(self, "sensor", sensor)
         if not (arr.flags.owndata and arr.flags.c_contiguous):
             arr = np.array(arr, copy=True, order="C")
         arr.flags.writeable = False
@@ -318,6 +354,7 @@ class Frame:
             "exposure_us": None if self.exposure_us is None else float(self.exposure_us),
             "gain": None if self.gain is None else float(self.gain),
             "roi": self.roi.to_dict(),
+            "sensor": None if self.sensor is None else list(self.sensor),
             "binning": int(self.binning),
             "pixel_format": self.pixel_format,
             "bit_depth": int(self.bit_depth),
@@ -940,6 +977,15 @@ class CameraBase:
         """Features, formats, ranges."""
         raise NotImplementedError  # abstract: every backend implements it
 
+    def _sensor_shape(self) -> tuple[int, int] | None:
+        """(rows, columns) of the whole sensor in unbinned pixels, for :attr:`Frame.sensor`.
+
+        Called for every frame: a backend whose :meth:`capabilities` is slow overrides it
+        (same values, or None where the device cannot say reliably).
+        """
+        caps = self.capabilities()
+        return int(caps.sensor_height), int(caps.sensor_width)
+
     # -- features ------------------------------------------------------------------------------
     # Every public setter validates once here, for all backends (type, finite, sign, and the
     # ranges and choices that ``capabilities()`` declares), then calls the backend's
@@ -1164,6 +1210,13 @@ class CameraBase:
         pf = pixel_format or self._optional(lambda: self.pixel_format)
         if pf is None:
             pf = "Mono16" if pixels.dtype == np.uint16 else "Mono8"
+        sensor = self._optional(self._sensor_shape)
+        if sensor is not None and (
+            roi.y + roi.height > sensor[0] or roi.x + roi.width > sensor[1]
+        ):  # a device whose size nodes disagree with its ROI: say "unknown", not a wrong size
+            _log.warning("%s: ROI %s outside the reported %dx%d sensor; frame sensor size "
+                         "unknown", self.describe(), roi, sensor[0], sensor[1])
+            sensor = None
         return Frame(
             pixels=pixels,
             frame_id=frame_id,
@@ -1178,4 +1231,5 @@ class CameraBase:
             backend=self.backend,
             camera_id=self.camera_id,
             extra=dict(extra or {}),
+            sensor=sensor,
         )

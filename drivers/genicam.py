@@ -450,8 +450,12 @@ class GenICamCamera(CameraBase):
                     feats.add(feat)
             w = self._node("Width")
             hgt = self._node("Height")
-            sw = self._int_or(("SensorWidth", "WidthMax"), w.max if w is not None else 0)
-            sh = self._int_or(("SensorHeight", "HeightMax"), hgt.max if hgt is not None else 0)
+            size = self._sensor_shape()
+            if size is not None:
+                sh, sw = size
+            else:  # only the Width/Height maxima, with an offset set: the best we know
+                sw = self._int_or(("SensorWidth", "WidthMax"), w.max if w is not None else 0)
+                sh = self._int_or(("SensorHeight", "HeightMax"), hgt.max if hgt is not None else 0)
             pf = self._node("PixelFormat")
             formats = tuple(
                 f for f in (self._enum_values(pf) if pf is not None else []) if f in _MONO_FORMATS
@@ -487,6 +491,33 @@ class GenICamCamera(CameraBase):
                 roi_min_size=(int(w.min) if w is not None else 1, int(hgt.min) if hgt else 1),
                 roi_step=(self._inc(w), self._inc(hgt)),
             )
+
+    def _sensor_shape(self) -> tuple[int, int] | None:
+        """(rows, columns) of the whole sensor in unbinned pixels; None where unreliable.
+
+        SFNC ``SensorHeight``/``SensorWidth`` count unbinned pixels; ``HeightMax``/``WidthMax``
+        and the maxima of ``Height``/``Width`` count binned ones (scaled back here). The
+        ``Height``/``Width`` maxima shrink with the offset on many devices, so they are used
+        only while ``OffsetY``/``OffsetX`` are 0. A few node reads: called for every frame.
+        """
+        with self._lock:
+            binning = self.binning
+            size: list[int] = []
+            for sensor, most, dim, offset in (("SensorHeight", "HeightMax", "Height", "OffsetY"),
+                                              ("SensorWidth", "WidthMax", "Width", "OffsetX")):
+                n = self._int_or((sensor,), 0)
+                if n <= 0:
+                    n = self._int_or((most,), 0)
+                    if n <= 0:
+                        node = self._node(dim)
+                        if node is None or self._int_or((offset,), 0) != 0:
+                            return None
+                        n = int(node.max)
+                    n *= binning
+                if n <= 0:
+                    return None
+                size.append(n)
+            return size[0], size[1]
 
     def _int_or(self, names: Sequence[str], default: int) -> int:
         for n in names:

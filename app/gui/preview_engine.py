@@ -6,7 +6,9 @@
    frame), clipped at 0;
 2. when the frame is a region of the sensor (``frame.roi`` smaller than the PSF), it is placed
    into a sensor-sized array and the pixels outside the ROI are masked out of the data term, so
-   the model stays exact (a ROI is an erasure mask, not a smaller PSF);
+   the model stays exact (a ROI is an erasure mask, not a smaller PSF); when the frame says
+   which sensor it came from (``frame.sensor``), a PSF of another sensor size is refused, so a
+   whole small sensor is never taken for a region of a PSF's bigger one;
 3. box-downsampled by ``downsample`` (the PSF too, renormalised to unit sum), scaled to max 1;
 4. ``iters_per_frame`` FISTA-TV iterations warm-started from the previous frame's solver.
 
@@ -352,6 +354,7 @@ class PreviewEngine:
         roi: tuple[int, int, int, int] | None = None,
         binning: int = 1,
         timing: Any = None,
+        sensor: tuple[int, int] | None = None,
     ) -> PreviewResult:
         """Preview one frame.
 
@@ -364,6 +367,8 @@ class PreviewEngine:
                 for the full sensor.
             binning: the frame's binning factor.
             timing: the frame's :class:`~drivers.timing.SensorTiming` (``video`` model only).
+            sensor: (rows, columns) of the camera's whole sensor in unbinned pixels, or None
+                when unknown; the PSF (at ``binning``) must be that size.
 
         """
         t0 = time.perf_counter()
@@ -382,6 +387,13 @@ class PreviewEngine:
             raise PreviewError(f"the preview takes 2D frames, got shape {frame.shape}")
         sensor_psf = self._psf_at_binning(binning)
         ph, pw = sensor_psf.shape
+        if sensor is not None:
+            sh, sw = (int(v) for v in sensor)
+            if (sh // binning, sw // binning) != (ph, pw):
+                psf_h, psf_w = self._psf.shape
+                raise PreviewError(
+                    f"the PSF is for a {psf_h}x{psf_w} sensor but this camera's sensor is "
+                    f"{sh}x{sw} (binning {binning}); calibrate a PSF for this camera")
         # roi is (x, y, width, height); the PSF (rows, columns)
         full_roi = roi is None or (roi[3] // binning, roi[2] // binning) == (ph, pw)
         if full_roi:
@@ -643,7 +655,7 @@ def frame_keywords(frame: Any) -> dict[str, Any]:
     roi = frame.roi
     return {"frame_id": frame.frame_id, "timestamp": frame.timestamp,
             "roi": (roi.x, roi.y, roi.width, roi.height), "binning": frame.binning,
-            "timing": frame.timing}
+            "timing": frame.timing, "sensor": getattr(frame, "sensor", None)}
 
 
 class FrameSlot:

@@ -196,6 +196,9 @@ class TestCameraContract:
         assert json.loads(json.dumps(meta)) == meta
         assert meta["shape"] == list(frame.shape)
         assert meta["format"] == "lenslesscam-frame"
+        caps = camera.capabilities()  # the whole sensor, so a ROI is told from a small sensor
+        assert frame.sensor == (caps.sensor_height, caps.sensor_width)
+        assert meta["sensor"] == [caps.sensor_height, caps.sensor_width]
 
     def test_frames_own_their_pixels(self, camera: CameraBase) -> None:
         a, b = camera.snap(), camera.snap()

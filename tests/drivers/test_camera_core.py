@@ -7,6 +7,7 @@ import math
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,6 +23,8 @@ from drivers.camera import (
     Roi,
     StreamMode,
     bit_depth_of,
+    read_frame_metadata,
+    sensor_from_metadata,
 )
 from drivers.registry import list_cameras, open_camera
 from drivers.simcam import SimulatedCamera
@@ -56,6 +59,37 @@ def test_frame_metadata_is_plain_json() -> None:
     assert meta["extra"] == {"a": 1.5, "n": None}
     assert SensorTiming.from_dict(meta["timing"]) == f.timing
     assert Roi.from_dict(meta["roi"]) == f.roi
+    assert f.sensor is None and meta["sensor"] is None  # built without it: unknown
+
+
+def test_frame_sensor_size_is_checked_and_round_trips_through_a_saved_frame(
+    tmp_path: Path,
+) -> None:
+    """A frame names the whole sensor it came from (rows, columns, unbinned), so a ROI is not
+    confused with a smaller sensor; a saved frame keeps it and an older file without it reads."""
+    import tifffile
+
+    from app.gui.snapshots import save_frame
+
+    f = _frame(np.zeros((6, 8), np.uint16), roi=Roi(4, 2, 8, 6), sensor=(np.int64(12), 16.0))
+    assert f.sensor == (12, 16) and all(type(v) is int for v in f.sensor)
+    with pytest.raises(ValueError, match="outside its 12x16"):
+        _frame(np.zeros((6, 8), np.uint16), roi=Roi(10, 2, 8, 6), sensor=(12, 16))
+    for bad in ((12,), (0, 16), (12.5, 16), "12x16"):
+        with pytest.raises(ValueError, match="sensor size must be"):
+            _frame(np.zeros((6, 8), np.uint16), roi=Roi(0, 0, 8, 6), sensor=bad)
+    tif, _ = save_frame(f, tmp_path / "roi.tif")
+    meta = read_frame_metadata(tif)
+    assert meta["sensor"] == [12, 16] and sensor_from_metadata(meta) == (12, 16)
+    assert meta["format_version"] == 1  # an added key, not an incompatible change
+    old = {k: v for k, v in f.metadata().items() if k != "sensor"}  # before the sensor size
+    tifffile.imwrite(tmp_path / "old.tif", np.zeros((6, 8), np.uint16),
+                     description=json.dumps(old), metadata=None)
+    old_meta = read_frame_metadata(tmp_path / "old.tif")
+    assert "sensor" not in old_meta and sensor_from_metadata(old_meta) is None
+    assert Roi.from_dict(old_meta["roi"]) == f.roi
+    with pytest.raises(ValueError, match="sensor size must be"):
+        sensor_from_metadata({"sensor": [12]})
 
 
 def test_errors_name_the_feature_and_the_device() -> None:

@@ -56,6 +56,7 @@ def test_snap_sim_saves_frame_and_metadata(
     assert pixels.max() > 200  # the demo scene, not a dark frame
     assert meta["format"] == "lenslesscam-frame" and meta["exposure_us"] == 10_000.0
     assert meta["backend"] == "sim" and meta["timing"]["exposure_lines"] == 1000
+    assert meta["sensor"] == [64, 80]  # the whole sensor, rows first
     assert "provenance" in meta
     assert not [p for p in tmp_path.iterdir() if p.name != "f.tif"]  # no temp file left
 

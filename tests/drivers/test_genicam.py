@@ -87,8 +87,12 @@ def test_frames_report_the_format_actually_delivered(tlsimu_cti: Path) -> None:
         cam.trigger_mode = TriggerMode.SOFTWARE
         cam.pixel_format = "Mono16"  # TLSimu accepts the setting but keeps sending Mono8
         frame = cam.snap()
+        caps = cam.capabilities()
     assert frame.pixel_format == "Mono8" and frame.pixels.dtype == np.uint8
     assert frame.extra["requested_pixel_format"] == "Mono16"
+    # a ROI, and the whole sensor it is on (TLSimu's Width/Height maxima: 4096)
+    assert frame.shape == (32, 32) and frame.sensor == (caps.sensor_height, caps.sensor_width)
+    assert frame.sensor == (4096, 4096)
 
 
 def test_free_run_snaps_have_increasing_ids(viky_cti: Path) -> None:

@@ -322,13 +322,19 @@ def test_dead_and_hot_pixels_in_a_dark_frame() -> None:
 def test_roi_and_binning_cut_and_sum() -> None:
     scene = np.arange(ROWS * COLS, dtype=np.float32).reshape(ROWS, COLS)
     with _ideal_camera(scene=scene, exposure_us=1000.0, full_well_e=65535.0) as cam:
-        full = cam.snap().pixels.astype(float)
+        first = cam.snap()
+        full = first.pixels.astype(float)
         cam.roi = Roi(4, 2, 8, 6)
-        part = cam.snap().pixels.astype(float)
+        cut = cam.snap()
+        part = cut.pixels.astype(float)
         cam.binning = 2
         binned = cam.snap()
     np.testing.assert_array_equal(part, full[2:8, 4:12])
     assert binned.shape == (3, 4) and binned.binning == 2
+    # every frame names its whole sensor (unbinned rows, columns), ROI and binning or not
+    assert cam.capabilities().sensor_height == ROWS and cam.capabilities().sensor_width == COLS
+    assert [f.sensor for f in (first, cut, binned)] == [(ROWS, COLS)] * 3
+    assert binned.metadata()["sensor"] == [ROWS, COLS]
     np.testing.assert_allclose(binned.pixels, part.reshape(3, 2, 4, 2).sum(axis=(1, 3)), atol=2)
     with pytest.raises(ValueError, match="outside"):
         cam.roi = Roi(10, 0, 20, 4)

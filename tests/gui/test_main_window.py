@@ -69,6 +69,7 @@ def test_snap_and_save_writes_tiff_with_metadata(live_window: Any, qtbot: Any,
     assert meta["format"] == "lenslesscam-frame" and meta["format_version"] == 1
     assert meta["backend"] == "sim" and meta["app"]["scene"] == "im65"
     assert pixels.shape == (150, 200) and pixels.dtype.name == "uint16"
+    assert meta["sensor"] == [150, 200]  # the sensor it came from (rows, columns)
     assert json.loads(tif.with_suffix(".json").read_text())["frame_id"] == meta["frame_id"]
 
 

@@ -184,3 +184,56 @@ def test_a_full_frame_roi_of_a_non_square_sensor_is_the_full_sensor(psf: np.ndar
     transposed = PreviewEngine(psf.T.copy(), PreviewSettings(downsample=1, dark=100.0))
     with pytest.raises(PreviewError, match="outside the PSF's 64x48 sensor"):
         transposed.process(frame, roi=(0, 0, 64, 48))
+
+
+def test_a_psf_of_a_bigger_sensor_is_refused_not_taken_for_a_roi(psf: np.ndarray) -> None:
+    """A frame carried its ROI but not its sensor's size, so a whole 48x64 sensor with a PSF
+    of a bigger camera was previewed as a 48x64 region of that camera: a silently wrong
+    picture. The frame's sensor size now tells them apart."""
+    frame = _frame(psf)
+    big = np.zeros((96, 128), np.float32)
+    big[:48, :64] = psf
+    settings = PreviewSettings(iters_per_frame=1, downsample=1, dark=100.0, tau_auto=False)
+    eng = PreviewEngine(big, settings)
+    with pytest.raises(PreviewError) as info:
+        eng.process(frame, roi=(0, 0, 64, 48), sensor=(48, 64))
+    assert str(info.value) == (
+        "the PSF is for a 96x128 sensor but this camera's sensor is 48x64 (binning 1); "
+        "calibrate a PSF for this camera")
+    with pytest.raises(PreviewError, match=r"sensor is 48x64 \(binning 2\)"):
+        eng.process(frame[::2, ::2].copy(), roi=(0, 0, 64, 48), binning=2, sensor=(48, 64))
+    # the same frame as a ROI of a sensor as big as the PSF: previewed, masked into the PSF's
+    r = eng.process(frame, roi=(0, 0, 64, 48), sensor=(96, 128))
+    assert r.shape == (96, 128) and eng._mask.sum() == 48 * 64
+    # unknown sensor size (older frames, other callers): as before, taken for a region
+    r = eng.process(frame, roi=(0, 0, 64, 48))
+    assert r.shape == (96, 128)
+
+
+def test_frames_of_the_simulated_camera_preview_with_their_sensor_size() -> None:
+    """frame_keywords passes the frame's sensor: a ROI (binned too) on the PSF's sensor
+    previews; a PSF of a bigger sensor is refused with both sizes named."""
+    from app.gui.preview_engine import frame_keywords
+    from drivers.camera import Roi
+    from drivers.simcam import SimulatedCamera
+
+    psf = synthetic_psf((24, 32), n_points=10, seed=2)
+    settings = PreviewSettings(iters_per_frame=1, downsample=1, tau_auto=False)
+    with SimulatedCamera(32, 24, frame_rate_hz=2000, exposure_us=200.0) as cam:
+        full = cam.snap()
+        cam.roi = Roi(8, 4, 16, 12)
+        cut = cam.snap()
+        cam.binning = 2
+        binned = cam.snap()
+    assert full.sensor == cut.sensor == binned.sensor == (24, 32)
+    assert frame_keywords(cut)["sensor"] == (24, 32)
+    eng = PreviewEngine(psf, settings)
+    assert eng.process(full.pixels, **frame_keywords(full)).shape == (24, 32)
+    r = eng.process(cut.pixels, **frame_keywords(cut))
+    assert r.shape == (24, 32) and eng._mask.sum() == 16 * 12
+    r = eng.process(binned.pixels, **frame_keywords(binned))
+    assert r.shape == (12, 16) and eng._mask.sum() == 8 * 6
+    bigger = PreviewEngine(synthetic_psf((48, 64), n_points=10, seed=2), settings)
+    with pytest.raises(PreviewError, match="PSF is for a 48x64 sensor but this camera's "
+                                           r"sensor is 24x32 \(binning 1\)"):
+        bigger.process(full.pixels, **frame_keywords(full))
