@@ -52,7 +52,8 @@ TAUS = (1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
 FISTA_CHECKPOINTS = (100, 200)
 BLEND_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: UDN variants of ``--lever`` (see make_runner)
-LEVERS = ("none", "precondition", "channel-gain", "block-holdout", "deep-decoder", "sensor-gain")
+LEVERS = ("none", "precondition", "channel-gain", "block-holdout", "deep-decoder", "sensor-gain",
+          "fista-input")
 #: ``sensor-gain``: control points of the smooth gain field per colour channel along the
 #: measured extent's shorter side (bilinear between them, so it varies over about a quarter
 #: of that side: the scale of the shading in the error analysis)
@@ -83,6 +84,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lr", type=POSITIVE, default=None, help="UDN learning rate")
     p.add_argument("--ema", type=FRACTION, default=None, help="UDN EMA decay")
     p.add_argument("--tv-weight", type=NONNEG, default=None, help="UDN TV loss weight")
+    p.add_argument("--reg-noise", type=NONNEG, default=None,
+                   help="UDN input regularisation noise std")
     p.add_argument("--holdout", type=FRACTION, default=0.1,
                    help="held-out fraction of the measured pixels (0.1)")
     p.add_argument("--wmv-window", type=POSITIVE_INT, default=50, help="ES-WMV window (50)")
@@ -98,7 +101,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "'channel-gain' gives each colour channel its own learnable output gain; "
                    "'block-holdout' holds out whole blocks of the sensor; 'deep-decoder' "
                    "replaces the network by a deep decoder; 'sensor-gain' learns a smooth "
-                   "gain field on the sensor with the network (none)")
+                   "gain field on the sensor with the network; 'fista-input' feeds the network the "
+                   "automatic-tau FISTA-TV result of the fitted pixels as the first channels of "
+                   "its input (none)")
     p.add_argument("--no-udn", action="store_true", help="FISTA and ADMM only")
     p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
     p.add_argument("--device", default="cpu",
@@ -329,7 +334,7 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     net = NetworkConfig(channels=args.channels, scales=args.scales, skip_channels=args.skip)
     cfg = UDNConfig(max_iter=args.udn_iters, holdout=args.holdout, patience=10**9, min_iter=0,
                     headroom=args.headroom, lr=args.lr, ema=args.ema, tv_weight=args.tv_weight,
-                    seed=0)
+                    reg_noise=args.reg_noise, seed=0)
     runner = make_runner(model, b, net, cfg, args.lever)
     heldout = runner.heldout.cpu().numpy()
     fit_mask = (runner.fit.cpu().numpy()).astype(np.float32)
@@ -379,6 +384,8 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     # FISTA-TV from the UDN's fitted pixels only, its tau chosen on them too (for the warm
     # start and the blend weight, chosen on the UDN's held-out pixels, which it must not see)
     x_fit = _fitted_pixels_fista(pair, b, fit_mask, args, min(cps))
+    if args.lever == "fista-input":
+        fista_input(runner, x_fit)
     base = peak_start(args.device)
     if args.warm_start:
         row["udn_warm_start"] = {"iterations": args.warm_start,
@@ -444,10 +451,13 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
         members, walls = [sel], [runner.elapsed_s]
         for seed in range(1, args.seeds):
             r = make_runner(model, b, net, replace(cfg, seed=seed), args.lever)
-            if args.warm_start:  # its own fitted pixels: its held-out stay unseen
+            if args.warm_start or args.lever == "fista-input":  # its own fitted pixels
                 own = r.fit.cpu().numpy().astype(np.float32)
-                r.warm_start(_fitted_pixels_fista(pair, b, own, args, min(cps)),
-                             args.warm_start)
+                x_own = _fitted_pixels_fista(pair, b, own, args, min(cps))
+                if args.lever == "fista-input":
+                    fista_input(r, x_own)
+                if args.warm_start:
+                    r.warm_start(x_own, args.warm_start)
             for _ in r.steps():
                 pass
             members.append(r.best_estimate())
@@ -457,6 +467,35 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
                                    members=[psnr_only(truth, m) for m in members])
         keep["udn_ensemble"] = avg
     return row
+
+
+def fista_input(r: Any, x: Any) -> Any:
+    """``--lever fista-input``: the first C channels of the network's input z become the
+    FISTA-TV estimate ``x`` (C, K, H, W) of the same measurement's fitted pixels, divided by its
+    99.9th percentile (so about [0, 1]) and padded to the network's grid by reflection; the
+    other channels stay the seeded noise. The network then maps an image of the scene, not
+    noise, to the estimate (a guided deep image prior); the held-out pixels stay unseen, since
+    ``x`` used only the fitted ones. Returns the runner, restarted (fresh Adam, new restore
+    point; the gain fitted again to the new first output)."""
+    import numpy as np
+    import torch
+    import torch.nn.functional as F
+
+    g = r.G
+    c, k, h, w = g.scene_shape
+    img = np.asarray(x, dtype=np.float32).reshape(c * k, h, w)
+    img = np.clip(img / max(float(np.percentile(img, 99.9)), 1e-12), 0.0, None)
+    t = torch.as_tensor(img)[None]
+    ph, pw = g.padded[-2:]
+    mode = "reflect" if (ph - h < h and pw - w < w) else "replicate"
+    t = F.pad(t, (0, pw - w, 0, ph - h), mode=mode)
+    n = min(c * k, int(g.z.shape[1]))
+    with torch.no_grad():
+        g.z[:, :n] = t[:, :n].to(g.z.device, g.z.dtype)
+        g.set_gain(1.0)
+        g.set_gain(r._fit_gain() * r.config.headroom)
+    r.initial_gain = g.gain
+    return _restart(r)
 
 
 def _restart(r: Any) -> Any:
@@ -496,7 +535,7 @@ def make_runner(model: Any, b: Any, net: Any, cfg: Any, lever: str = "none") -> 
     from recon.udn.network import Generator
     from recon.udn.runner import UDNRunner
 
-    if lever == "none":
+    if lever in ("none", "fista-input"):  # fista-input: the input is set by fista_input()
         return UDNRunner(model, b, network=net, config=cfg)
     if lever == "precondition":
         from recon.fista import AUTO_KAPPA, fourier_preconditioner
@@ -1021,7 +1060,7 @@ def time_threads(args: argparse.Namespace) -> dict[str, Any]:
 
 SETTING_KEYS = ("downsample", "udn_iters", "channels", "scales", "skip", "headroom", "lr",
                 "ema", "tv_weight", "holdout", "wmv_window", "fista_iters", "warm_start",
-                "seeds", "lever")
+                "seeds", "lever", "reg_noise")
 """The settings a results file's cases must share (threads and the device may differ: they
 change the time, and the scores only by rounding)."""
 
@@ -1039,7 +1078,8 @@ def fill_defaults(args: argparse.Namespace) -> None:
     net, cfg = NetworkConfig(), UDNConfig()
     for name, value in (("channels", net.channels), ("scales", net.scales),
                         ("skip", net.skip_channels), ("headroom", cfg.headroom),
-                        ("lr", cfg.lr), ("ema", cfg.ema), ("tv_weight", cfg.tv_weight)):
+                        ("lr", cfg.lr), ("ema", cfg.ema), ("tv_weight", cfg.tv_weight),
+                        ("reg_noise", cfg.reg_noise)):
         if getattr(args, name) is None:
             setattr(args, name, value)
 
