@@ -39,7 +39,10 @@ def _frame(psf: np.ndarray, seed: int = 0) -> np.ndarray:
 
 
 def test_warm_start_keeps_model_and_lowers_the_objective(psf: np.ndarray) -> None:
-    eng = PreviewEngine(psf, PreviewSettings(iters_per_frame=3, downsample=1, dark=100.0))
+    # target_fps 0: every frame runs its 3 iterations (at 15 fps a loaded machine cut a frame
+    # short and the count below was 5; the rate rule has its own test)
+    eng = PreviewEngine(psf, PreviewSettings(iters_per_frame=3, downsample=1, dark=100.0,
+                                             target_fps=0))
     frame = _frame(psf)
     first = eng.process(frame)
     model, solver = eng._model, eng._solver
@@ -51,6 +54,17 @@ def test_warm_start_keeps_model_and_lowers_the_objective(psf: np.ndarray) -> Non
     assert second.total_iterations == 6
     assert second.image.dtype == np.float32 and second.image.shape == psf.shape
     assert eng._x.dtype == torch.float32
+
+
+def test_a_frame_stops_iterating_to_hold_the_display_rate(psf: np.ndarray) -> None:
+    """target_fps: a frame runs at least one iteration and stops before one more would miss
+    1 / target_fps; at an unreachable rate that is exactly one per frame."""
+    eng = PreviewEngine(psf, PreviewSettings(iters_per_frame=50, downsample=1, dark=100.0,
+                                             target_fps=1e6))
+    frame = _frame(psf)
+    results = [eng.process(frame) for _ in range(3)]
+    assert [r.iterations for r in results] == [1, 1, 1]
+    assert results[-1].total_iterations == 3
 
 
 def test_settings_change_rebuilds_only_when_geometry_changes(psf: np.ndarray) -> None:
