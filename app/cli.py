@@ -103,6 +103,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())
         return 141
+    except FloatingPointError as exc:
+        # recon.stepwise.NumericalError: a solver met NaN/inf; its message says where
+        print(f"lenslesscam {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
     except MemoryError as exc:
         # recon.memory.ProblemTooLarge (the estimate says it will not fit) or a real failure
         print(f"lenslesscam {args.command}: error: {_one_line(exc) or 'out of memory'}",

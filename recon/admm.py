@@ -97,6 +97,14 @@ class Admm(StepwiseSolver):
         if self.hmax == 0:
             raise ValueError("the PSF's transfer function is zero")
         self.mu1, self.mu2, self.mu3 = 1.0, rho * self.hmax, rho * self.hmax
+        # the penalties, their inverses, the denominator (up to 9 mu2) and the threshold
+        # tau / mu2 must all be numbers of the dtype
+        fi = torch.finfo(dt)
+        if not (fi.tiny <= self.mu2 <= fi.max / 16 and self.tau / self.mu2 <= fi.max):
+            raise ValueError(
+                f"rho {rho:g} puts ADMM's penalty (rho max|H|^2 = {self.mu2:.3g}, TV threshold "
+                f"tau / penalty = {self.tau / self.mu2:.3g}) outside the range of {dt}; use a "
+                "rho nearer the default 0.01")
         self.xi = torch.zeros(grid, dtype=dt, device=dev)
         self.eta_s = torch.zeros((2, *grid), dtype=dt, device=dev)  # eta / mu2, stacked (y, x)
         self.rho_d = torch.zeros(grid, dtype=dt, device=dev)

@@ -225,7 +225,19 @@ def fourier_preconditioner(op: LinearOperator, kappa: float, required: bool = Tr
         if not required:
             return None
         raise ValueError(f"the forward model's norm is {unit ** 0.5}: nothing to precondition")
-    lip = 1.02 * unit * power_norm(_GramP(op, prec, 1.0 / unit))
+    # ||A P A^T|| is of the order of kappa ||A||^2 (p r <= kappa): scaled by that, the power
+    # iteration works at values near 1 for any kappa (unscaled, its squares underflowed
+    # float32 to 0 at kappa 1e-15, and the step 1 / L_P divided by zero)
+    scale = unit * kappa
+    try:
+        lip = 1.02 * scale * power_norm(_GramP(op, prec, 1.0 / scale))
+    except FloatingPointError:  # 1 / scale beyond the dtype's range
+        lip = math.nan
+    if not (math.isfinite(lip) and lip > 0):
+        if not required:
+            return None
+        raise ValueError(f"precondition level (kappa) {kappa:g} is too small for {op.dtype}: "
+                         "the preconditioned step underflows; use a larger level or 'off'")
     cache[kappa] = (prec, lip)
     return prec, lip
 

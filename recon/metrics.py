@@ -12,6 +12,10 @@ Conventions, stated once:
 - SSIM follows Wang et al. 2004: Gaussian window of 11x11 taps, sigma 1.5, ``K1 = 0.01``,
   ``K2 = 0.03``, statistics over the "valid" part of the image (no padding), biased
   (population) variances;
+- every score is computed on the arrays divided by a power of two near their largest
+  magnitude (exact, :func:`_unit_scale`), so values up to float64's limits (1e300) neither
+  overflow nor underflow in the squares; MSE is scaled back (``inf`` if it exceeds float64);
+  SSIM's constants are kept within float64's range;
 - MS-SSIM follows Wang et al. 2003: 5 scales, weights (0.0448, 0.2856, 0.3001, 0.2363,
   0.1333), 2x2 mean downsampling between scales; negative contrast-structure terms are clipped
   at 0 (as TensorFlow does) so the fractional powers stay defined. An image smaller than
@@ -94,10 +98,30 @@ def _data_range(r: F64, data_range: float | None) -> float:
     return L
 
 
+def _unit_scale(*arrays: F64) -> float:
+    """A power of two near the largest magnitude in ``arrays`` (1.0 when all are 0).
+
+    Dividing by it is exact and brings the values near 1, so their squares and products stay
+    within float64 (at 1e300 they overflowed, at 1e-300 they underflowed).
+    """
+    top = max(float(np.max(np.abs(a))) for a in arrays)
+    if top == 0.0 or not math.isfinite(top):
+        return 1.0
+    return math.ldexp(1.0, math.frexp(top)[1])
+
+
+def _scaled_mse(r: F64, e: F64) -> tuple[float, float]:
+    """(MSE of r/s and e/s, s) with s = :func:`_unit_scale`; the MSE is that times s^2."""
+    s = _unit_scale(r, e)
+    d = (r - e) if s == 1.0 else (r / s - e / s)
+    return float(np.mean(d * d)), s
+
+
 def mse(ref: Array, est: Array) -> float:
-    """Mean squared error."""
+    """Mean squared error (``inf`` when it exceeds float64's range)."""
     r, e = _check(ref, est)
-    return float(np.mean((r - e) ** 2))
+    err, s = _scaled_mse(r, e)
+    return err * s * s
 
 
 def psnr(ref: Array, est: Array, data_range: float | None = None) -> float:
@@ -107,10 +131,10 @@ def psnr(ref: Array, est: Array, data_range: float | None = None) -> float:
     """
     r, e = _check(ref, est)
     L = _data_range(r, data_range)
-    err = float(np.mean((r - e) ** 2))
+    err, s = _scaled_mse(r, e)
     if err == 0.0:
         return math.inf
-    return 10.0 * math.log10(L * L / err)
+    return 20.0 * (math.log10(L) - math.log10(s)) - 10.0 * math.log10(err)
 
 
 def _gauss_window() -> F64:
@@ -134,8 +158,10 @@ def _filter_valid(a: F64, g: F64) -> F64:
 def _ssim_terms(r: F64, e: F64, L: float) -> tuple[F64, F64]:
     """Per-slice mean luminance term and mean contrast-structure term (shape r.shape[:-2])."""
     g = _gauss_window()
-    c1 = (SSIM_K1 * L) ** 2
-    c2 = (SSIM_K2 * L) ** 2
+    # within float64's range (an extreme data range against the values: the limits, 1 and 1)
+    tiny, big = float(np.finfo(np.float64).tiny), float(np.finfo(np.float64).max)
+    c1 = min(max((SSIM_K1 * L) * (SSIM_K1 * L), tiny), big)
+    c2 = min(max((SSIM_K2 * L) * (SSIM_K2 * L), tiny), big)
     mu_r = _filter_valid(r, g)
     mu_e = _filter_valid(e, g)
     rr = _filter_valid(r * r, g) - mu_r * mu_r
@@ -161,7 +187,8 @@ def ssim(ref: Array, est: Array, data_range: float | None = None) -> float:
     r, e = _check(ref, est, min_ndim=2)
     _check_size(r.shape, SSIM_WIN, f"SSIM needs the {SSIM_WIN}x{SSIM_WIN} window")
     L = _data_range(r, data_range)
-    full, _ = _ssim_terms(r, e, L)
+    sc = _unit_scale(r, e)
+    full, _ = _ssim_terms(r / sc, e / sc, L / sc)
     return float(full.mean(axis=(-2, -1)).mean())
 
 
@@ -213,8 +240,10 @@ def ms_ssim(ref: Array, est: Array, data_range: float | None = None,
         f"MS-SSIM needs {n} scales of the {SSIM_WIN}x{SSIM_WIN} window",
     )
     L = _data_range(r, data_range)
-    r2 = r.reshape(-1, r.shape[-2], r.shape[-1])
-    e2 = e.reshape(-1, e.shape[-2], e.shape[-1])
+    sc = _unit_scale(r, e)
+    r2 = r.reshape(-1, r.shape[-2], r.shape[-1]) / sc
+    e2 = e.reshape(-1, e.shape[-2], e.shape[-1]) / sc
+    L = L / sc
     score = np.ones(r2.shape[0], dtype=np.float64)
     for j, w in enumerate(weights):
         full, cs = _ssim_terms(r2, e2, L)
@@ -234,8 +263,10 @@ def gain_fit(ref: Array, est: Array) -> tuple[Array, float]:
     ``est``'s float dtype (float64 for integer input).
     """
     r, e = _check(ref, est)
-    den = float(np.vdot(e, e))
-    g = 1.0 if den == 0.0 else float(np.vdot(r, e)) / den
+    sr, se = _unit_scale(r), _unit_scale(e)  # each near 1: the dot products stay finite
+    e1 = e / se
+    den = float(np.vdot(e1, e1))
+    g = 1.0 if den == 0.0 else float(np.vdot(r / sr, e1)) / den * (sr / se)
     e_in = np.asarray(est)
     dtype = e_in.dtype if e_in.dtype.kind == "f" else np.dtype(np.float64)
     return np.asarray(e * g, dtype=dtype), g
@@ -273,6 +304,7 @@ def spectral_cosine_distance(ref: Array, est: Array, axis: int | None = None) ->
     out of the mean; ValueError if no pixel is left.
     """
     r, e = _check(ref, est, min_ndim=3)
+    r, e = r / _unit_scale(r), e / _unit_scale(e)  # the angle does not change; the squares fit
     if axis is None:
         if r.ndim == 4:
             axis = 1

@@ -11,7 +11,9 @@ downsampling rules) are loaded by :func:`recon.problem.load_problem`.
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -260,6 +262,16 @@ def _validate_raw(a: Array, p: Path, what: str) -> None:
         )
     if a.size == 0:
         raise ValueError(f"{what} file {p} is empty (shape {a.shape})")
+    if dt.kind == "f" and dt.itemsize > 4:  # read into float32: its range must hold the values
+        top = float(np.max(np.abs(a)))
+        f32 = np.finfo(np.float32)
+        if top > float(f32.max):
+            raise ValueError(f"{what} file {p} has values up to {top:.3g}, beyond the float32 "
+                             f"range (up to {float(f32.max):.3g}) it is read into; rescale it")
+        if 0.0 < top < float(f32.smallest_normal):
+            raise ValueError(f"{what} file {p} has values no larger than {top:.3g}, below the "
+                             f"float32 range (from {float(f32.smallest_normal):.3g}) it is read "
+                             "into; rescale it")
 
 
 def _to_chw(a: Array, p: Path, what: str) -> Array:
@@ -336,6 +348,33 @@ def _dark_for(
     return d
 
 
+#: a raw measurement with at least this fraction of its pixels at full scale is warned about
+#: when read (a few hot or bright pixels of a sensor are not: one pixel at 65535 in the 3D
+#: DiffuserCam example frame is 0.001 %; 0.1 % of a 2-megapixel frame is 2000 pixels)
+SATURATION_WARN_FRACTION = 1e-3
+
+
+def _check_saturation(raw: Array, p: Path) -> None:
+    """Warn of a raw measurement (integer data) with many pixels at full scale.
+
+    Many: ``SATURATION_WARN_FRACTION`` or more of its pixels. Every pixel saturated is an
+    error: the file holds no image.
+    """
+    from recon.checks import MeasurementWarning, check_measurement
+
+    check = check_measurement(raw)
+    if not check.saturated:
+        return
+    if check.saturated == check.n_pixels:
+        raise ValueError(f"measurement file {p}: every pixel is saturated (at the full scale "
+                         f"{check.full_scale:g} of {raw.dtype}): it holds no image; capture it "
+                         "with a shorter exposure")
+    if check.saturated_fraction < SATURATION_WARN_FRACTION:
+        return
+    only = replace(check, flags=("saturated",))
+    warnings.warn(f"measurement file {p}: {only.message()}", MeasurementWarning, stacklevel=4)
+
+
 def _prepare(
     path: PathLike,
     *,
@@ -357,6 +396,8 @@ def _prepare(
         from recon.psfcheck import check_psf
 
         check_psf(raw, warn=True, name=f"PSF file {p}")
+    elif what == "measurement":
+        _check_saturation(raw, p)
     arr = _as_float(chw).astype(np.float32, copy=False)
     d = _dark_for(dark, key, arr, channels, what, p, order)
     if d is not None:

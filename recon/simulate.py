@@ -87,9 +87,18 @@ def simulate(
     rng = np.random.default_rng(seed)
     meas = clean.copy()
     if photons is not None:
-        meas = rng.poisson(np.clip(meas, 0, None) * photons) / photons
+        try:
+            meas = rng.poisson(np.clip(meas, 0, None) * photons) / photons
+        except ValueError as exc:  # numpy's "lam value too large"
+            raise ValueError(f"photons {photons:g} is too many to draw Poisson noise for "
+                             f"({exc}); leave it out: the noise is negligible there") from None
     if noise > 0:
         meas = meas + rng.normal(0.0, noise, size=meas.shape)
+    top = float(np.max(np.abs(meas)))
+    if not top <= float(np.finfo(np.float32).max):
+        cause = f"noise {noise:g}: use a smaller noise" if noise > 0 else "scale the scene"
+        raise ValueError(f"the simulated measurement reaches {top:.3g}, beyond the float32 "
+                         f"range it is saved in ({cause})")
     saturated = 0
     if saturation is not None:
         saturated = int((meas >= saturation).sum())

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -78,3 +80,17 @@ def test_stepwise_cancel_and_errors():
              torch.zeros(1, 8, 8))
     with pytest.raises(ValueError, match="shape"):
         Admm(model, torch.zeros(1, 3, 3, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("rho", [1e-300, 1e-40, 1e38, 1e300])
+def test_a_rho_outside_the_dtypes_range_is_refused_in_one_line(rho):
+    """rho 1e-300 stopped on 'value cannot be converted to type float without overflow' (the TV
+    threshold tau / (rho max|H|^2) in float32), rho 1e300 on NaN in the first v update."""
+    model = build_model("2d", synthetic_psf((20, 24), seed=0))  # float32
+    b = _problem()[1].float()
+    with pytest.raises(ValueError, match=re.escape(f"rho {rho:g} puts ADMM's penalty") + r".*"
+                       + re.escape("outside the range of torch.float32")):
+        Admm(model, b, rho=rho)
+    if rho == 1e-300:  # in float64, where the numbers fit, it runs
+        res = Admm(*_problem(), rho=rho, max_iter=3).run()
+        assert bool(torch.isfinite(res.x).all())

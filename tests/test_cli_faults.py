@@ -585,3 +585,109 @@ def test_a_depth_position_named_twice_is_refused(tmp_path, capsys):
                  "10mm,10mm", "--no-prompt", "--out", str(tmp_path / "s.tif")]) == 2
     assert "--positions names 10mm more than once" in capsys.readouterr().err
     assert not (tmp_path / "s.tif").exists()
+
+
+# ------------------------------------------------------------------------------------------
+# numerical extremes: a sound result or a one-line error, never zeros, inf or a traceback
+# ------------------------------------------------------------------------------------------
+
+
+def test_a_result_that_explains_nothing_is_not_written(sim, tmp_path, capsys):
+    """ADMM at rho 1e30 'converged' after 2 iterations at x ~ 1e-31; FISTA with --tv-k 1e30 on
+    a depth stack stayed at 0: both were written as if they were reconstructions."""
+    psf = np.load(sim / "psf.npy")[0]
+    np.save(tmp_path / "stack.npy", np.stack([psf, np.roll(psf, 3, axis=1)]))
+    runs = {
+        "admm": ["recon", "admm", "--psf", sim / "psf.npy", "--rho", "1e30"],
+        "depth": ["recon", "fista", "--model", "depth", "--psf-stack", tmp_path / "stack.npy",
+                  "--tv-k", "1e30"],
+    }
+    for name, argv in runs.items():
+        out = tmp_path / f"{name}.tif"
+        code, _, err = _run(capsys, *argv, "--meas", sim / "meas.npy", "--tau", "1e-3",
+                            "--iters", "20", "--out", out)
+        assert code == 2, (name, err)
+        assert "the result explains none of the measurement" in err and "nothing written" in err
+        assert len(err.strip().splitlines()) == 1 and not out.exists()
+    # an ordinary run passes the check
+    assert _run(capsys, *runs["admm"][:4], "--meas", sim / "meas.npy", "--tau", "1e-3",
+                "--iters", "20", "--out", tmp_path / "ok.tif")[0] == 0
+
+
+def test_a_solver_that_meets_inf_is_one_line(sim, tmp_path, capsys):
+    """NumericalError (FISTA meets inf in the TV prox with --tv-k 3e38 on a video model) was a
+    traceback."""
+    np.save(tmp_path / "m.npy", np.repeat(np.eye(3, dtype=np.float32), 8, axis=1))  # (3, 24)
+    code, _, err = _run(capsys, "recon", "fista", "--model", "video", "--shutter",
+                        tmp_path / "m.npy", "--psf", sim / "psf.npy", "--meas", sim / "meas.npy",
+                        "--tau", "1e-3", "--iters", "5", "--tv-k", "3e38", "--out",
+                        tmp_path / "v.tif")
+    assert code == 2 and err.startswith("lenslesscam recon: error: FISTA:")
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "v.tif").exists()
+
+
+def test_recon_auto_shares_a_gray_psf_across_colour_channels(sim, tmp_path, capsys):
+    """recon fista and udn read a gray PSF with --rgb as one PSF for R, G and B; recon auto and
+    plan refused it ('measurement (3, 24, 32) does not fit the model (1, 24, 32)')."""
+    np.save(tmp_path / "rgb.npy", np.repeat(np.load(sim / "meas.npy")[0][..., None], 3, axis=2))
+    files = ["--psf", sim / "psf.npy", "--meas", tmp_path / "rgb.npy", "--rgb"]
+    code, _, err = _run(capsys, "recon", "auto", *files, "--tau", "1e-3", "--quiet", "--out",
+                        tmp_path / "auto.tif")
+    assert code == 0, err
+    from recon.io import read_reconstruction
+
+    x, _ = read_reconstruction(tmp_path / "auto.tif")
+    assert x.shape == (3, 1, 24, 32) and np.isfinite(x).all() and x.max() > 0
+    assert np.allclose(x[0], x[1]) and np.allclose(x[1], x[2])  # the same data in each channel
+
+
+def test_simulate_never_writes_inf_and_says_when_its_measurement_is_zero(sim, tmp_path, capsys):
+    """--noise 1e39 wrote a meas.npy of +-inf (after a bare 'overflow encountered in cast'),
+    --photons 1e300 failed with numpy's 'lam value too large', --photons 1e-300 wrote an
+    all-zero measurement without a word, a complex scene was read as its real part."""
+    base = ["simulate", "--psf", tmp_path / "psf.npy", "--scene", tmp_path / "scene.npy"]
+    code, _, err = _run(capsys, *base, "--noise", "1e39", "--out", tmp_path / "a")
+    assert code == 2
+    assert "beyond the float32 range it is saved in (noise 1e+39: use a smaller noise)" in err
+    assert not (tmp_path / "a" / "meas.npy").exists() and "overflow" not in err
+    code, _, err = _run(capsys, *base, "--photons", "1e300", "--out", tmp_path / "b")
+    assert code == 2 and "photons 1e+300 is too many to draw Poisson noise for" in err
+    code, _, err = _run(capsys, *base, "--photons", "1e-300", "--out", tmp_path / "c")
+    assert code == 0 and "warning: the measurement is 0 on all 768 measured pixels" in err
+    # a complex scene lost its imaginary part after numpy's ComplexWarning
+    np.save(tmp_path / "cplx.npy", np.load(tmp_path / "scene.npy").astype(np.complex64))
+    code, _, err = _run(capsys, "simulate", "--psf", tmp_path / "psf.npy", "--scene",
+                        tmp_path / "cplx.npy", "--out", tmp_path / "d")
+    assert code == 2 and "has dtype complex64: a scene is real numbers" in err
+
+
+def test_metrics_of_values_near_float64s_limits(tmp_path, capsys):
+    """Values of 1e300 stopped metrics with OverflowError (a traceback); with --gain-fit the
+    gain overflowed to 0 and the estimate was scored as all zero."""
+    rng = np.random.default_rng(0)
+    ref = rng.random((24, 32))
+    np.save(tmp_path / "ref.npy", ref)
+    np.save(tmp_path / "big.npy", ref * 1e300)
+    code, out, err = _run(capsys, "metrics", "--ref", tmp_path / "big.npy", "--est",
+                          tmp_path / "big.npy")
+    assert code == 0, err
+    assert json.loads(out)["psnr"] == "inf" and json.loads(out)["ssim"] == pytest.approx(1.0)
+    code, out, err = _run(capsys, "metrics", "--ref", tmp_path / "ref.npy", "--est",
+                          tmp_path / "big.npy", "--gain-fit")
+    assert code == 0, err
+    rep = json.loads(out)
+    assert rep["gain"] == pytest.approx(1e-300) and rep["psnr"] > 250
+    code, out, err = _run(capsys, "metrics", "--ref", tmp_path / "ref.npy", "--est",
+                          tmp_path / "big.npy", "--data-range", "1e300")
+    assert code == 0, err
+
+
+@pytest.mark.parametrize(("option", "value", "words"), [
+    ("--dark", "nan", "--dark nan: a dark level must be a finite number"),
+    ("--psf-dark", "inf", "--psf-dark inf: a dark level must be a finite number"),
+    ("--psf-dark", "no-such-dark.tif", "--psf-dark no-such-dark.tif: neither a number"),
+])
+def test_a_bad_dark_names_its_option(sim, tmp_path, capsys, option, value, words):
+    code, _, err = _run(capsys, *_fista(sim, tmp_path / "r.tif", option, value))
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert words in err and not (tmp_path / "r.tif").exists()

@@ -178,3 +178,18 @@ def test_the_phase_is_reported_as_it_runs_and_never_outlasts_max_iter():
     short = Fista(model.op, b, tau=1e-6, max_iter=2, tol=1e9)
     result = short.run()
     assert result.iterations == 2 and short.done
+
+
+def test_a_tiny_level_is_computed_or_refused_in_one_line():
+    """kappa 1e-20 (a number in (0, 1]) stopped FISTA with ZeroDivisionError: the power
+    iteration on A P A^T, whose norm is about kappa ||A||^2, underflowed float32 to 0."""
+    psf = synthetic_psf((24, 32), seed=1)
+    model = build_model("2d", psf)  # float32
+    b = model.apply(torch.ones(model.scene_shape))
+    lip = fourier_preconditioner(model.op, 1e-20)[1]
+    assert 0.0 < lip < model.op.lipschitz()
+    res = Fista(model.op, b, tau=1e-3, max_iter=60, precondition=1e-20).run()
+    assert bool(torch.isfinite(res.x).all()) and float(res.x.max()) > 0
+    with pytest.raises(ValueError, match=r"precondition level \(kappa\) 1e-300 is too small "
+                                         r"for torch\.float32"):
+        Fista(model.op, b, precondition=1e-300)

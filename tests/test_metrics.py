@@ -329,3 +329,30 @@ def test_cli_metrics_errors(
     )
     assert code == 2
     assert "missing.png" in capsys.readouterr().err
+
+
+def test_scores_hold_at_the_limits_of_float64() -> None:
+    """Values of 1e300 overflowed the squares (OverflowError from SSIM's constants, inf MSE
+    inside PSNR), the gain fit of a 1e300 estimate overflowed to 0, and a data range of 1e-300
+    stopped PSNR with 'math domain error'. Scores are scale-free: the same at any scale."""
+    ref = _smooth_image(30, 40)
+    est = ref + 0.05 * RNG.random((30, 40))
+    base = M.metrics_report(ref, est)
+    for s in (1e300, 1e-300):
+        rep = M.metrics_report(ref * s, est * s)
+        for key in ("psnr", "ssim", "ms_ssim"):
+            assert rep[key] == pytest.approx(base[key], rel=1e-9), (s, key)
+        assert rep["mse"] == pytest.approx(base["mse"] * s * s, rel=1e-9)
+    assert M.mse(ref * 1e300, est * 1e300) == math.inf  # 1e600 is beyond float64: said so
+    scaled, g = M.gain_fit(ref, est * 1e300)
+    assert g == pytest.approx(M.gain_fit(ref, est)[1] * 1e-300, rel=1e-12)
+    assert M.psnr(ref, scaled) == pytest.approx(M.psnr(ref, M.gain_fit(ref, est)[0]), rel=1e-9)
+    assert M.psnr(ref, est, data_range=1e300) == pytest.approx(
+        M.psnr(ref, est, data_range=1.0) + 6000.0)
+    assert M.psnr(ref, est, data_range=1e-300) == pytest.approx(
+        M.psnr(ref, est, data_range=1.0) - 6000.0)
+    assert 0.0 <= M.ssim(ref, est, data_range=1e-300) <= 1.0
+    assert M.ssim(ref, est, data_range=1e300) == pytest.approx(1.0)
+    cube = RNG.random((1, 4, 6, 6))
+    assert M.spectral_cosine_distance(cube * 1e300, cube * 1e-300) == pytest.approx(0.0,
+                                                                                  abs=1e-12)

@@ -354,3 +354,58 @@ def test_a_field_beyond_the_psfs_reach_is_refused(tmp_path):
     with pytest.raises(ValueError, match=r"scene field 33x40 is larger than the 32x40 from "
                                          r"which light reaches the 16x20 sensor"):
         load_problem(spec.with_changes(field=(33, 40)))
+
+
+@pytest.mark.parametrize(("factor", "which", "message"), [
+    (1e300, "meas", r"measurement file .*meas64\.npy has values up to 1e\+300, beyond the "
+                    r"float32 range"),
+    (1e-50, "meas", r"measurement file .*meas64\.npy has values no larger than 1e-50, below "
+                    r"the float32 range"),
+    (1e300, "psf", r"PSF file .*psf64\.npy has values up to .*e\+299, beyond the float32 range"),
+    (1e-50, "psf", r"PSF file .*psf64\.npy has values no larger than .*e-5\d, below"),
+])
+def test_float64_files_outside_float32_are_named(small, factor, which, message):
+    """They were read into float32 as inf ('cannot normalise by max: it is inf', no file named)
+    or as 0 ('measurement ... is all zero', 'PSF ... is all zero or negative')."""
+    name = f"{which}64.npy"
+    np.save(small / name, np.load(small / f"{which}.npy").astype(np.float64) * factor)
+    with pytest.raises(ValueError, match=message) as info:
+        load_problem(_spec(small, **{which: str(small / name)}))
+    assert "\n" not in str(info.value)
+    np.save(small / name, np.load(small / f"{which}.npy").astype(np.float64) * 1e30)
+    assert load_problem(_spec(small, **{which: str(small / name)})).meas.max() == 1.0
+
+
+def test_saturated_measurements_are_said_and_a_fully_saturated_one_is_refused(small):
+    """A uint16 frame with 30 % of its pixels at 65535 loaded without a word; one with every
+    pixel there reconstructed a constant image."""
+    import tifffile
+
+    from recon.checks import MeasurementWarning
+
+    frame = (np.load(small / "meas.npy") * 60000).astype(np.uint16)
+    frame[:7] = 65535  # 7 of 24 rows: 210 of 720 pixels
+    tifffile.imwrite(small / "sat.tif", frame)
+    with pytest.warns(MeasurementWarning, match=r"measurement file .*sat\.tif: 210 pixels "
+                                                r"\(29\.2%\) are saturated"):
+        prob = load_problem(_spec(small, meas=str(small / "sat.tif")))
+    assert prob.meas.max() == 1.0
+    tifffile.imwrite(small / "white.tif", np.full((24, 30), 65535, np.uint16))
+    with pytest.raises(ValueError, match=r"measurement file .*white\.tif: every pixel is "
+                                         r"saturated \(at the full scale 65535 of uint16\)"):
+        load_problem(_spec(small, meas=str(small / "white.tif")))
+    # a hot pixel or two at full scale (below 0.1 % of the pixels) is not worth a word
+    import warnings
+
+    from recon.readers import load_measurement
+
+    frame = np.tile((np.load(small / "meas.npy") * 60000).astype(np.uint16), (2, 2))
+    frame[0, 0] = 65535  # 1 of 2880 pixels: 0.035 %
+    tifffile.imwrite(small / "hot.tif", frame)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_measurement(str(small / "hot.tif"))
+    frame[0, :3] = 65535  # 3 of 2880: 0.10 %
+    tifffile.imwrite(small / "hot.tif", frame)
+    with pytest.warns(MeasurementWarning, match=r"3 pixels \(0\.104%\) are saturated"):
+        load_measurement(str(small / "hot.tif"))

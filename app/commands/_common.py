@@ -8,19 +8,26 @@ from pathlib import Path
 from typing import Any
 
 
-def parse_dark(value: str | None) -> Any:
-    """``--dark``: a number, 'auto', or a dark-frame file."""
+def parse_dark(value: str | None, option: str = "--dark") -> Any:
+    """``--dark`` (or ``option``): a finite number, 'auto', or a dark-frame file."""
+    import math
+
     if value is None:
         return None
     if value == "auto":
         return "auto"
     try:
-        return float(value)
+        level = float(value)
     except ValueError:
         pass
+    else:
+        if not math.isfinite(level):
+            raise ValueError(f"{option} {value}: a dark level must be a finite number")
+        return level
     p = Path(value)
     if not p.exists():
-        raise FileNotFoundError(f"--dark {value}: neither a number, 'auto', nor an existing file")
+        raise FileNotFoundError(f"{option} {value}: neither a number, 'auto', nor an existing "
+                                "file")
     return p
 
 

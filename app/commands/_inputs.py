@@ -33,9 +33,9 @@ def field_value(value: str | None) -> Any:
     return (int(m.group(1)), int(m.group(2)))
 
 
-def dark_value(value: str | None) -> Any:
-    """``--dark``: None, a number, 'auto' or an existing file (as an absolute path)."""
-    d = parse_dark(value)
+def dark_value(value: str | None, option: str = "--dark") -> Any:
+    """``--dark`` (or ``option``): None, a number, 'auto' or an existing file (absolute)."""
+    d = parse_dark(value, option)
     return str(Path(d).expanduser().resolve()) if isinstance(d, Path) else d
 
 
@@ -65,7 +65,7 @@ def problem_spec(args: Any, **changes: Any) -> Any:
         "mask": path(get("mask")), "shutter": path(get("shutter")),
         "filters": path(get("filters")), "truth": path(get("truth")),
         "dark": dark_value(get("dark")),
-        "psf_dark": dark_value(get("psf_dark")),
+        "psf_dark": dark_value(get("psf_dark"), "--psf-dark"),
         "downsample": int(get("downsample") or 1),
         "field": field_value(get("field")),
         "color": "rgb" if get("rgb") else "gray",

@@ -167,6 +167,7 @@ def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
         bar.update(step.iteration, f"objective {step.objective:.4g}")
     bar.close()
     wall = time.perf_counter() - t0
+    _check_explains(solver, prob.model, b, method)
     meta = {
         "method": method, "model": args.model, "parameters": solver.params,
         "regularisation": tau_meta, "iterations": solver.iteration,
@@ -184,3 +185,26 @@ def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
                "residual": last.residual if last else None}
     print(json.dumps(summary), file=sys.stdout)
     return 0
+
+
+def _check_explains(solver: Any, model: Any, b: Any, method: str) -> None:
+    """Refuse a result that explains none of the measurement (no better than all zeros).
+
+    For a non-negative PSF and measurement a small constant image always beats 0, so a
+    residual ||A x - b|| / ||b|| of 1 or more is a run that went nowhere (an extreme setting,
+    such as an ADMM rho of 1e30, left x at about 0); it is not written.
+    """
+    import torch
+
+    with torch.no_grad():
+        x = solver.x.to(dtype=b.dtype)
+        res = float(torch.linalg.vector_norm(model.op.apply(x) - b)) / float(
+            torch.linalg.vector_norm(b))
+    if res < 1.0:
+        return
+    reason = solver.reason.value if solver.reason else "max_iter"
+    extreme = "--rho" if method.startswith("admm") else "--tv-k, --precondition"
+    raise ValueError(
+        f"{method}: the result explains none of the measurement (relative residual {res:.6g} "
+        f"after {solver.iteration} iterations, stop reason {reason}; an all-zero image does as "
+        f"well), nothing written; an extreme setting ({extreme}) can hold the solver at 0")

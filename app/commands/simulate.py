@@ -84,7 +84,10 @@ def load_scene(spec: str, shape: tuple[int, int], k: int = 1) -> Any:
     if spec.startswith("sample:"):
         frames = samples.lensed_scene(spec.split(":", 1)[1])[0, :1]
     else:
-        raw = np.asarray(load_image(spec), dtype=np.float64)
+        raw = np.asarray(load_image(spec))
+        if raw.dtype.kind not in "biuf":
+            raise ValueError(f"scene {spec} has dtype {raw.dtype}: a scene is real numbers")
+        raw = raw.astype(np.float64)
         if raw.ndim == 4 and raw.shape[0] == 1:  # (1, K, H, W): a truth simulate wrote
             raw = raw[0]
         if raw.ndim == 3 and raw.shape[0] == 1:
@@ -187,6 +190,11 @@ def run(args: argparse.Namespace) -> int:
     atomic_write_json(out / "simulation.json", meta)
     print(json.dumps({"out": str(out), "model": args.model, "shape": list(sim.meas.shape),
                       "k": model.k, "erased": int((files["mask"] == 0).sum())}))
-    if sim.mask is not None and not (files["mask"] > 0).any():
+    measured = files["mask"] > 0
+    if not measured.any():
         print("simulate: warning: every pixel is erased", file=sys.stderr)
+    elif not np.any(sim.meas[:, measured] != 0):
+        print(f"simulate: warning: the measurement is 0 on all {int(measured.sum())} measured "
+              f"pixels (photons {args.photons}, bits {args.bits}): a reconstruction will "
+              "refuse it", file=sys.stderr)
     return 0

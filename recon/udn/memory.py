@@ -27,7 +27,7 @@ from typing import Any
 
 import torch
 
-from recon.udn.network import NetworkConfig, axis_halvings, parameter_count
+from recon.udn.network import NetworkConfig, padded_grid, parameter_count
 
 __all__ = [
     "MemoryEstimate",
@@ -110,10 +110,8 @@ def parse_bytes(text: str | int | float) -> int:
 
 def _level_sizes(config: NetworkConfig, scene_shape: Sequence[int]) -> tuple[list[int], int, int]:
     """Spatial sizes (elements per channel) at each level's input and after the last level."""
-    c, k, h, w = (int(s) for s in scene_shape)
-    axes = (k, h, w) if config.variant == "3d" else (h, w)
-    halvings = [axis_halvings(n, config.scales) for n in axes]
-    padded = [-(-n // (1 << m)) * (1 << m) for n, m in zip(axes, halvings, strict=True)]
+    c, k, _, _ = (int(s) for s in scene_shape)
+    padded, halvings = padded_grid(config, scene_shape)
     sizes = []
     for i in range(config.scales + 1):
         dims = [p // (1 << min(i, m)) for p, m in zip(padded, halvings, strict=True)]

@@ -21,7 +21,8 @@ Variants (``NetworkConfig.variant``):
 
 Field sizes that are not multiples of the total downsampling are handled by building the
 input ``z`` on a padded grid (each axis padded up to a multiple of ``2**n`` for its ``n``
-halvings) and cropping the output to the field, so every skip lines up exactly.
+halvings, H and W to at least 2; :func:`padded_grid`) and cropping the output to the field, so
+every skip lines up exactly.
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ __all__ = [
     "NetworkConfig",
     "SkipNet",
     "axis_halvings",
+    "padded_grid",
     "parameter_count",
 ]
 
@@ -140,9 +142,26 @@ def parameter_count(config: NetworkConfig, scene_shape: Sequence[int]) -> int:
     return total + conv(ch, out, 1) + 1
 
 
-def _pad_to(size: int, halvings: int) -> int:
+def _pad_to(size: int, halvings: int, least: int = 1) -> int:
     m = 1 << halvings
-    return -(-size // m) * m
+    return max(-(-size // m) * m, least)
+
+
+def padded_grid(config: NetworkConfig, scene_shape: Sequence[int]
+                ) -> tuple[tuple[int, ...], list[int]]:
+    """The network's grid for a scene (C, K, H, W): padded axes and the halvings of each.
+
+    The axes are (H, W), or (K, H, W) for the ``3d`` variant; each is padded up to a multiple
+    of ``2**n`` for its ``n`` halvings, and H and W to at least 2 (a reflection-padded 3-tap
+    convolution needs 2 samples: a 1-row or 1-column scene is computed on 2 and cropped).
+    """
+    _, k, h, w = (int(s) for s in scene_shape)
+    axes = (k, h, w) if config.variant == "3d" else (h, w)
+    halvings = [axis_halvings(n, config.scales) for n in axes]
+    first_xy = len(axes) - 2
+    padded = tuple(_pad_to(n, m, 2 if i >= first_xy else 1)
+                   for i, (n, m) in enumerate(zip(axes, halvings, strict=True)))
+    return padded, halvings
 
 
 class _Block(nn.Sequential):
@@ -274,15 +293,11 @@ class Generator(nn.Module):
                 f"network variant '2d' reconstructs one image (K = 1) but the scene has K = {k} "
                 f"frames/bands/planes: use variant 'frames' or '3d'"
             )
-        axes: tuple[int, ...]
         if config.variant == "3d":
-            axes = (k, h, w)
             dims, out_ch = 3, c
         else:
-            axes = (h, w)
             dims, out_ch = 2, c * k
-        halvings = [axis_halvings(n, config.scales) for n in axes]
-        self.padded = tuple(_pad_to(n, m) for n, m in zip(axes, halvings, strict=True))
+        self.padded, halvings = padded_grid(config, self.scene_shape)
         strides = [[2 if i < m else 1 for m in halvings] for i in range(config.scales)]
         depth_kernel = 3 if (dims == 3 and k >= 2) else 1
         self.net = SkipNet(dims, config.input_channels, out_ch, config, strides, depth_kernel)

@@ -32,7 +32,7 @@ def saved_activation_bytes(g: Generator) -> int:
 
 @pytest.mark.parametrize(
     ("variant", "shape"), [("2d", (1, 1, 64, 48)), ("frames", (1, 4, 40, 40)),
-                           ("3d", (1, 8, 32, 32))])
+                           ("3d", (1, 8, 32, 32)), ("2d", (1, 1, 1, 256))])
 def test_activation_estimate_matches_saved_tensors(variant, shape):
     cfg = NetworkConfig(variant=variant, scales=4, channels=16, skip_channels=4,
                         input_channels=8)

@@ -5,7 +5,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from recon.udn.network import Generator, NetworkConfig, axis_halvings, parameter_count
+from recon.udn.network import (
+    Generator,
+    NetworkConfig,
+    axis_halvings,
+    padded_grid,
+    parameter_count,
+)
 
 SMALL = {"scales": 3, "channels": 8, "skip_channels": 4, "input_channels": 4}
 
@@ -17,10 +23,14 @@ SMALL = {"scales": 3, "channels": 8, "skip_channels": 4, "input_channels": 4}
         ("2d", (1, 1, 17, 23)),  # odd sizes, not multiples of 2**scales
         ("2d", (3, 1, 19, 30)),  # RGB: 3 output channels
         ("2d", (1, 1, 5, 7)),  # too small to halve 3 times
+        ("2d", (1, 1, 1, 32)),  # one row: computed on 2 (reflection padding needs 2 samples)
+        ("2d", (3, 1, 24, 1)),  # one column
+        ("2d", (1, 1, 1, 1)),
         ("frames", (1, 4, 18, 21)),
         ("frames", (3, 2, 16, 20)),
         ("3d", (1, 5, 17, 19)),
         ("3d", (2, 1, 16, 16)),  # K = 1: depth kernel 1, depth never halved
+        ("3d", (1, 3, 1, 20)),
         ("3d", (1, 16, 16, 16)),
     ],
 )
@@ -47,6 +57,10 @@ def test_padded_grid_and_halvings():
     g = Generator(NetworkConfig(scales=5, channels=4, input_channels=2), (1, 1, 150, 200))
     assert g.padded == (160, 224)
     assert tuple(g.z.shape) == (1, 2, 160, 224)
+    # a 1-row or 1-column scene failed in torch's reflection padding ("Padding size should be
+    # less than the corresponding input dimension"): its grid has at least 2 along y and x
+    assert padded_grid(NetworkConfig(scales=5), (1, 1, 1, 32)) == ((2, 32), [0, 4])
+    assert padded_grid(NetworkConfig(variant="3d", scales=5), (1, 1, 24, 1))[0] == (1, 24, 2)
 
 
 def test_output_gain_reaches_beyond_the_sigmoid():
