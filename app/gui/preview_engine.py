@@ -388,12 +388,15 @@ class PreviewEngine:
         sensor_psf = self._psf_at_binning(binning)
         ph, pw = sensor_psf.shape
         if sensor is not None:
+            # the PSF must be this sensor's, or this region's (a PSF calibrated at the ROI)
             sh, sw = (int(v) for v in sensor)
-            if (sh // binning, sw // binning) != (ph, pw):
+            region = (ph, pw) if roi is None else (roi[3] // binning, roi[2] // binning)
+            if (ph, pw) not in ((sh // binning, sw // binning), region):
                 psf_h, psf_w = self._psf.shape
                 raise PreviewError(
-                    f"the PSF is for a {psf_h}x{psf_w} sensor but this camera's sensor is "
-                    f"{sh}x{sw} (binning {binning}); calibrate a PSF for this camera")
+                    f"the PSF is {psf_h}x{psf_w} but this camera's sensor is {sh}x{sw} and the "
+                    f"frame's region {region[0] * binning}x{region[1] * binning} (binning "
+                    f"{binning}): it belongs to another camera; calibrate a PSF for this one")
         # roi is (x, y, width, height); the PSF (rows, columns)
         full_roi = roi is None or (roi[3] // binning, roi[2] // binning) == (ph, pw)
         if full_roi:

@@ -212,9 +212,10 @@ def test_a_psf_of_a_bigger_sensor_is_refused_not_taken_for_a_roi(psf: np.ndarray
     with pytest.raises(PreviewError) as info:
         eng.process(frame, roi=(0, 0, 64, 48), sensor=(48, 64))
     assert str(info.value) == (
-        "the PSF is for a 96x128 sensor but this camera's sensor is 48x64 (binning 1); "
-        "calibrate a PSF for this camera")
-    with pytest.raises(PreviewError, match=r"sensor is 48x64 \(binning 2\)"):
+        "the PSF is 96x128 but this camera's sensor is 48x64 and the frame's region 48x64 "
+        "(binning 1): it belongs to another camera; calibrate a PSF for this one")
+    with pytest.raises(PreviewError, match=r"sensor is 48x64 and the frame's region 48x64 "
+                                           r"\(binning 2\)"):
         eng.process(frame[::2, ::2].copy(), roi=(0, 0, 64, 48), binning=2, sensor=(48, 64))
     # the same frame as a ROI of a sensor as big as the PSF: previewed, masked into the PSF's
     r = eng.process(frame, roi=(0, 0, 64, 48), sensor=(96, 128))
@@ -248,6 +249,13 @@ def test_frames_of_the_simulated_camera_preview_with_their_sensor_size() -> None
     r = eng.process(binned.pixels, **frame_keywords(binned))
     assert r.shape == (12, 16) and eng._mask.sum() == 8 * 6
     bigger = PreviewEngine(synthetic_psf((48, 64), n_points=10, seed=2), settings)
-    with pytest.raises(PreviewError, match="PSF is for a 48x64 sensor but this camera's "
-                                           r"sensor is 24x32 \(binning 1\)"):
+    with pytest.raises(PreviewError, match="PSF is 48x64 but this camera's sensor is 24x32 "):
         bigger.process(full.pixels, **frame_keywords(full))
+    # a PSF calibrated at the camera's ROI (the wizard captures with the ROI set) previews
+    # frames of that ROI as a whole image; on the full sensor it is refused
+    at_roi = PreviewEngine(psf[4:16, 8:24].copy(), settings)
+    r = at_roi.process(cut.pixels, **frame_keywords(cut))
+    assert r.shape == (12, 16) and at_roi._mask is None
+    with pytest.raises(PreviewError, match=r"PSF is 12x16 but this camera's sensor is 24x32 "
+                                           r"and the frame's region 24x32"):
+        at_roi.process(full.pixels, **frame_keywords(full))
