@@ -227,6 +227,27 @@ def _garbage_line() -> bytes:
     return bytes(b if 0x20 <= b < 0x7F and b != ord("@") else 0x80 | (b & 0x7F) for b in junk)
 
 
+def _parent_to_watch(spawner: int | None) -> int | None:
+    """The parent pid to watch for ``--parent-pid SPAWNER``: our parent as we start.
+
+    That is the spawner itself, or a launcher between us that forked (and ends with the
+    spawner's process). A spawner already gone before we started leaves nothing to watch for:
+    then we exit at once (our parent is 1 or a subreaper) by returning a pid that cannot be our
+    parent (0).
+    """
+    if spawner is None:
+        return None
+    ppid = os.getppid()
+    if ppid != spawner:
+        try:
+            os.kill(spawner, 0)
+        except ProcessLookupError:
+            return 0  # the spawner died before we started
+        except PermissionError:
+            pass
+    return ppid
+
+
 def serve(fd: int, fw: Firmware, stop: list[bool], wakeup: int | None = None,
           parent: int | None = None) -> None:
     """Read command lines from ``fd`` and answer them until ``stop[0]`` is set.
@@ -368,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"PORT {port_shown}", flush=True)
     print("READY", flush=True)
     try:
-        serve(fd, fw, stop, wake_r, args.parent_pid)
+        serve(fd, fw, stop, wake_r, _parent_to_watch(args.parent_pid))
     finally:
         with contextlib.suppress(OSError):
             fw.state = fw.state.evolve(mode=LightMode.OFF)

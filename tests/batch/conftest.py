@@ -55,18 +55,3 @@ def write_udn_spec(folder: Path, max_iter: int, checkpoint_every: int,
     return p
 
 
-def children_of(pid: int) -> list[tuple[int, str]]:
-    """Live (not zombie) child processes of ``pid``: (pid, name), from /proc."""
-    out = []
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            stat = (d / "stat").read_text()
-        except OSError:
-            continue
-        name = stat[stat.index("(") + 1 : stat.rindex(")")]
-        fields = stat[stat.rindex(")") + 2 :].split()
-        if int(fields[1]) == pid and fields[0] != "Z":
-            out.append((int(d.name), name))
-    return out

@@ -31,7 +31,8 @@ from app.batch.state import batch_status, request_cancel
 from app.batch.summary import read_summary
 from app.cli import main
 from recon.io import read_reconstruction
-from tests.batch.conftest import children_of, make_data, write_udn_spec
+from tests.batch.conftest import make_data, write_udn_spec
+from tests.procs import children_of
 
 pytestmark = pytest.mark.slow
 

@@ -7,6 +7,7 @@ import pytest
 
 from app.cli import main
 from recon.calibfile import load_calibration
+from tests.procs import HAS_PROC, alive, children_of
 
 
 def test_calibrate_psf_with_simulated_camera_and_source(tmp_path, capsys):
@@ -210,31 +211,7 @@ def test_sigterm_during_a_capture_cleans_up_like_ctrl_c(tmp_path):
 
 
 def _live_children(pid: int) -> list[int]:
-    """Live (not zombie) child processes of ``pid``, from /proc."""
-    from pathlib import Path
-
-    out = []
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            stat = (d / "stat").read_text()
-        except OSError:
-            continue
-        fields = stat[stat.rindex(")") + 2 :].split()
-        if int(fields[1]) == pid and fields[0] != "Z":
-            out.append(int(d.name))
-    return out
-
-
-def _alive(pid: int) -> bool:
-    from pathlib import Path
-
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat[stat.rindex(")") + 2 :].split()[0] != "Z"
+    return [p for p, _ in children_of(pid)]
 
 
 def _start_capture(tmp_path):
@@ -267,6 +244,7 @@ def _start_capture(tmp_path):
     return proc, firmware[0]
 
 
+@pytest.mark.skipif(not HAS_PROC, reason="reads processes from Linux /proc")
 def test_ctrl_c_in_the_terminal_switches_the_source_off_quietly(tmp_path):
     """Ctrl-C sends SIGINT to the whole foreground process group: the simulated firmware died
     first and the clean-up then warned "could not switch the point source off". The firmware
@@ -285,11 +263,12 @@ def test_ctrl_c_in_the_terminal_switches_the_source_off_quietly(tmp_path):
     assert proc.returncode == 130, err
     assert "interrupted" in err
     assert "could not switch the point source off" not in err, err
-    assert not _alive(fw)  # no orphan firmware
+    assert not alive(fw)  # no orphan firmware
     assert not list(tmp_path.glob("lenslesscam-cal-*"))  # folder removed
     assert not (tmp_path / "p.tif").exists()
 
 
+@pytest.mark.skipif(not HAS_PROC, reason="reads processes from Linux /proc")
 def test_firmware_exits_when_the_calibrate_process_is_killed(tmp_path):
     """SIGKILL gives the command no clean-up: its firmware (in its own session, out of reach
     of the terminal's signals) notices that its parent is gone and exits by itself."""
@@ -302,10 +281,10 @@ def test_firmware_exits_when_the_calibrate_process_is_killed(tmp_path):
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=60)
         deadline = time.monotonic() + 10
-        while _alive(fw) and time.monotonic() < deadline:
+        while alive(fw) and time.monotonic() < deadline:
             time.sleep(0.1)
-        assert not _alive(fw), "the simulated firmware outlived its parent"
+        assert not alive(fw), "the simulated firmware outlived its parent"
     finally:
-        if _alive(fw):
+        if alive(fw):
             os.kill(fw, signal.SIGKILL)
         proc.communicate(timeout=30)  # the firmware held its stderr open

@@ -239,3 +239,21 @@ def test_firmware_can_serve_an_existing_serial_device(tmp_path: object) -> None:
         proc.stdout.close()
         os.close(master)
         os.close(slave)
+
+
+def test_the_firmware_watches_the_parent_it_starts_with():
+    """--parent-pid: the firmware watches its parent as it starts (the spawner, or a launcher
+    that forked between them); a spawner gone before it started means exit at once (0)."""
+    import os
+    import subprocess
+    import sys
+
+    from drivers.pointsource_sim import _parent_to_watch
+
+    assert _parent_to_watch(None) is None
+    assert _parent_to_watch(os.getppid()) == os.getppid()
+    # a launcher between: the spawner (alive) is not our parent; watch the launcher
+    assert _parent_to_watch(os.getpid()) == os.getppid()
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    assert _parent_to_watch(gone.pid) == 0
