@@ -279,6 +279,18 @@ class Problem:
         """``kind`` for :func:`recon.reconfile.save_reconstruction`."""
         return RECONSTRUCTION_KIND[self.spec.model]
 
+    def psf_per_channel(self) -> F32:
+        """The PSF with one plane per measurement channel.
+
+        A gray PSF read for colour data (``--rgb``; the model shares it across the channels)
+        is repeated for each, for the callers that take one PSF per channel (plan, trade).
+        Any other PSF as it is.
+        """
+        c = int(self.meas.shape[0])
+        if self.psf.ndim == 3 and self.psf.shape[0] == 1 and c > 1 and self.kind != "depth":
+            return np.repeat(self.psf, c, axis=0)
+        return self.psf
+
 
 # --------------------------------------------------------------------------------------------
 # Readers, one per file kind

@@ -639,6 +639,14 @@ def test_recon_auto_shares_a_gray_psf_across_colour_channels(sim, tmp_path, caps
     x, _ = read_reconstruction(tmp_path / "auto.tif")
     assert x.shape == (3, 1, 24, 32) and np.isfinite(x).all() and x.max() > 0
     assert np.allclose(x[0], x[1]) and np.allclose(x[1], x[2])  # the same data in each channel
+    # trade reads it the same way (it refused it as recon auto did)
+    code, _, err = _run(capsys, "trade", *files, "--quick", "--no-udn", "--out",
+                        tmp_path / "trade")
+    assert code == 0, err
+    from recon.trade import read_trade
+
+    trade = read_trade(tmp_path / "trade" / "trade.csv")
+    assert trade.rows and [c["shape"][0] for c in trade.cases] == [3]
 
 
 def test_simulate_never_writes_inf_and_says_when_its_measurement_is_zero(sim, tmp_path, capsys):

@@ -152,12 +152,7 @@ def load_inputs(args: argparse.Namespace) -> dict[str, Any]:
         raise ValueError("plan: a padded-grid PSF is not supported with a shutter or timing; "
                          "give the PSF on the sensor grid")
     sensor = (int(prob.meas.shape[-2]), int(prob.meas.shape[-1]))
-    psf = prob.psf
-    if not depth and psf.shape[0] == 1 and prob.meas.shape[0] > 1:
-        # a gray PSF with --rgb: one PSF shared by R, G and B (as recon fista and udn read it);
-        # the plan's models take one PSF per channel
-        psf = np.repeat(psf, prob.meas.shape[0], axis=0)
-    return {"meas": prob.meas, "psf": None if depth else psf,
+    return {"meas": prob.meas, "psf": None if depth else prob.psf_per_channel(),
             "stack": prob.psf if depth else None, "shutter": shutter, "timing": timing,
             "mask": prob.mask, "sensor": sensor,
             "field": tuple(int(n) for n in prob.model.scene_shape[2:]), "problem": prob}

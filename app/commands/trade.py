@@ -99,7 +99,7 @@ def _cases(args: argparse.Namespace) -> list[Any]:
     if not args.psf:
         raise ValueError("--meas needs --psf")
     prob = load_problem(problem_spec(args, model="2d"))
-    psf, meas, mask, truth = prob.psf, prob.meas, prob.mask, prob.truth
+    psf, meas, mask, truth = prob.psf_per_channel(), prob.meas, prob.mask, prob.truth
     field = tuple(int(n) for n in prob.model.info["field"])
     source: dict[str, Any] = {}
     for key, path in (("psf", args.psf), ("meas", args.meas), ("mask", args.mask),
