@@ -86,15 +86,19 @@ class BatchReport:
 
 
 def split_address(address: str) -> tuple[str, int] | None:
-    """``(host, port)`` of a ``[ray://]HOST:PORT`` address, None for ``auto``.
+    """``(host, port)`` of a ``[ray://]HOST:PORT`` address; None where Ray alone decides.
 
-    Raises ValueError (a one-line message) for anything else.
+    None for ``auto``, ``local`` and ``scheme://`` addresses other than ``ray://``. Raises
+    ValueError (a one-line message) for anything else.
     """
-    if address.strip().lower() == "auto":
-        return None
     target = address.strip()
-    if target.startswith("ray://"):
-        target = target[len("ray://"):]
+    if target.lower() in ("auto", "local"):
+        return None
+    scheme, sep, rest = target.partition("://")
+    if sep:
+        if scheme.lower() != "ray":
+            return None  # another kind of address Ray knows: left to it, not probed
+        target = rest
     host, sep, port_s = target.rpartition(":")
     host = host.strip("[]")  # [::1]:6379
     if not sep or not host or not port_s.isdigit() or not 0 < int(port_s) < 65536:
@@ -162,7 +166,9 @@ def start_ray(address: str | None, num_cpus: int | None,
     if address:
         check_reachable(address, connect_timeout_s)
         try:
-            ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+            given = address.strip()
+            ray.init(address=given.lower() if given.lower() in ("auto", "local") else given,
+                     log_to_driver=False, logging_level=logging.WARNING)
         except (ConnectionError, TimeoutError) as exc:  # reachable, but not a Ray it can join
             from app.cli import CliError
 

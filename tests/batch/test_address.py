@@ -34,6 +34,9 @@ def test_split_address() -> None:
     assert split_address("head.lab:6379") == ("head.lab", 6379)
     assert split_address("ray://10.0.0.5:10001") == ("10.0.0.5", 10001)
     assert split_address("[::1]:6379") == ("::1", 6379)
+    # Ray's other addresses are Ray's to read: not probed, not refused
+    assert split_address("local") is None and split_address("Local") is None
+    assert split_address("anyscale://my-cluster") is None
     for bad in ("head.lab", ":6379", "head:", "head:port", "head:0", "head:70000", ""):
         with pytest.raises(ValueError, match="--address must be 'auto' or HOST:PORT"):
             split_address(bad)
