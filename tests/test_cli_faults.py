@@ -609,6 +609,8 @@ def test_a_result_that_explains_nothing_is_not_written(sim, tmp_path, capsys):
         assert code == 2, (name, err)
         assert "the result explains none of the measurement" in err and "nothing written" in err
         assert len(err.strip().splitlines()) == 1 and not out.exists()
+        hint = {"admm": "(--rho)", "depth": "(--tv-k, --precondition)"}[name]
+        assert f"an extreme setting {hint} can hold the solver at 0" in err, err
     # an ordinary run passes the check
     assert _run(capsys, *runs["admm"][:4], "--meas", sim / "meas.npy", "--tau", "1e-3",
                 "--iters", "20", "--out", tmp_path / "ok.tif")[0] == 0

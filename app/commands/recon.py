@@ -167,7 +167,7 @@ def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
         bar.update(step.iteration, f"objective {step.objective:.4g}")
     bar.close()
     wall = time.perf_counter() - t0
-    _check_explains(solver, prob.model, b, method)
+    _check_explains(solver, prob.model, b, method, prob.kind)
     meta = {
         "method": method, "model": args.model, "parameters": solver.params,
         "regularisation": tau_meta, "iterations": solver.iteration,
@@ -187,7 +187,7 @@ def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
     return 0
 
 
-def _check_explains(solver: Any, model: Any, b: Any, method: str) -> None:
+def _check_explains(solver: Any, model: Any, b: Any, method: str, kind: str = "2d") -> None:
     """Refuse a result that explains none of the measurement (no better than all zeros).
 
     For a non-negative PSF and measurement a small constant image always beats 0, so a
@@ -203,7 +203,8 @@ def _check_explains(solver: Any, model: Any, b: Any, method: str) -> None:
     if res < 1.0:
         return
     reason = solver.reason.value if solver.reason else "max_iter"
-    extreme = "--rho" if method.startswith("admm") else "--tv-k, --precondition"
+    extreme = ("--rho" if method.startswith("admm") else
+               "--precondition" if kind == "2d" else "--tv-k, --precondition")
     raise ValueError(
         f"{method}: the result explains none of the measurement (relative residual {res:.6g} "
         f"after {solver.iteration} iterations, stop reason {reason}; an all-zero image does as "
