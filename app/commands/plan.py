@@ -173,7 +173,8 @@ def _make(args: argparse.Namespace, inputs: dict[str, Any], probe: bool = True) 
         tau=args.tau if args.tau is not None else DEFAULT_TAU, seed=args.seed, probe=probe,
         progress=progress)
     if getattr(args, "trade", None):
-        plan = plan_from_trade(plan, args.trade, inputs)
+        plan = plan_from_trade(plan, args.trade, inputs,
+                               who=f"lenslesscam {getattr(args, 'command', None) or 'plan'}")
     overrides = parse_overrides(args.set)
     plan = plan.override(**overrides) if overrides else plan
     if (args.tau is None and not getattr(args, "trade", None) and plan.method == "fista-tv"
@@ -234,7 +235,7 @@ def auto_tau_plan(plan: Any, inputs: dict[str, Any]) -> Any:
     return dataclasses.replace(new, reasons=reasons, overridden=plan.overridden)
 
 
-def trade_data_warning(trade: Any, inputs: dict[str, Any]) -> str | None:
+def trade_data_warning(trade: Any, inputs: dict[str, Any], who: str = "plan") -> str | None:
     """One line when ``trade`` (a :class:`recon.trade.TradeFile`) was measured on other data.
 
     The plan's data (its measurement, PSF or stack, mask and field as :func:`load_inputs`
@@ -245,7 +246,7 @@ def trade_data_warning(trade: Any, inputs: dict[str, Any]) -> str | None:
     from recon.trade import Case, case_differences, case_record
 
     if not trade.cases:
-        return (f"plan: warning: {trade.path} records no data it was measured on (a trade.csv "
+        return (f"{who}: warning: {trade.path} records no data it was measured on (a trade.csv "
                 "from before format version 1): not checked against this plan's data")
     prob = inputs["problem"]
     psf = inputs["psf"] if inputs["psf"] is not None else inputs["stack"]
@@ -258,11 +259,12 @@ def trade_data_warning(trade: Any, inputs: dict[str, Any]) -> str | None:
     name, diffs = off[0]
     which = (f"case {name!r}" if len(trade.cases) == 1 else
              f"{len(off)} of its {len(trade.cases)} cases, e.g. {name!r}")
-    return (f"plan: warning: {trade.path} was measured on other data than this plan's "
+    return (f"{who}: warning: {trade.path} was measured on other data than this plan's "
             f"({which}: {', '.join(diffs)}); its timings and tau may not hold here")
 
 
-def plan_from_trade(plan: Any, trade_csv: str, inputs: dict[str, Any] | None = None) -> Any:
+def plan_from_trade(plan: Any, trade_csv: str, inputs: dict[str, Any] | None = None,
+                    who: str = "plan") -> Any:
     """Take method, tau and iterations from the best trade setting within the plan's budget.
 
     With the plan's ``inputs`` (:func:`load_inputs`), a trade measured on other data is
@@ -275,7 +277,7 @@ def plan_from_trade(plan: Any, trade_csv: str, inputs: dict[str, Any] | None = N
     if plan.budget_s is None:
         raise ValueError("--trade needs --budget (the time the reconstruction may take)")
     trade = read_trade(trade_csv)
-    if inputs is not None and (warning := trade_data_warning(trade, inputs)):
+    if inputs is not None and (warning := trade_data_warning(trade, inputs, who)):
         print(warning, file=sys.stderr)
     rows = [r for r in trade.rows if r.downsample == 1]
     key = "psnr" if rows and all(r.psnr is not None for r in rows) else "heldout_psnr"

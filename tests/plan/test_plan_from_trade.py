@@ -80,8 +80,8 @@ def test_plan_warns_when_the_trade_was_measured_on_other_data(tmp_path, capsys):
     # another PSF of the same size
     other_psf, _ = _save_pair(tmp_path / "b", (32, 40), 2)
     warn = _plan_stderr(capsys, other_psf, meas, trade)
-    assert warn == [f"plan: warning: {trade} was measured on other data than this plan's "
-                    "(case 'meas': another PSF); its timings and tau may not hold here"]
+    assert warn == [f"lenslesscam plan: warning: {trade} was measured on other data than this "
+                    "plan's (case 'meas': another PSF); its timings and tau may not hold here"]
     # other data: another size (and so another PSF)
     psf_c, meas_c = _save_pair(tmp_path / "c", (48, 64), 3)
     warn = _plan_stderr(capsys, psf_c, meas_c, trade)
