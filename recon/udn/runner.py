@@ -631,6 +631,25 @@ class UDNRunner(Stepwise[UDNStep]):
             eta = min(eta, max(0.0, self.config.time_limit_s - self.elapsed_s))
         return eta
 
+    def _check_optimizer_state(self, it: int) -> None:
+        """Raise :class:`NumericalError` when Adam's moments are no longer finite.
+
+        A gradient beyond float32's range (a huge ``tv_weight``, say 1e30) makes the second
+        moment infinite; Adam's steps are then 0 and the network stops moving while the loss
+        stays finite, so nothing else would notice: the run would end with its first output.
+        Checked at the first iteration and at every snapshot (cheap: one pass over the state).
+        """
+        with torch.no_grad():
+            for state in self.opt.state.values():
+                for name in ("exp_avg", "exp_avg_sq"):
+                    t = state.get(name)
+                    if t is not None and not bool(torch.isfinite(t).all()):
+                        raise NumericalError(
+                            f"UDN: the gradient overflowed {t.dtype} at iteration {it} (Adam's "
+                            f"{name} is not finite, so the network stopped moving); lower "
+                            f"optimizer.tv_weight (now {self.config.tv_weight:g}) or rescale "
+                            "the data")
+
     def step(self, preview: bool = False) -> UDNStep:
         """Do one iteration and report it (``preview``: attach the estimate as numpy).
 
@@ -675,6 +694,8 @@ class UDNRunner(Stepwise[UDNStep]):
         else:
             loss.backward()  # type: ignore[no-untyped-call]
             self.opt.step()
+            if it == 1 or it % cfg.snapshot_every == 0:
+                self._check_optimizer_state(it)
             with torch.no_grad():
                 xd = x.detach() if scale is None else x.detach() * scale.detach()
                 if self.ema is None or cfg.ema == 0:

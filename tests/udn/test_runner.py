@@ -253,6 +253,20 @@ def test_tv_weight_enters_the_loss_and_smooths_the_output():
         torch.as_tensor(r0.final_estimate()))
 
 
+def test_a_gradient_beyond_float32_is_an_error_not_a_network_that_stops_moving():
+    """tv_weight 1e30: the loss stays finite (~1e27) but Adam's second moment overflows, its
+    steps become 0 and the run ended with its untrained first output, without a word."""
+    r, _ = make_runner(max_iter=5, holdout=0.0, seed=3, tv_weight=1e30)
+    with pytest.raises(NumericalError, match=r"gradient overflowed torch.float32 at iteration 1 "
+                                             r"\(Adam's exp_avg_sq is not finite.*tv_weight "
+                                             r"\(now 1e\+30\)"):
+        r.step()
+    r, _ = make_runner(max_iter=3, holdout=0.0, seed=3, tv_weight=1.0)  # large, in range
+    for _ in r.steps():
+        pass
+    assert r.iteration == 3 and np.isfinite(r.final_estimate()).all()
+
+
 def test_tv_diffs_match_the_in_place_differences():
     from recon.tv import TV
 
