@@ -457,18 +457,25 @@ def combine_jobs(views: list[JobView], jobs_dir: str | Path) -> Any:
     return combine_runs([v.run_dir for v in views], out)
 
 
-def read_loss(folder: str | Path) -> tuple[npt.NDArray[np.float64], ...]:
-    """(iterations, loss, held-out error) from the run's ``loss.csv`` (empty arrays if none)."""
+def read_loss(folder: str | Path) -> tuple[Any, ...]:
+    """(iterations, loss, held-out error, problem) from the run's ``loss.csv``.
+
+    Empty arrays when there is none yet; ``problem`` is the reader's one-line message when the
+    file cannot be read (damaged, or written by a newer lenslesscam), else None.
+    """
     from recon.formats import FormatError
     from recon.udn.jobs import read_loss_rows
 
     its: list[float] = []
     loss: list[float] = []
     held: list[float] = []
+    problem = None
     try:
         rows = read_loss_rows(Path(folder) / RUN_DIR)
-    except (OSError, FormatError):
+    except FileNotFoundError:
         rows = []
+    except (OSError, FormatError) as exc:
+        rows, problem = [], str(exc).splitlines()[0] if str(exc) else type(exc).__name__
     for row in rows:
         try:
             its.append(float(row["iteration"]))
@@ -476,7 +483,7 @@ def read_loss(folder: str | Path) -> tuple[npt.NDArray[np.float64], ...]:
             held.append(float(row["heldout"]) if row["heldout"] else np.nan)
         except ValueError:
             continue
-    return np.array(its), np.array(loss), np.array(held)
+    return np.array(its), np.array(loss), np.array(held), problem
 
 
 def cancel_job(folder: str | Path) -> str:

@@ -643,8 +643,10 @@ class JobsPanel(QWidget):
             from recon.udn.jobs import format_hms
 
             lines.append(f"elapsed {format_hms(v.elapsed_s)}, ETA {format_hms(v.eta_s)}")
+        its, loss, held, problem = read_loss(v.folder)
+        if problem is not None:
+            lines.append(f"loss curve not shown: {problem}")
         self.details.setText("\n".join(lines))
-        its, loss, held = read_loss(v.folder)
         ok = np.isfinite(loss) & (loss > 0)
         self.loss_curve.setData(its[ok], np.log10(loss[ok]))
         okh = np.isfinite(held) & (held > 0)

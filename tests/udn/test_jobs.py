@@ -537,12 +537,14 @@ def test_loss_csv_reader_reads_old_files_and_refuses_newer_ones(tmp_path):
     assert [r["iteration"] for r in rows] == ["1", "2"] and rows[1]["heldout"] == ""
     from app.gui.jobs_core import read_loss
 
-    its, loss, held = read_loss(tmp_path)  # the app's view: folder/run/loss.csv
+    its, loss, held, problem = read_loss(tmp_path)  # the app's view: folder/run/loss.csv
     assert list(its) == [1, 2] and list(loss) == [0.5, 0.3] and np.isnan(held[1])
+    assert problem is None
     (run / LOSS_FILE).write_text(f"# format: lenslesscam.udn_loss\n# format_version: 99\n{cols}\n")
     with pytest.raises(FormatError, match=r"loss.csv: UDN loss.csv format version 99 is newer"):
         read_loss_rows(run)
-    assert read_loss(tmp_path)[0].size == 0  # the app shows no curve, it does not fail
+    its, _, _, problem = read_loss(tmp_path)  # the app shows no curve and says why
+    assert its.size == 0 and "format version 99 is newer" in problem
     (run / LOSS_FILE).write_text(f"{cols}\nx,0.5,,,,,,\n")
     with pytest.raises(FormatError, match="line 2: field 'iteration'"):
         read_loss_rows(run)
