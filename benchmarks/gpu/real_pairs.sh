@@ -15,6 +15,7 @@
 #    the others are kept);
 # 4. makes the table and the figure from all of them, and packs everything but the per-case
 #    images into $OUT/results.tgz.
+# EXTRA: more options for every run, e.g. EXTRA="--lever fista-input --seeds 2".
 # DEVICE=cpu DOWNSAMPLE=4 make a dry run of the script on a CPU.
 # Needs python3 with torch (CUDA), numpy, scipy, pillow, h5py, tifffile, opencv on the path;
 # the project is used from the source tree (PYTHONPATH), not installed.
@@ -58,7 +59,7 @@ IFS=';' read -r -a groups <<< "${GROUPS_OF_LEVELS:-0 0.5 0.9 0.95 0.99}"
 for p in im65 im408 im740 im1000; do
   for g in "${!groups[@]}"; do
     # shellcheck disable=SC2086
-    timeout "$left" $RP --pairs $p --erasures ${groups[$g]} --udn-iters "$ITERS" \
+    timeout "$left" $RP --pairs $p --erasures ${groups[$g]} --udn-iters "$ITERS" ${EXTRA:-} \
       --results "$W/rp-$p-$g.jsonl" > "$W/log-$p-$g.txt" 2>&1 &
   done
 done
