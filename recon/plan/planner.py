@@ -62,6 +62,8 @@ PLAN_FORMAT = "lenslesscam.plan"
 PLAN_VERSION = 1
 #: TV weight of the reconstruction (the ``recon fista`` default), for a measurement of max 1.
 DEFAULT_TAU = 1e-3
+#: the smallest measurement (rows and columns) make_plan analyses
+MIN_PLAN_SIZE = 2
 MODELS = ("2d", "video", "depth")
 METHODS = ("fista-tv", "udn")
 
@@ -568,6 +570,10 @@ def make_plan(
 
     b = _scaled_meas(meas)
     c, h, w = b.shape
+    if h < MIN_PLAN_SIZE or w < MIN_PLAN_SIZE:
+        raise ValueError(f"a {h}x{w} measurement is too small to plan: the analysis needs at "
+                         f"least {MIN_PLAN_SIZE}x{MIN_PLAN_SIZE} pixels (its held-out folds, "
+                         "TV and shutter rows); reconstruct it with recon fista or recon admm")
     stack: F32 | None = None
     if psf_stack is not None:
         stack = np.asarray(psf_stack, dtype=np.float32)

@@ -129,3 +129,19 @@ def test_timing_from_a_saved_frame_and_a_wrong_timing_file(tmp_path, capsys):
     capsys.readouterr()
     assert main([*base, "--timing", str(tmp_path / "psf.npy")]) == 2
     assert "psf.npy: not a JSON timing file or a saved frame" in capsys.readouterr().err
+
+
+def test_a_measurement_too_small_to_plan_says_so(tmp_path, capsys):
+    """A 1x32 measurement failed in plan and recon auto with 'downsampling 1x32 by 1 leaves
+    too few pixels' (a plan's own check, no word of the input); recon fista handles it."""
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "p.npy", rng.random((1, 32)).astype(np.float32))
+    np.save(tmp_path / "m.npy", rng.random((1, 32)).astype(np.float32))
+    files = ["--psf", str(tmp_path / "p.npy"), "--meas", str(tmp_path / "m.npy")]
+    for argv in (["plan", *files, "--no-probe"],
+                 ["recon", "auto", *files, "--out", str(tmp_path / "a.tif")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "a 1x32 measurement is too small to plan" in err and "recon fista" in err, err
+        assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "a.tif").exists()
