@@ -61,7 +61,6 @@ __all__ = [
     "bit_depth_of",
     "protocol_members",
     "read_frame_metadata",
-    "sensor_from_metadata",
 ]
 
 _log = logging.getLogger(__name__)
@@ -75,7 +74,9 @@ FRAME_FORMAT_VERSION = 1
 def read_frame_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The metadata of a saved frame (a TIFF whose description is :meth:`Frame.metadata`).
 
-    Raises ValueError naming the file when it is not such a frame.
+    ``sensor`` is checked ([rows, columns] of positive integers) and None where a frame saved
+    before the sensor size was recorded has none. Raises ValueError naming the file when it is
+    not such a frame.
     """
     import json
 
@@ -89,17 +90,14 @@ def read_frame_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
     if not isinstance(meta, dict) or meta.get("format") != FRAME_FORMAT:
         raise ValueError(f"{path}: not a saved frame with its metadata (format "
                          f"{FRAME_FORMAT})")
+    if meta.get("sensor") is None:
+        meta["sensor"] = None
+    else:
+        try:
+            meta["sensor"] = list(_check_sensor(meta["sensor"]))
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
     return meta
-
-
-def sensor_from_metadata(meta: Mapping[str, Any]) -> tuple[int, int] | None:
-    """The ``sensor`` (rows, columns, unbinned) of frame metadata; None when it is not recorded.
-
-    Frames saved before the sensor size was recorded have no ``sensor`` key (or ``null``).
-    Raises ValueError when the value is not two positive integers.
-    """
-    value = meta.get("sensor")
-    return None if value is None else _check_sensor(value)
 
 
 def _check_sensor(value: Any) -> tuple[int, int]:
@@ -888,6 +886,8 @@ class CameraBase:
         self._is_open = False
         self._streamer: FrameStreamer | None = None
         self._last_stats = StreamStats(mode=StreamMode.IDLE, running=False)
+        #: the sensor's size for Frame.sensor, once a backend could say it (it does not change)
+        self._sensor_known: tuple[int, int] | None = None
 
     # -- identity and lifetime -----------------------------------------------------------------
 
@@ -980,8 +980,8 @@ class CameraBase:
     def _sensor_shape(self) -> tuple[int, int] | None:
         """(rows, columns) of the whole sensor in unbinned pixels, for :attr:`Frame.sensor`.
 
-        Called for every frame: a backend whose :meth:`capabilities` is slow overrides it
-        (same values, or None where the device cannot say reliably).
+        Asked for frames until it gives a size, which is then kept (a sensor does not change
+        size); a backend overrides it where :meth:`capabilities` cannot say reliably (None).
         """
         caps = self.capabilities()
         return int(caps.sensor_height), int(caps.sensor_width)
@@ -1210,7 +1210,9 @@ class CameraBase:
         pf = pixel_format or self._optional(lambda: self.pixel_format)
         if pf is None:
             pf = "Mono16" if pixels.dtype == np.uint16 else "Mono8"
-        sensor = self._optional(self._sensor_shape)
+        sensor = self._sensor_known
+        if sensor is None:
+            sensor = self._sensor_known = self._optional(self._sensor_shape)
         if sensor is not None and (
             roi.y + roi.height > sensor[0] or roi.x + roi.width > sensor[1]
         ):  # a device whose size nodes disagree with its ROI: say "unknown", not a wrong size

@@ -498,7 +498,7 @@ class GenICamCamera(CameraBase):
         SFNC ``SensorHeight``/``SensorWidth`` count unbinned pixels; ``HeightMax``/``WidthMax``
         and the maxima of ``Height``/``Width`` count binned ones (scaled back here). The
         ``Height``/``Width`` maxima shrink with the offset on many devices, so they are used
-        only while ``OffsetY``/``OffsetX`` are 0. A few node reads: called for every frame.
+        only while ``OffsetY``/``OffsetX`` are 0. A few node reads, until one gives a size.
         """
         with self._lock:
             binning = self.binning
