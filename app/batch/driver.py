@@ -462,7 +462,8 @@ def run_batch(manifest: str | Path, out: str | Path,
             final = "failed"
         else:
             final = "finished"
-        summary = write_summary(root, items, drv.records, drv.status)
+        summary = write_summary(root, items, drv.records, drv.status, str(drv.manifest),
+                                drv.started)
         drv.write_state(final)
         return BatchReport(root, final, drv.records, counts, time.monotonic() - drv.t0,
                            drv.ran, summary)

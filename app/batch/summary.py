@@ -8,7 +8,6 @@ counts; then the table (:data:`COLUMNS`). pandas reads it with ``comment="#"``;
 
 from __future__ import annotations
 
-import contextlib
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,9 +57,12 @@ def summary_rows(items: list[Item], records: dict[str, dict[str, Any]],
 
 
 def write_summary(root: Path, items: list[Item], records: dict[str, dict[str, Any]],
-                  status: dict[str, str]) -> list[Path]:
-    """Write ``summary.csv`` and ``summary.md`` in ``root`` (atomically); their paths."""
-    from app.batch.state import read_state
+                  status: dict[str, str], manifest: str | None = None,
+                  started_utc: str | None = None) -> list[Path]:
+    """Write ``summary.csv`` and ``summary.md`` in ``root`` (atomically); their paths.
+
+    ``manifest`` and ``started_utc`` (the driver's) go into the csv's header.
+    """
     from recon.atomic import atomic_write_bytes
     from recon.csvmeta import format_table
     from recon.formats import FORMAT_VERSION, provenance
@@ -69,13 +71,10 @@ def write_summary(root: Path, items: list[Item], records: dict[str, dict[str, An
     counts: dict[str, int] = {}
     for r in rows:
         counts[r["status"]] = counts.get(r["status"], 0) + 1
-    state: dict[str, Any] = {}
-    with contextlib.suppress(OSError, ValueError):  # the summary does not need the state
-        state = read_state(root, missing_ok=True)
     prov = provenance()
     meta = [("created_utc", prov["created_utc"]), ("host", prov["host"]),
             ("versions", prov["versions"]), ("batch", str(root)),
-            ("manifest", state.get("manifest")), ("started_utc", state.get("started_utc")),
+            ("manifest", manifest), ("started_utc", started_utc),
             ("items", len(rows)), ("counts", dict(sorted(counts.items())))]
     text = format_table(SUMMARY_FORMAT, FORMAT_VERSION,
                         [(k, v) for k, v in meta if v is not None], COLUMNS, rows)

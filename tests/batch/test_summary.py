@@ -8,7 +8,6 @@ from pathlib import Path
 import pytest
 
 from app.batch.manifest import Item
-from app.batch.state import STATE_FORMAT, write_state
 from app.batch.summary import COLUMNS, read_summary, summary_rows, write_summary
 from recon.formats import FORMAT_VERSION, FormatError
 
@@ -26,9 +25,8 @@ STATUS = {"m00-fista": "done", "m01-udn": "cancelled", "m02-admm": "failed"}
 
 
 def test_summary_csv_has_a_header_and_reads_back(tmp_path: Path) -> None:
-    write_state(tmp_path, {"format": STATE_FORMAT, "manifest": "/data/m.csv",
-                           "started_utc": "2026-01-01T00:00:00+00:00"})
-    csv_path, md_path = write_summary(tmp_path, ITEMS, RECORDS, STATUS)
+    csv_path, md_path = write_summary(tmp_path, ITEMS, RECORDS, STATUS, "/data/m.csv",
+                                      "2026-01-01T00:00:00+00:00")
     lines = csv_path.read_text(encoding="utf-8").splitlines()
     assert lines[:2] == ["# format: lenslesscam.batch_summary",
                          f"# format_version: {FORMAT_VERSION}"]
