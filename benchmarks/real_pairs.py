@@ -492,8 +492,7 @@ def fista_input(r: Any, x: Any) -> Any:
     n = min(c * k, int(g.z.shape[1]))
     with torch.no_grad():
         g.z[:, :n] = t[:, :n].to(g.z.device, g.z.dtype)
-        g.set_gain(1.0)
-        g.set_gain(r._fit_gain() * r.config.headroom)
+        g.set_gain(r._fit_gain() * r.config.headroom)  # the fit of the new first output
     r.initial_gain = g.gain
     return _restart(r)
 
