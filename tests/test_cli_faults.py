@@ -616,6 +616,21 @@ def test_a_result_that_explains_nothing_is_not_written(sim, tmp_path, capsys):
                 "--iters", "20", "--out", tmp_path / "ok.tif")[0] == 0
 
 
+def test_a_result_a_flat_image_beats_is_written_with_a_warning(sim, tmp_path, capsys):
+    """ADMM at rho 1e6 (in the dtype's range) wrote a near-black image (relative residual
+    0.9998) without a word; a flat image, which has no TV, explains the measurement better."""
+    base = ["recon", "admm", "--psf", sim / "psf.npy", "--meas", sim / "meas.npy", "--tau",
+            "1e-3", "--iters", "20"]
+    code, _, err = _run(capsys, *base, "--rho", "1e6", "--out", tmp_path / "far.tif")
+    assert code == 0 and (tmp_path / "far.tif").exists(), err
+    warning = [ln for ln in err.splitlines() if "warning" in ln]
+    assert len(warning) == 1, err
+    assert "less well than a flat image" in warning[0] and "(--rho)" in warning[0], err
+    # the default rho solves it: no warning
+    code, _, err = _run(capsys, *base, "--out", tmp_path / "ok.tif")
+    assert code == 0 and "flat image" not in err, err
+
+
 def test_a_solver_that_meets_inf_is_one_line(sim, tmp_path, capsys):
     """NumericalError (FISTA meets inf in the TV prox with --tv-k 3e38 on a video model) was a
     traceback."""

@@ -188,24 +188,38 @@ def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
 
 
 def _check_explains(solver: Any, model: Any, b: Any, method: str, kind: str = "2d") -> None:
-    """Refuse a result that explains none of the measurement (no better than all zeros).
+    """Refuse a result that explains none of the measurement; warn at one a flat image beats.
 
     For a non-negative PSF and measurement a small constant image always beats 0, so a
     residual ||A x - b|| / ||b|| of 1 or more is a run that went nowhere (an extreme setting,
     such as an ADMM rho of 1e30, left x at about 0); it is not written.
+
+    A constant image has no total variation, so the best one (a least-squares level c >= 0)
+    is a point of the objective whose value is its data term alone: a solved problem's data
+    residual is at most that constant's. A result above it has not got past a flat image (too
+    few iterations, or an ADMM rho of 1e3 or more that holds x near 0); it is written, with a
+    warning that says so.
     """
     import torch
 
     with torch.no_grad():
         x = solver.x.to(dtype=b.dtype)
-        res = float(torch.linalg.vector_norm(model.op.apply(x) - b)) / float(
-            torch.linalg.vector_norm(b))
-    if res < 1.0:
-        return
+        norm_b = float(torch.linalg.vector_norm(b))
+        res = float(torch.linalg.vector_norm(model.op.apply(x) - b)) / norm_b
+        a1 = model.op.apply(torch.ones_like(x))
+        level = max(0.0, float((a1 * b).sum()) / max(float((a1 * a1).sum()), 1e-300))
+        res_flat = float(torch.linalg.vector_norm(level * a1 - b)) / norm_b
     reason = solver.reason.value if solver.reason else "max_iter"
     extreme = ("--rho" if method.startswith("admm") else
                "--precondition" if kind == "2d" else "--tv-k, --precondition")
-    raise ValueError(
-        f"{method}: the result explains none of the measurement (relative residual {res:.6g} "
-        f"after {solver.iteration} iterations, stop reason {reason}; an all-zero image does as "
-        f"well), nothing written; an extreme setting ({extreme}) can hold the solver at 0")
+    if res >= 1.0:
+        raise ValueError(
+            f"{method}: the result explains none of the measurement (relative residual "
+            f"{res:.6g} after {solver.iteration} iterations, stop reason {reason}; an all-zero "
+            f"image does as well), nothing written; an extreme setting ({extreme}) can hold "
+            "the solver at 0")
+    if res > res_flat * (1 + 1e-3):
+        print(f"lenslesscam recon: warning: {method}: the result explains the measurement less "
+              f"well than a flat image (relative residual {res:.4g} against {res_flat:.4g} "
+              f"after {solver.iteration} iterations, stop reason {reason}); it needs more "
+              f"--iters, or a setting ({extreme}) holds the solver back", file=sys.stderr)
