@@ -12,6 +12,7 @@ import argparse
 import contextlib
 import importlib
 import os
+import re
 import sys
 import warnings
 from collections.abc import Sequence
@@ -45,7 +46,16 @@ class CliError(Exception):
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse with a one-line error: the problem and where the usage is (not the usage)."""
+    """argparse with a one-line error: the problem and where the usage is (not the usage).
+
+    A value such as ``-1e30`` is read as a negative number, as ``-5`` and ``-0.5`` are
+    (argparse's own rule has no exponent, so ``--dark -1e30`` was "expected one argument").
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(
+            r"^-\d+$|^-\d*\.\d+$|^-(\d+\.?\d*|\.\d+)[eE][+-]?\d+$")
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")

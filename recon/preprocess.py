@@ -93,8 +93,9 @@ def subtract_dark(a: Array, dark: float | Array | Literal["auto"]) -> Array:
         return np.asarray(arr - level.astype(arr.dtype))
     d = np.asarray(dark)
     if d.ndim == 0:
-        if not math.isfinite(float(d)):
-            raise ValueError(f"dark level must be finite, got {float(d)}")
+        if not (math.isfinite(float(d)) and float(d) >= 0):
+            raise ValueError(f"dark level must be a finite number >= 0 (the sensor's black "
+                             f"offset), got {float(d)}")
         return np.asarray(arr - arr.dtype.type(float(d)))
     if d.shape != arr.shape[arr.ndim - d.ndim :] or d.ndim > arr.ndim:
         raise ValueError(f"dark frame shape {d.shape} does not match image shape {arr.shape}")

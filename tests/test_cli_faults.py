@@ -711,6 +711,10 @@ def test_metrics_of_values_near_float64s_limits(tmp_path, capsys):
     ("--dark", "nan", "--dark nan: a dark level must be a finite number"),
     ("--psf-dark", "inf", "--psf-dark inf: a dark level must be a finite number"),
     ("--psf-dark", "no-such-dark.tif", "--psf-dark no-such-dark.tif: neither a number"),
+    # a negative level added a pedestal: at -1e30 the measurement became a constant, and
+    # argparse took '-1e30' for an option ('expected one argument') unless written '=-1e30'
+    ("--dark", "-1e30", "--dark -1e30: a dark level must be a finite number >= 0"),
+    ("--psf-dark", "-3", "--psf-dark -3: a dark level must be a finite number >= 0"),
 ])
 def test_a_bad_dark_names_its_option(sim, tmp_path, capsys, option, value, words):
     code, _, err = _run(capsys, *_fista(sim, tmp_path / "r.tif", option, value))

@@ -192,6 +192,10 @@ def test_subtract_dark_modes() -> None:
         rio.subtract_dark(a, np.zeros((3, 3)))
     with pytest.raises(ValueError, match="smaller than the 15x15 corner"):
         rio.subtract_dark(np.ones((10, 10)), "auto")
+    # a scalar level is the sensor's black offset: a negative one (a spec file's dark = -5)
+    # would add a pedestal instead
+    with pytest.raises(ValueError, match="dark level must be a finite number >= 0"):
+        rio.subtract_dark(a, -5.0)
 
 
 def test_box_downsample_values_and_remainder() -> None:

@@ -9,7 +9,7 @@ from typing import Any
 
 
 def parse_dark(value: str | None, option: str = "--dark") -> Any:
-    """``--dark`` (or ``option``): a finite number, 'auto', or a dark-frame file."""
+    """``--dark`` (or ``option``): a finite number >= 0, 'auto', or a dark-frame file."""
     import math
 
     if value is None:
@@ -21,8 +21,9 @@ def parse_dark(value: str | None, option: str = "--dark") -> Any:
     except ValueError:
         pass
     else:
-        if not math.isfinite(level):
-            raise ValueError(f"{option} {value}: a dark level must be a finite number")
+        if not (math.isfinite(level) and level >= 0):
+            raise ValueError(f"{option} {value}: a dark level must be a finite number >= 0 "
+                             "(the sensor's black offset)")
         return level
     p = Path(value)
     if not p.exists():
