@@ -82,6 +82,24 @@ def _describe(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
+def frame_geometry(frame: Any) -> str:
+    """Where a frame lies on its sensor, for the live view's footer.
+
+    ``200x150 px, whole sensor``, or ``320x240 px, ROI at (100, 50) of 1440x1080, binning 2``
+    (the ROI's corner in unbinned sensor pixels); ``sensor size unknown`` for a frame that does
+    not say (:attr:`drivers.camera.Frame.sensor`).
+    """
+    h, w = frame.shape[:2]
+    roi, binning, sensor = frame.roi, frame.binning, getattr(frame, "sensor", None)
+    if sensor is None:
+        where = f"ROI at ({roi.x}, {roi.y}), sensor size unknown"
+    elif (roi.x, roi.y, roi.width, roi.height) == (0, 0, sensor[1], sensor[0]):
+        where = "whole sensor"
+    else:
+        where = f"ROI at ({roi.x}, {roi.y}) of {sensor[1]}x{sensor[0]}"
+    return f"{w}x{h} px, {where}" + (f", binning {binning}" if binning > 1 else "")
+
+
 def _read_camera(cam: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """What the camera reports now (None where it lacks a feature), and the ranges."""
     values: dict[str, Any] = {}
@@ -732,7 +750,7 @@ class MainWindow(QMainWindow):
             if st is not None:
                 parts.append(f"ROI mean {st[0]:.0f} max {st[1]:.0f}")
             if self.last_frame is not None:
-                parts.append(f"{self.last_frame.shape[1]}x{self.last_frame.shape[0]}")
+                parts.append(frame_geometry(self.last_frame))
         else:
             parts.append(self.camera_state)
         self.raw_panel.footer.setText(" · ".join(parts))

@@ -22,6 +22,7 @@ def test_app_starts_live_with_preview_and_point_source(bench_window: Any,
     qtbot.waitUntil(lambda: w.light_state == "connected", timeout=15_000)
     w._update_readouts()
     assert "fps" in w.raw_panel.footer.text() and "latency" in w.raw_panel.footer.text()
+    assert "200x150 px, whole sensor" in w.raw_panel.footer.text()  # Frame.sensor, shown
     assert "preview" in w.preview_panel.footer.text()
     assert not w.banner.isVisible()
 
@@ -194,3 +195,25 @@ def test_a_doubtful_psf_is_loaded_and_said_so_in_the_banner(live_window: Any,
     np.save(tmp_path / "neg.npy", -np.ones(w.bench.sim_psf.shape, np.float32))
     assert not w._load_psf(str(tmp_path / "neg.npy"))
     assert "all zero or negative" in w.banner.text()
+
+
+def test_the_footer_says_where_a_frame_lies_on_its_sensor() -> None:
+    """Frames carried their sensor's size since the preview began checking PSFs with it, but
+    the app showed only the frame's pixel count: a ROI could not be told from a small sensor."""
+    import numpy as np
+
+    from app.gui.main_window import frame_geometry
+    from drivers.camera import Frame, Roi
+
+    def frame(roi: Roi, binning: int, sensor: tuple[int, int] | None) -> Frame:
+        pixels = np.zeros((roi.height // binning, roi.width // binning), np.uint16)
+        return Frame(pixels=pixels, frame_id=1, timestamp=0.0, exposure_us=None, gain=None,
+                     roi=roi, binning=binning, pixel_format="Mono16", bit_depth=16,
+                     timing=None, backend="test", camera_id="t", sensor=sensor)
+
+    assert frame_geometry(frame(Roi(0, 0, 1440, 1080), 1, (1080, 1440))) == (
+        "1440x1080 px, whole sensor")
+    assert frame_geometry(frame(Roi(100, 50, 640, 480), 2, (1080, 1440))) == (
+        "320x240 px, ROI at (100, 50) of 1440x1080, binning 2")
+    assert frame_geometry(frame(Roi(0, 0, 640, 480), 1, None)) == (
+        "640x480 px, ROI at (0, 0), sensor size unknown")
