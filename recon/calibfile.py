@@ -50,6 +50,7 @@ from recon.formats import (
 
 __all__ = [
     "CALIBRATION_FORMATS",
+    "DARK_CORRECTED_KINDS",
     "FILTER_CUBE_FORMAT",
     "PIXEL_MAPS_FORMAT",
     "PSF_FORMAT",
@@ -57,6 +58,7 @@ __all__ = [
     "REQUIRED_KEYS",
     "SHUTTER_FORMAT",
     "Calibration",
+    "calibration_kind",
     "load_calibration",
     "load_filter_cube_file",
     "load_pixel_mask",
@@ -465,6 +467,30 @@ def load_calibration(path: PathLike, *, expect: str | None = None) -> Calibratio
     if ext == ".npz":
         return _read_npz(p, expect)
     raise FormatError(f"{p}: calibration files are .tif/.tiff or .npz, not {p.suffix!r}")
+
+
+#: calibration kinds whose main array is already dark-subtracted (the capture took darks)
+DARK_CORRECTED_KINDS = frozenset({"psf", "psf-stack"})
+
+
+def calibration_kind(path: PathLike) -> str | None:
+    """The kind of a calibration TIFF, read from its metadata alone; None for any other file.
+
+    Cheap (the first page's description, not the pixels) and silent: a plain image, another
+    format or an unreadable file is None; :func:`load_calibration` says what is wrong with one.
+    """
+    p = Path(path)
+    if p.suffix.lower() not in (".tif", ".tiff") or not p.is_file():
+        return None
+    try:
+        import tifffile
+
+        with tifffile.TiffFile(p) as tf:
+            meta = json.loads(tf.pages.first.description)
+    except Exception:  # not a TIFF, no JSON description: not one of ours
+        return None
+    fmt = meta.get("format") if isinstance(meta, dict) else None
+    return _KIND_OF_FORMAT.get(fmt) if isinstance(fmt, str) else None
 
 
 def load_psf_calibration(path: PathLike) -> tuple[F32, dict[str, Any]]:

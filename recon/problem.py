@@ -67,6 +67,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from recon.calibfile import DARK_CORRECTED_KINDS, calibration_kind
 from recon.checks import check_pair
 from recon.formats import array_hash
 from recon.preprocess import (
@@ -125,7 +126,8 @@ class ProblemSpec:
     ``psf`` is the PSF file of the 2d, video and spectral models; ``psf_stack`` the depth
     model's stack (a multi-page file, a folder of planes or a tuple of plane files).
     ``dark``/``psf_dark``: a number, ``'auto'`` or a dark-frame file (``psf_dark`` None: the
-    same as ``dark``). ``psf_normalise``: ``auto`` is ``sum`` for a PSF, ``max`` for a stack.
+    same as ``dark``, except for a calibrated PSF or stack file, which is dark-subtracted
+    already: none). ``psf_normalise``: ``auto`` is ``sum`` for a PSF, ``max`` for a stack.
     """
 
     meas: str
@@ -522,6 +524,13 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
     order: Any = spec.channel_order
     dark = _dark_arg(spec.dark)
     psf_dark = _dark_arg(spec.psf_dark) if spec.psf_dark is not None else dark
+    psf_file = spec.psf_stack if spec.model == "depth" else spec.psf
+    # a calibrated PSF (or stack) is dark-subtracted already: the measurement's dark level
+    # would take a second one off it (a quarter of a simulated bench PSF's energy)
+    psf_dark_corrected = isinstance(psf_file, str) and calibration_kind(psf_file) in (
+        DARK_CORRECTED_KINDS)
+    if spec.psf_dark is None and psf_dark_corrected:
+        psf_dark = None
 
     # measurement (full resolution, counts)
     meas = load_measurement(spec.meas, dark=dark, channels=color, channel_order=order,
@@ -703,7 +712,8 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
               "mask": _file_hash(spec.mask), "shutter": _file_hash(spec.shutter),
               "filters": _file_hash(spec.filters), "truth": _file_hash(spec.truth)}
     meta: dict[str, Any] = {
-        "downsample": ds, "dark": spec.dark, "psf_dark": spec.psf_dark, "color": spec.color,
+        "downsample": ds, "dark": spec.dark, "psf_dark": spec.psf_dark,
+        "psf_dark_corrected_file": psf_dark_corrected, "color": spec.color,
         "channel_order": spec.channel_order, "flip_rows": spec.flip_rows,
         "field": list(fld), "sensor": list(coarse), "grid": list(grid),
         "psf_grid": "padded" if padded else "sensor",

@@ -72,7 +72,8 @@ def add_plan_inputs(p: argparse.ArgumentParser) -> None:
                                    "method, tau and iterations for the budget come from it")
     p.add_argument("--field", default="sensor", help="scene field: sensor, full (2x) or HxW")
     p.add_argument("--dark", help="dark level: a number, 'auto' or a dark-frame file")
-    p.add_argument("--psf-dark", help="dark level of the PSF (default: same as --dark)")
+    p.add_argument("--psf-dark", help="dark level of the PSF (default: same as --dark; none "
+                   "for a calibrated PSF file, which is dark-subtracted)")
     p.add_argument("--rgb", action="store_true", help="colour measurement and PSF")
     p.add_argument("--tau", type=tau_type, default=None, metavar="TAU|auto",
                    help="TV weight of a FISTA-TV plan; 'auto' (default) chooses it and the "

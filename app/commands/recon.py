@@ -86,7 +86,8 @@ def add_input_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--filters", help="spectral: filter cube (K, H, W) (.npy/.npz/.mat/.tif)")
     p.add_argument("--downsample", type=POSITIVE_INT, default=1, help="box downsampling factor")
     p.add_argument("--dark", help="dark level: a number, 'auto' or a dark-frame file")
-    p.add_argument("--psf-dark", help="dark level of the PSF (default: same as --dark)")
+    p.add_argument("--psf-dark", help="dark level of the PSF (default: same as --dark; none "
+                   "for a calibrated PSF file, which is dark-subtracted)")
     p.add_argument("--rgb", action="store_true", help="reconstruct colour channels")
     p.add_argument("--field", default="sensor", help="scene field: sensor, full (2x) or HxW")
     p.add_argument("--float64", action="store_true", help="compute in float64")

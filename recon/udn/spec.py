@@ -96,7 +96,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "downsample": Key((int,), 1, "box downsampling factor of PSF and measurement",
                           minimum=1),
         "dark": Key((str, float), None, "dark level of the measurement (and of the PSF unless "
-                    "psf_dark is set): a number, 'auto' or a dark-frame file"),
+                    "psf_dark is set or the PSF is a calibrated, dark-subtracted file): a "
+                    "number, 'auto' or a dark-frame file"),
         "psf_dark": Key((str, float), None, "dark level of the PSF"),
         "color": Key((str,), "gray", "reconstruct gray or rgb", ("gray", "rgb")),
         "field": Key((str, list), "sensor", "scene field: 'sensor', 'full' (2H x 2W) or "

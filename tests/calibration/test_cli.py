@@ -174,7 +174,8 @@ def test_snap_and_calibrate_use_one_simulated_camera(tmp_path, capsys):
     capsys.readouterr()
     x = read_reconstruction(rec)[0][0, 0]
     truth = demo_pattern(64, 80)
-    assert np.corrcoef(x.ravel(), truth.ravel())[0, 1] > 0.9
+    # 0.994; 0.985 while --dark was taken off the (dark-subtracted) calibrated PSF too
+    assert np.corrcoef(x.ravel(), truth.ravel())[0, 1] > 0.99
 
 
 def test_sigterm_during_a_capture_cleans_up_like_ctrl_c(tmp_path):
