@@ -309,6 +309,8 @@ def _item_from(row: dict[str, Any], meas: str, base: Path, where: str, name: str
                                      f"{value!r}") from None
             if key == "flip_rows":
                 value = _flag(value, where, col)
+            if col in MAYBE_PATH_COLUMNS and value != "auto" and not Path(value).is_absolute():
+                value = float(value)  # a level, not a file name (the spec reads text as a path)
             if col == "psf_stack":
                 spec_data.append(("data", "model", "depth"))
             spec_data.append((sec, key, value))

@@ -82,6 +82,28 @@ def test_dataset_layout_columns_reach_a_udn_spec(data: Path) -> None:
     assert ("data", "flip_rows", False) in item.spec_data
 
 
+def test_a_numeric_dark_reaches_a_udn_spec_as_a_number(data: Path) -> None:
+    """dark = 100 for a udn item with a spec was passed on as the text '100', which the spec
+    read as a file name ('data.dark: file not found: .../100'); a file and 'auto' still work."""
+    write_udn_spec(data, 10, 5)
+    (data / "m.toml").write_text(
+        '[defaults]\npsf = "psf.npy"\ndark = 100\npsf_dark = 0\n\n'
+        '[[item]]\nmeasurement = "meas/m00.npy"\nmethod = "udn"\nspec = "udn.toml"\n\n'
+        '[[item]]\nmeasurement = "meas/m01.npy"\nmethod = "udn"\nspec = "udn.toml"\n'
+        'dark = "auto"\nname = "auto"\n\n'
+        '[[item]]\nmeasurement = "meas/m02.npy"\nmethod = "udn"\nspec = "udn.toml"\n'
+        'dark = "meas/m00.npy"\nname = "file"\n')
+    number, auto, file = read_manifest(data / "m.toml")
+    assert ("data", "dark", 100.0) in number.spec_data
+    assert ("data", "psf_dark", 0.0) in number.spec_data
+    assert ("data", "dark", "auto") in auto.spec_data
+    assert ("data", "dark", str((data / "meas" / "m00.npy").resolve())) in file.spec_data
+    (data / "m.csv").write_text("measurement,psf,method,spec,dark\n"
+                                "meas/m00.npy,psf.npy,udn,udn.toml,12.5\n")
+    (item,) = read_manifest(data / "m.csv")
+    assert ("data", "dark", 12.5) in item.spec_data
+
+
 def test_duplicate_names_are_numbered(data: Path) -> None:
     (data / "m.csv").write_text("measurement,psf,method,tau\nmeas/m00.npy,psf.npy,fista,1e-3\n"
                                 "meas/m00.npy,psf.npy,fista,1e-2\n")
