@@ -424,7 +424,8 @@ def test_global_threads_reach_jobs_run_resume_and_recon_udn(tiny_data, tmp_path,
         assert record(tmp_path / "plain")["device"]["threads"] == 1
         one = tmp_path / "oneshot"
         assert cli_main(["--threads", "2", "recon", "udn", "--psf", str(tiny_data / "psf.npy"),
-                         "--meas", str(tiny_data / "meas.npy"), "--iters", "2", "--scales", "3",
+                         "--meas", str(tiny_data / "meas.npy"), "--mask",
+                         str(tiny_data / "mask.npy"), "--iters", "2", "--scales", "3",
                          "--net-channels", "8", "--input-channels", "4", "--quiet", "--out",
                          str(one)]) == 0
         assert record(one)["spec"]["device"]["threads"] == 2
