@@ -60,6 +60,37 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
+    def parse_known_args(self, args: Any = None, namespace: Any = None) -> Any:
+        """Also note in the namespace the innermost (sub)command's parser that read it."""
+        ns, extras = super().parse_known_args(args, namespace)
+        if not hasattr(ns, _INNERMOST):  # a subcommand's parser ran inside this one and set it
+            setattr(ns, _INNERMOST, self)
+        return ns, extras
+
+    def parse_args(self, args: Any = None, namespace: Any = None) -> Any:  # type: ignore[override]
+        """An unknown option is named with its subcommand's help and the closest option.
+
+        argparse reports it from the top parser ("see 'lenslesscam --help'"), whose help does
+        not list the options of ``recon udn``.
+        """
+        import difflib
+
+        ns, extras = self.parse_known_args(args, namespace)
+        inner = vars(ns).pop(_INNERMOST, self)
+        if extras:
+            message = f"unrecognized arguments: {' '.join(extras)}"
+            options = [o for o in inner._option_string_actions if o.startswith("--")]
+            close = [m for e in extras if e.startswith("--")
+                     for m in difflib.get_close_matches(e.split("=")[0], options, n=1, cutoff=0.75)]
+            if close:
+                message += f"; did you mean {', '.join(dict.fromkeys(close))}?"
+            inner.error(message)
+        return ns
+
+
+#: namespace attribute of the innermost parser (removed before the namespace is returned)
+_INNERMOST = "_lenslesscam_innermost_parser"
+
 
 def build_parser() -> argparse.ArgumentParser:
     """Parser with every registered subcommand (their parsers are the same class)."""

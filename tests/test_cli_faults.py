@@ -743,6 +743,30 @@ def test_metrics_of_values_near_float64s_limits(tmp_path, capsys):
     assert code == 0, err
 
 
+def test_an_unknown_option_names_its_subcommand_and_the_closest_option(capsys):
+    """'lenslesscam recon fista ... --itres 4' said "see 'lenslesscam --help'", whose help
+    lists no option of recon fista."""
+
+    def parse_error(*argv: str) -> str:
+        with pytest.raises(SystemExit) as exc:
+            main(list(argv))
+        out = capsys.readouterr()
+        assert exc.value.code == 2 and not out.out and len(out.err.strip().splitlines()) == 1
+        return out.err
+
+    err = parse_error("recon", "fista", "--psf", "p.npy", "--meas", "m.npy", "--out", "r.tif",
+                      "--itres", "4", "--tua", "3")
+    assert err.startswith("lenslesscam recon fista: error: unrecognized arguments: --itres 4 "
+                          "--tua 3; did you mean --iters, --tau?"), err
+    assert "(see 'lenslesscam recon fista --help')" in err
+    err = parse_error("recon", "udn", "--psf", "p.npy", "--meas", "m.npy", "--out", "r",
+                      "--max-iter", "30")  # nothing close enough: no guess
+    assert "did you mean" not in err
+    assert err.startswith("lenslesscam recon udn: error: unrecognized arguments: --max-iter 30")
+    assert parse_error("--bogus").startswith("lenslesscam: error: unrecognized arguments: "
+                                             "--bogus")
+
+
 @pytest.mark.parametrize(("option", "value", "words"), [
     ("--dark", "nan", "--dark nan: a dark level must be a finite number"),
     ("--psf-dark", "inf", "--psf-dark inf: a dark level must be a finite number"),
