@@ -95,7 +95,8 @@ def register(sub: Any) -> None:
     darks.add_argument("--hot-sigma", type=POSITIVE, default=6.0,
                        help="a pixel is hot this many sigmas above the dark median (6)")
     darks.add_argument("--dead-fraction", type=UNIT, default=0.5,
-                       help="a pixel is dead below this fraction of the flat median (0.5)")
+                       help="a pixel is dead when its flat response is below this fraction of "
+                       "the 5x5 local median around it (0.5)")
     darks.add_argument("--no-prompt", action="store_true", help="do not wait for Enter")
     darks.add_argument("--out", required=True, help="pixel-maps file (.npz)")
     add_overwrite_option(darks)
