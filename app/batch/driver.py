@@ -444,8 +444,7 @@ def run_batch(manifest: str | Path, out: str | Path,
         drv.write_state("starting")
         todo = drv.plan()
         drv.write_state("running")
-        show = sys.stderr.isatty() if opts.progress is None else opts.progress
-        if show:
+        if opts.progress is not False:  # one line, also in a log (the bar only on a terminal)
             where = (f"joining the Ray cluster at {opts.address}" if opts.address else
                      f"starting Ray here ({opts.num_cpus or os.cpu_count()} CPUs)")
             print(f"batch: {len(items)} items, {len(items) - len(todo)} already done, "

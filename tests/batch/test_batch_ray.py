@@ -21,6 +21,7 @@ import signal
 import socket
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -122,16 +123,19 @@ def test_twelve_items_equal_recon_item_by_item(ray_local, tmp_path: Path) -> Non
     assert st["status"] == "finished" and st["counts"] == {"done": 12}
 
 
-def test_rerun_does_no_work_and_a_changed_input_reruns_one_item(ray_local,
-                                                                 tmp_path: Path) -> None:
+def test_rerun_does_no_work_and_a_changed_input_reruns_one_item(ray_local, tmp_path: Path,
+                                                                 capsys) -> None:
     d = make_data(tmp_path / "data", 4)
     (d / "m.csv").write_text("measurement,psf,method,iters,tau\n"
                              "meas/m*.npy,psf.npy,fista,20,1e-3\n")
     out = tmp_path / "out"
     assert run_batch(d / "m.csv", out, OPTS).ran == 4
     stamps = {p.name: p.stat().st_mtime_ns for p in (out / "results").iterdir()}
-    rep = run_batch(d / "m.csv", out, OPTS)
+    capsys.readouterr()
+    rep = run_batch(d / "m.csv", out, replace(OPTS, progress=None))  # stderr not a terminal
     assert rep.ran == 0 and rep.counts == {"skipped": 4} and rep.status == "finished"
+    # the line that says what runs where is printed into a log too (it was terminal-only)
+    assert "batch: 4 items, 4 already done, 0 to run; nothing to run" in capsys.readouterr().err
     assert {p.name: p.stat().st_mtime_ns for p in (out / "results").iterdir()} == stamps
     np.save(d / "meas" / "m02.npy", np.load(d / "meas" / "m02.npy")[:, ::-1].copy())
     rep = run_batch(d / "m.csv", out, OPTS)
