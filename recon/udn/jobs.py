@@ -657,8 +657,16 @@ def _as_disk_full(exc: BaseException, job: _Job) -> DiskFull:
 
 
 def _session(job: _Job, max_memory: int | None, resume_state: dict[str, Any] | None,
-             resumed_from: dict[str, Any] | None = None) -> JobOutcome:
+             resumed_from: dict[str, Any] | None = None, *, resuming: bool = False) -> JobOutcome:
+    """Run one session of a job; the record and loss.csv say how it ended.
+
+    A resume that fails before its first iteration (a memory or device refusal, another run's
+    checkpoint, an unreadable loss.csv, Ctrl-C during start-up) leaves the run as it was: its
+    record, spec and loss history are not written (they were: a refused resume wiped loss.csv
+    and marked a completed run failed).
+    """
     rec = job.record
+    iterating = False
     sessions = rec.setdefault("sessions", [])
     session: dict[str, Any] = {"started_utc": _now(), "pid": os.getpid(),
                                "host": platform.node(), "start_iteration": 0}
@@ -685,6 +693,7 @@ def _session(job: _Job, max_memory: int | None, resume_state: dict[str, Any] | N
         job.runner.notes.extend(n for n in job.notes if n not in job.runner.notes)
         rec["notes"] = list(job.runner.notes)
         job.write_record()
+        iterating = True
         reason = job.loop()
         rec["notes"] = list(job.runner.notes)
         rec["device"]["compile"]["active"] = bool(job.runner._compiled)
@@ -708,6 +717,10 @@ def _session(job: _Job, max_memory: int | None, resume_state: dict[str, Any] | N
                 job.lock.release_reserve()  # room for the record that says so
         elif isinstance(exc, CheckpointError):
             err = CheckpointError(f"{exc}; {_kept(rec)}")
+        if resuming and not iterating:
+            if err is exc:
+                raise
+            raise err from exc
         rec.update(status=JobState.FINISHED, finish_reason=FinishReason.FAILED,
                    error={"type": type(err).__name__, "message": str(err)},
                    detail=f"{type(err).__name__}: {err}")
@@ -1023,7 +1036,7 @@ def _resume_locked(rd: Path, lock: RunLock, max_iter: int | None, time_limit_s: 
     job = _Job(rd, rec, progress, cancel, lock)
     job.threads = threads
     job.notes = notes
-    return _session(job, max_memory, state, info or None)
+    return _session(job, max_memory, state, info or None, resuming=True)
 
 
 # --------------------------------------------------------------------------------------------

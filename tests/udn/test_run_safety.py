@@ -362,6 +362,41 @@ def test_disk_full_in_the_cli_is_one_line(tiny_data, tmp_path, monkeypatch, caps
 # --------------------------------------------------------------------------------------------
 
 
+def test_a_resume_refused_before_its_first_iteration_leaves_the_run_as_it_was(tiny_data,
+                                                                              tmp_path, capsys):
+    """A resume refused at start-up (memory limit, a device this machine lacks, a loss.csv it
+    cannot read) wrote loss.csv with no rows and marked the completed run failed, with the
+    refused --max-iter saved in its spec."""
+    out = tmp_path / "run"
+    small_run(tiny_data, out)
+    before = {name: (out / name).read_bytes() for name in ("run.json", "loss.csv")}
+    assert len(read_loss_rows(out)) == 8
+    line = one_line_error(["jobs", "resume", out, "--max-iter", "100", "--max-memory", "1KB"],
+                          capsys)
+    assert "max_memory" in line, line
+    assert {n: (out / n).read_bytes() for n in before} == before
+    # a run begun on a GPU, resumed on a machine without one
+    rec = record(out)
+    rec["spec"]["device"]["device"] = "cuda:7"
+    (out / "run.json").write_text(json.dumps(rec))
+    gpu = {n: (out / n).read_bytes() for n in before}
+    line = one_line_error(["jobs", "resume", out, "--max-iter", "100"], capsys)
+    assert "cuda" in line, line
+    assert {n: (out / n).read_bytes() for n in before} == gpu
+    (out / "run.json").write_bytes(before["run.json"])
+    # a damaged loss.csv: the resume names the line and changes nothing
+    damaged = before["loss.csv"].replace(b"\n5,", b"\nfive,", 1)
+    assert damaged != before["loss.csv"]
+    (out / "loss.csv").write_bytes(damaged)
+    line = one_line_error(["jobs", "resume", out, "--max-iter", "100"], capsys)
+    assert "loss.csv" in line and "iteration" in line, line
+    assert (out / "loss.csv").read_bytes() == damaged
+    assert (out / "run.json").read_bytes() == before["run.json"]
+    rec = record(out)
+    assert rec["finish_reason"] == FinishReason.COMPLETED
+    assert rec["spec"]["stopping"]["max_iter"] == 8
+
+
 def test_temporary_files_of_killed_writes_are_cleaned_at_the_next_start(tiny_data, tmp_path):
     out = tmp_path / "run"
     small_run(tiny_data, out)
