@@ -25,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from recon.formats import FormatError
+from recon.udn.state import JobState
 
 __all__ = ["EnsembleResult", "combine_runs"]
 
@@ -50,6 +51,11 @@ def _member(run_dir: Path, estimate: Estimate) -> tuple[dict[str, Any], F32, dic
     from recon.udn.jobs import read_record
 
     rec = read_record(run_dir)
+    status = rec.get("status")
+    if status != JobState.FINISHED:  # running, or killed: its estimate is an earlier one
+        raise ValueError(f"{run_dir}: the run has not finished (status {status}): its "
+                         f"{estimate} estimate is not its last; wait for it, or resume it "
+                         "('lenslesscam jobs resume') or cancel it first")
     results = rec.get("results") or {}
     if estimate not in results:
         state = rec.get("finish_reason") or rec.get("status") or "unknown"
@@ -103,6 +109,14 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
         if d.resolve() in target.parents:
             raise ValueError(f"refusing to write {out} into the run folder {d}: its files are "
                              "inputs of the ensemble; write it elsewhere")
+    from recon.atomic import check_outputs
+    from recon.io import reconstruction_paths
+
+    # nor are the members' own inputs (their PSF, measurement, ...): a run must stay resumable
+    inputs = {f"data.{name} of {d}": info.get("path") for d, (rec, _, _) in zip(
+        dirs, loaded, strict=True) for name, info in (rec.get("inputs") or {}).items()
+        if isinstance(info, dict) and isinstance(info.get("path"), str)}
+    check_outputs(reconstruction_paths(out, "image"), inputs, overwrite=True)
     rec0, x0, meta0 = loaded[0]
     key0 = _inputs_key(rec0)
     seeds: dict[int, Path] = {}

@@ -92,13 +92,13 @@ def test_combine_refuses_what_is_not_one_problem(three_runs, tiny_data, tmp_path
     del rec["results"]
     rec["status"], rec["finish_reason"] = "running", None
     (runs[1] / "run.json").write_text(json.dumps(rec))
-    with pytest.raises(ValueError, match="no best estimate yet"):
+    with pytest.raises(ValueError, match="has not finished"):
         combine_runs([runs[0], runs[1]], out)
     with pytest.raises(FileNotFoundError, match="no UDN run here"):
         combine_runs([runs[0], tmp_path], out)
     assert not out.exists()
     assert cli_main(["jobs", "combine", str(runs[0]), str(runs[1]), "--out", str(out)]) != 0
-    assert "no best estimate yet" in capsys.readouterr().err
+    assert "has not finished" in capsys.readouterr().err
 
 
 def test_combine_never_writes_into_a_member_nor_trusts_a_replaced_result(three_runs, tmp_path):
@@ -124,3 +124,24 @@ def test_combine_never_writes_into_a_member_nor_trusts_a_replaced_result(three_r
         combine_runs(runs[:2], tmp_path / "ens2.tif")
     (runs[1] / "best.tif").write_bytes(saved)
     combine_runs(runs[:2], tmp_path / "ens2.tif")
+
+
+def test_combine_never_writes_over_a_members_input_nor_takes_an_unfinished_run(
+        three_runs, tiny_data, tmp_path, capsys):
+    """'jobs combine ... --out psf.npy --overwrite' replaced the members' PSF with the
+    ensemble (and the runs could not be resumed: 'data.psf changed'); a run still running, or
+    killed, was averaged with the best estimate of an earlier session."""
+    _spec, runs = three_runs
+    psf = (tiny_data / "psf.npy").read_bytes()
+    code = cli_main(["jobs", "combine", str(runs[0]), str(runs[1]), "--out",
+                     str(tiny_data / "psf.npy"), "--overwrite"])
+    err = capsys.readouterr().err
+    assert code == 2 and "refusing to write" in err and "of " + str(runs[0]) in err, err
+    assert (tiny_data / "psf.npy").read_bytes() == psf
+    rec_path = runs[1] / "run.json"
+    rec = json.loads(rec_path.read_text())
+    rec["status"] = "running"  # as a live run, or one killed by the system, leaves it
+    rec_path.write_text(json.dumps(rec))
+    with pytest.raises(ValueError, match=r"the run has not finished \(status running\)"):
+        combine_runs(runs[:2], tmp_path / "ens.tif")
+    assert not (tmp_path / "ens.tif").exists()
