@@ -359,7 +359,8 @@ def read_manifest(path: str | Path) -> list[Item]:
     path = Path(path)
     base = path.resolve().parent
     items: list[Item] = []
-    named: dict[str, str] = {}  # an explicit name (without a glob) -> where it was given
+    explicit: list[bool] = []  # whether the item's name was given (not made from its file)
+    named: dict[str, str] = {}  # an explicit name, as a result's file name -> where given
     for where, row, from_defaults in _read_rows(path):
         for col in ("measurement", "method"):
             if row.get(col) in (None, ""):
@@ -370,23 +371,32 @@ def read_manifest(path: str | Path) -> list[Item]:
         for meas in files:
             stem = Path(meas).stem
             if row.get("name"):
-                name = str(row["name"]) + (f"-{stem}" if _GLOB.search(pattern) else "")
+                given = str(row["name"]) + (f"-{stem}" if _GLOB.search(pattern) else "")
+                name = _SAFE.sub("_", given)
                 if name in named:
-                    raise ValueError(f"{where}: name {name!r} is given to another item too "
-                                     f"({named[name]}): names identify results")
+                    same = "" if name == given else f" (as the file name {name!r})"
+                    raise ValueError(f"{where}: name {given!r}{same} is given to another item "
+                                     f"too ({named[name]}): names identify results")
                 named[name] = where
             else:
-                name = f"{stem}-{row['method']}"
-            items.append(_item_from(row, meas, base, where, _SAFE.sub("_", name),
-                                    from_defaults))
+                name = _SAFE.sub("_", f"{stem}-{row['method']}")
+            items.append(_item_from(row, meas, base, where, name, from_defaults))
+            explicit.append(bool(row.get("name")))
     if not items:
         raise ValueError(f"{path}: the manifest lists no items")
-    seen: dict[str, int] = {}
+    # a name made from a file that is taken (by a given name, or an earlier item of the same
+    # file and method) gets -2, -3, ... in manifest order, never one that is taken too
+    taken = set(named)
     unique = []
-    for it in items:  # duplicate names get -2, -3, ... in manifest order
-        n = seen.get(it.id, 0) + 1
-        seen[it.id] = n
-        unique.append(it if n == 1 else dataclasses.replace(it, id=f"{it.id}-{n}"))
+    for it, given in zip(items, explicit, strict=True):
+        if not given:
+            n, name = 1, it.id
+            while name in taken:
+                n += 1
+                name = f"{it.id}-{n}"
+            taken.add(name)
+            it = dataclasses.replace(it, id=name)
+        unique.append(it)
     return unique
 
 

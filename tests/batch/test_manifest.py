@@ -110,6 +110,24 @@ def test_duplicate_names_are_numbered(data: Path) -> None:
     assert [it.id for it in read_manifest(data / "m.csv")] == ["m00-fista", "m00-fista-2"]
 
 
+def test_item_names_never_collide(data: Path) -> None:
+    """Two items got the id m00-fista-2 (the second m00 numbered into a name a third item was
+    given), so two items wrote one result file; and 'a/b' and 'a_b' both became 'a_b'."""
+    (data / "m.csv").write_text("measurement,psf,method,name\nmeas/m00.npy,psf.npy,fista,\n"
+                                "meas/m00.npy,psf.npy,fista,\n"
+                                "meas/m01.npy,psf.npy,fista,m00-fista-2\n")
+    ids = [it.id for it in read_manifest(data / "m.csv")]
+    assert ids == ["m00-fista", "m00-fista-3", "m00-fista-2"] and len(set(ids)) == 3
+    (data / "m.csv").write_text("measurement,psf,method,name\nmeas/m00.npy,psf.npy,fista,a/b\n"
+                                "meas/m01.npy,psf.npy,fista,a_b\n")
+    with pytest.raises(ValueError, match=r"name 'a_b' is given to another item too"):
+        read_manifest(data / "m.csv")
+    (data / "m.csv").write_text("measurement,psf,method,name\nmeas/m00.npy,psf.npy,fista,a_b\n"
+                                "meas/m01.npy,psf.npy,fista,a/b\n")
+    with pytest.raises(ValueError, match=r"name 'a/b' \(as the file name 'a_b'\) is given"):
+        read_manifest(data / "m.csv")
+
+
 @pytest.mark.parametrize(("text", "message"), [
     ("measurement,psf,method\nmeas/none*.npy,psf.npy,fista\n", "matches no file"),
     ("measurement,psf,method\nmeas/m00.npy,psf.npy,magic\n", "not a method of"),
