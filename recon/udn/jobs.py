@@ -377,6 +377,11 @@ def read_loss_rows(run_dir: str | os.PathLike[str]) -> list[dict[str, str]]:
     table = read_table(p, LOSS_FORMAT, FORMAT_VERSION, "UDN loss.csv")
     rows = []
     for line, row in table.rows:
+        if None in row or None in row.values():  # more or fewer fields than the header
+            what = "more" if None in row else "fewer"
+            raise FormatError(f"{p}: line {line}: {what} fields than the header's "
+                              f"{len(table.fieldnames)} (a damaged row): repair or delete "
+                              "that line")
         try:
             int(row["iteration"])
         except (KeyError, TypeError, ValueError):
@@ -430,10 +435,14 @@ class _Job:
         atomic_write_bytes(self.run_dir / LOSS_FILE, text.encode())
 
     def read_csv(self, upto: int) -> None:
+        """The loss history up to ``upto`` (a resume's checkpoint); a lost one is noted."""
         p = self.run_dir / LOSS_FILE
         self.rows = []
         if p.is_file():
             self.rows = [r for r in read_loss_rows(self.run_dir) if int(r["iteration"]) <= upto]
+        if upto > 0 and not self.rows:
+            self.notes.append(f"{LOSS_FILE} was {'empty' if p.is_file() else 'missing'} at the "
+                              f"resume: the loss history restarts at iteration {upto + 1}")
 
     def checkpoint(self) -> None:
         runner = self.runner

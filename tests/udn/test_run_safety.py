@@ -397,6 +397,25 @@ def test_a_resume_refused_before_its_first_iteration_leaves_the_run_as_it_was(ti
     assert rec["spec"]["stopping"]["max_iter"] == 8
 
 
+def test_a_short_loss_row_is_named_and_a_lost_history_is_noted(tiny_data, tmp_path, capsys):
+    """A row cut short was kept with empty fields, and a deleted loss.csv let the history
+    restart mid-run without a word."""
+    out = tmp_path / "run"
+    small_run(tiny_data, out)
+    text = (out / "loss.csv").read_text()
+    lines = text.splitlines(keepends=True)
+    cut = next(i for i, ln in enumerate(lines) if ln.startswith("5,"))
+    (out / "loss.csv").write_text("".join([*lines[:cut], "5,0.1\n", *lines[cut + 1:]]))
+    line = one_line_error(["jobs", "resume", out, "--max-iter", "12"], capsys)
+    assert f"line {cut + 1}: fewer fields than the header's 8 (a damaged row)" in line, line
+    (out / "loss.csv").unlink()
+    assert cli_main(["jobs", "resume", str(out), "--max-iter", "12", "--quiet"]) == 0
+    capsys.readouterr()
+    assert any("loss.csv was missing at the resume: the loss history restarts at iteration 9"
+               in n for n in record(out)["notes"]), record(out)["notes"]
+    assert [int(r["iteration"]) for r in read_loss_rows(out)][0] == 9
+
+
 def test_temporary_files_of_killed_writes_are_cleaned_at_the_next_start(tiny_data, tmp_path):
     out = tmp_path / "run"
     small_run(tiny_data, out)
