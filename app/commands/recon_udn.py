@@ -67,8 +67,8 @@ def register_udn(methods: Any) -> None:
     d.add_argument("--max-memory", help="refuse runs estimated above this (e.g. 2GB)")
     d.add_argument("--checkpoint-every", type=POSITIVE_INT, default=500,
                    help="iterations between checkpoints (500)")
-    d.add_argument("--preview-every", type=POSITIVE_INT, default=100,
-                   help="iterations between preview images (100)")
+    d.add_argument("--preview-every", type=NONNEG_INT, default=100,
+                   help="iterations between preview images (100; 0: none)")
     d.add_argument("--name", default="", help="a name for the run")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.add_argument("--write-spec", metavar="FILE",

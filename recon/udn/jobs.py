@@ -249,6 +249,11 @@ class _CancelCheck:
 # --------------------------------------------------------------------------------------------
 
 
+#: the keys of a spec's [data] whose values can be files
+_DATA_FILE_KEYS = frozenset({"measurement", "psf", "mask", "shutter", "filters", "truth", "dark",
+                             "psf_dark"})
+
+
 def _load_problem(spec: Mapping[str, Any], device: torch.device) -> Problem:
     """The problem of a normalised spec's ``[data]`` table (:func:`recon.problem.load_problem`).
 
@@ -261,8 +266,8 @@ def _load_problem(spec: Mapping[str, Any], device: torch.device) -> Problem:
         return load_problem(ProblemSpec.from_data_section(d), device=device)
     except (ValueError, FileNotFoundError) as exc:
         msg = str(exc)
-        for key, path in d.items():
-            if isinstance(path, str) and path and path in msg:
+        for key, path in d.items():  # the file the message names (not a word such as 'sensor')
+            if key in _DATA_FILE_KEYS and isinstance(path, str) and path and path in msg:
                 raise type(exc)(f"data.{key}: {msg}") from None
         raise type(exc)(f"[data]: {msg}") from None
 

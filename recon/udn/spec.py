@@ -172,10 +172,12 @@ SCHEMA: dict[str, dict[str, Key]] = {
     },
     "output": {
         "checkpoint_every": Key((int,), 500, "checkpoint every N iterations", minimum=1),
-        "checkpoint_minutes": Key((float,), 10.0, "... or every this many minutes"),
+        "checkpoint_minutes": Key((float,), 10.0, "... or every this many minutes",
+                                  minimum=0.0),
         "preview_every": Key((int,), 100, "preview PNG every M iterations (0: none)",
                              minimum=0),
-        "status_seconds": Key((float,), 5.0, "how often run.json / loss.csv are refreshed"),
+        "status_seconds": Key((float,), 5.0, "how often run.json / loss.csv are refreshed",
+                              minimum=0.0),
     },
 }
 
@@ -183,6 +185,12 @@ SCHEMA: dict[str, dict[str, Key]] = {
 def _suggest(name: str, known: list[str]) -> str:
     close = difflib.get_close_matches(name, known, n=1)
     return f"; did you mean '{close[0]}'?" if close else ""
+
+
+#: the largest float32 (numbers beyond it overflow the network's tensors) and the largest
+#: integer a spec takes (an int64 with room: torch and NumPy counters)
+FLOAT32_MAX = 3.4028234663852886e38
+INT_MAX = 2**62
 
 
 def _check_value(where: str, key: Key, value: Any) -> Any:
@@ -208,6 +216,11 @@ def _check_value(where: str, key: Key, value: Any) -> Any:
         raise SpecError(f"{where} must be >= {key.minimum:g}, got {value!r}")
     if key.maximum is not None and isinstance(value, int | float) and value > key.maximum:
         raise SpecError(f"{where} must be <= {key.maximum:.0f}, got {value!r}")
+    if isinstance(value, float) and abs(value) > FLOAT32_MAX:
+        raise SpecError(f"{where} must be within float32's range (|x| <= 3.4e38: the network "
+                        f"computes in float32), got {value!r}")
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > INT_MAX:
+        raise SpecError(f"{where} must be at most {INT_MAX} in size, got {value!r}")
     return value
 
 
@@ -257,6 +270,9 @@ def normalise_spec(raw: Mapping[str, Any], base_dir: str | Path | None = None,
         v = data[name]
         if isinstance(v, str) and v != "auto":
             data[name] = _resolve(base, v, f"{source}: data.{name}")
+        elif isinstance(v, int | float) and not (math.isfinite(v) and v >= 0):
+            raise SpecError(f"{source}: data.{name} must be 'auto', a dark-frame file or a "
+                            f"finite number >= 0 (the sensor's black offset), got {v!r}")
     for name, key in SCHEMA["data"].items():
         v = data[name]
         if not key.path or v is None:
@@ -297,16 +313,27 @@ def normalise_spec(raw: Mapping[str, Any], base_dir: str | Path | None = None,
             out["device"]["max_memory"] = parse_bytes(mm)
         except ValueError as exc:
             raise SpecError(f"{source}: device.max_memory: {exc}") from None
-    # the dataclasses check ranges; name the section in their messages
+    # the dataclasses check ranges; name the key (section.name) in their messages
     try:
         network_config(out, k=1)
     except ValueError as exc:
-        raise SpecError(f"{source}: [network] {exc}") from None
+        raise SpecError(f"{source}: {_keyed(exc, ('network',))}") from None
     try:
         udn_config(out)
     except ValueError as exc:
-        raise SpecError(f"{source}: [optimizer]/[stopping]/[device] {exc}") from None
+        raise SpecError(f"{source}: {_keyed(exc, ('optimizer', 'stopping', 'device'))}"
+                        ) from None
     return out
+
+
+def _keyed(exc: ValueError, sections: tuple[str, ...]) -> str:
+    """A config's range message ('lr must be > 0, ...') as 'optimizer.lr must be > 0, ...'."""
+    msg = str(exc)
+    first = msg.split(maxsplit=1)[0] if msg else ""
+    section = next((s for s in sections if first in SCHEMA[s]), None)
+    if section is not None:
+        return f"{section}.{msg}"
+    return f"{'/'.join(f'[{s}]' for s in sections)} {msg}"
 
 
 def _resolve(base: Path, value: str, where: str) -> str:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -391,6 +392,22 @@ def test_recon_udn_one_shot(tiny_data, tmp_path, capsys):
 def test_a_seed_beyond_32_bits_is_a_spec_error(tiny_data, tmp_path):
     with pytest.raises(SpecError, match=r"optimizer\.seed must be <= 4294967295"):
         run_job(write_spec(tiny_data, optimizer={"seed": 2**64}), tmp_path / "run")
+
+
+@pytest.mark.parametrize(("section", "key", "value", "words"), [
+    # a config's range message named no key ('[optimizer]/[stopping]/[device] lr must be > 0')
+    ("optimizer", "lr", -1.0, "optimizer.lr must be > 0"),
+    # 'value cannot be converted to type float without overflow', no key named
+    ("optimizer", "lr", 1e300, "optimizer.lr must be within float32's range"),
+    ("stopping", "max_iter", 2**70, "stopping.max_iter must be at most"),
+    ("output", "status_seconds", -1.0, "output.status_seconds must be >= 0"),
+    ("output", "checkpoint_minutes", -5.0, "output.checkpoint_minutes must be >= 0"),
+    # blamed on data.field: its value 'sensor' was found in "the sensor's black offset"
+    ("data", "dark", -1.0, "data.dark must be 'auto', a dark-frame file or a finite number >= 0"),
+])
+def test_a_bad_spec_value_names_its_key(tiny_data, tmp_path, section, key, value, words):
+    with pytest.raises(SpecError, match=re.escape(words)):
+        run_job(write_spec(tiny_data, **{section: {key: value}}), tmp_path / "run")
 
 
 def test_spec_headroom_reaches_the_runner_config(tiny_data, tmp_path):

@@ -413,7 +413,7 @@ def test_a_short_loss_row_is_named_and_a_lost_history_is_noted(tiny_data, tmp_pa
     capsys.readouterr()
     assert any("loss.csv was missing at the resume: the loss history restarts at iteration 9"
                in n for n in record(out)["notes"]), record(out)["notes"]
-    assert [int(r["iteration"]) for r in read_loss_rows(out)][0] == 9
+    assert int(read_loss_rows(out)[0]["iteration"]) == 9
 
 
 def test_temporary_files_of_killed_writes_are_cleaned_at_the_next_start(tiny_data, tmp_path):
