@@ -1021,6 +1021,11 @@ def _resume_locked(rd: Path, lock: RunLock, max_iter: int | None, time_limit_s: 
     if done >= limit:
         raise ValueError(f"{rd}: the run is at iteration {done} and its limit is {limit}: pass a "
                          "larger --max-iter to continue it")
+    used = float(state["state"].get("elapsed_s", 0.0)) if done else 0.0
+    budget = spec["stopping"].get("time_limit_s")
+    if budget is not None and used >= budget:  # it would run one iteration and stop again
+        raise ValueError(f"{rd}: the run has used {used:.0f} s of iterations and its time limit "
+                         f"is {budget:g} s: pass a larger --time-limit to continue it")
     for name, inp in (rec.get("inputs") or {}).items():
         path, old = inp.get("path"), inp.get("file_hash")
         if isinstance(path, str) and old is not None and file_hash(path) != old:

@@ -416,6 +416,18 @@ def test_a_short_loss_row_is_named_and_a_lost_history_is_noted(tiny_data, tmp_pa
     assert int(read_loss_rows(out)[0]["iteration"]) == 9
 
 
+def test_a_resume_with_a_time_limit_already_spent_is_refused(tiny_data, tmp_path, capsys):
+    """It ran one iteration and reported 'completed' again, suggesting --time-limit 2, 4, ...
+    (a --max-iter below the iteration reached is refused; so is this now)."""
+    out = tmp_path / "run"
+    small_run(tiny_data, out)
+    before = (out / "run.json").read_bytes()
+    line = one_line_error(["jobs", "resume", out, "--max-iter", "100", "--time-limit",
+                           "0.000001"], capsys)
+    assert "s of iterations and its time limit is 1e-06 s: pass a larger --time-limit" in line
+    assert (out / "run.json").read_bytes() == before
+
+
 def test_temporary_files_of_killed_writes_are_cleaned_at_the_next_start(tiny_data, tmp_path):
     out = tmp_path / "run"
     small_run(tiny_data, out)
