@@ -180,9 +180,14 @@ def _read_rows(path: Path) -> list[tuple[str, dict[str, Any], frozenset[str]]]:
     """(where, columns, names that come from [defaults] only) per manifest row."""
     if not path.is_file():
         raise FileNotFoundError(f"manifest not found: {path}")
+    data = path.read_bytes()
+    try:
+        text = data.decode("utf-8-sig")  # with or without an editor's byte-order mark
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not UTF-8 text (byte {data[exc.start]:#04x} at offset "
+                         f"{exc.start}); save the manifest as UTF-8") from None
     suffix = path.suffix.lower()
     if suffix == ".csv":
-        text = path.read_text(encoding="utf-8-sig")
         reader = csv.DictReader(io.StringIO(text))
         if not reader.fieldnames:
             raise ValueError(f"{path}: empty CSV manifest (the header names the columns, e.g. "
@@ -204,7 +209,7 @@ def _read_rows(path: Path) -> list[tuple[str, dict[str, Any], frozenset[str]]]:
         import tomllib
 
         try:
-            doc = tomllib.loads(path.read_text(encoding="utf-8"))
+            doc = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise ValueError(f"{path}: not valid TOML: {exc}") from None
         unknown = sorted(set(doc) - {"defaults", "item"})

@@ -84,7 +84,13 @@ from recon.udn.rundir import (
     write_checkpoint,
 )
 from recon.udn.runner import UDNRunner, UDNStep, resolve_device
-from recon.udn.spec import SpecError, network_config, normalise_spec, udn_config
+from recon.udn.spec import (
+    SpecError,
+    network_config,
+    normalise_spec,
+    read_spec_text,
+    udn_config,
+)
 from recon.udn.state import FinishReason, JobState
 
 __all__ = [
@@ -811,17 +817,6 @@ def _finalise(job: _Job, session: dict[str, Any], t0: float) -> None:
         (job.run_dir / CANCEL_FILE).unlink(missing_ok=True)
 
 
-def _read_spec_text(sp: Path) -> str:
-    if not sp.is_file():
-        raise FileNotFoundError(f"job spec not found: {sp}")
-    data = sp.read_bytes()
-    try:
-        return data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise SpecError(f"{sp}: not UTF-8 text (byte {data[exc.start]:#04x} at offset "
-                        f"{exc.start}); save the spec as UTF-8") from None
-
-
 def _start_notes(removed: list[str]) -> list[str]:
     if not removed:
         return []
@@ -855,7 +850,7 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: OnStep = No
     rd = Path(run_dir)
     sp = Path(spec_path)
     if spec_text is None:
-        spec_text = _read_spec_text(sp)
+        spec_text = read_spec_text(sp)
     copy = spec_text if seed is None else (
         f"# run with 'jobs run --seed {seed}': optimizer.seed = {seed} overrides this file "
         "(run.json: overrides)\n" + spec_text)

@@ -345,14 +345,32 @@ def _resolve(base: Path, value: str, where: str) -> str:
     return str(p.resolve())
 
 
+def read_spec_text(path: str | Path) -> str:
+    """The text of a job spec file (the one reader): UTF-8, with or without a byte-order mark.
+
+    Raises FileNotFoundError (no such file; a folder is named as one) or :class:`SpecError`
+    (not UTF-8).
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise FileNotFoundError(f"{p} is a folder, not a job spec (a .toml file; to continue a "
+                                f"run in it: lenslesscam jobs resume {p})")
+    if not p.is_file():
+        raise FileNotFoundError(f"job spec not found: {p}")
+    data = p.read_bytes()
+    try:
+        return data.decode("utf-8-sig")  # an editor's byte-order mark is not TOML
+    except UnicodeDecodeError as exc:
+        raise SpecError(f"{p}: not UTF-8 text (byte {data[exc.start]:#04x} at offset "
+                        f"{exc.start}); save the spec as UTF-8") from None
+
+
 def load_spec(path: str | Path) -> dict[str, Any]:
     """Read and validate a TOML job spec (see :func:`normalise_spec`)."""
     p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"job spec not found: {p}")
     try:
-        raw = tomllib.loads(p.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raw = tomllib.loads(read_spec_text(p))
+    except tomllib.TOMLDecodeError as exc:
         raise SpecError(f"{p}: not valid TOML: {exc}") from None
     return normalise_spec(raw, p.parent, source=str(p))
 

@@ -104,6 +104,15 @@ def test_a_numeric_dark_reaches_a_udn_spec_as_a_number(data: Path) -> None:
     assert ("data", "dark", 12.5) in item.spec_data
 
 
+def test_a_manifest_that_is_not_utf8_is_named(data: Path) -> None:
+    (data / "m.csv").write_bytes(b"measurement,psf,method\nm\xe9.npy,psf.npy,fista\n")
+    with pytest.raises(ValueError, match=r"m\.csv: not UTF-8 text \(byte 0xe9 at offset 24\)"):
+        read_manifest(data / "m.csv")
+    (data / "m.toml").write_bytes(b"\xef\xbb\xbf[[item]]\nmeasurement = 'meas/m00.npy'\n"
+                                  b"psf = 'psf.npy'\nmethod = 'fista'\n")
+    assert [it.id for it in read_manifest(data / "m.toml")] == ["m00-fista"]  # a BOM is fine
+
+
 def test_duplicate_names_are_numbered(data: Path) -> None:
     (data / "m.csv").write_text("measurement,psf,method,tau\nmeas/m00.npy,psf.npy,fista,1e-3\n"
                                 "meas/m00.npy,psf.npy,fista,1e-2\n")

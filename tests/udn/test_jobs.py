@@ -410,6 +410,20 @@ def test_a_bad_spec_value_names_its_key(tiny_data, tmp_path, section, key, value
         run_job(write_spec(tiny_data, **{section: {key: value}}), tmp_path / "run")
 
 
+def test_a_spec_with_a_byte_order_mark_runs_and_a_folder_is_not_a_spec(tiny_data, tmp_path):
+    """A spec saved with a UTF-8 byte-order mark was 'Invalid statement at line 1, column 1';
+    'jobs run DIR' said 'job spec not found' for a folder that is there."""
+    from recon.udn.spec import load_spec
+
+    spec = write_spec(tiny_data, stopping={"max_iter": 2})
+    bom = spec.parent / "bom.toml"  # beside it: its paths are relative to the spec
+    bom.write_bytes(b"\xef\xbb\xbf" + spec.read_bytes())
+    assert load_spec(bom)["stopping"]["max_iter"] == 2
+    assert run_job(bom, tmp_path / "run").iterations == 2
+    with pytest.raises(FileNotFoundError, match="is a folder, not a job spec"):
+        run_job(tmp_path, tmp_path / "run2")
+
+
 def test_spec_headroom_reaches_the_runner_config(tiny_data, tmp_path):
     from recon.udn.spec import load_spec, udn_config
 
