@@ -92,6 +92,9 @@ def _load_image(path: PathLike, *, key: str | None, prefer: Sequence[str]) -> Ar
         raise FileNotFoundError(f"{p}: no such file")
     if p.is_dir():
         raise ValueError(f"{p}: is a directory, expected an image file")
+    if not p.is_file():  # reading a named pipe waits for a writer forever
+        raise ValueError(f"{p}: not a regular file (a pipe, socket or device); save the data "
+                         "to a file")
     ext = p.suffix.lower()
     if ext in _TIFF_EXT:
         return _read_tiff(p)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import cv2
@@ -566,3 +567,12 @@ def test_every_png_carries_format_and_provenance(tmp_path: Path) -> None:
         meta = json.loads(im.text["lenslesscam"])
     assert meta["format"] == PREVIEW_FORMAT and meta["format_version"] >= 1
     assert "lenslesscam" in meta["provenance"]["versions"]
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes are POSIX")
+def test_a_named_pipe_is_refused_not_waited_on(tmp_path) -> None:
+    """--meas given a FIFO hung forever, waiting for a writer."""
+    fifo = tmp_path / "meas.npy"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match="not a regular file"):
+        rio.load_measurement(fifo)
