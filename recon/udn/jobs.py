@@ -927,6 +927,7 @@ def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: OnStep, cancel: Can
     job.notes = _start_notes(removed)
     try:
         atomic_write_bytes(rd / SPEC_FILE, copy.encode("utf-8"))
+        record["spec_file_hash"] = file_hash(rd / SPEC_FILE)  # a later edit is then noticed
         import tomllib
 
         try:
@@ -1040,6 +1041,11 @@ def _resume_locked(rd: Path, lock: RunLock, max_iter: int | None, time_limit_s: 
     elif problems:
         notes.append(f"resumed from {info['path']} (iteration {info['iteration']}) because "
                      f"{why}")
+    written = rec.get("spec_file_hash")
+    if written is not None and (rd / SPEC_FILE).is_file() and file_hash(rd / SPEC_FILE) != written:
+        notes.append(f"{SPEC_FILE} was edited after the run started; a resume keeps the spec "
+                     f"the run started with ({RECORD_FILE}): --max-iter and --time-limit change "
+                     "its limits, other settings need a new run")
     if notice is not None:
         for n in notes:
             notice(n)

@@ -428,6 +428,21 @@ def test_a_resume_with_a_time_limit_already_spent_is_refused(tiny_data, tmp_path
     assert (out / "run.json").read_bytes() == before
 
 
+def test_an_edited_job_toml_is_noted_at_the_resume(tiny_data, tmp_path, capsys):
+    """A resume runs the spec in run.json; an edit of the run's job.toml was ignored silently."""
+    out = tmp_path / "run"
+    small_run(tiny_data, out)
+    assert resume_job(out, max_iter=10).finish_reason == FinishReason.COMPLETED
+    assert not any("was edited" in n for n in record(out)["notes"])
+    spec = out / "job.toml"
+    spec.write_text(spec.read_text() + "\n# lr = 0.5 would be better\n")
+    assert cli_main(["jobs", "resume", str(out), "--max-iter", "12"]) == 0
+    err = capsys.readouterr().err
+    words = "job.toml was edited after the run started; a resume keeps the spec"
+    assert words in err, err
+    assert any(words in n for n in record(out)["notes"])
+
+
 def test_temporary_files_of_killed_writes_are_cleaned_at_the_next_start(tiny_data, tmp_path):
     out = tmp_path / "run"
     small_run(tiny_data, out)
