@@ -546,6 +546,10 @@ def test_a_sensor_size_of_zero_is_refused_in_words(tmp_path, capsys):
     assert main(["calibrate", "darks", "--camera", "sim", "--sim-size", "0x0", "--frames", "1",
                  "--no-prompt", "--out", str(tmp_path / "d.npz")]) == 2
     assert "--sim-size must be at least 1x1 pixels" in capsys.readouterr().err
+    # larger than any sensor: it was "Unable to allocate 74.5 GiB", no option named
+    assert main(["snap", "--camera", "sim", "--sim-size", "100000x100000", "--out",
+                 str(tmp_path / "f.tif")]) == 2
+    assert "--sim-size must be at most 16384 pixels a side" in capsys.readouterr().err
 
 
 def test_a_closed_output_pipe_ends_quietly(monkeypatch, capsys):

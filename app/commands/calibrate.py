@@ -161,7 +161,14 @@ def _hw(value: str, what: str) -> tuple[int, int]:
     h, w = int(m.group(1)), int(m.group(2))
     if h < 1 or w < 1:
         raise ValueError(f"{what} must be at least 1x1 pixels, got {value!r}")
+    if max(h, w) > MAX_SIDE:  # larger than any sensor: a typo, and an allocation of many GiB
+        raise ValueError(f"{what} must be at most {MAX_SIDE} pixels a side, got {value!r}")
     return h, w
+
+
+#: the largest side of a (simulated) sensor or PSF shape: the largest sCMOS sensors are about
+#: 14000 pixels wide
+MAX_SIDE = 16384
 
 
 @contextlib.contextmanager

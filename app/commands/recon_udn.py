@@ -126,8 +126,10 @@ def run_udn(args: argparse.Namespace) -> int:
         from recon.atomic import atomic_write_bytes
 
         atomic_write_bytes(args.write_spec, text.encode("utf-8"))
-        print(f"wrote {args.write_spec}; run it with: lenslesscam jobs run {args.write_spec} "
-              "--out RUN_DIR", file=sys.stdout)
+        import shlex
+
+        print(f"wrote {args.write_spec}; run it with: lenslesscam jobs run "
+              f"{shlex.quote(str(args.write_spec))} --out RUN_DIR", file=sys.stdout)
         return 0
     if not args.out:
         raise ValueError("--out RUN_DIR is required (or --write-spec FILE)")
