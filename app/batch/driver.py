@@ -383,12 +383,19 @@ def _check_batch_folder(root: Path, manifest: Path) -> None:
     """
     if root.exists() and not root.is_dir():
         raise ValueError(f"{root} exists and is not a folder: --out names the batch's folder")
-    st = read_state(root, missing_ok=True)
+    try:
+        st = read_state(root, missing_ok=True)
+        lost = "missing"
+    except ValueError:  # damaged: the item records below still say what was done
+        st, lost = {}, "damaged"
     if st:
         theirs = st.get("manifest")
         if theirs and Path(theirs).resolve() != manifest:
             raise ValueError(f"{root} is the batch of {theirs}; run that manifest there, or "
                              "choose another --out")
+    elif root.is_dir() and _batch_without_state(root, manifest):
+        print(f"batch: note: {root / 'state.json'} is {lost}; continuing from the item "
+              "records in items/ (finished items are skipped as usual)", file=sys.stderr)
     elif root.is_dir():
         # what a driver stopped before its first state.json leaves: its lock, empty folders
         from recon.udn.rundir import LOCK_FILE
@@ -401,6 +408,35 @@ def _check_batch_folder(root: Path, manifest: Path) -> None:
         if not all(ours(p) for p in root.iterdir()):
             raise ValueError(f"{root} is not empty and holds no batch: choose a new or empty "
                              "folder for --out")
+
+
+#: what a batch folder holds (see :mod:`app.batch.state`)
+_BATCH_ENTRIES = frozenset({"state.json", "run.lock", "CANCEL", "summary.csv", "summary.md",
+                            "items", "results", "runs"})
+
+
+def _batch_without_state(root: Path, manifest: Path) -> bool:
+    """Whether ``root`` is this manifest's batch whose state.json is missing or damaged.
+
+    It holds only a batch's entries, item records among them, and its summary (when there is
+    one) names this manifest; a summary naming another is refused.
+    """
+    from app.batch.summary import read_summary
+
+    items = BatchPaths(root).items_dir
+    if any(p.name not in _BATCH_ENTRIES for p in root.iterdir()) or not items.is_dir():
+        return False
+    if not any(items.glob("*.json")):
+        return False
+    summary = root / "summary.csv"
+    theirs = None
+    if summary.is_file():
+        with contextlib.suppress(ValueError, OSError):
+            theirs = read_summary(summary).meta.get("manifest")
+    if theirs and Path(str(theirs)).resolve() != manifest:
+        raise ValueError(f"{root} is the batch of {theirs}; run that manifest there, or "
+                         "choose another --out")
+    return True
 
 
 def run_batch(manifest: str | Path, out: str | Path,

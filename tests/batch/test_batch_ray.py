@@ -147,6 +147,23 @@ def test_rerun_does_no_work_and_a_changed_input_reruns_one_item(ray_local, tmp_p
     (out / "results" / "m00-fista.tif").write_bytes(b"damaged")
     assert run_batch(d / "m.csv", out, OPTS).ran == 1
     assert read_reconstruction(out / "results" / "m00-fista.tif")[0].shape == (1, 1, 24, 28)
+    # state.json lost or damaged: the folder was refused for good ('not empty and holds no
+    # batch'); the item records still say what was done
+    for damage in ("missing", "damaged"):
+        if damage == "missing":
+            (out / "state.json").unlink()
+        else:
+            (out / "state.json").write_text("{not json")
+        capsys.readouterr()
+        rep = run_batch(d / "m.csv", out, OPTS)
+        assert rep.ran == 0 and rep.counts == {"skipped": 4}, damage
+        assert (f"state.json is {damage}; continuing from the item records"
+                in capsys.readouterr().err)
+    other = d / "other.csv"
+    other.write_text((d / "m.csv").read_text())
+    (out / "state.json").unlink()
+    with pytest.raises(ValueError, match="is the batch of"):  # its summary names m.csv
+        run_batch(other, out, OPTS)
 
 
 def test_a_failed_item_is_recorded_and_the_batch_goes_on(ray_local, tmp_path: Path) -> None:
