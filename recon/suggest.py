@@ -26,6 +26,7 @@ from typing import Any
 
 __all__ = [
     "INPUTS_FILE",
+    "TRADE_INPUTS_FORMAT",
     "Suggestion",
     "find_suggestions",
     "from_plan",
@@ -39,6 +40,8 @@ __all__ = [
 
 #: Beside a ``trade.csv``: the hashes of the measurement and PSF the trade was measured on.
 INPUTS_FILE = "inputs.json"
+#: the format name of a trade folder's inputs.json
+TRADE_INPUTS_FORMAT = "lenslesscam.trade_inputs"
 
 
 def input_hashes(meas: Any, psf: Any) -> dict[str, str]:
@@ -210,4 +213,8 @@ def write_trade_inputs(folder: str | os.PathLike[str], hashes: Mapping[str, str]
 
     Path(folder).mkdir(parents=True, exist_ok=True)
     now = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
-    return atomic_write_json(Path(folder) / INPUTS_FILE, {**hashes, "created_utc": now})
+    from recon.formats import FORMAT_VERSION
+
+    return atomic_write_json(Path(folder) / INPUTS_FILE, {
+        "format": TRADE_INPUTS_FORMAT, "format_version": FORMAT_VERSION, **hashes,
+        "created_utc": now})

@@ -124,6 +124,16 @@ def test_cli_writes_csv_markdown_and_plot(tmp_path, capsys):
     assert trade.meta["command"].startswith("lenslesscam trade") and "created_utc" in trade.meta
     png = (tmp_path / "out" / "trade_pareto.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+    # the plot and inputs.json say what they are (they had no format, version or provenance)
+    from PIL import Image
+
+    with Image.open(tmp_path / "out" / "trade_pareto.png") as im:
+        tag = json.loads(im.text["lenslesscam"])
+    assert tag["format"] == "lenslesscam.trade_plot" and tag["format_version"] == FORMAT_VERSION
+    assert "versions" in tag["provenance"]
+    inputs = json.loads((tmp_path / "out" / "inputs.json").read_text())
+    assert inputs["format"] == "lenslesscam.trade_inputs"
+    assert inputs["format_version"] == FORMAT_VERSION and inputs["measurement"]
     json.dumps(out)  # printable
 
 

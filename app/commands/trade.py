@@ -238,5 +238,13 @@ def _plot(cases: list[Any], rows: list[Any], path: Path) -> None:
         ax.axis("off")
     axes.flat[0].legend(fontsize=7)
     fig.tight_layout()
-    atomic_write(path, lambda p: fig.savefig(p, dpi=90))
+    import json
+
+    from recon.formats import FORMAT_VERSION, provenance
+
+    # the PNG's text chunk says what made it, as the reconstruction previews' do
+    meta = {"lenslesscam": json.dumps({"format": "lenslesscam.trade_plot",
+                                       "format_version": FORMAT_VERSION,
+                                       "provenance": provenance()}, default=str)}
+    atomic_write(path, lambda p: fig.savefig(p, dpi=90, format="png", metadata=meta))
     plt.close(fig)
