@@ -31,7 +31,7 @@ import dataclasses
 import functools
 import math
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -321,8 +321,15 @@ def run_trade(
     holdout: float = 0.05,
     seed: int = 0,
     cancel: Callable[[], bool] | None = None,
+    skip: Collection[str] = (),
+    finished: Callable[[str], None] | None = None,
 ) -> Iterator[TradeRow]:
-    """Run every configuration on ``case``; yield one row per (configuration, checkpoint)."""
+    """Run every configuration on ``case``; yield one row per (configuration, checkpoint).
+
+    ``skip``: labels of configurations not to run (measured by an earlier session);
+    ``finished(label)`` is called once a configuration's last row has been taken, before the
+    next one starts (a caller keeps what is complete).
+    """
     if not 0 < holdout < 0.5:
         raise ValueError(f"holdout must be in (0, 0.5), got {holdout}")
     h, w = case.meas.shape[-2:]
@@ -349,6 +356,8 @@ def run_trade(
     for cfg in grid:
         if cancel is not None and cancel():
             return
+        if cfg.label in skip:
+            continue
         psf_d, meas_d, mask_d = _downsample_case(case.psf, case.meas,
                                                  fit_mask.astype(np.float32), cfg.downsample)
         base = _reset_peak()
@@ -376,6 +385,8 @@ def run_trade(
                 row.psnr = psnr(case.truth, est)
                 row.ssim = ssim(case.truth, est)
             yield row
+        if finished is not None:
+            finished(cfg.label)
 
 
 # --------------------------------------------------------------------------------------------

@@ -257,3 +257,60 @@ def test_case_differences_compare_shape_field_and_psf():
                                           "scene field 24x32 (here 48x64)", "another PSF"]
     full = case_record(Case("f", case.psf, case.meas, field=(48, 64)))
     assert case_differences(rec, full) == ["scene field 24x32 (here 48x64)"]
+
+
+def test_an_interrupted_trade_goes_on_where_it_was(tmp_path, capsys, monkeypatch):
+    """trade --protocol takes 20 minutes, and an interrupt lost all of it: each measured
+    setting is kept in trade.partial.jsonl, and the same command skips what it holds."""
+    import recon.trade as rt
+
+    case = _case()
+    for name, a in (("psf", case.psf[0]), ("meas", case.meas), ("mask", case.mask),
+                    ("truth", case.truth)):
+        np.save(tmp_path / f"{name}.npy", a)
+    argv = ["trade", *(x for n in ("meas", "psf", "mask", "truth")
+                       for x in (f"--{n}", str(tmp_path / f"{n}.npy"))),
+            "--quick", "--no-udn", "--threads", "1"]
+    real = rt.run_trade
+    ran: list[str] = []
+
+    def interrupted(case, grid, **kw):
+        for row in real(case, grid, **kw):
+            if row.setting not in ran:
+                ran.append(row.setting)
+            if len(ran) == 3:  # the third setting's first row: two are complete
+                raise KeyboardInterrupt
+            yield row
+
+    monkeypatch.setattr(rt, "run_trade", interrupted)
+    assert main([*argv, "--out", str(tmp_path / "out")]) == 130
+    journal = tmp_path / "out" / "trade.partial.jsonl"
+    assert journal.is_file() and not (tmp_path / "out" / "trade.csv").exists()
+    first_two = ran[:2]
+
+    ran.clear()
+
+    def counted(case, grid, **kw):
+        for row in real(case, grid, **kw):
+            if row.setting not in ran:
+                ran.append(row.setting)
+            yield row
+
+    monkeypatch.setattr(rt, "run_trade", counted)
+    capsys.readouterr()
+    assert main([*argv, "--out", str(tmp_path / "out")]) == 0
+    assert "2 settings already measured" in capsys.readouterr().err
+    assert not set(first_two) & set(ran) and len(ran) == 9 - 2  # the quick grid has 9
+    assert not journal.exists()
+    resumed = read_trade(tmp_path / "out" / "trade.csv")
+    assert main([*argv, "--out", str(tmp_path / "whole")]) == 0
+    whole = read_trade(tmp_path / "whole" / "trade.csv")
+    capsys.readouterr()
+    key = [(r.setting, r.iterations) for r in whole.rows]
+    assert [(r.setting, r.iterations) for r in resumed.rows] == key  # the grid's order
+    # another trade's journal in the folder is refused, not mixed in
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "trade.partial.jsonl").write_text(
+        '{"format": "lenslesscam.trade_journal", "format_version": 1, "key": "0"}\n')
+    assert main([*argv, "--out", str(tmp_path / "other")]) == 2
+    assert "is the partial result of another trade" in capsys.readouterr().err

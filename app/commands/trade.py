@@ -136,16 +136,9 @@ def _tutorial_case() -> Any:
 
 def run(args: argparse.Namespace) -> int:
     """Run the grid on each case; write trade.csv, trade.md and trade_pareto.png."""
-    from recon.atomic import atomic_write_bytes
     from recon.threads import apply_threads
-    from recon.trade import (
-        best_for_budgets,
-        default_grid,
-        pareto_front,
-        rank_correlation,
-        run_trade,
-        write_trade_csv,
-    )
+    from recon.trade import default_grid, run_trade
+    from recon.udn.rundir import RunFolderBusy, RunLock
 
     check_command_outputs(args, [Path(args.out) / n for n in TRADE_FILES])
     threads = apply_threads(args.threads)
@@ -155,13 +148,133 @@ def run(args: argparse.Namespace) -> int:
     t_all = time.perf_counter()
     rows = []
     cases = _cases(args)
-    for case in cases:
-        for row in run_trade(case, grid):
-            rows.append(row)
-            print(f"{row.case:22s} {row.setting:26s} it {row.iterations:5d} "
-                  f"{row.wall_s:8.2f} s  held-out {row.heldout_psnr:6.2f} dB"
-                  + (f"  PSNR {row.psnr:6.2f} dB" if row.psnr is not None else ""),
-                  file=sys.stderr)
+    try:
+        lock = RunLock(out).acquire()  # one trade writes a folder at a time
+    except RunFolderBusy as exc:
+        raise ValueError(str(exc)) from None
+    try:
+        journal = _Journal(out, cases, grid, threads.threads)
+        for case in cases:
+            done = journal.done(case.name)
+            rows.extend(r for s in done.values() for r in s)
+            setting: list[Any] = []
+
+            def keep(label: str, setting: list[Any] = setting) -> None:
+                journal.add(label, setting)
+                setting.clear()
+
+            for row in run_trade(case, grid, skip=frozenset(done), finished=keep):
+                setting.append(row)
+                rows.append(row)
+                print(f"{row.case:22s} {row.setting:26s} it {row.iterations:5d} "
+                      f"{row.wall_s:8.2f} s  held-out {row.heldout_psnr:6.2f} dB"
+                      + (f"  PSNR {row.psnr:6.2f} dB" if row.psnr is not None else ""),
+                      file=sys.stderr)
+        rows = _in_grid_order(rows, cases, grid)
+        _write_outputs(args, out, rows, cases, threads, budgets, t_all)
+        journal.remove()
+    finally:
+        lock.release()
+    return 0
+
+
+def _in_grid_order(rows: list[Any], cases: list[Any], grid: Any) -> list[Any]:
+    """Rows by case, then setting as the grid lists them (resumed ones came first)."""
+    case_at = {c.name: i for i, c in enumerate(cases)}
+    setting_at = {c.label: i for i, c in enumerate(grid)}
+    return sorted(rows, key=lambda r: (case_at.get(r.case, 0), setting_at.get(r.setting, 0),
+                                       r.iterations))
+
+
+class _Journal:
+    """``trade.partial.jsonl``: each measured setting, written as it finishes.
+
+    A run stopped by a kill, Ctrl-C or a crash goes on where it was when the same command is
+    given again (a setting cut short runs again).
+    Its first line names the cases (their data hashes), the grid and the threads; a journal
+    of another command in the folder is refused (it would mix measurements). Removed when the
+    trade's files are written.
+    """
+
+    NAME = "trade.partial.jsonl"
+    FORMAT = "lenslesscam.trade_journal"
+
+    def __init__(self, out: Path, cases: list[Any], grid: Any, threads: int) -> None:
+        import hashlib
+        import json
+
+        from recon.formats import FORMAT_VERSION, array_hash
+
+        self.path = out / self.NAME
+        what = {"cases": [[c.name, *(None if a is None else array_hash(a)
+                                     for a in (c.psf, c.meas, c.mask, c.truth))]
+                          for c in cases],
+                "grid": [c.label for c in grid], "threads": threads}
+        self.key = hashlib.sha256(json.dumps(what).encode()).hexdigest()[:16]
+        self.entries: dict[str, dict[str, list[Any]]] = {}
+        if self.path.is_file():
+            self._read()
+        else:
+            head = {"format": self.FORMAT, "format_version": FORMAT_VERSION, "key": self.key}
+            self._append(head, create=True)
+
+    def _read(self) -> None:
+        import json
+
+        from recon.trade import TradeRow
+
+        lines = self.path.read_text(encoding="utf-8").splitlines()
+        try:
+            head = json.loads(lines[0]) if lines else {}
+        except ValueError:
+            head = {}
+        if head.get("format") != self.FORMAT or head.get("key") != self.key:
+            raise ValueError(f"{self.path} is the partial result of another trade (other data, "
+                             "grid or threads): give that command again to finish it, or "
+                             "choose another --out")
+        n = 0
+        for line in lines[1:]:
+            try:
+                e = json.loads(line)
+                rows = [TradeRow(**r) for r in e["rows"]]
+            except (ValueError, KeyError, TypeError):
+                continue  # a line cut by a kill: that setting runs again
+            self.entries.setdefault(e["case"], {})[e["setting"]] = rows
+            n += 1
+        print(f"trade: resuming from {self.path}: {n} settings already measured",
+              file=sys.stderr)
+
+    def done(self, case: str) -> dict[str, list[Any]]:
+        """The settings of ``case`` measured by an earlier session, with their rows."""
+        return self.entries.get(case, {})
+
+    def add(self, label: str, rows: list[Any]) -> None:
+        """Record one finished setting (all its rows)."""
+        from dataclasses import asdict
+
+        if rows:
+            self._append({"case": rows[0].case, "setting": label,
+                          "rows": [asdict(r) for r in rows]})
+
+    def _append(self, entry: dict[str, Any], create: bool = False) -> None:
+        import json
+        import os
+
+        with open(self.path, "w" if create else "a", encoding="utf-8") as f:
+            f.write(json.dumps(entry, default=str) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
+def _write_outputs(args: argparse.Namespace, out: Path, rows: list[Any], cases: list[Any],
+                   threads: Any, budgets: list[float], t_all: float) -> None:
+    """trade.csv, inputs.json, trade.md and trade_pareto.png, and the summary on stdout."""
+    from recon.atomic import atomic_write_bytes
+    from recon.trade import best_for_budgets, pareto_front, rank_correlation, write_trade_csv
+
     argv = sys.argv[1:]
     command = " ".join(argv[argv.index("trade"):] if "trade" in argv else ["trade"])
     # CSV, with the data of every case in its header (plan --trade checks them)
@@ -202,7 +315,6 @@ def run(args: argparse.Namespace) -> int:
     atomic_write_bytes(out / "trade.md", "\n".join(md).encode())
     _plot(cases, rows, out / "trade_pareto.png")
     print("\n".join(md))
-    return 0
 
 
 def _plot(cases: list[Any], rows: list[Any], path: Path) -> None:
