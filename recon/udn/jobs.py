@@ -49,6 +49,7 @@ import shlex
 import signal
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -465,6 +466,7 @@ class _Job:
             "format_version": FORMAT_VERSION,
             "iteration": it,
             "spec_hash": _spec_hash(self.spec),
+            "run_id": self.record.get("run_id"),
             "written_utc": _now(),
             "provenance": provenance(),
             "state": runner.state_dict(),
@@ -912,6 +914,7 @@ def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: OnStep, cancel: Can
         "finish_reason": None,
         "detail": None,
         "error": None,
+        "run_id": uuid.uuid4().hex,  # in every checkpoint: another run's is refused
         "spec_file": SPEC_FILE,
         "spec_source": str(sp.resolve()) if sp.exists() else str(sp),
         "spec": None,
@@ -1012,6 +1015,12 @@ def _resume_locked(rd: Path, lock: RunLock, max_iter: int | None, time_limit_s: 
             f"{rd}: no usable checkpoint ({why}); the run had reached iteration {at}: pass "
             "--restart to begin again from iteration 0")
     # refusals that leave the run's record as it is
+    ours, theirs = rec.get("run_id"), (state or {}).get("run_id")
+    if state is not None and ours and theirs and ours != theirs and not restart:
+        raise CheckpointError(
+            f"{rd}: {info['path']} (iteration {state['iteration']}) is a checkpoint of another "
+            f"run (run id {theirs}, this run's is {ours}): put this run's checkpoint back, or "
+            "pass --restart to begin again from iteration 0")
     done = int(state["iteration"]) if state is not None and not restart else 0
     limit = spec["stopping"]["max_iter"]
     if done >= limit:

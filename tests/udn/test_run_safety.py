@@ -443,6 +443,24 @@ def test_an_edited_job_toml_is_noted_at_the_resume(tiny_data, tmp_path, capsys):
     assert any(words in n for n in record(out)["notes"])
 
 
+def test_another_runs_checkpoint_is_refused(tiny_data, tmp_path, capsys):
+    """A checkpoint copied from another run of the same settings took the run back to that
+    run's iteration without a word."""
+    import shutil
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    small_run(tiny_data, a)
+    small_run(tiny_data, b, stopping={"max_iter": 4})
+    before = (a / "run.json").read_bytes()
+    for name in ("checkpoint.pt", "checkpoint.prev.pt", "checkpoints.json"):
+        if (b / name).exists():
+            shutil.copy(b / name, a / name)
+    line = one_line_error(["jobs", "resume", a, "--max-iter", "12"], capsys)
+    assert "is a checkpoint of another run" in line and "--restart" in line, line
+    assert (a / "run.json").read_bytes() == before
+    assert record(a)["run_id"] != record(b)["run_id"]
+
+
 def test_temporary_files_of_killed_writes_are_cleaned_at_the_next_start(tiny_data, tmp_path):
     out = tmp_path / "run"
     small_run(tiny_data, out)
