@@ -125,8 +125,12 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
         key = _inputs_key(rec)
         if key != key0:
             diff = sorted(n for n in set(key) | set(key0) if key.get(n) != key0.get(n))
+            same_files = all((key.get(n) or (None,))[0] == (key0.get(n) or (None,))[0]
+                             for n in diff)
+            how = (" as read: the same files with other settings (downsample, dark, colour, "
+                   "field ...)" if same_files else "")
             raise ValueError(f"{d} is a run of other data than {dirs[0]} (differs in: "
-                             f"{', '.join('data.' + n for n in diff)})")
+                             f"{', '.join('data.' + n for n in diff)}{how})")
         if meta.get("model") != meta0.get("model"):
             raise ValueError(f"{d} uses the {meta.get('model')} model, {dirs[0]} the "
                              f"{meta0.get('model')} model")

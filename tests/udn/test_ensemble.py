@@ -85,7 +85,8 @@ def test_combine_refuses_what_is_not_one_problem(three_runs, tiny_data, tmp_path
     dark = write_spec(tiny_data, "dark.toml", stopping={"max_iter": 10},
                       data={"dark": 0.01, "psf_dark": 0.0})
     run_job(dark, tmp_path / "dark_run", seed=6)
-    with pytest.raises(ValueError, match=r"other data .*data\.measurement"):
+    with pytest.raises(ValueError, match=r"other data .*data\.measurement as read: the same "
+                       r"files with other settings"):
         combine_runs([runs[0], tmp_path / "dark_run"], out)
     # a run that never finished (no results) and a folder that holds no run
     rec = json.loads((runs[1] / "run.json").read_text())
