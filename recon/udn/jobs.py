@@ -688,7 +688,8 @@ def _session(job: _Job, max_memory: int | None, resume_state: dict[str, Any] | N
     and marked a completed run failed).
     """
     rec = job.record
-    iterating = False
+    # a resume that fails before its first iteration puts the record back as it was
+    before = (job.run_dir / RECORD_FILE).read_bytes() if resuming else b""
     sessions = rec.setdefault("sessions", [])
     session: dict[str, Any] = {"started_utc": _now(), "pid": os.getpid(),
                                "host": platform.node(), "start_iteration": 0}
@@ -715,7 +716,6 @@ def _session(job: _Job, max_memory: int | None, resume_state: dict[str, Any] | N
         job.runner.notes.extend(n for n in job.notes if n not in job.runner.notes)
         rec["notes"] = list(job.runner.notes)
         job.write_record()
-        iterating = True
         reason = job.loop()
         rec["notes"] = list(job.runner.notes)
         rec["device"]["compile"]["active"] = bool(job.runner._compiled)
@@ -739,7 +739,14 @@ def _session(job: _Job, max_memory: int | None, resume_state: dict[str, Any] | N
                 job.lock.release_reserve()  # room for the record that says so
         elif isinstance(exc, CheckpointError):
             err = CheckpointError(f"{exc}; {_kept(rec)}")
+        # a resume that has not finished one iteration (a refusal at setup, torch.compile or
+        # an out-of-memory at the first step, Ctrl-C meanwhile) leaves the run as it was
+        iterating = job.runner is not None and (
+            job.runner.iteration > session["start_iteration"])
         if resuming and not iterating:
+            with contextlib.suppress(OSError):  # written as RUNNING just before the loop
+                if (job.run_dir / RECORD_FILE).read_bytes() != before:
+                    atomic_write_bytes(job.run_dir / RECORD_FILE, before)
             if err is exc:
                 raise
             raise err from exc

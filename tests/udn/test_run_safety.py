@@ -362,8 +362,8 @@ def test_disk_full_in_the_cli_is_one_line(tiny_data, tmp_path, monkeypatch, caps
 # --------------------------------------------------------------------------------------------
 
 
-def test_a_resume_refused_before_its_first_iteration_leaves_the_run_as_it_was(tiny_data,
-                                                                              tmp_path, capsys):
+def test_a_resume_refused_before_its_first_iteration_leaves_the_run_as_it_was(
+        tiny_data, tmp_path, capsys, monkeypatch):
     """A resume refused at start-up (memory limit, a device this machine lacks, a loss.csv it
     cannot read) wrote loss.csv with no rows and marked the completed run failed, with the
     refused --max-iter saved in its spec."""
@@ -395,6 +395,19 @@ def test_a_resume_refused_before_its_first_iteration_leaves_the_run_as_it_was(ti
     rec = record(out)
     assert rec["finish_reason"] == FinishReason.COMPLETED
     assert rec["spec"]["stopping"]["max_iter"] == 8
+    # a failure in the first step (torch.compile, out of memory, Ctrl-C) after the record was
+    # written as running: it is put back
+    (out / "loss.csv").write_bytes(before["loss.csv"])
+    from recon.udn.runner import UDNRunner
+
+    def first_step_fails(self, *args, **kwargs):
+        raise KeyboardInterrupt
+        yield  # a generator, like the real one
+
+    monkeypatch.setattr(UDNRunner, "steps", first_step_fails)
+    with pytest.raises(KeyboardInterrupt):
+        resume_job(out, max_iter=100)
+    assert {n: (out / n).read_bytes() for n in before} == before
 
 
 def test_a_short_loss_row_is_named_and_a_lost_history_is_noted(tiny_data, tmp_path, capsys):
