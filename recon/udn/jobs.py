@@ -61,6 +61,7 @@ import numpy.typing as npt
 import torch
 
 from recon.atomic import atomic_write_bytes, atomic_write_json
+from recon.calibfile import DARK_CORRECTED_KINDS, calibration_kind
 from recon.formats import FORMAT_VERSION, FormatError, file_hash, provenance
 from recon.previews import preview_image
 from recon.previews import write_png as _write_png  # the shared writer (tests patch it)
@@ -539,11 +540,15 @@ class _Job:
         before = self.record.get("inputs", {})
         for name, now in self.problem.inputs.items():
             old = before.get(name, {})
-            if old.get("file_hash") != now.get("file_hash") or old.get("array_hash") != now.get(
-                    "array_hash"):
+            if old.get("file_hash") != now.get("file_hash"):
                 raise ValueError(f"data.{name} ({now.get('path')}) changed since the run "
                                  f"started (hash {old.get('file_hash')} -> "
                                  f"{now.get('file_hash')}); start a new run instead")
+            if old.get("array_hash") != now.get("array_hash"):
+                raise ValueError(f"data.{name} ({now.get('path')}) is the same file but reads "
+                                 f"as other data (array hash {old.get('array_hash')} -> "
+                                 f"{now.get('array_hash')}): this version prepares it "
+                                 "differently; start a new run instead")
 
     # -- loop ----------------------------------------------------------------------------------
     def loop(self) -> str:
@@ -1011,6 +1016,14 @@ def _resume_locked(rd: Path, lock: RunLock, max_iter: int | None, time_limit_s: 
         spec["stopping"]["time_limit_s"] = float(time_limit_s)
     spec = normalise_spec(spec, rd, source=f"{rd / RECORD_FILE} spec")
     notes = _start_notes(clean_temp_files(rd))
+    data = spec["data"]
+    if ("run_id" not in rec and data.get("psf_dark") is None and data.get("dark") is not None
+            and isinstance(data.get("psf"), str)
+            and calibration_kind(data["psf"]) in DARK_CORRECTED_KINDS):
+        # begun before a calibrated PSF was exempt from data.dark: it goes on as it began
+        data["psf_dark"] = data["dark"]
+        notes.append("this run began when data.dark was taken off a calibrated PSF too; it "
+                     "goes on that way (psf_dark = dark), a new run would not")
     state, info, problems = load_latest_checkpoint(rd)
     recorded = rec.get("checkpoint")
     at = int((rec.get("progress") or {}).get("iteration", 0))

@@ -474,6 +474,28 @@ def test_another_runs_checkpoint_is_refused(tiny_data, tmp_path, capsys):
     assert record(a)["run_id"] != record(b)["run_id"]
 
 
+def test_a_run_begun_before_the_calibrated_psf_rule_resumes_as_it_began(tiny_data, tmp_path):
+    """A calibrated PSF no longer takes data.dark; a run begun before (its PSF's array hash made
+    with the dark taken off) was refused on resume: 'data.psf changed (hash H -> H)'."""
+    import numpy as np
+
+    from recon.calibfile import save_psf_calibration
+
+    psf = np.load(tiny_data / "psf.npy").reshape(np.load(tiny_data / "psf.npy").shape[-2:])
+    save_psf_calibration(tiny_data / "cal.tif", 1000 * psf, {
+        "camera": {}, "exposure_us": 1.0, "gain": 1.0, "frames_averaged": 1,
+        "dark_level": 0.0, "timing": None, "quality": {}})
+    out = tmp_path / "run"
+    # what the old rule did: the measurement's dark taken off the PSF too
+    small_run(tiny_data, out, data={"psf": "cal.tif", "dark": 0.01, "psf_dark": 0.01})
+    rec = record(out)
+    del rec["run_id"]  # a record of the version before
+    rec["spec"]["data"]["psf_dark"] = None
+    (out / "run.json").write_text(json.dumps(rec))
+    assert resume_job(out, max_iter=10).finish_reason == FinishReason.COMPLETED
+    assert any("goes on that way (psf_dark = dark)" in n for n in record(out)["notes"])
+
+
 def test_temporary_files_of_killed_writes_are_cleaned_at_the_next_start(tiny_data, tmp_path):
     out = tmp_path / "run"
     small_run(tiny_data, out)
