@@ -508,28 +508,6 @@ def _norm(mode: str) -> Any:
     return None if mode == "none" else mode
 
 
-#: a measurement read without a mask that is exactly 0 on at least this fraction of its pixels
-#: is warned about: erased or dead pixels (``simulate --erasure`` writes 0 there) read as
-#: black light, which the reconstruction fits (90 % erasures without their mask: 9.3 dB
-#: against 14.7). A lensless frame is lit almost everywhere: the real ones at hand have no
-#: pixel at 0.
-UNMASKED_ZERO_WARN_FRACTION = 0.25
-
-
-def _check_unmasked_zeros(meas: F32, path: Any) -> None:
-    """Warn of a measurement, read with no mask, whose pixels are 0 in many places."""
-    import warnings
-
-    from recon.checks import MeasurementWarning
-
-    zero = float(np.mean(np.all(meas == 0, axis=0)))
-    if zero >= UNMASKED_ZERO_WARN_FRACTION:
-        warnings.warn(
-            f"measurement file {path}: {100 * zero:.0f} % of its pixels are 0 and no mask was "
-            "given: erased or dead pixels would be fitted as black; give their mask (--mask, "
-            "the spec's mask; 1 = measured)", MeasurementWarning, stacklevel=3)
-
-
 def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
                  device: torch.device | str = "cpu") -> Problem:
     """Read, dark-correct, downsample and check the inputs of ``spec``; build the model.
@@ -556,7 +534,7 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
 
     # measurement (full resolution, counts)
     meas = load_measurement(spec.meas, dark=dark, channels=color, channel_order=order,
-                            normalise=None)
+                            normalise=None, unmasked=spec.mask is None)
     if spec.flip_rows:
         meas = np.ascontiguousarray(meas[:, ::-1])
     c, h_full, w_full = (int(s) for s in meas.shape)
@@ -620,8 +598,6 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
         if not raw_mask.any():
             raise ValueError(f"mask file {spec.mask} marks no pixel as measured (all erased)")
 
-    else:
-        _check_unmasked_zeros(meas, spec.meas)
 
     # embed the sensor in the padded grid of a padded PSF
     grid_full = psf_hw

@@ -384,8 +384,30 @@ def _check_saturation(raw: Array, p: Path) -> None:
 #: tutorial's hand 0.6 %, dark about 34 codes; the 3D example 0.2 %, dark about 100): bright
 #: frames, where a black level costs little. The simulated bench frame without its dark level
 #: of 100 is at 41 %, and its reconstruction's correlation with the scene falls from 0.99 to
-#: 0.25.
-BLACK_LEVEL_WARN_FRACTION = 0.05
+#: 0.25. Lensless frames with no black level can sit on a floor of their own (the caustics of
+#: a bright scene overlap): the MirFlickr measurements, dark removed, at up to 10 %, simulated
+#: ones of the bundled scenes at 6-12 %; a fifth stays above them.
+BLACK_LEVEL_WARN_FRACTION = 0.2
+
+
+#: a measurement read without a mask that is exactly 0 on at least this fraction of its pixels
+#: in the file (before any dark subtraction) is warned about: erased or dead pixels
+#: (``simulate --erasure`` writes 0 there) read as black light, which the reconstruction fits
+#: (90 % erasures without their mask: 9.3 dB against 14.7). A sensor's raw frame is not 0
+#: where it is dark (its black level, its noise): the real frames at hand have no pixel at 0.
+UNMASKED_ZERO_WARN_FRACTION = 0.25
+
+
+def _check_unmasked_zeros(chw: Array, p: Path) -> None:
+    """Warn of a measurement file, read with no mask, that is 0 in many of its pixels."""
+    from recon.checks import MeasurementWarning
+
+    zero = float(np.mean(np.all(chw == 0, axis=0)))
+    if zero >= UNMASKED_ZERO_WARN_FRACTION:
+        warnings.warn(
+            f"measurement file {p}: {100 * zero:.0f} % of its pixels are 0 and no mask was "
+            "given: erased or dead pixels would be fitted as black; give their mask (--mask, "
+            "the spec's mask; 1 = measured)", MeasurementWarning, stacklevel=4)
 
 
 def _check_black_level(raw: Array, p: Path) -> None:
@@ -421,6 +443,7 @@ def _prepare(
     prefer: Sequence[str],
     order: ChannelOrder = "rgb",
     shared_gray: bool = False,
+    unmasked: bool = False,
 ) -> tuple[F32, Path]:
     p = Path(path)
     raw = _load_image(p, key=key, prefer=prefer)
@@ -435,6 +458,8 @@ def _prepare(
         _check_saturation(raw, p)
         if dark is None:
             _check_black_level(raw, p)
+        if unmasked:
+            _check_unmasked_zeros(chw, p)
     arr = _as_float(chw).astype(np.float32, copy=False)
     d = _dark_for(dark, key, arr, channels, what, p, order)
     if d is not None:
@@ -503,12 +528,14 @@ def load_measurement(
     normalise: NormMode | None = "max",
     key: str | None = None,
     channel_order: ChannelOrder = "rgb",
+    unmasked: bool = False,
 ) -> F32:
     """Load a measurement as float32 ``(C, H, W)``: dark -> downsample -> clip -> normalise.
 
     Same arguments as :func:`load_psf`; by default the result is scaled to maximum 1
-    (``normalise=None`` keeps the counts). Raises for NaN/inf values, a bad dtype or shape, and
-    an all-zero measurement when it is to be normalised.
+    (``normalise=None`` keeps the counts). ``unmasked``: it is read without an erasure mask
+    (a file that is 0 on many pixels is warned about). Raises for NaN/inf values, a bad dtype
+    or shape, and an all-zero measurement when it is to be normalised.
     """
     arr, p = _prepare(
         path,
@@ -519,6 +546,7 @@ def load_measurement(
         key=key,
         prefer=_MEAS_KEYS,
         order=channel_order,
+        unmasked=unmasked,
     )
     if normalise is not None:
         if not np.any(arr > 0):
