@@ -308,9 +308,24 @@ def test_an_interrupted_trade_goes_on_where_it_was(tmp_path, capsys, monkeypatch
     capsys.readouterr()
     key = [(r.setting, r.iterations) for r in whole.rows]
     assert [(r.setting, r.iterations) for r in resumed.rows] == key  # the grid's order
-    # another trade's journal in the folder is refused, not mixed in
-    (tmp_path / "other").mkdir()
-    (tmp_path / "other" / "trade.partial.jsonl").write_text(
-        '{"format": "lenslesscam.trade_journal", "format_version": 1, "key": "0"}\n')
-    assert main([*argv, "--out", str(tmp_path / "other")]) == 2
+    # another command's journal in the folder (here: another --dark) is refused, not mixed in
+    monkeypatch.setattr(rt, "run_trade", interrupted)
+    ran.clear()
+    assert main([*argv, "--out", str(tmp_path / "other")]) == 130
+    assert main([*argv, "--dark", "0", "--out", str(tmp_path / "other")]) == 2
     assert "is the partial result of another trade" in capsys.readouterr().err
+    # a line cut by a kill is dropped (that setting runs again), not appended to
+    journal = tmp_path / "other" / "trade.partial.jsonl"
+    journal.write_text(journal.read_text() + '{"case": "meas", "setting": "fi')
+    monkeypatch.setattr(rt, "run_trade", counted)
+    ran.clear()
+    assert main([*argv, "--out", str(tmp_path / "other")]) == 0
+    assert "2 settings already measured" in capsys.readouterr().err and len(ran) == 7
+    # --overwrite discards another command's journal
+    monkeypatch.setattr(rt, "run_trade", interrupted)
+    ran.clear()
+    assert main([*argv, "--out", str(tmp_path / "third")]) == 130
+    monkeypatch.setattr(rt, "run_trade", counted)
+    ran.clear()
+    assert main([*argv, "--dark", "0", "--overwrite", "--out", str(tmp_path / "third")]) == 0
+    assert "discarded" in capsys.readouterr().err and len(ran) == 9

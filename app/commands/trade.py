@@ -36,7 +36,8 @@ def register(sub: Any) -> None:
     p.add_argument("--psf", help="PSF file")
     p.add_argument("--mask", help="erasure mask (1 = measured)")
     p.add_argument("--truth", help="ground truth (C,1,H,W) or (H,W), if known")
-    p.add_argument("--dark", help="dark level for the measurement and PSF files")
+    p.add_argument("--dark", help="dark level of the measurement (and of a PSF file that is not "
+                   "a calibrated, dark-subtracted one)")
     from app.commands._inputs import add_layout_arguments
 
     add_layout_arguments(p)
@@ -150,10 +151,11 @@ def run(args: argparse.Namespace) -> int:
     cases = _cases(args)
     try:
         lock = RunLock(out).acquire()  # one trade writes a folder at a time
-    except RunFolderBusy as exc:
-        raise ValueError(str(exc)) from None
+    except RunFolderBusy:
+        raise ValueError(f"{out}: another trade is writing this folder (its run.lock is held); "
+                         "wait for it, or choose another --out") from None
     try:
-        journal = _Journal(out, cases, grid, threads.threads)
+        journal = _Journal(out, cases, grid, args.threads, overwrite=args.overwrite)
         for case in cases:
             done = journal.done(case.name)
             rows.extend(r for s in done.values() for r in s)
@@ -191,58 +193,71 @@ class _Journal:
 
     A run stopped by a kill, Ctrl-C or a crash goes on where it was when the same command is
     given again (a setting cut short runs again).
-    Its first line names the cases (their data hashes), the grid and the threads; a journal
-    of another command in the folder is refused (it would mix measurements). Removed when the
-    trade's files are written.
+    Its first line names the cases (their data: arrays, field and source), the grid and the
+    requested threads (--threads; the count chosen from the load may differ between sessions);
+    a journal of another command in the folder is refused (it would mix measurements), or
+    discarded with ``--overwrite``. Removed when the trade's files are written.
     """
 
     NAME = "trade.partial.jsonl"
     FORMAT = "lenslesscam.trade_journal"
 
-    def __init__(self, out: Path, cases: list[Any], grid: Any, threads: int) -> None:
+    def __init__(self, out: Path, cases: list[Any], grid: Any, threads: int | None,
+                 overwrite: bool = False) -> None:
         import hashlib
         import json
 
+        from recon.atomic import atomic_write_bytes
         from recon.formats import FORMAT_VERSION, array_hash
 
         self.path = out / self.NAME
-        what = {"cases": [[c.name, *(None if a is None else array_hash(a)
-                                     for a in (c.psf, c.meas, c.mask, c.truth))]
+        what = {"cases": [[c.name, c.field, json.dumps(c.source, sort_keys=True, default=str),
+                           *(None if a is None else array_hash(a)
+                             for a in (c.psf, c.meas, c.mask, c.truth))]
                           for c in cases],
                 "grid": [c.label for c in grid], "threads": threads}
-        self.key = hashlib.sha256(json.dumps(what).encode()).hexdigest()[:16]
+        self.key = hashlib.sha256(json.dumps(what, default=str).encode()).hexdigest()[:16]
         self.entries: dict[str, dict[str, list[Any]]] = {}
-        if self.path.is_file():
-            self._read()
-        else:
-            head = {"format": self.FORMAT, "format_version": FORMAT_VERSION, "key": self.key}
-            self._append(head, create=True)
+        if self.path.is_file() and self._read(overwrite):
+            return
+        head = {"format": self.FORMAT, "format_version": FORMAT_VERSION, "key": self.key}
+        atomic_write_bytes(self.path, (json.dumps(head) + "\n").encode())
 
-    def _read(self) -> None:
+    def _read(self, overwrite: bool) -> bool:
+        """Take the journal's settings; False when it is another trade's and is discarded."""
         import json
 
         from recon.trade import TradeRow
 
-        lines = self.path.read_text(encoding="utf-8").splitlines()
+        text = self.path.read_text(encoding="utf-8")
+        if text and not text.endswith("\n"):  # a line cut by a kill: that setting runs again
+            text = text[:text.rfind("\n") + 1]
+            self.path.write_text(text, encoding="utf-8")
+        lines = text.splitlines()
         try:
             head = json.loads(lines[0]) if lines else {}
         except ValueError:
             head = {}
         if head.get("format") != self.FORMAT or head.get("key") != self.key:
+            if overwrite:
+                print(f"trade: note: {self.path} was another trade's partial result "
+                      "(--overwrite): discarded", file=sys.stderr)
+                return False
             raise ValueError(f"{self.path} is the partial result of another trade (other data, "
-                             "grid or threads): give that command again to finish it, or "
-                             "choose another --out")
+                             "field, grid or --threads): give that command again to finish it, "
+                             "pass --overwrite to discard it, or choose another --out")
         n = 0
         for line in lines[1:]:
             try:
                 e = json.loads(line)
                 rows = [TradeRow(**r) for r in e["rows"]]
             except (ValueError, KeyError, TypeError):
-                continue  # a line cut by a kill: that setting runs again
+                continue
             self.entries.setdefault(e["case"], {})[e["setting"]] = rows
             n += 1
         print(f"trade: resuming from {self.path}: {n} settings already measured",
               file=sys.stderr)
+        return True
 
     def done(self, case: str) -> dict[str, list[Any]]:
         """The settings of ``case`` measured by an earlier session, with their rows."""
@@ -256,11 +271,11 @@ class _Journal:
             self._append({"case": rows[0].case, "setting": label,
                           "rows": [asdict(r) for r in rows]})
 
-    def _append(self, entry: dict[str, Any], create: bool = False) -> None:
+    def _append(self, entry: dict[str, Any]) -> None:
         import json
         import os
 
-        with open(self.path, "w" if create else "a", encoding="utf-8") as f:
+        with open(self.path, "a", encoding="utf-8") as f:
             f.write(json.dumps(entry, default=str) + "\n")
             f.flush()
             os.fsync(f.fileno())
