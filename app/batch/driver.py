@@ -383,11 +383,12 @@ def _check_batch_folder(root: Path, manifest: Path) -> None:
     """
     if root.exists() and not root.is_dir():
         raise ValueError(f"{root} exists and is not a folder: --out names the batch's folder")
+    damage = None
     try:
         st = read_state(root, missing_ok=True)
         lost = "missing"
-    except ValueError:  # damaged: the item records below still say what was done
-        st, lost = {}, "damaged"
+    except ValueError as exc:  # damaged: the item records below still say what was done
+        st, lost, damage = {}, "damaged", exc
     if st:
         theirs = st.get("manifest")
         if theirs and Path(theirs).resolve() != manifest:
@@ -396,6 +397,10 @@ def _check_batch_folder(root: Path, manifest: Path) -> None:
     elif root.is_dir() and _batch_without_state(root, manifest):
         print(f"batch: note: {root / 'state.json'} is {lost}; continuing from the item "
               "records in items/ (finished items are skipped as usual)", file=sys.stderr)
+    elif damage is not None:
+        raise ValueError(f"{damage}; no item record in {root / 'items'} says what was done: "
+                         "delete the folder's state.json to start the batch again there, or "
+                         "choose another --out")
     elif root.is_dir():
         # what a driver stopped before its first state.json leaves: its lock, empty folders
         from recon.udn.rundir import LOCK_FILE
@@ -426,8 +431,17 @@ def _batch_without_state(root: Path, manifest: Path) -> bool:
     items = BatchPaths(root).items_dir
     if any(p.name not in _BATCH_ENTRIES for p in root.iterdir()) or not items.is_dir():
         return False
-    if not any(items.glob("*.json")):
+    records = sorted(items.glob("*.json"))
+    if not records:
         return False
+    for rec_path in records:  # each record names the manifest row of its item ("m.csv:2")
+        source = None
+        with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+            source = str(json.loads(rec_path.read_text(encoding="utf-8"))["item"]["source"])
+        if source is not None and source.rsplit(":", 1)[0] != manifest.name:
+            raise ValueError(f"{root} holds the items of another manifest ({source} in "
+                             f"{rec_path.name}); run that manifest there, or choose another "
+                             "--out")
     summary = root / "summary.csv"
     theirs = None
     if summary.is_file():

@@ -162,8 +162,15 @@ def test_rerun_does_no_work_and_a_changed_input_reruns_one_item(ray_local, tmp_p
     other = d / "other.csv"
     other.write_text((d / "m.csv").read_text())
     (out / "state.json").unlink()
-    with pytest.raises(ValueError, match="is the batch of"):  # its summary names m.csv
-        run_batch(other, out, OPTS)
+    with pytest.raises(ValueError, match=r"holds the items of another manifest \(m\.csv:2"):
+        run_batch(other, out, OPTS)  # its item records name m.csv
+    # a damaged state.json where no item is recorded yet: named, with what to do
+    empty = tmp_path / "empty"
+    (empty / "items").mkdir(parents=True)
+    (empty / "state.json").write_text("{not json")
+    with pytest.raises(ValueError, match=r"not valid JSON.*no item record .* delete the "
+                       r"folder's state\.json"):
+        run_batch(d / "m.csv", empty, OPTS)
 
 
 def test_a_failed_item_is_recorded_and_the_batch_goes_on(ray_local, tmp_path: Path) -> None:
