@@ -45,7 +45,7 @@ class CliError(Exception):
     """A user-facing error: printed as one line, exit code 2, no traceback."""
 
 
-class _Parser(argparse.ArgumentParser):
+class Parser(argparse.ArgumentParser):
     """argparse with a one-line error: the problem and where the usage is (not the usage).
 
     A value such as ``-1e30`` is read as a negative number, as ``-5`` and ``-0.5`` are
@@ -58,13 +58,14 @@ class _Parser(argparse.ArgumentParser):
             r"^-\d+$|^-\d*\.\d+$|^-(\d+\.?\d*|\.\d+)[eE][+-]?\d+$")
 
     def error(self, message: str) -> NoReturn:
+        """Exit 2 with one line: the problem and where the usage is."""
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
     def parse_known_args(self, args: Any = None, namespace: Any = None) -> Any:
         """Also note in the namespace the innermost (sub)command's parser that read it."""
         ns, extras = super().parse_known_args(args, namespace)
         if not hasattr(ns, _INNERMOST):  # a subcommand's parser ran inside this one and set it
-            setattr(ns, _INNERMOST, self)
+            setattr(ns, _INNERMOST, (self, list(extras)))
         return ns, extras
 
     def parse_args(self, args: Any = None, namespace: Any = None) -> Any:  # type: ignore[override]
@@ -76,8 +77,14 @@ class _Parser(argparse.ArgumentParser):
         import difflib
 
         ns, extras = self.parse_known_args(args, namespace)
-        inner = vars(ns).pop(_INNERMOST, self)
+        inner, theirs = vars(ns).pop(_INNERMOST, (self, extras))
         if extras:
+            mine = list(extras)
+            for e in theirs:  # what the subcommand left is its own; the rest came before it
+                if e in mine:
+                    mine.remove(e)
+            if mine:
+                inner, extras = self, mine
             message = f"unrecognized arguments: {' '.join(extras)}"
             options = [o for o in inner._option_string_actions if o.startswith("--")]
             close = [m for e in extras if e.startswith("--")
@@ -94,7 +101,7 @@ _INNERMOST = "_lenslesscam_innermost_parser"
 
 def build_parser() -> argparse.ArgumentParser:
     """Parser with every registered subcommand (their parsers are the same class)."""
-    parser = _Parser(
+    parser = Parser(
         prog="lenslesscam",
         description="Lensless compressive camera: capture, calibrate, reconstruct.",
     )

@@ -778,6 +778,9 @@ def test_an_unknown_option_names_its_subcommand_and_the_closest_option(capsys):
     assert err.startswith("lenslesscam recon udn: error: unrecognized arguments: --max-iter 30")
     assert parse_error("--bogus").startswith("lenslesscam: error: unrecognized arguments: "
                                              "--bogus")
+    # an unknown option before the subcommand is the top level's, not the subcommand's
+    assert parse_error("--verbose", "jobs", "status", "x").startswith(
+        "lenslesscam: error: unrecognized arguments: --verbose (see 'lenslesscam --help')")
 
 
 @pytest.mark.parametrize(("option", "value", "words"), [

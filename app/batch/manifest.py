@@ -116,9 +116,10 @@ class Item:
 
 @lru_cache(maxsize=1)
 def _recon_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
+    from app.cli import Parser  # the command line's parser class: the same reading of values
     from app.commands import recon
 
-    top = argparse.ArgumentParser(prog="lenslesscam")
+    top = Parser(prog="lenslesscam")
     sub = top.add_subparsers(dest="command")
     recon.register(sub)
     methods: dict[str, argparse.ArgumentParser] = {}
@@ -153,6 +154,7 @@ def parse_recon_args(method: str, argv: list[str]) -> argparse.Namespace:
         lines = [ln for ln in err.getvalue().strip().splitlines() if ln.strip()]
         msg = lines[-1] if lines else "invalid options"
         msg = re.sub(r"^lenslesscam recon \S+: error: ", "", msg)
+        msg = re.sub(r" \(see 'lenslesscam recon \S+ --help'\)$", "", msg)
         raise ValueError(msg) from None
 
 

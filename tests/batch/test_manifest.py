@@ -143,6 +143,9 @@ def test_item_names_never_collide(data: Path) -> None:
     ("measurement,psf,method,colour\nmeas/m00.npy,psf.npy,fista,red\n",
      "column 'colour' is not an option"),
     ("measurement,psf,method,iters\nmeas/m00.npy,psf.npy,fista,-3\n", "--iters"),
+    # read as the command line reads it: '-1e3' is a value ('expected one argument' before)
+    ("measurement,psf,method,iters\nmeas/m00.npy,psf.npy,fista,-1e3\n",
+     "argument --iters: must be 'auto' or an integer >= 1, got '-1e3'"),
     ("measurement,psf,method,spec\nmeas/m00.npy,psf.npy,fista,x.toml\n", "is for method udn"),
     ("psf,method\npsf.npy,fista\n", "'measurement' is missing"),
     ("measurement,psf,method,rgb\nmeas/m00.npy,psf.npy,fista,maybe\n", "is a flag"),
