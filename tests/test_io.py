@@ -570,6 +570,7 @@ def test_every_png_carries_format_and_provenance(tmp_path: Path) -> None:
 
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes are POSIX")
+@pytest.mark.timeout(30)  # without the check the read waits for a writer forever
 def test_a_named_pipe_is_refused_not_waited_on(tmp_path) -> None:
     """--meas given a FIFO hung forever, waiting for a writer."""
     fifo = tmp_path / "meas.npy"

@@ -99,6 +99,14 @@ def test_a_trade_offers_its_best_udn_setting(tmp_path: Path) -> None:
     assert s.source == "trade" and s.path == csv_path
     assert s.settings == {"channels": 32, "precision": "bf16", "downsample": 2, "max_iter": 250}
     assert s.origin.startswith("from trade trade-a, ")
+    # inputs.json has a format and version: a newer one is not read, an old one (none) is
+    rec = json.loads((tmp_path / "trade-a" / "inputs.json").read_text())
+    assert rec["format"] == "lenslesscam.trade_inputs"
+    (tmp_path / "trade-a" / "inputs.json").write_text(json.dumps({**rec, "format_version": 99}))
+    assert find_suggestions([tmp_path], mine) == []
+    old = {k: v for k, v in rec.items() if k not in ("format", "format_version")}
+    (tmp_path / "trade-a" / "inputs.json").write_text(json.dumps(old))
+    assert len(find_suggestions([tmp_path], mine)) == 1
 
 
 def test_a_trade_without_udn_rows_is_not_offered(tmp_path: Path) -> None:
