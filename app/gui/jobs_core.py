@@ -392,6 +392,14 @@ def job_view(folder: str | Path) -> JobView | None:
                     and last.get("action") == "resume" and _pid_alive(int(last["pid"]))):
                 v.state = AppJobState.STARTING
         rec = _read_json(record) or {}
+        sessions = [str(s.get("started_utc", "")) for s in rec.get("sessions") or []
+                    if isinstance(s, dict)]
+        if (v.state is not AppJobState.QUEUED and last is not None
+                and last.get("action") == "resume" and not _pid_alive(int(last["pid"]))
+                and max(sessions, default="") < str(last.get("utc", ""))):
+            # a refused resume leaves the record as it was: only its log says why
+            v.state = AppJobState.FAILED_TO_START
+            v.detail = f"the resume did not start: {_log_tail(f)}"
         v.still_improving = bool((rec.get("results") or {}).get("still_improving"))
         for which in ("final", "best"):
             r = (rec.get("results") or {}).get(which)

@@ -283,3 +283,28 @@ def _finished_app_job(tmp_path: Any, capsys: Any, entry: dict[str, Any]) -> Any:
     capsys.readouterr()
     (job / APP_JOB_FILE).write_text(json.dumps({"format": "lenslesscam.app_job", **entry}))
     return job
+
+
+def test_a_refused_resume_shows_why(tmp_path, capsys):
+    """A refused resume leaves run.json as it was, so the panel went on showing the run
+    'finished'; the refusal was only in the job's log."""
+    import json
+    import subprocess
+    import sys
+
+    from app.gui.jobs_core import APP_JOB_FILE, LOG, AppJobState, job_view
+
+    job = _finished_app_job(tmp_path, capsys, {
+        "name": "d", "state": "launched", "launches": [{"action": "run", "pid": 1}]})
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    entry = json.loads((job / APP_JOB_FILE).read_text())
+    (job / LOG).write_text("lenslesscam jobs: error: estimated 1.2 GiB is above max_memory\n")
+    for when, refused in (("2000-01-01T00:00:00+00:00", False),
+                          ("2999-01-01T00:00:00+00:00", True)):
+        launch = {"action": "resume", "pid": int(gone.stdout), "utc": when}
+        (job / APP_JOB_FILE).write_text(json.dumps({**entry, "launches": [
+            *entry["launches"], launch]}))
+        v = job_view(job)
+        assert v is not None and (v.state is AppJobState.FAILED_TO_START) is refused, when
+    assert "the resume did not start" in v.detail and "max_memory" in v.detail
