@@ -680,6 +680,23 @@ def test_erased_pixels_without_their_mask_are_warned_about(sim, tmp_path, capsys
     assert code == 0 and "pixels are 0" not in err, err
 
 
+def test_plan_never_writes_over_its_trade_and_an_infinite_timing_is_one_line(sim, tmp_path,
+                                                                            capsys):
+    """'plan --trade T --out T --overwrite' replaced the trade with the plan; a timing file
+    with Infinity was an OverflowError traceback."""
+    trade = tmp_path / "trade.csv"
+    trade.write_text("not read: the output check comes first\n")
+    code, _, err = _run(capsys, "plan", "--psf", sim / "psf.npy", "--meas", sim / "meas.npy",
+                        "--trade", trade, "--out", trade, "--overwrite")
+    assert code == 2 and "it is the input --trade" in err, err
+    assert trade.read_text().startswith("not read")
+    (tmp_path / "t.json").write_text('{"rows": 24, "line_time_us": 10, '
+                                     '"exposure_lines": Infinity}')
+    code, _, err = _run(capsys, "plan", "--psf", sim / "psf.npy", "--meas", sim / "meas.npy",
+                        "--timing", tmp_path / "t.json")
+    assert code == 2 and "not a sensor timing" in err and len(err.strip().splitlines()) == 1
+
+
 def test_a_solver_that_meets_inf_is_one_line(sim, tmp_path, capsys):
     """NumericalError (FISTA meets inf in the TV prox with --tv-k 3e38 on a video model) was a
     traceback."""

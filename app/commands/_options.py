@@ -103,7 +103,7 @@ UNIT = finite_float(0, 1)
 #: Namespace attributes that name input files of some command (checked against its outputs).
 INPUT_OPTIONS = ("psf", "psf_stack", "meas", "mask", "shutter", "filters", "dark", "psf_dark",
                  "timing", "plan", "scene", "light_state", "cube", "like", "pixel_maps",
-                 "sim_psf")
+                 "sim_psf", "trade", "truth")
 
 
 def add_overwrite_option(p: argparse.ArgumentParser) -> None:

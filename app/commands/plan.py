@@ -145,7 +145,7 @@ def load_inputs(args: argparse.Namespace) -> dict[str, Any]:
 
         try:
             timing = SensorTiming.from_dict(raw)
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, OverflowError) as e:  # Infinity: Overflow
             raise ValueError(f"{args.timing}: not a sensor timing ({e})") from e
     if shutter is not None and timing is not None:
         raise ValueError("give --shutter or --timing, not both")
@@ -196,7 +196,7 @@ def _timing_source(path: Path) -> Any:
         return read_frame_metadata(path)
     try:
         return json.loads(path.read_text(encoding="utf-8"))
-    except ValueError as exc:  # not UTF-8, not JSON
+    except (ValueError, RecursionError) as exc:  # not UTF-8, not JSON, nested past reason
         raise ValueError(f"{path}: not a JSON timing file or a saved frame ({exc})") from None
 
 
@@ -353,7 +353,7 @@ def run_auto(args: argparse.Namespace) -> int:
             raise FileNotFoundError(f"plan file not found: {args.plan}")
         try:
             plan = Plan.from_json(json.loads(path.read_text(encoding="utf-8")))
-        except ValueError as exc:  # bad JSON, not UTF-8, a missing or wrong-typed field
+        except (ValueError, RecursionError) as exc:  # bad JSON, not UTF-8, a bad field
             raise ValueError(f"plan file {args.plan}: {exc}") from None
         overrides = parse_overrides(args.set)
         if overrides:

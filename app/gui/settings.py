@@ -121,13 +121,16 @@ def load_settings(path: Path | None = None) -> AppSettings:
         raw = json.loads(p.read_text(encoding="utf-8"))
     except FileNotFoundError:
         return AppSettings()
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:
         _log.warning("settings file %s is unreadable (%s); using defaults", p, exc)
         with contextlib.suppress(OSError):
             p.replace(p.with_suffix(".json.bad"))
         return AppSettings()
     if not isinstance(raw, dict) or raw.get("format") != SETTINGS_FORMAT:
-        _log.warning("%s is not a lenslesscam settings file; using defaults", p)
+        _log.warning("%s is not a lenslesscam settings file; set aside as %s, using defaults",
+                     p, p.with_suffix(".json.bad").name)
+        with contextlib.suppress(OSError):  # the save at exit would write over it
+            p.replace(p.with_suffix(".json.bad"))
         return AppSettings()
     version = raw.get("format_version", 0)
     if not isinstance(version, int) or isinstance(version, bool):
@@ -137,7 +140,11 @@ def load_settings(path: Path | None = None) -> AppSettings:
             p.replace(p.with_suffix(".json.bad"))
         return AppSettings()
     if version > SETTINGS_VERSION:
-        _log.warning("%s was written by a newer version; using defaults", p)
+        kept = p.with_suffix(f".json.v{version}")
+        _log.warning("%s was written by a newer version (format %d); kept as %s, this version "
+                     "starts from defaults", p, version, kept.name)
+        with contextlib.suppress(OSError):  # the save at exit would write over the newer file
+            p.replace(kept)
         return AppSettings()
     return AppSettings.from_dict(raw)
 

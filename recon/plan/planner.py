@@ -374,7 +374,11 @@ class Plan:
             raise ValueError(f"a plan is a JSON object, got {type(d).__name__}")
         if d.get("format") != PLAN_FORMAT:
             raise ValueError(f"not a plan: format {d.get('format')!r}, expected {PLAN_FORMAT!r}")
-        if int(d.get("format_version", 0)) > PLAN_VERSION:
+        version = d.get("format_version", 1)  # a file without one: the first version
+        if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+            raise ValueError(f"plan format_version must be a whole number >= 1, got "
+                             f"{version!r}")
+        if version > PLAN_VERSION:
             raise ValueError(f"plan format version {d.get('format_version')} is newer than "
                              f"this software reads ({PLAN_VERSION})")
         kw: dict[str, Any] = {}

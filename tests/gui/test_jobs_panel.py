@@ -241,6 +241,26 @@ def test_settings_with_a_bad_version_or_an_unknown_scene_start_with_defaults(tmp
     assert s.sim_scene == AppSettings().sim_scene and s.gain == 3.0
 
 
+def test_a_newer_or_foreign_settings_file_is_kept_not_overwritten(tmp_path):
+    """A settings file from a newer release (or without 'format') was read as defaults and
+    overwritten with them at exit; deeply nested JSON stopped the app starting."""
+    import json
+
+    from app.gui.settings import SETTINGS_FORMAT, AppSettings, load_settings, save_settings
+
+    p = tmp_path / "app-settings.json"
+    newer = {"format": SETTINGS_FORMAT, "format_version": 2, "gain": 2.0, "new_feature": 1}
+    p.write_text(json.dumps(newer))
+    assert load_settings(p) == AppSettings()
+    save_settings(AppSettings(), p)  # what the app does at exit
+    assert json.loads((tmp_path / "app-settings.json.v2").read_text()) == newer
+    p.write_text(json.dumps({"gain": 3.0}))  # no format
+    assert load_settings(p) == AppSettings()
+    assert json.loads((tmp_path / "app-settings.json.bad").read_text()) == {"gain": 3.0}
+    p.write_text("[" * 100000 + "]" * 100000)
+    assert load_settings(p) == AppSettings()
+
+
 def test_a_run_that_ended_still_improving_can_be_resumed_with_more_iterations(tmp_path, capsys):
     """Its detail line said 'jobs resume ... --max-iter N', but the app's Resume was off for
     completed runs."""
