@@ -273,11 +273,15 @@ class AppJobState(enum.StrEnum):
 
     @classmethod
     def read(cls, text: object) -> AppJobState:
-        """The state named ``text`` (an unknown word from a newer version: ``QUEUED``)."""
+        """The state named ``text`` (an unknown word, from a newer version: ``HELD``).
+
+        Held, not queued: a job whose state this version does not know is never started by
+        itself (it was: an 'archived' job of a newer release ran again).
+        """
         try:
             return cls(str(text))
         except ValueError:
-            return cls.QUEUED
+            return cls.HELD
 
     @property
     def cancellable(self) -> bool:
@@ -351,6 +355,23 @@ class JobView:
         return None
 
 
+def _entry_problem(entry: dict[str, Any]) -> str | None:
+    """What makes an app-job.json unusable for starting its job (None: nothing).
+
+    A damaged entry (launches not a list, a max_iter that is not a whole number, an unknown
+    action) was started again every second: the launch was made, then recording it failed.
+    """
+    if entry.get("action", "run") not in ("run", "resume"):
+        return f"action {entry.get('action')!r} is not run or resume"
+    mi = entry.get("max_iter")
+    if mi is not None and (not isinstance(mi, int) or isinstance(mi, bool) or mi < 1):
+        return f"max_iter {mi!r} is not a whole number >= 1"
+    launches = entry.get("launches", [])
+    if not isinstance(launches, list) or not all(isinstance(x, dict) for x in launches):
+        return "launches is not a list of launches"
+    return None
+
+
 def job_view(folder: str | Path) -> JobView | None:
     """Read one job folder (None when it is not an app job)."""
     f = Path(folder)
@@ -362,6 +383,17 @@ def job_view(folder: str | Path) -> JobView | None:
                 state=AppJobState.read(entry.get("state", "queued")),
                 memory=dict(entry.get("memory") or {}),
                 created_utc=str(entry.get("created_utc", "")))
+    version = entry.get("format_version", APP_JOB_VERSION)
+    if not isinstance(version, int) or version > APP_JOB_VERSION:
+        v.state = AppJobState.HELD  # never started by a version that does not know it
+        v.detail = (f"written by a newer lenslesscam (app job format {version!r}); this "
+                    "version does not start it")
+        return v
+    problem = _entry_problem(entry)
+    if problem is not None:
+        v.state = AppJobState.FAILED_TO_START
+        v.detail = f"{APP_JOB_FILE} is damaged: {problem}; it is not started"
+        return v
     launches = entry.get("launches") or []
     last = launches[-1] if launches else None
     record = f / RUN_DIR / "run.json"

@@ -328,3 +328,41 @@ def test_a_refused_resume_shows_why(tmp_path, capsys):
         v = job_view(job)
         assert v is not None and (v.state is AppJobState.FAILED_TO_START) is refused, when
     assert "the resume did not start" in v.detail and "max_memory" in v.detail
+
+
+def test_a_damaged_newer_or_unknown_queued_job_is_never_started(tmp_path):
+    """A queued job whose app-job.json had 'launches' as text was started again every second
+    (the launch was recorded after it and failed), and blanked the jobs table; a job of a
+    newer release, or with a state this version does not know, was started."""
+    import json
+    import subprocess
+    import sys
+
+    from app.gui.jobs_core import APP_JOB_FILE, AppJobState, JobQueue, job_view
+
+    spawned: list[str] = []
+
+    def spawn(args, folder, env, log):
+        spawned.append(folder.name)
+        return subprocess.Popen([sys.executable, "-c", "pass"])
+
+    base = {"format": "lenslesscam.app_job", "format_version": 1, "device": "cpu",
+            "state": "queued", "action": "run"}
+    jobs = {"a-text-launches": {"launches": "abc"}, "b-bad-max-iter": {"max_iter": "abc"},
+            "c-newer": {"format_version": 2}, "d-unknown-state": {"state": "archived"},
+            "e-good": {}}
+    for name, change in jobs.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / APP_JOB_FILE).write_text(json.dumps({**base, "name": name,
+                                                                **change}))
+    queue = JobQueue(tmp_path, spawn=spawn)
+    for _ in range(3):
+        views = {v.folder.name: v for v in queue.poll()}
+    assert spawned == ["e-good"], spawned
+    assert len(views) == 5  # every job listed
+    for name in ("a-text-launches", "b-bad-max-iter"):
+        v = job_view(tmp_path / name)
+        assert v is not None and v.state is AppJobState.FAILED_TO_START, name
+        assert "is damaged" in (v.detail or ""), name
+    assert "newer lenslesscam" in (job_view(tmp_path / "c-newer").detail or "")
+    assert job_view(tmp_path / "d-unknown-state").state is AppJobState.HELD
