@@ -577,6 +577,12 @@ def read_trade(path: str | Path) -> TradeFile:
             except (TypeError, ValueError):
                 raise ValueError(f"{path} line {line}: column {f.name} is {v!r}, not a "
                                  "number") from None
+            x = kw[f.name]
+            if isinstance(x, float) and not math.isfinite(x):  # a NaN score won the budget
+                raise ValueError(f"{path} line {line}: column {f.name} is {v!r}, not a "
+                                 "finite number")
+        if kw["wall_s"] < 0 or kw["iterations"] < 0:
+            raise ValueError(f"{path} line {line}: a negative wall time or iteration count")
         rows.append(TradeRow(**kw))
     if not rows:
         raise ValueError(f"{path}: no rows (is it a trade.csv from lenslesscam trade?)")

@@ -208,6 +208,19 @@ def test_trade_csv_header_round_trip(tmp_path):
     assert trade.meta["command"] == "lenslesscam trade x" and trade.format_version == 1
 
 
+def test_a_trade_csv_with_a_nan_score_or_negative_time_is_named(tmp_path):
+    """A NaN PSNR won every budget in plan --trade ('... at 30 iterations (0.02 s, nan dB)');
+    a negative wall time was taken as fast."""
+    import dataclasses
+
+    rows = _rows()
+    for bad, words in ((dataclasses.replace(rows[0], psnr=float("nan")), "column psnr is 'nan'"),
+                       (dataclasses.replace(rows[0], wall_s=-1.0), "a negative wall time")):
+        path = write_trade_csv(tmp_path / "trade.csv", [bad, *rows[1:]], [_case()])
+        with pytest.raises(ValueError, match=words):
+            read_trade(path)
+
+
 def test_old_trade_csv_without_header_is_still_read(tmp_path):
     """Files written before the header (on users' disks): version 0, no cases."""
     import csv
