@@ -697,6 +697,19 @@ def test_plan_never_writes_over_its_trade_and_an_infinite_timing_is_one_line(sim
     assert code == 2 and "not a sensor timing" in err and len(err.strip().splitlines()) == 1
 
 
+def test_recon_auto_with_a_saved_plan_refuses_options_the_plan_fixed(sim, tmp_path, capsys):
+    """'recon auto --plan p.json --tau 0.5' ran the plan's own tau without a word."""
+    files = ["--psf", sim / "psf.npy", "--meas", sim / "meas.npy"]
+    code, _, err = _run(capsys, "plan", *files, "--tau", "1e-3", "--no-probe", "--out",
+                        tmp_path / "p.json")
+    assert code == 0, err
+    for extra in (["--tau", "0.5"], ["--budget", "1s"], ["--field", "full"]):
+        code, _, err = _run(capsys, "recon", "auto", *files, "--plan", tmp_path / "p.json",
+                            *extra, "--out", tmp_path / "x.tif")
+        assert code == 2 and f"{extra[0]} cannot change a saved plan" in err, err
+        assert "--set KEY=VALUE" in err and not (tmp_path / "x.tif").exists()
+
+
 def test_a_solver_that_meets_inf_is_one_line(sim, tmp_path, capsys):
     """NumericalError (FISTA meets inf in the TV prox with --tv-k 3e38 on a video model) was a
     traceback."""

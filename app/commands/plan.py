@@ -348,6 +348,16 @@ def run_auto(args: argparse.Namespace) -> int:
     check_command_outputs(args, reconstruction_paths(args.out, "image"))
     inputs = load_inputs(args)
     if args.plan:
+        # the plan fixed what these choose: taking them silently would run another plan
+        given = [opt for opt, on in (("--tau", args.tau is not None),
+                                     ("--budget", args.budget is not None),
+                                     ("--trade", args.trade is not None),
+                                     ("--field", args.field != "sensor"),
+                                     ("--seed", args.seed != 0)) if on]
+        if given:
+            raise ValueError(f"{', '.join(given)} cannot change a saved plan (--plan fixed "
+                             "them); use --set KEY=VALUE (for example --set tau=1e-3), or "
+                             "plan again")
         path = Path(args.plan)
         if not path.is_file():
             raise FileNotFoundError(f"plan file not found: {args.plan}")
