@@ -209,12 +209,13 @@ class _Journal:
 
         from recon.atomic import atomic_write_bytes
         from recon.formats import FORMAT_VERSION, array_hash
+        from recon.trade import case_record
 
         self.path = out / self.NAME
-        what = {"cases": [[c.name, c.field, json.dumps(c.source, sort_keys=True, default=str),
-                           *(None if a is None else array_hash(a)
-                             for a in (c.psf, c.meas, c.mask, c.truth))]
-                          for c in cases],
+        # what trade.csv records of each case (shapes, field, PSF and measurement, source),
+        # and the mask and truth the rows were scored with
+        what = {"cases": [[case_record(c), *(None if a is None else array_hash(a)
+                                             for a in (c.mask, c.truth))] for c in cases],
                 "grid": [c.label for c in grid], "threads": threads}
         self.key = hashlib.sha256(json.dumps(what, default=str).encode()).hexdigest()[:16]
         self.entries: dict[str, dict[str, list[Any]]] = {}
