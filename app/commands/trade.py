@@ -228,12 +228,13 @@ class _Journal:
         """Take the journal's settings; False when it is another trade's and is discarded."""
         import json
 
+        from recon.atomic import atomic_write_bytes
         from recon.trade import TradeRow
 
         text = self.path.read_text(encoding="utf-8")
         if text and not text.endswith("\n"):  # a line cut by a kill: that setting runs again
             text = text[:text.rfind("\n") + 1]
-            self.path.write_text(text, encoding="utf-8")
+            atomic_write_bytes(self.path, text.encode("utf-8"))
         lines = text.splitlines()
         try:
             head = json.loads(lines[0]) if lines else {}
