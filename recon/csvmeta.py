@@ -33,7 +33,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from recon.formats import FormatError, json_default
+from recon.formats import FormatError, json_default, read_utf8
 
 __all__ = ["Table", "format_table", "read_table"]
 
@@ -98,12 +98,7 @@ def read_table(path: str | os.PathLike[str], fmt: str, version: int, what: str,
     ``what`` names the file kind in messages (``"trade.csv"``); ``repeated``: keys that may
     appear on several lines (their values come as a list, even when there is one).
     """
-    try:
-        with open(path, encoding="utf-8-sig", newline="") as fh:
-            text = fh.read()
-    except UnicodeDecodeError as exc:
-        raise FormatError(f"{path}: not a {what}: not UTF-8 text (byte "
-                          f"{exc.object[exc.start]:#04x} at offset {exc.start})") from None
+    text = read_utf8(path, error=FormatError, what=f"not a {what}: ")
     meta: dict[str, Any] = {k: [] for k in repeated}
     pos, line = 0, 0
     while text.startswith("#", pos):

@@ -98,3 +98,20 @@ def file_hash(path: str | os.PathLike[str]) -> str:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()[:16]
+
+
+def read_utf8(path: str | os.PathLike[str], *, error: type[Exception] = ValueError,
+              what: str = "", hint: str = "") -> str:
+    """A text file's contents: UTF-8, with or without an editor's byte-order mark.
+
+    Text that is not UTF-8 raises ``error`` in one line: ``PATH: WHATnot UTF-8 text (byte
+    0xE9 at offset N)HINT`` (the one decoding rule of the project's text files: specs,
+    manifests, records, table files).
+    """
+    with open(path, "rb") as fh:
+        data = fh.read()
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: {what}not UTF-8 text (byte {data[exc.start]:#04x} at offset "
+                    f"{exc.start}){hint}") from None

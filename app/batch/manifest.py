@@ -182,12 +182,9 @@ def _read_rows(path: Path) -> list[tuple[str, dict[str, Any], frozenset[str]]]:
     """(where, columns, names that come from [defaults] only) per manifest row."""
     if not path.is_file():
         raise FileNotFoundError(f"manifest not found: {path}")
-    data = path.read_bytes()
-    try:
-        text = data.decode("utf-8-sig")  # with or without an editor's byte-order mark
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"{path}: not UTF-8 text (byte {data[exc.start]:#04x} at offset "
-                         f"{exc.start}); save the manifest as UTF-8") from None
+    from recon.formats import read_utf8
+
+    text = read_utf8(path, hint="; save the manifest as UTF-8")
     suffix = path.suffix.lower()
     if suffix == ".csv":
         reader = csv.DictReader(io.StringIO(text))

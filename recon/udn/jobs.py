@@ -62,7 +62,7 @@ import torch
 
 from recon.atomic import atomic_write_bytes, atomic_write_json
 from recon.calibfile import DARK_CORRECTED_KINDS, calibration_kind
-from recon.formats import FORMAT_VERSION, FormatError, file_hash, provenance
+from recon.formats import FORMAT_VERSION, FormatError, file_hash, provenance, read_utf8
 from recon.previews import preview_image
 from recon.previews import write_png as _write_png  # the shared writer (tests patch it)
 from recon.problem import Problem
@@ -292,10 +292,9 @@ def read_record(run_dir: str | Path) -> dict[str, Any]:
     if not p.is_file():
         raise FileNotFoundError(f"{run_dir}: no UDN run here ({RECORD_FILE} not found)")
     try:
-        rec = json.loads(p.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as exc:
-        raise FormatError(f"{p}: cannot read the run record: not UTF-8 text (byte "
-                          f"{exc.object[exc.start]:#04x} at offset {exc.start})") from None
+        rec = json.loads(read_utf8(p, error=FormatError, what="cannot read the run record: "))
+    except FormatError:  # not UTF-8: its one-line message as it is
+        raise
     except (OSError, ValueError) as exc:
         raise FormatError(f"{p}: cannot read the run record: {exc}") from None
     if not isinstance(rec, dict) or rec.get("format") != RUN_RECORD_FORMAT:

@@ -357,12 +357,9 @@ def read_spec_text(path: str | Path) -> str:
                                 f"run in it: lenslesscam jobs resume {p})")
     if not p.is_file():
         raise FileNotFoundError(f"job spec not found: {p}")
-    data = p.read_bytes()
-    try:
-        return data.decode("utf-8-sig")  # an editor's byte-order mark is not TOML
-    except UnicodeDecodeError as exc:
-        raise SpecError(f"{p}: not UTF-8 text (byte {data[exc.start]:#04x} at offset "
-                        f"{exc.start}); save the spec as UTF-8") from None
+    from recon.formats import read_utf8
+
+    return read_utf8(p, error=SpecError, hint="; save the spec as UTF-8")
 
 
 def load_spec(path: str | Path) -> dict[str, Any]:
