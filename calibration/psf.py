@@ -43,6 +43,7 @@ from calibration.sources import (
 from calibration.workflow import CalibrationError, Progress, Steps, scaled
 from drivers.camera import Camera, CameraError, FeatureNotAvailable
 from drivers.lightsource import LightSource
+from recon.psfcheck import autocorrelation_fwhm
 
 __all__ = [
     "DepthStack",
@@ -262,33 +263,6 @@ def centre_psf(
     if shape is not None and tuple(shape) != out.shape:
         out = crop_or_pad(out, shape)
     return out, (int(shift[0]), int(shift[1]))
-
-
-def _fwhm(profile: np.ndarray) -> float:
-    below = np.flatnonzero(profile < 0.5)
-    if below.size == 0 or below[0] == 0:
-        return math.nan
-    k = int(below[0])
-    a, b = float(profile[k - 1]), float(profile[k])
-    return 2.0 * (k - 1 + (a - 0.5) / (a - b))
-
-
-def autocorrelation_fwhm(psf: np.ndarray) -> tuple[float, float]:
-    """(row, col) FWHM in pixels of the central peak of the PSF's autocorrelation.
-
-    The mean is removed first (so the pedestal of the caustic's envelope does not widen the
-    peak); the autocorrelation is linear (zero padded). For a caustic of sharp lines this
-    width is the resolution the PSF allows.
-    """
-    a = np.asarray(psf, dtype=np.float64)
-    x = a - a.mean()
-    h, w = x.shape
-    spec = np.fft.rfft2(x, s=(2 * h, 2 * w))
-    ac = np.fft.irfft2(spec.real**2 + spec.imag**2, s=(2 * h, 2 * w))
-    if not ac[0, 0] > 0:
-        return (math.nan, math.nan)
-    ac /= ac[0, 0]
-    return (_fwhm(ac[:h, 0]), _fwhm(ac[0, :w]))
 
 
 def psf_quality(

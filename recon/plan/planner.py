@@ -601,10 +601,10 @@ def make_plan(
 
     # resolution (of a stack: its sharpest plane; the mean of the planes would be blurred)
     if stack is not None:
-        res = min((psf_resolution(plane) for plane in stack),
+        res = min((psf_resolution(plane, sensor=fld) for plane in stack),
                   key=lambda r: min(r.fwhm_y, r.fwhm_x))
     else:
-        res = psf_resolution(psf_gray)
+        res = psf_resolution(psf_gray, sensor=fld)
     d = res.factor
     evidence["resolution"] = res.to_dict()
     reasons["downsample"] = (
