@@ -284,6 +284,43 @@ def test_metrics_reads_the_truth_like_the_reconstructions_measurement(tmp_path, 
     assert json.loads(out)["psnr"] == pytest.approx(psnr(truth, gain_fit(truth, x)[0]), abs=1e-3)
 
 
+def test_metrics_scores_a_recon_auto_result_on_its_plans_grid_and_region(tmp_path, capsys):
+    """recon auto downsamples the loaded problem again and may cut a region of the field:
+    metrics reads the truth the same way (it refused both: 'the scene field is 24x32')."""
+    import numpy as np
+
+    from recon.io import read_reconstruction
+    from recon.metrics import gain_fit, psnr
+    from recon.problem import ProblemSpec, load_problem
+    from tests.scenes import dataset_layout_pair
+
+    dataset_layout_pair(tmp_path, shape=(48, 64))
+    files = {k: str(tmp_path / f"{k}.npy") for k in ("psf", "meas", "truth")}
+    layout = ["--rgb", "--channel-order", "bgr", "--flip-rows"]
+    truth2 = load_problem(ProblemSpec(meas=files["meas"], psf=files["psf"], truth=files["truth"],
+                                      color="rgb", channel_order="bgr", flip_rows=True,
+                                      downsample=2)).truth
+    for name, region, crop in (("whole", [], np.s_[..., :, :]),
+                               ("cut", ["--set", "region=[6,10,30,40]"],
+                                np.s_[..., 3:18, 5:25])):
+        rec = tmp_path / f"{name}.tif"
+        code, _, err = _run(capsys, "recon", "auto", "--psf", files["psf"], "--meas",
+                            files["meas"], *layout, "--set", "downsample=2", *region,
+                            "--out", str(rec))
+        assert code == 0, err
+        code, out, err = _run(capsys, "metrics", "--ref", files["truth"], "--est", str(rec),
+                              "--gain-fit")
+        assert code == 0, err
+        report = json.loads(out)
+        assert report["ref_prepared"]["plan"]["downsample"] == 2
+        x = read_reconstruction(rec)[0]
+        ref = truth2[crop]
+        assert ref.shape == x.shape
+        assert report["psnr"] == pytest.approx(psnr(ref, gain_fit(ref, x)[0]), abs=1e-3)
+        shifted = np.roll(truth2, (3, 4), axis=(-2, -1))[crop]  # the wrong place scores lower
+        assert report["psnr"] > psnr(shifted, gain_fit(shifted, x)[0]) + 1
+
+
 def test_metrics_scores_a_video_against_a_stack_of_frames(tmp_path, capsys):
     """A (K, H, W) truth stack for a K-frame result is read as stored (the prepared path is for
     images; it took the frames for colour channels)."""

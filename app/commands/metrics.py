@@ -43,8 +43,9 @@ def register(subparsers: Any) -> None:
                    help="read GT exactly as stored; by default, when EST is a lenslesscam "
                    "image reconstruction (K = 1), GT is prepared like the measurement it was "
                    "made from (colour, "
-                   "--channel-order, --flip-rows, --downsample from EST's metadata; "
-                   "ref_prepared in the JSON)")
+                   "--channel-order, --flip-rows, --downsample from EST's metadata, and for a "
+                   "recon auto result its plan's downsampling and region; ref_prepared in the "
+                   "JSON)")
     p.add_argument("--spectral", action="store_true",
                    help="K is the spectral axis: also report the spectral cosine (automatic "
                    "for spectral reconstruction TIFFs)")
@@ -92,10 +93,56 @@ def _layout(meta: dict[str, Any] | None) -> dict[str, Any] | None:
     pre = (meta or {}).get("preprocessing")
     if not isinstance(pre, dict) or "channel_order" not in pre:
         return None
-    return {"color": pre.get("color") or ("rgb" if pre.get("rgb") else "gray"),
-            "channel_order": pre.get("channel_order") or "rgb",
-            "flip_rows": bool(pre.get("flip_rows")),
-            "downsample": int(pre.get("downsample") or 1)}
+    layout: dict[str, Any] = {
+        "color": pre.get("color") or ("rgb" if pre.get("rgb") else "gray"),
+        "channel_order": pre.get("channel_order") or "rgb",
+        "flip_rows": bool(pre.get("flip_rows")),
+        "downsample": int(pre.get("downsample") or 1)}
+    plan = (meta or {}).get("plan")
+    grid = (meta or {}).get("region_on_grid")
+    if isinstance(plan, dict) and isinstance(grid, list) and len(grid) == 4:
+        # recon auto: the plan downsampled the loaded problem again and may have cut a region
+        # of its field; the truth takes the same path (field, then grid, then region)
+        field = plan.get("field")
+        if not (isinstance(field, list) and len(field) == 2):
+            return None
+        layout["plan"] = {"downsample": int(plan.get("downsample") or 1),
+                          "field": [int(n) for n in field],
+                          "region_on_grid": [int(n) for n in grid]}
+    return layout
+
+
+def _prepare_ref(path: Path, est_shape: tuple[int, ...], layout: dict[str, Any],
+                 key: str | None) -> Any:
+    """The reference in the frame of the reconstruction.
+
+    The one way a problem's truth is read (:func:`recon.problem.prepare_truth`), then a
+    plan's downsampling and region.
+    """
+    import numpy as np
+
+    from recon.preprocess import box_downsample
+    from recon.problem import prepare_truth
+
+    plan = layout.get("plan")
+    read = {k: layout[k] for k in ("color", "channel_order", "flip_rows", "downsample")}
+    if plan is None:
+        return prepare_truth(path, est_shape, key=key, **read).astype(np.float64)
+    fh, fw = plan["field"]
+    ds = read["downsample"]
+    field = (est_shape[0], est_shape[1], fh, fw)
+    ref = prepare_truth(path, field, key=key, **read).astype(np.float64)
+    d = plan["downsample"]
+    if d > 1:
+        ref = np.asarray(box_downsample(ref, d), dtype=np.float64)
+    top, left, h, w = plan["region_on_grid"]
+    ref = ref[..., top:top + h, left:left + w]
+    if ref.shape[-2:] != tuple(est_shape[-2:]):
+        raise ValueError(f"{path}: the reference on the plan's grid and region is "
+                         f"{ref.shape[-2]}x{ref.shape[-1]}, the reconstruction "
+                         f"{est_shape[-2]}x{est_shape[-1]} (field {fh}x{fw} at downsample "
+                         f"{ds}, plan downsample {d}, region {plan['region_on_grid']})")
+    return ref
 
 
 def _jsonable(v: Any) -> Any:
@@ -119,10 +166,7 @@ def run(args: argparse.Namespace) -> int:
     # an image result (K = 1; a stack of frames or bands is read as stored) from a measurement
     # that says how it was read, scored against a plain file (not a reconstruction)
     if layout is not None and not args.ref_as_is and est.shape[1] == 1 and ref_meta is None:
-        from recon.problem import prepare_truth
-
-        # the reference in the frame of the reconstruction: the one way a problem's truth is read
-        ref = prepare_truth(args.ref, est.shape, key=args.key, **layout).astype(np.float64)
+        ref = _prepare_ref(args.ref, tuple(est.shape), layout, args.key)
         prepared = layout
     if ref.shape != est.shape:
         raise ValueError(
