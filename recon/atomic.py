@@ -2,9 +2,11 @@
 
 :func:`atomic_write` and :func:`atomic_open` write to a temporary file in the same folder,
 flush, fsync, then ``os.replace`` it onto the target, so a crash or a full disk leaves either the
-old file or the new one, never half of one. :func:`check_outputs` refuses, before anything is
-computed, writes that would overwrite an input or an existing file. What a saved file contains
-(format versions, provenance, hashes) is :mod:`recon.formats`.
+old file or the new one, never half of one. :func:`atomic_folder` does the same for a folder of
+files written together (a simulation): they are written into a temporary sibling folder that
+takes the folder's place only once all of them are there. :func:`check_outputs` refuses, before
+anything is computed, writes that would overwrite an input or an existing file. What a saved
+file contains (format versions, provenance, hashes) is :mod:`recon.formats`.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
@@ -20,6 +23,7 @@ from typing import IO, Any
 from recon.formats import json_default
 
 __all__ = [
+    "atomic_folder",
     "atomic_open",
     "atomic_write",
     "atomic_write_bytes",
@@ -31,11 +35,16 @@ __all__ = [
 ]
 
 
-def _umask_mode() -> int:
-    """Permissions a plain ``open()`` would give a new file (mkstemp makes them 0600)."""
+def _umask_bits() -> int:
+    """The process's umask (read by setting it and setting it back)."""
     mask = os.umask(0)
     os.umask(mask)
-    return 0o666 & ~mask
+    return mask
+
+
+def _umask_mode() -> int:
+    """Permissions a plain ``open()`` would give a new file (mkstemp makes them 0600)."""
+    return 0o666 & ~_umask_bits()
 
 
 @contextlib.contextmanager
@@ -61,6 +70,73 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[A
             os.unlink(tmp)
         _name_target(exc, target)
         raise
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | os.PathLike[str], *, owned: Iterable[str] = ()) -> Iterator[Path]:
+    """Build a folder in a temporary sibling; on success it takes the place of ``path``.
+
+    Yields the temporary folder ``.<name>.partial-<pid>-<random>`` (same parent, so the final
+    rename stays on one file system); write every file into it. When the block ends normally,
+    the entries of an existing ``path`` that the caller does not own (names not in ``owned``
+    and not written into the new folder, for example a reconstruction saved beside a
+    simulation) are carried over as hard links (copies where links fail), the old folder is
+    renamed aside, the new one renamed in, and the old one deleted. On any exception
+    (``KeyboardInterrupt`` included) the temporary folder is removed and ``path`` is left as
+    it was. Whether an existing ``path`` may be replaced is the caller's to check first
+    (:func:`check_outputs`).
+
+    A kill between the two renames (a window of two system calls) leaves the old folder
+    complete under its aside name ``.<name>.old-<pid>-<random>``; a kill with SIGKILL during
+    the writes leaves the hidden partial folder, never a partial ``path``.
+    """
+    given = Path(path)
+    target = Path(os.path.realpath(given)) if given.is_symlink() else given
+    parent = target.parent
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-{os.getpid()}-", dir=parent))
+    aside: Path | None = None
+    try:
+        yield tmp
+        if target.is_dir():
+            skip = set(owned)
+            for entry in sorted(target.iterdir()):
+                if entry.name not in skip and not os.path.lexists(tmp / entry.name):
+                    _carry(entry, tmp / entry.name)
+            shutil.copymode(target, tmp)
+        else:
+            os.chmod(tmp, 0o777 & ~_umask_bits())  # mkdtemp makes it 0700
+        fsync_dir(tmp)
+        if target.is_dir():
+            aside = parent / f".{target.name}.old-{os.getpid()}-{os.urandom(4).hex()}"
+            os.rename(target, aside)
+        os.rename(tmp, target)
+    except BaseException as exc:
+        if aside is not None and aside.is_dir() and not os.path.lexists(target):
+            os.rename(aside, target)  # put the old folder back
+        shutil.rmtree(tmp, ignore_errors=True)
+        _name_target(exc, target)
+        raise
+    fsync_dir(parent)
+    if aside is not None:
+        shutil.rmtree(aside, ignore_errors=True)
+
+
+def _carry(src: Path, dst: Path) -> None:
+    """Carry ``src`` into a new folder: a hard link (a copy where linking fails), recursively."""
+    if src.is_symlink():
+        os.symlink(os.readlink(src), dst)
+    elif src.is_dir():
+        shutil.copytree(src, dst, symlinks=True, copy_function=_link_or_copy)
+    else:
+        _link_or_copy(str(src), str(dst))
+
+
+def _link_or_copy(src: str, dst: str) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
 
 
 def is_temp_name(name: str) -> bool:

@@ -4,6 +4,10 @@
 (filter array, ``--filters`` (K, H, W)): the same forward models the solvers invert
 (:func:`recon.models.build_model`) and the same noise / erasure chain
 (:func:`recon.simulate.simulate`); no separate simulation path.
+
+A scene of another shape than the sensor is resized to it (said on stderr and recorded in
+``simulation.json``); the output folder is written whole or not at all
+(:func:`recon.atomic.atomic_folder`).
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +65,11 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
+#: How a scene of another shape than the sensor is resized (each output pixel is the mean of
+#: the scene's pixels it covers, by area; the same rule shrinking and enlarging).
+RESIZE_METHOD = "OpenCV INTER_AREA (pixel-area averaging)"
+
+
 def _resize(img: Any, shape: tuple[int, int]) -> Any:
     import cv2
     import numpy as np
@@ -70,23 +80,52 @@ def _resize(img: Any, shape: tuple[int, int]) -> Any:
                       interpolation=cv2.INTER_AREA)
 
 
-def load_scene(spec: str, shape: tuple[int, int], k: int = 1) -> Any:
+def _stretched(src: tuple[int, int], dst: tuple[int, int]) -> bool:
+    """Whether resizing ``src`` (H, W) to ``dst`` changes the aspect ratio.
+
+    Beyond the rounding of one pixel: 150x200 -> 37x50 keeps it, 10x12 -> 24x32 does not.
+    """
+    (h, w), (hh, ww) = src, dst
+    return abs(h * ww / w - hh) >= 1 and abs(w * hh / h - ww) >= 1
+
+
+@dataclass
+class Scene:
+    """A scene ready for the forward model, and what was done to it on the way."""
+
+    array: Any  #: (1, K, H, W) float32 in [0, 1], H x W the sensor's shape
+    meta: dict[str, Any] = field(default_factory=dict)  #: recorded in simulation.json
+    notes: list[str] = field(default_factory=list)  #: one line each, printed on stderr
+
+
+def load_scene(spec: str, shape: tuple[int, int], k: int = 1) -> Scene:
     """A grayscale scene (1, K, H, W) in [0, 1] of the sensor's shape.
 
     A 2D image (or an (H, W, 3) colour one, made gray) is the same in each of the K frames;
-    a stack (K', H, W) must have K' = K.
+    a stack (K', H, W) must have K' = K. A scene of another shape is resized to the sensor's
+    (:data:`RESIZE_METHOD`, stretched when the aspect ratios differ; never cropped); the
+    returned :class:`Scene` says so in ``notes`` and ``meta``.
     """
     import numpy as np
 
     from recon import samples
     from recon.io import load_image, to_channel_first, to_gray
 
+    notes: list[str] = []
+    dtype = None
     if spec.startswith("sample:"):
         frames = samples.lensed_scene(spec.split(":", 1)[1])[0, :1]
     else:
         raw = np.asarray(load_image(spec))
         if raw.dtype.kind not in "biuf":
             raise ValueError(f"scene {spec} has dtype {raw.dtype}: a scene is real numbers")
+        dtype = str(raw.dtype)
+        if raw.dtype.kind == "b":
+            # Accepted, and said. A measurement refuses bool (recon.readers: "unsupported dtype
+            # bool") because it is sensor counts, which no camera writes as True/False. A scene
+            # is light, reflectance in [0, 1] here: a binary target (a resolution chart, text)
+            # is one, and the truth reader (recon.problem.read_truth) reads bool as 0/1 too.
+            notes.append(f"scene {spec} is boolean: read as reflectance 0/1 (True = 1)")
         raw = raw.astype(np.float64)
         if raw.ndim == 4 and raw.shape[0] == 1:  # (1, K, H, W): a truth simulate wrote
             raw = raw[0]
@@ -110,10 +149,25 @@ def load_scene(spec: str, shape: tuple[int, int], k: int = 1) -> Any:
         frames = frames / top
     if frames.shape[0] not in (1, k):
         raise ValueError(f"scene {spec} has {frames.shape[0]} frames; the model has K = {k}")
+    src = (int(frames.shape[-2]), int(frames.shape[-1]))
+    resized = src != tuple(shape)
+    stretched = resized and _stretched(src, shape)
+    if resized:
+        line = (f"scene {spec} is {src[0]}x{src[1]} (H x W), the sensor field is "
+                f"{shape[0]}x{shape[1]}: resized with {RESIZE_METHOD}")
+        if stretched:
+            line += (f"; its aspect ratio W/H changes from {src[1] / src[0]:.3g} to "
+                     f"{shape[1] / shape[0]:.3g}: the scene is stretched to fill the field, "
+                     "not cropped")
+        notes.append(line)
     out = np.stack([_resize(f, shape) for f in frames])
     if out.shape[0] == 1 and k > 1:
         out = np.repeat(out, k, axis=0)
-    return np.asarray(out, dtype=np.float32)[None]
+    meta = {"scene_shape": list(src), "scene_dtype": dtype,
+            "scene_resized_from": list(src) if resized else None,
+            "scene_resize_method": RESIZE_METHOD if resized else None,
+            "scene_stretched": stretched if resized else None}
+    return Scene(np.asarray(out, dtype=np.float32)[None], meta, notes)
 
 
 def load_psf_spec(spec: str, downsample: int, dark: Any) -> Any:
@@ -154,40 +208,51 @@ def _model_inputs(args: argparse.Namespace, sensor: tuple[int, int]) -> dict[str
 
 
 def run(args: argparse.Namespace) -> int:
-    """Simulate and write meas.npy, mask.npy, truth.npy, psf.npy and simulation.json."""
+    """Simulate and write meas.npy, mask.npy, truth.npy, psf.npy and simulation.json.
+
+    Everything is computed first; the folder is then written whole into a temporary sibling
+    and renamed into place (:func:`recon.atomic.atomic_folder`), so an error or Ctrl-C
+    during the save leaves no partial ``--out`` (and an existing one as it was).
+    """
     import numpy as np
 
-    from recon.atomic import atomic_write, atomic_write_json
+    from recon.atomic import atomic_folder, atomic_write, atomic_write_json
     from recon.formats import FORMAT_VERSION, array_hash, provenance
     from recon.models import build_model
     from recon.simulate import simulate
 
     out = Path(args.out)
-    check_command_outputs(args, [out / f"{n}.npy" for n in OUTPUT_NAMES]
-                          + [out / "simulation.json"])
+    owned = [f"{n}.npy" for n in OUTPUT_NAMES] + ["simulation.json"]
+    check_command_outputs(args, [out / n for n in owned])
     psf = load_psf_spec(args.psf, args.downsample, parse_dark(args.dark))
     sensor = (int(psf.shape[-2]), int(psf.shape[-1]))
     extra = _model_inputs(args, sensor)
     model = build_model(args.model, psf, **extra)
-    scene = load_scene(args.scene, sensor, k=model.k)
+    loaded = load_scene(args.scene, sensor, k=model.k)
+    scene = loaded.array
     if scene.shape != model.scene_shape:
         raise ValueError(f"scene {args.scene} gives {scene.shape}, the model needs "
                          f"{model.scene_shape}")
+    for line in loaded.notes:
+        print(f"simulate: note: {line}", file=sys.stderr)
     sim = simulate(model, scene, erasure=args.erasure, noise=args.noise, photons=args.photons,
                    bits=args.bits, seed=args.seed)
     files = {"meas": sim.meas, "truth": sim.truth, "psf": psf,
              "mask": sim.mask if sim.mask is not None else np.ones(sim.meas.shape[-2:], np.float32)}
     files.update({k: np.asarray(v, dtype=np.float32) for k, v in extra.items()})
-    for name, arr in files.items():
-        atomic_write(out / f"{name}.npy", lambda p, a=arr: np.save(p, a, allow_pickle=False))
     meta = {"format": "lenslesscam.simulation", "format_version": FORMAT_VERSION,
             "provenance": provenance(), "model": args.model, "psf": args.psf,
-            "scene": args.scene, "shutter": args.shutter, "filters": args.filters,
-            "downsample": args.downsample, "params": sim.params, "scale": sim.scale,
-            "saturated_pixels": sim.saturated,
+            "scene": args.scene, **loaded.meta, "shutter": args.shutter,
+            "filters": args.filters, "downsample": args.downsample, "params": sim.params,
+            "scale": sim.scale, "saturated_pixels": sim.saturated,
             "hashes": {k: array_hash(v) for k, v in files.items()},
-            "files": {k: f"{k}.npy" for k in files}}
-    atomic_write_json(out / "simulation.json", meta)
+            "files": {k: f"{k}.npy" for k in files}, "notes": list(loaded.notes)}
+    # files of this simulate not written this time (a shutter.npy of an earlier video run)
+    # are dropped with the old folder; other files in it (a reconstruction) are kept
+    with atomic_folder(out, owned=owned) as tmp:
+        for name, arr in files.items():
+            atomic_write(tmp / f"{name}.npy", lambda p, a=arr: np.save(p, a, allow_pickle=False))
+        atomic_write_json(tmp / "simulation.json", meta)
     print(json.dumps({"out": str(out), "model": args.model, "shape": list(sim.meas.shape),
                       "k": model.k, "erased": int((files["mask"] == 0).sum())}))
     measured = files["mask"] > 0

@@ -1,0 +1,226 @@
+"""``lenslesscam simulate``: what it tells about the scene, and a save that is whole or absent."""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from recon.simulate import synthetic_psf
+
+
+def _run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+@pytest.fixture
+def case(tmp_path):
+    """A 24x32 PSF and a scene of the sensor's shape."""
+    np.save(tmp_path / "psf.npy", synthetic_psf((24, 32), seed=2))
+    np.save(tmp_path / "scene.npy",
+            np.random.default_rng(0).random((24, 32)).astype(np.float32))
+    return tmp_path
+
+
+def _sim(case, *extra, scene="scene.npy", out="sim"):
+    return ("simulate", "--psf", case / "psf.npy", "--scene", case / scene,
+            "--out", case / out, *extra)
+
+
+def _tree(folder):
+    """{relative path: sha256} of every file under ``folder``."""
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _debris(parent):
+    """Hidden partial / aside folders that a folder save left in ``parent``."""
+    return sorted(p.name for p in parent.iterdir() if p.name.startswith(".sim."))
+
+
+# --------------------------------------------------------------------------------------------
+# 1. a scene of another shape is resized, and the user is told
+# --------------------------------------------------------------------------------------------
+
+
+def test_a_scene_of_another_shape_is_resized_and_said(case, capsys):
+    """A 10x12 scene on a 24x32 sensor was stretched silently; now one line on stderr names
+    both shapes, the method and the changed aspect ratio, and simulation.json records it."""
+    np.save(case / "small.npy", np.random.default_rng(1).random((10, 12)))
+    code, _, err = _run(capsys, *_sim(case, scene="small.npy"))
+    assert code == 0, err
+    notes = [ln for ln in err.splitlines() if "note:" in ln]
+    assert len(notes) == 1, err
+    line = notes[0]
+    assert "10x12" in line and "24x32" in line and "INTER_AREA" in line
+    assert "aspect ratio" in line and "stretched" in line and "not cropped" in line
+    meta = json.loads((case / "sim" / "simulation.json").read_text())
+    assert meta["scene_resized_from"] == [10, 12]
+    assert meta["scene_resize_method"].startswith("OpenCV INTER_AREA")
+    assert meta["scene_stretched"] is True
+    assert meta["notes"] == [line.split("note: ", 1)[1]]
+    assert np.load(case / "sim" / "truth.npy").shape == (1, 1, 24, 32)
+
+
+def test_a_scene_of_the_same_aspect_is_resized_without_stretching(case, capsys):
+    """48x64 -> 24x32: resized (said), the aspect ratio kept (no 'stretched')."""
+    np.save(case / "big.npy", np.random.default_rng(1).random((48, 64)))
+    code, _, err = _run(capsys, *_sim(case, scene="big.npy"))
+    assert code == 0, err
+    assert "48x64" in err and "24x32" in err and "stretched" not in err
+    meta = json.loads((case / "sim" / "simulation.json").read_text())
+    assert meta["scene_resized_from"] == [48, 64] and meta["scene_stretched"] is False
+
+
+def test_a_scene_of_the_sensor_shape_gets_no_note(case, capsys):
+    code, _, err = _run(capsys, *_sim(case))
+    assert code == 0, err
+    assert "note:" not in err
+    meta = json.loads((case / "sim" / "simulation.json").read_text())
+    assert meta["scene_resized_from"] is None and meta["scene_shape"] == [24, 32]
+    assert meta["scene_dtype"] == "float32" and meta["notes"] == []
+
+
+# --------------------------------------------------------------------------------------------
+# 2. the save is whole or absent
+# --------------------------------------------------------------------------------------------
+
+
+def _fail_at_save(monkeypatch, n_ok, exc):
+    """Let ``n_ok`` calls of np.save through, then raise ``exc`` (a save cut short)."""
+    real = np.save
+    calls = {"n": 0}
+
+    def save(*a, **k):
+        calls["n"] += 1
+        if calls["n"] > n_ok:
+            raise exc
+        return real(*a, **k)
+
+    monkeypatch.setattr(np, "save", save)
+    return calls
+
+
+@pytest.mark.parametrize("exc", [KeyboardInterrupt(), OSError(errno.ENOSPC, "No space left")],
+                         ids=["ctrl-c", "disk-full"])
+def test_a_save_cut_short_leaves_no_output_folder(case, capsys, monkeypatch, exc):
+    """Ctrl-C (or a full disk) after two of the files left sim/ with meas.npy and truth.npy
+    and no simulation.json; now there is no sim/ and no hidden partial folder."""
+    calls = _fail_at_save(monkeypatch, 2, exc)
+    code, _, err = _run(capsys, *_sim(case))
+    assert calls["n"] == 3
+    assert code == (130 if isinstance(exc, KeyboardInterrupt) else 2), err
+    assert not (case / "sim").exists()
+    assert _debris(case) == []
+    monkeypatch.undo()
+    code, _, err = _run(capsys, *_sim(case))  # the rerun: nothing in its way
+    assert code == 0, err
+
+
+def test_a_failed_overwrite_leaves_the_old_folder_intact(case, capsys, monkeypatch):
+    """--overwrite over an earlier simulation, cut short: the earlier folder (and a
+    reconstruction saved in it) is byte for byte what it was."""
+    code, _, err = _run(capsys, *_sim(case, "--noise", "0.01"))
+    assert code == 0, err
+    (case / "sim" / "recon.tif").write_bytes(b"a reconstruction")
+    before = _tree(case / "sim")
+    _fail_at_save(monkeypatch, 3, KeyboardInterrupt())
+    code, _, _ = _run(capsys, *_sim(case, "--noise", "0.05", "--seed", "3", "--overwrite"))
+    assert code == 130
+    assert _tree(case / "sim") == before
+    assert _debris(case) == []
+
+
+def test_an_overwrite_replaces_its_files_and_keeps_the_others(case, capsys):
+    """The new simulation replaces the old one's files; a file simulate did not write (a
+    reconstruction) stays, an old output this model does not write (shutter.npy) goes."""
+    code, _, err = _run(capsys, *_sim(case, "--noise", "0.01"))
+    assert code == 0, err
+    (case / "sim" / "recon.tif").write_bytes(b"a reconstruction")
+    (case / "sim" / "runs").mkdir()
+    (case / "sim" / "runs" / "r.json").write_text("{}")
+    np.save(case / "sim" / "shutter.npy", np.ones((2, 24), np.float32))
+    old_meas = np.load(case / "sim" / "meas.npy")
+    code, _, err = _run(capsys, *_sim(case, "--noise", "0.05", "--seed", "3", "--overwrite"))
+    assert code == 0, err
+    names = sorted(p.name for p in (case / "sim").iterdir())
+    assert names == ["mask.npy", "meas.npy", "psf.npy", "recon.tif", "runs", "simulation.json",
+                     "truth.npy"]
+    assert (case / "sim" / "recon.tif").read_bytes() == b"a reconstruction"
+    assert (case / "sim" / "runs" / "r.json").read_text() == "{}"
+    assert not np.array_equal(np.load(case / "sim" / "meas.npy"), old_meas)
+    meta = json.loads((case / "sim" / "simulation.json").read_text())
+    assert meta["params"]["noise"] == 0.05
+    assert _debris(case) == []
+
+
+def test_an_existing_output_still_needs_overwrite(case, capsys):
+    code, _, err = _run(capsys, *_sim(case))
+    assert code == 0, err
+    before = _tree(case / "sim")
+    code, _, err = _run(capsys, *_sim(case, "--seed", "4"))
+    assert code == 2 and "pass --overwrite" in err
+    assert _tree(case / "sim") == before
+
+
+def test_atomic_folder_unit(tmp_path):
+    """The helper alone: a new folder appears whole, with the process's default permissions;
+    an exception removes the partial one; a symlinked target folder is replaced through
+    the link."""
+    from recon.atomic import atomic_folder
+
+    with atomic_folder(tmp_path / "a") as tmp:
+        assert tmp.parent == tmp_path and tmp.name.startswith(f".a.partial-{os.getpid()}-")
+        (tmp / "x").write_text("1")
+        assert not (tmp_path / "a").exists()
+    assert (tmp_path / "a" / "x").read_text() == "1"
+    mask = os.umask(0)
+    os.umask(mask)
+    assert (tmp_path / "a").stat().st_mode & 0o777 == 0o777 & ~mask
+    with pytest.raises(RuntimeError), atomic_folder(tmp_path / "b") as tmp:
+        (tmp / "x").write_text("1")
+        raise RuntimeError("boom")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a"]
+    (tmp_path / "link").symlink_to(tmp_path / "a")
+    with atomic_folder(tmp_path / "link", owned=["x"]) as tmp:
+        (tmp / "y").write_text("2")
+    assert (tmp_path / "link").is_symlink()
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["y"]
+
+
+# --------------------------------------------------------------------------------------------
+# 3. a boolean scene
+# --------------------------------------------------------------------------------------------
+
+
+def test_a_boolean_scene_is_read_as_zero_one_and_said(case, capsys):
+    """Decision: a binary target (a resolution chart) is a legitimate scene, reflectance 0/1,
+    as the truth reader reads it; a boolean *measurement* is refused because a sensor frame
+    is counts, never True/False. The old code took the bool silently; now it is said in one
+    line and recorded (scene_dtype, notes)."""
+    target = np.zeros((24, 32), dtype=bool)
+    target[4:20, 6:10] = True
+    target[4:8, 10:26] = True
+    np.save(case / "target.npy", target)
+    code, _, err = _run(capsys, *_sim(case, scene="target.npy"))
+    assert code == 0, err
+    notes = [ln for ln in err.splitlines() if "note:" in ln]
+    assert len(notes) == 1 and "boolean" in notes[0] and "0/1" in notes[0], err
+    truth = np.load(case / "sim" / "truth.npy")
+    assert truth.dtype == np.float32
+    assert set(np.unique(truth).tolist()) == {0.0, 1.0}
+    assert np.array_equal(truth[0, 0] == 1.0, target)
+    meta = json.loads((case / "sim" / "simulation.json").read_text())
+    assert meta["scene_dtype"] == "bool" and "boolean" in meta["notes"][0]
+    # the measurement rule stays: a boolean measurement is refused
+    np.save(case / "bmeas.npy", target)
+    code, _, err = _run(capsys, "recon", "fista", "--psf", case / "psf.npy", "--meas",
+                        case / "bmeas.npy", "--iters", "2", "--out", case / "r.tif")
+    assert code == 2 and "unsupported dtype bool" in err
