@@ -32,6 +32,7 @@ __all__ = [
     "PixelMaps",
     "calibrate_pixel_maps",
     "capture_darks",
+    "dark_noise_rms",
     "dead_pixels",
     "hot_pixels",
     "local_median",
@@ -67,6 +68,22 @@ def capture_darks(
             fractions=fractions,
         )
     )
+
+
+def dark_noise_rms(std: np.ndarray, exclude: np.ndarray | None = None) -> float:
+    """Temporal dark noise of the sensor in ADU: sqrt of the mean per-pixel variance.
+
+    ``std`` is the per-pixel temporal std; pixels in ``exclude`` (hot or dead) are left out.
+    Not fooled by quantisation as the median per-pixel std is: with a read noise below one
+    code, most pixels never change code in a few frames (std 0, so the median is 0) while
+    the few that do carry the variance. This is the noise the codes actually have; for a
+    noise well below one code it is below the q / sqrt(12) of a dithered quantiser, and the
+    PSF calibration's noise floor (``max(median std, 1 / sqrt(12))``) still applies there.
+    """
+    var = np.square(np.asarray(std, dtype=np.float64))
+    if exclude is not None:
+        var = var[~np.asarray(exclude, dtype=bool)]
+    return float(math.sqrt(float(var.mean()))) if var.size else 0.0
 
 
 def hot_pixels(
@@ -189,8 +206,18 @@ class PixelMaps:
             "hot_pixels": int(self.hot.sum()),
             "dead_pixels": int(self.dead.sum()),
             "dark_level": float(np.median(self.dark_mean)),
-            "dark_noise_adu": float(np.median(self.dark_std)),
+            # RMS of the good pixels' temporal std (see dark_noise_rms); the median per-pixel
+            # std (0 when most pixels never change code) is kept beside it
+            "dark_noise_adu": self.dark_noise_adu,
+            "dark_noise_definition": "rms: sqrt of the mean per-pixel temporal variance of "
+                                     "the pixels that are not hot or dead",
+            "dark_noise_median_std_adu": float(np.median(self.dark_std)),
         }
+
+    @property
+    def dark_noise_adu(self) -> float:
+        """Temporal dark noise in ADU (:func:`dark_noise_rms` over the good pixels)."""
+        return dark_noise_rms(self.dark_std, exclude=self.bad)
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write the ``.npz`` pixel-maps calibration file (atomically)."""

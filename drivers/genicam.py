@@ -9,6 +9,10 @@ Producer discovery (:func:`find_producers`), in this order, duplicates dropped:
 5. ``$XDG_CACHE_HOME/lenslesscam/gentl`` (or ``~/.cache/...``) and its sub-folders (where the
    tests keep ``TLSimu.cti``).
 
+A GenTL producer is a shared library: a ``.cti`` file that is not a readable ELF, PE or
+Mach-O file (:func:`producer_problem`) is skipped with a one-line reason, or refused when it
+was given explicitly.
+
 Device index N (``genicam:N``) counts the devices of all producers in that order.
 
 Features are mapped to SFNC nodes where the device has them: ExposureTime, Gain, Width,
@@ -57,6 +61,7 @@ __all__ = [
     "gentl_cache_dir",
     "is_demo_producer",
     "list_genicam_devices",
+    "producer_problem",
 ]
 
 _log = logging.getLogger(__name__)
@@ -91,26 +96,71 @@ def _cti_in(path: Path, depth: int = 1) -> Iterator[Path]:
                 yield from _cti_in(p, depth - 1)
 
 
+#: First bytes of a shared library: ELF (Linux), PE (Windows), Mach-O (32/64-bit either
+#: byte order, and universal binaries).
+_LIBRARY_MAGIC = (
+    b"\x7fELF",
+    b"MZ",
+    b"\xfe\xed\xfa\xce",
+    b"\xce\xfa\xed\xfe",
+    b"\xfe\xed\xfa\xcf",
+    b"\xcf\xfa\xed\xfe",
+    b"\xca\xfe\xba\xbe",
+)
+
+_warned_skips: set[tuple[Path, str]] = set()
+
+
+def producer_problem(path: str | os.PathLike[str]) -> str | None:
+    """Why ``path`` cannot be a GenTL producer (``None`` when it looks like one).
+
+    A producer is a shared library; this checks that the file can be read and starts like
+    an ELF, PE or Mach-O file (it does not load it).
+    """
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    if not head:
+        return "is an empty file, not a shared library"
+    if not head.startswith(_LIBRARY_MAGIC):
+        return f"is not a shared library (ELF, PE or Mach-O; it starts with {head!r})"
+    return None
+
+
 def find_producers(
     extra: Iterable[str | os.PathLike[str]] = (),
     *,
     use_environment: bool = True,
     include_cache: bool = True,
     include_package: bool = True,
+    skipped: list[str] | None = None,
 ) -> list[Path]:
     """GenTL producer files (``*.cti``) found in the places listed in the module docstring.
 
-    A path in ``extra`` is the user's explicit choice: one that does not exist, or that is
-    neither a ``.cti`` file nor a folder holding one, raises ``FileNotFoundError`` naming it
-    (the places searched by default are skipped quietly when empty).
+    A path in ``extra`` is the user's explicit choice: one that does not exist, that is
+    neither a ``.cti`` file nor a folder holding one, or that is not a shared library
+    (:func:`producer_problem`; for a folder: none of its ``.cti`` files is) raises
+    ``FileNotFoundError`` naming it (the places searched by default are skipped quietly
+    when empty). Any other ``.cti`` file that is not a shared library is skipped: its
+    one-line reason goes to ``skipped`` when given, else to the log (once per file).
     """
     candidates: list[Path] = [Path(p) for p in extra]
     for c in candidates:
         if not c.exists():
             raise FileNotFoundError(f"GenTL producer {str(c)!r} does not exist")
-        if next(_cti_in(c), None) is None:
+        ctis = list(_cti_in(c))
+        if not ctis:
             what = "folder holds no .cti file" if c.is_dir() else "file is not a .cti producer"
             raise FileNotFoundError(f"GenTL producer {str(c)!r}: the {what}")
+        problems = [(p, producer_problem(p)) for p in ctis]
+        if all(why is not None for _, why in problems):
+            if c.is_dir():
+                whys = "; ".join(f"{p.name} {why}" for p, why in problems)
+                raise FileNotFoundError(
+                    f"GenTL producer {str(c)!r}: the folder holds no usable producer ({whys})")
+            raise FileNotFoundError(f"GenTL producer {str(c)!r} {problems[0][1]}")
     if use_environment:
         for var in ("GENICAM_GENTL64_PATH", "LENSLESSCAM_GENTL_PATH"):
             candidates += [Path(p) for p in os.environ.get(var, "").split(os.pathsep) if p]
@@ -130,9 +180,19 @@ def find_producers(
     for c in candidates:
         for cti in _cti_in(c):
             key = cti.resolve()
-            if key not in seen:
-                seen.add(key)
+            if key in seen:
+                continue
+            seen.add(key)
+            why = producer_problem(cti)
+            if why is None:
                 found.append(cti)
+                continue
+            line = f"GenTL producer {cti} skipped: it {why}"
+            if skipped is not None:
+                skipped.append(line)
+            elif (key, why) not in _warned_skips:  # device lists are refreshed; say it once
+                _warned_skips.add((key, why))
+                _log.warning("%s", line)
     return found
 
 

@@ -146,13 +146,23 @@ def write_state(root: Path, state: dict[str, Any]) -> None:
 
 
 def request_cancel(root: str | Path) -> str:
-    """Ask the driver of the batch in ``root`` to stop; what was done, in one line."""
+    """Ask the driver of the batch in ``root`` to stop; what was done, in one line.
+
+    A batch that is not running (finished, cancelled, or its driver on this host is gone)
+    is not an error: the line says so and ends "nothing to cancel" (``jobs cancel`` says the
+    same of a UDN run).
+    """
     from recon.atomic import atomic_write_json
 
     root = Path(root)
     st = read_state(root)
-    if st.get("status") not in ("running", "starting"):
-        return f"{root}: the batch is not running (status {st.get('status')}); nothing to cancel"
+    status = st.get("status")
+    if status in ("running", "starting") and _alive(st.get("pid"), st.get("host")) is False:
+        return (f"{root}: the batch is not running (its driver, pid {st.get('pid')}, is gone: "
+                "it was interrupted; rerun the same 'batch run' command to continue it); "
+                "nothing to cancel")
+    if status not in ("running", "starting"):
+        return f"{root}: the batch is not running (status {status}); nothing to cancel"
     atomic_write_json(BatchPaths(root).cancel_file, {"requested_utc": now_utc(),
                                                      "by_pid": os.getpid(),
                                                      "host": platform.node()})

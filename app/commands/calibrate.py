@@ -412,7 +412,8 @@ def run_darks(args: argparse.Namespace) -> int:
     print(f"wrote {maps.path}")
     print(
         f"{int(maps.hot.sum())} hot, {int(maps.dead.sum())} dead pixels; dark level "
-        f"{maps.metadata()['dark_level']:.4g} ADU, noise {maps.metadata()['dark_noise_adu']:.3g}"
+        f"{maps.metadata()['dark_level']:.4g} ADU, noise {maps.dark_noise_adu:.3g} ADU rms "
+        "(sqrt of the mean per-pixel temporal variance, hot/dead pixels excluded)"
     )
     return 0
 

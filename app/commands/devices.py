@@ -84,7 +84,8 @@ def _devices(args: argparse.Namespace) -> int:
     from drivers.genicam import find_producers
     from drivers.registry import list_cameras, list_serial_ports
 
-    producers = find_producers(args.producer)
+    skipped: list[str] = []
+    producers = find_producers(args.producer, skipped=skipped)
     cameras = list_cameras(genicam_producers=[str(p) for p in producers])
     ports = list_serial_ports()
     if args.json:
@@ -93,6 +94,7 @@ def _devices(args: argparse.Namespace) -> int:
                 {
                     "cameras": [vars(c) for c in cameras],
                     "gentl_producers": [str(p) for p in producers],
+                    "gentl_skipped": skipped,
                     "serial_ports": [vars(p) for p in ports],
                 },
                 indent=2,
@@ -108,6 +110,8 @@ def _devices(args: argparse.Namespace) -> int:
         print(f"  {prod}")
     if not producers:
         print("  (none; set GENICAM_GENTL64_PATH)")
+    for line in skipped:
+        print(f"  ({line})")
     print("Serial ports:")
     for sp in ports:
         print(f"  {sp.device}  {sp.description}")

@@ -3,6 +3,10 @@
 Exit codes of ``run`` and ``resume``: 0 completed or stopped early, 3 cancelled (SIGTERM,
 SIGINT, ``jobs cancel``), 2 failed (the run record says why) or refused (the folder is in use
 by another process, no usable checkpoint without ``--restart``, ...), with one line on stderr.
+
+``cancel`` exits 0 when it asked the job to stop and also when the run is not running (it
+ended, or its process is gone): the line says so and ends "nothing to cancel", as ``batch
+cancel`` does; 2 when the folder holds no readable run.
 """
 
 from __future__ import annotations
@@ -166,9 +170,14 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 def cmd_cancel(args: argparse.Namespace) -> int:
     """``jobs cancel``."""
-    from recon.udn.jobs import request_cancel
+    from recon.udn.jobs import read_record, request_cancel
 
-    print(request_cancel(args.run_dir, send_signal=args.signal))
+    read_record(args.run_dir)  # no run there, or an unreadable record: an error (exit 2)
+    try:
+        print(request_cancel(args.run_dir, send_signal=args.signal))
+    except ValueError as exc:
+        # the run is not running: what the user wanted is already true, as for batch cancel
+        print(f"{exc}; nothing to cancel")
     return 0
 
 

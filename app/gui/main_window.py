@@ -270,11 +270,10 @@ class MainWindow(QMainWindow):
         self.statusBar().addWidget(self.status_label, 1)
 
         # preview
-        try:
-            ps = PreviewSettings.from_dict(self.settings.preview)
-        except (TypeError, ValueError) as exc:
-            _log.warning("preview settings ignored: %s", exc)
-            ps = PreviewSettings()
+        # a bad key keeps its default; the other preview settings are kept
+        ps, problems = PreviewSettings.from_dict_lenient(self.settings.preview)
+        if problems:
+            _log.warning("preview settings: ignoring %s", "; ".join(problems))
         self.preview_controls.set_settings(ps)
         self.preview_controls.enabled.setChecked(self.settings.preview_enabled)
         self.engine = PreviewEngine(None, ps)

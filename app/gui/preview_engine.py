@@ -167,6 +167,30 @@ class PreviewSettings:
         known = {f for f in cls.__dataclass_fields__}
         return cls(**{k: v for k, v in d.items() if k in known})
 
+    @classmethod
+    def from_dict_lenient(cls, d: dict[str, Any]) -> tuple[PreviewSettings, list[str]]:
+        """Like :meth:`from_dict`, but only a key with a bad value (or type) keeps its default.
+
+        Every other key is kept. Returns the settings and one ``"key=value (why); using the
+        default X"`` line per key that was replaced (empty when all were good).
+        """
+        defaults = cls()
+        good: dict[str, Any] = {}
+        problems: list[str] = []
+        for k, v in d.items():
+            if k not in cls.__dataclass_fields__:
+                continue
+            try:  # the checks are per field, so each key can be tried on its own
+                cls(**{k: v})
+            except (TypeError, ValueError, OverflowError) as exc:
+                problems.append(f"{k}={v!r} ({exc}); using the default {getattr(defaults, k)!r}")
+                continue
+            good[k] = v
+        try:
+            return cls(**good), problems
+        except (TypeError, ValueError, OverflowError) as exc:  # not expected: keys interact
+            return defaults, [*problems, f"{good!r} ({exc}); using the defaults"]
+
 
 @dataclass(frozen=True)
 class PreviewResult:

@@ -115,6 +115,26 @@ def test_calibrate_shutter_from_timing_and_darks(tmp_path, capsys):
     assert "hot" in capsys.readouterr().out
 
 
+def test_calibrate_darks_reports_the_simulated_read_noise(tmp_path, capsys):
+    """It printed "noise 0": the median per-pixel std of quantised frames."""
+    import re
+
+    from drivers.simcam import SimulatedCamera
+
+    out = tmp_path / "darks.npz"
+    argv = ["calibrate", "darks", "--camera", "sim", "--no-prompt", "--frames", "16",
+            "--settle", "0", "--out", str(out)]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    m = re.search(r"noise (\S+) ADU rms \(sqrt of the mean per-pixel temporal variance", text)
+    assert m, text
+    cam = SimulatedCamera(80, 64)  # calibrate's simulated camera: default noise and gain
+    configured = cam.read_noise_e * cam.adu_per_electron
+    assert configured / 2 < float(m.group(1)) < 2 * configured
+    meta = load_calibration(out, expect="pixel-maps").metadata
+    assert meta["dark_noise_adu"] == pytest.approx(float(m.group(1)), rel=1e-2)
+
+
 def test_calibrate_filters(tmp_path, capsys):
     cube = np.random.default_rng(0).uniform(0, 2, (16, 20, 5)).astype(np.float32)
     np.save(tmp_path / "cube.npy", cube)

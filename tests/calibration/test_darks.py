@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from calibration.darks import calibrate_pixel_maps, capture_darks, pixel_maps, repair_pixels
+from calibration.darks import (
+    calibrate_pixel_maps,
+    capture_darks,
+    dark_noise_rms,
+    pixel_maps,
+    repair_pixels,
+)
 from calibration.frames import acquire_frames
 from calibration.workflow import CalibrationError, Workflow
 from drivers.lightstate import LightMode
@@ -75,6 +81,31 @@ def test_darks_without_flats_have_no_dead_pixels(make_camera, source):
     maps = pixel_maps(darks)
     assert np.array_equal(maps.hot, cam.defect_maps[1]) and not maps.dead.any()
     assert darks.n == 6 and darks.exposure_us == 2000.0
+
+
+@pytest.mark.parametrize("read_noise_e", [2.0, 20.0])
+def test_dark_noise_is_not_fooled_by_quantisation(read_noise_e):
+    """The noise was the median per-pixel std: 0 on the simulated camera, whose read noise
+    (2 e-, 0.27 ADU) moves most pixels by less than one code in a few frames."""
+    cam = SimulatedCamera(COLS, ROWS, read_noise_e=read_noise_e, exposure_us=100.0,
+                          hot_pixel_fraction=0.01, hot_pixel_e_per_ms=10_000.0, pacing=False,
+                          seed=3)
+    configured = read_noise_e * cam.adu_per_electron
+    with cam:
+        darks = Workflow(capture_darks(cam, 16, settle=0)).run()
+    maps = pixel_maps(darks)
+    noise = maps.dark_noise_adu
+    assert noise > 0 and maps.metadata()["dark_noise_adu"] == noise
+    assert configured / 2 < noise < 2 * configured
+    if read_noise_e > 5:  # well above one code: the read noise plus the quantisation step
+        # (the simulator clips electrons at 0 before the dark offset: a half-normal read noise)
+        clipped = configured * np.sqrt(0.5 - 1 / (2 * np.pi))
+        assert noise == pytest.approx(np.hypot(clipped, 1 / np.sqrt(12)), rel=0.1)
+    else:  # the case the median missed
+        assert maps.metadata()["dark_noise_median_std_adu"] == 0.0
+    # the hot pixels' dark-current shot noise is not the sensor's read noise: left out
+    assert np.array_equal(maps.hot, cam.defect_maps[1]) and maps.hot.any()
+    assert dark_noise_rms(maps.dark_std) > noise == dark_noise_rms(maps.dark_std, maps.hot)
 
 
 def test_bad_flats_are_refused():

@@ -124,6 +124,39 @@ def test_bad_producer_path_is_named(
     assert not (tmp_path / "f.tif").exists()
 
 
+@pytest.mark.parametrize("content", [b"", b"not a library at all\n"])
+def test_a_cti_that_is_not_a_shared_library_is_refused_or_skipped(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,
+    tlsimu_cti: Path, content: bytes,
+) -> None:
+    """Any file named *.cti was listed and accepted as a GenTL producer."""
+    fake = tmp_path / "fake" / "x.cti"
+    fake.parent.mkdir()
+    fake.write_bytes(content)
+    says = "empty file" if not content else "not a shared library"
+    # named explicitly (the file, or a folder holding only it): refused, one line
+    for bad in (fake, fake.parent):
+        assert app.cli.main(["devices", "--producer", str(bad)]) == 2
+        err = capsys.readouterr().err
+        assert str(bad) in err and says in err and "Traceback" not in err
+        assert len(err.strip().splitlines()) == 1
+    # found on the search path next to a real producer: skipped with its reason
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "empty-cache"))
+    monkeypatch.delenv("LENSLESSCAM_GENTL_PATH", raising=False)
+    monkeypatch.setenv("GENICAM_GENTL64_PATH", str(fake.parent))
+    assert app.cli.main(["devices", "--producer", str(tlsimu_cti)]) == 0
+    out = capsys.readouterr().out
+    producers = out.split("GenTL producers:")[1].split("Serial ports:")[0]
+    assert str(tlsimu_cti) in producers and "TLSimuMono" in out
+    listed = [ln.strip() for ln in producers.splitlines() if ln.strip()]
+    assert str(fake) not in listed
+    assert any(str(fake) in ln and "skipped" in ln and says in ln for ln in listed)
+    assert app.cli.main(["devices", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert str(fake) not in data["gentl_producers"]
+    assert [str(fake) in ln for ln in data["gentl_skipped"]] == [True]
+
+
 def test_a_camera_that_cannot_open_is_one_line(tmp_path: Path,
                                                capfd: pytest.CaptureFixture[str]) -> None:
     """OpenCV printed its own '[ WARN...]' line before the error."""

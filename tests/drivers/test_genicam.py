@@ -32,6 +32,27 @@ def test_find_producers_searches_env_config_cache_and_package(
     assert find_producers([tlsimu_cti, tlsimu_cti], include_package=False) == [tlsimu_cti]
 
 
+def test_producer_problem_accepts_only_shared_libraries(
+    tlsimu_cti: Path, viky_cti: Path, tmp_path: Path,
+) -> None:
+    from drivers.genicam import producer_problem
+
+    assert producer_problem(tlsimu_cti) is None and producer_problem(viky_cti) is None
+    for name, head in (("pe.cti", b"MZ\x90\x00"), ("macho.cti", b"\xcf\xfa\xed\xfe")):
+        (tmp_path / name).write_bytes(head + bytes(60))
+        assert producer_problem(tmp_path / name) is None
+    (tmp_path / "empty.cti").write_bytes(b"")
+    (tmp_path / "text.cti").write_text("#!/bin/sh\n")
+    assert "empty" in (producer_problem(tmp_path / "empty.cti") or "")
+    assert "not a shared library" in (producer_problem(tmp_path / "text.cti") or "")
+    assert "cannot be read" in (producer_problem(tmp_path / "missing.cti") or "")
+    skipped: list[str] = []
+    found = find_producers([tmp_path, tlsimu_cti], use_environment=False,
+                           include_cache=False, include_package=False, skipped=skipped)
+    assert [p.name for p in found] == ["macho.cti", "pe.cti", "TLSimu.cti"]
+    assert len(skipped) == 2 and "empty.cti" in skipped[0] and "text.cti" in skipped[1]
+
+
 def test_list_devices_of_both_producers(viky_cti: Path, tlsimu_cti: Path) -> None:
     devices = list_genicam_devices([viky_cti, tlsimu_cti])
     assert [d.index for d in devices] == list(range(7))

@@ -155,6 +155,29 @@ def test_settings_persist_between_sessions(make_window: Any, qtbot: Any) -> None
     qtbot.waitUntil(lambda: abs(w2.bench.camera.exposure_us - 8000.0) < 20, timeout=5_000)
 
 
+def test_one_bad_preview_key_keeps_the_other_preview_settings(
+        make_window: Any, qtbot: Any, caplog: pytest.LogCaptureFixture) -> None:
+    """A bad value for one preview key used to reset every preview setting to its default."""
+    import json
+    import logging
+
+    from app.gui.settings import AppSettings, load_settings, settings_path
+
+    settings_path().parent.mkdir(parents=True, exist_ok=True)
+    d = AppSettings(frame_rate_hz=10.0, connect_light=False).to_dict()
+    d["preview"] = {"iters_per_frame": 7, "downsample": 2, "tau": "abc", "tau_auto": False}
+    settings_path().write_text(json.dumps(d), encoding="utf-8")
+    with caplog.at_level(logging.WARNING, logger="app.gui.main_window"):
+        w = make_window(load_settings())
+    lines = [r.getMessage() for r in caplog.records if "preview settings" in r.getMessage()]
+    assert len(lines) == 1, lines
+    assert "tau='abc'" in lines[0] and "iters_per_frame" not in lines[0]
+    s = w.preview_controls.settings()
+    assert (s.iters_per_frame, s.downsample, s.tau_auto) == (7, 2, False)
+    assert s.tau == pytest.approx(3e-4)  # the default
+    assert w.engine.settings.iters_per_frame == 7
+
+
 def test_bad_serial_port_is_an_error_in_the_window(bench_window: Any, qtbot: Any) -> None:
     w = bench_window
     qtbot.waitUntil(lambda: w.light_state == "connected", timeout=15_000)

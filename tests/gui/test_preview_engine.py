@@ -105,6 +105,19 @@ def test_video_model_shows_bins_side_by_side(psf: np.ndarray) -> None:
     assert r.shape == (24, k * 32 + (k - 1) * 2)
 
 
+def test_lenient_settings_replace_only_the_bad_keys() -> None:
+    d = {"iters_per_frame": 5, "tau": "abc", "downsample": 0, "model": "video",
+         "threads": None, "target_fps": 10.0, "unknown": 1}
+    s, problems = PreviewSettings.from_dict_lenient(d)
+    default = PreviewSettings()
+    assert (s.iters_per_frame, s.model, s.target_fps) == (5, "video", 10.0)
+    assert (s.tau, s.downsample, s.threads) == (default.tau, default.downsample, default.threads)
+    assert [p.split("=")[0] for p in problems] == ["tau", "downsample", "threads"]
+    assert "tau='abc'" in problems[0] and "default 0.0003" in problems[0]
+    assert PreviewSettings.from_dict_lenient(PreviewSettings(tau=1e-3).to_dict()) == (
+        PreviewSettings(tau=1e-3), [])
+
+
 def test_frame_slot_keeps_only_the_newest() -> None:
     slot = FrameSlot()
     for i in range(5):
