@@ -30,7 +30,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from calibration.darks import capture_darks, hot_pixels, repair_pixels
+from calibration.darks import capture_darks, dark_noise_rms, hot_pixels, repair_pixels
 from calibration.frames import FrameStats, acquire_frames
 from calibration.sources import (
     camera_description,
@@ -424,7 +424,7 @@ def _auto_exposure(
     lo, hi = _exposure_bounds(camera, settings)
     good = ~hot
     offset = float(np.median(dark.mean[good])) if good.any() else float(np.median(dark.mean))
-    noise1 = max(float(np.median(dark.std)), 1.0 / math.sqrt(12.0))
+    noise1 = max(dark_noise_rms(dark.std, exclude=hot), 1.0 / math.sqrt(12.0))
     target = settings.target_peak
     exposure = min(max(start_us, lo), hi)
     log: list[dict[str, Any]] = []
@@ -602,7 +602,7 @@ def capture_psf(
         yield Progress("process", "dark subtraction and hot-pixel repair", 0.93)
         bad = hot if bad_pixels is None else (hot | np.asarray(bad_pixels, dtype=bool))
         psf, info = process_psf(light, dark, bad, s)
-        noise = max(float(np.median(dark.std)), 1.0 / math.sqrt(12.0)) * math.sqrt(
+        noise = max(dark_noise_rms(dark.std, exclude=bad), 1.0 / math.sqrt(12.0)) * math.sqrt(
             1.0 / light.n + 1.0 / dark.n
         )
         good = ~bad
@@ -629,7 +629,7 @@ def capture_psf(
             "frames_averaged": light.n,
             "darks_averaged": dark.n,
             "dark_level": float(np.median(dark.mean)),
-            "dark_noise_adu": float(np.median(dark.std)),
+            "dark_noise_adu": dark_noise_rms(dark.std, exclude=bad),
             "full_scale": light.full_scale,
             "units": "ADU above the dark level",
             "timing": None if timing is None else timing.to_dict(),

@@ -16,8 +16,9 @@ over the scene frames that cover the exposure. Without an injected renderer it u
 Radiometry: scene values are photo-electrons per pixel per millisecond *as they reach the
 sensor through the renderer* (a unit-sum PSF keeps that scale). A frame collects
 ``render(frames, M) * bin_ms`` electrons (``bin_ms`` = one time bin in milliseconds), then:
-dead pixels lose their signal, hot pixels gain dark current, shot (Poisson) and read (Gaussian)
-noise are drawn, the full well clips, the ROI is cut and binned (summed), and electrons become
+dead pixels lose their signal, hot pixels gain dark current, shot (Poisson) noise is drawn, the
+full well clips the charge, read (Gaussian) noise is added (it may go below zero: the readout
+sits on the dark offset), the ROI is cut and binned (summed), and electrons become
 codes: ``round(e * adu_per_electron + dark_offset_adu)`` clipped to the bit depth, where
 ``adu_per_electron = gain * max_code / full_well_e``.
 
@@ -765,13 +766,19 @@ class SimulatedCamera(CameraBase):
         exposure_ms = t.exposure_us / 1000.0
         signal[self._dead] = 0.0
         signal[self._hot] += self.hot_pixel_e_per_ms * exposure_ms
+        read = None
         if self.noise:
             e = self._rng.poisson(np.clip(signal, 0.0, 1e12)).astype(np.float64)
             if self.read_noise_e > 0:
-                e += self._rng.normal(0.0, self.read_noise_e, size=e.shape)
+                read = self._rng.normal(0.0, self.read_noise_e, size=e.shape)
         else:
             e = signal
+        # the well holds 0..full_well electrons; read noise is added by the readout chain,
+        # on top of the dark offset, so it reaches codes below the offset too (clipping it
+        # with the charge kept only its positive half: a biased dark level, 0.58x its std)
         e = np.clip(e, 0.0, self.full_well_e)
+        if read is not None:
+            e = e + read
         roi, b = self._roi, self._binning
         e = e[roi.y : roi.y + roi.height, roi.x : roi.x + roi.width]
         if b > 1:

@@ -86,7 +86,7 @@ def test_darks_without_flats_have_no_dead_pixels(make_camera, source):
 @pytest.mark.parametrize("read_noise_e", [2.0, 20.0])
 def test_dark_noise_is_not_fooled_by_quantisation(read_noise_e):
     """The noise was the median per-pixel std: 0 on the simulated camera, whose read noise
-    (2 e-, 0.27 ADU) moves most pixels by less than one code in a few frames."""
+    (2 e-, 0.27 ADU) moved most pixels by less than one code in a few frames."""
     cam = SimulatedCamera(COLS, ROWS, read_noise_e=read_noise_e, exposure_us=100.0,
                           hot_pixel_fraction=0.01, hot_pixel_e_per_ms=10_000.0, pacing=False,
                           seed=3)
@@ -98,14 +98,23 @@ def test_dark_noise_is_not_fooled_by_quantisation(read_noise_e):
     assert noise > 0 and maps.metadata()["dark_noise_adu"] == noise
     assert configured / 2 < noise < 2 * configured
     if read_noise_e > 5:  # well above one code: the read noise plus the quantisation step
-        # (the simulator clips electrons at 0 before the dark offset: a half-normal read noise)
-        clipped = configured * np.sqrt(0.5 - 1 / (2 * np.pi))
-        assert noise == pytest.approx(np.hypot(clipped, 1 / np.sqrt(12)), rel=0.1)
-    else:  # the case the median missed
-        assert maps.metadata()["dark_noise_median_std_adu"] == 0.0
+        assert noise == pytest.approx(np.hypot(configured, 1 / np.sqrt(12)), rel=0.1)
     # the hot pixels' dark-current shot noise is not the sensor's read noise: left out
     assert np.array_equal(maps.hot, cam.defect_maps[1]) and maps.hot.any()
     assert dark_noise_rms(maps.dark_std) > noise == dark_noise_rms(maps.dark_std, maps.hot)
+
+
+def test_dark_noise_rms_where_most_pixels_never_change_code():
+    """Frames of a read noise well below one code: most pixels show one code throughout
+    (std 0), a few flip once. The median std is 0; the RMS is the noise the codes carry."""
+    std = np.zeros((40, 50))
+    std.flat[::7] = np.std([0, 0, 0, 1])  # one flip in four frames: 0.433
+    assert float(np.median(std)) == 0.0
+    rms = dark_noise_rms(std)
+    assert rms == pytest.approx(0.433 / np.sqrt(7), rel=0.01)
+    hot = np.zeros_like(std, dtype=bool)
+    hot.flat[::7] = True
+    assert dark_noise_rms(std, hot) == 0.0  # only the excluded pixels moved
 
 
 def test_bad_flats_are_refused():
