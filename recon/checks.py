@@ -1,7 +1,8 @@
 """Checks of lensless inputs: does a PSF fit a measurement, is a measurement saturated.
 
-:func:`check_pair` (shapes of PSF and measurement) and :func:`check_measurement` (saturated,
-negative, non-finite pixels, as a :class:`MeasurementCheck`). Pure numpy.
+:func:`check_pair` (shapes of PSF and measurement), :func:`check_field` (a scene field no
+larger than the light's reach) and :func:`check_measurement` (saturated, negative, non-finite
+pixels, as a :class:`MeasurementCheck`). Pure numpy.
 """
 
 from __future__ import annotations
@@ -14,9 +15,37 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["MeasurementCheck", "MeasurementWarning", "check_measurement", "check_pair"]
+__all__ = ["MeasurementCheck", "MeasurementWarning", "check_field", "check_measurement",
+           "check_pair", "field_reach"]
 
 Array = npt.NDArray[Any]
+
+
+def field_reach(sensor: tuple[int, int], psf_hw: tuple[int, int]) -> tuple[int, int]:
+    """The largest scene field (H, W) from which light reaches a sensor through a PSF.
+
+    A scene point reaches the sensor only through the PSF's extent, so the field beyond
+    ``sensor + psf`` (in each direction) holds pixels that never reach it: for a PSF on the
+    sensor grid twice the sensor (the ``full`` field), for a PSF on the padded grid (twice
+    the sensor) three times it. Both in the same pixels (full resolution or one grid).
+    """
+    return (int(sensor[0]) + int(psf_hw[0]), int(sensor[1]) + int(psf_hw[1]))
+
+
+def check_field(field: tuple[int, int], sensor: tuple[int, int], psf_hw: tuple[int, int],
+                what: str = "scene field") -> None:
+    """Refuse a field larger than :func:`field_reach`: ValueError, one line naming the limit.
+
+    The one rule for ``--field``, ``--set field=HxW`` and a plan's field: such a field costs
+    time and memory for pixels that cannot be reconstructed.
+    """
+    reach = field_reach(sensor, psf_hw)
+    fld = (int(field[0]), int(field[1]))
+    if fld[0] > reach[0] or fld[1] > reach[1]:
+        raise ValueError(f"{what} {fld[0]}x{fld[1]} is larger than the {reach[0]}x{reach[1]} "
+                         f"from which light reaches the {int(sensor[0])}x{int(sensor[1])} "
+                         f"sensor through its {int(psf_hw[0])}x{int(psf_hw[1])} PSF: nothing "
+                         "outside it can be reconstructed")
 
 
 def check_pair(psf: Array, meas: Array, *, psf_is_stack: bool = False) -> None:

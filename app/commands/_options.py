@@ -26,6 +26,7 @@ __all__ = [
     "UNIT",
     "add_overwrite_option",
     "check_command_outputs",
+    "check_output_folders",
     "finite_float",
     "integer",
 ]
@@ -114,13 +115,58 @@ def add_overwrite_option(p: argparse.ArgumentParser) -> None:
 
 def check_command_outputs(args: argparse.Namespace, outputs: Iterable[str | os.PathLike[str]]
                           ) -> None:
-    """Refuse outputs that are an input of this command, or exist without ``--overwrite``.
+    """Refuse outputs that are inputs, exist without ``--overwrite``, or cannot be written.
 
-    One rule for every writer command (:func:`recon.atomic.check_outputs`), called before
+    An output may not be an input of this command, nor exist without ``--overwrite``, nor lie
+    in a folder that cannot be created or written. One rule for every writer command
+    (:func:`recon.atomic.check_outputs`, then :func:`check_output_folders`), called before
     any work is done.
     """
     from recon.atomic import check_outputs
 
+    outputs = list(outputs)
     inputs = {f"--{name.replace('_', '-')}": value for name in INPUT_OPTIONS
               if isinstance(value := getattr(args, name, None), (str, os.PathLike))}
     check_outputs(outputs, inputs, overwrite=bool(getattr(args, "overwrite", False)))
+    check_output_folders(outputs)
+
+
+def check_output_folders(outputs: Iterable[str | os.PathLike[str]]) -> None:
+    """Refuse, before any work, outputs whose folder cannot be created or written.
+
+    The nearest existing folder above each output is probed by creating and deleting a
+    temporary file in it (when it is the output's folder) or a temporary folder (when the
+    output's folder is still to be made): a permission bit, a read-only file system, ``/proc``
+    and root's exemptions are all answered by the system itself, which ``os.access`` is not
+    (for root it says yes to ``/proc``). Raises :class:`PermissionError` (exit code 2 in
+    ``app.cli``) with one line naming the output and the folder. Before this a read-only
+    ``--out`` folder was found at the save, after the whole reconstruction.
+    """
+    import tempfile
+    from pathlib import Path
+
+    probed: set[Path] = set()
+    for o in outputs:
+        out = Path(os.path.abspath(o))
+        folder = out.parent
+        existing = folder
+        while not existing.exists() and existing != existing.parent:
+            existing = existing.parent
+        if existing in probed:
+            continue
+        if not existing.is_dir():
+            raise PermissionError(f"cannot write {o}: {existing} is a file, not a folder")
+        try:
+            if existing == folder:
+                fd, tmp = tempfile.mkstemp(prefix=".lenslesscam-write-test-", dir=existing)
+                os.close(fd)
+                os.unlink(tmp)
+            else:
+                os.rmdir(tempfile.mkdtemp(prefix=".lenslesscam-write-test-", dir=existing))
+        except OSError as exc:
+            why = exc.strerror or type(exc).__name__
+            where = (f"the folder {existing} is not writable" if existing == folder else
+                     f"the folder {folder} cannot be made in {existing}, which is not writable")
+            raise PermissionError(f"cannot write {o}: {where} ({why}); choose another output "
+                                  "location") from None
+        probed.add(existing)

@@ -159,8 +159,28 @@ def load_inputs(args: argparse.Namespace) -> dict[str, Any]:
             "field": tuple(int(n) for n in prob.model.scene_shape[2:]), "problem": prob}
 
 
+def check_field_reach(field: Any, inputs: dict[str, Any]) -> None:
+    """The one field rule (:func:`recon.checks.check_field`, as ``--field``) for a plan's field.
+
+    On the real sensor and PSF of the inputs: a plan knows only its own grid, which for a PSF
+    on the padded grid is the padded grid, so its own check (twice that grid) is looser than
+    the light's reach from the real sensor. A malformed value is left to ``Plan.override``.
+    """
+    from recon.checks import check_field
+
+    if not (isinstance(field, list | tuple) and len(field) == 2 and all(
+            isinstance(n, int) and not isinstance(n, bool) for n in field)):
+        return
+    prob = inputs["problem"]
+    check_field(field, prob.sensor, tuple(prob.psf.shape[-2:]), "plan field 'field'")
+
+
 def _make(args: argparse.Namespace, inputs: dict[str, Any], probe: bool = True) -> Any:
     from recon.plan import DEFAULT_TAU, make_plan
+
+    overrides = parse_overrides(args.set)
+    if "field" in overrides:  # before the analysis: a field past the light's reach costs GBs
+        check_field_reach(overrides["field"], inputs)
 
     def progress(msg: str) -> None:
         if sys.stderr.isatty():
@@ -176,7 +196,6 @@ def _make(args: argparse.Namespace, inputs: dict[str, Any], probe: bool = True) 
     if getattr(args, "trade", None):
         plan = plan_from_trade(plan, args.trade, inputs,
                                who=f"lenslesscam {getattr(args, 'command', None) or 'plan'}")
-    overrides = parse_overrides(args.set)
     plan = plan.override(**overrides) if overrides else plan
     if (args.tau is None and not getattr(args, "trade", None) and plan.method == "fista-tv"
             and "tau" not in overrides):
@@ -368,6 +387,7 @@ def run_auto(args: argparse.Namespace) -> int:
         overrides = parse_overrides(args.set)
         if overrides:
             plan = plan.override(**overrides)
+        check_field_reach(list(plan.field), inputs)  # the saved plan's, or the one set
     else:
         plan = _make(args, inputs)
     kind = {"2d": "image", "video": "video", "depth": "depth"}[plan.model]

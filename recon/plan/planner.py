@@ -29,6 +29,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
+from recon.checks import check_field
 from recon.fista import Fista, FistaStep
 from recon.models import ForwardModel
 from recon.plan.analysis import (
@@ -52,6 +53,7 @@ __all__ = [
     "Plan",
     "PlanResult",
     "SensorTimingLike",
+    "base_bin_lines",
     "base_shutter",
     "execute",
     "make_plan",
@@ -65,6 +67,10 @@ DEFAULT_TAU = 1e-3
 #: the smallest measurement (rows and columns) make_plan analyses
 MIN_PLAN_SIZE = 2
 MODELS = ("2d", "video", "depth")
+#: the most values of a base shutter function built from a timing (K0 x rows; 32 MB float64)
+MAX_SHUTTER_ELEMENTS = 1 << 22
+#: base bins kept however many rows the sensor has
+MIN_BASE_BINS = 256
 METHODS = ("fista-tv", "udn")
 
 F32 = npt.NDArray[np.float32]
@@ -85,6 +91,10 @@ class SensorTimingLike(Protocol):
     @property
     def exposure_lines(self) -> int:
         """Exposure of one row in line units."""
+
+    @property
+    def frame_lines(self) -> int:
+        """First row's start to the last row's end, in line units (one-line bins)."""
 
     @property
     def pattern(self) -> Enum:
@@ -212,6 +222,8 @@ class Plan:
             raise ValueError("plan.iterations must be >= 1 for fista-tv")
         if not (math.isfinite(self.tau) and self.tau >= 0):
             raise ValueError(f"plan.tau must be >= 0, got {self.tau!r}")
+        # the one field rule (recon.checks.check_field); the plan's PSF is on its sensor grid
+        check_field(self.field, self.sensor, self.sensor, "plan field 'field'")
         Region(*self.region, *self.field)  # raises if outside the field
         if self.model == "2d" and self.k != 1:
             raise ValueError(f"a 2d plan has k = 1, got {self.k}")
@@ -282,6 +294,8 @@ class Plan:
             if key in ("field", "planes") and v is not None and (
                     min(v) < (1 if key == "field" else 0)):
                 raise ValueError(f"plan field {key!r} must be positive, got {v!r}")
+            if key == "field" and v is not None:
+                check_field(v, self.sensor, self.sensor, "plan field 'field'")
             if key == "planes" and v is not None:
                 n = len(self.evidence.get("depth", {}).get("energy_per_plane") or []) or None
                 if v[1] <= v[0]:
@@ -479,11 +493,29 @@ def base_shutter(shutter: Any, timing: SensorTimingLike | None,
     t = timing
     if t.rows != rows:
         raise ValueError(f"sensor timing has {t.rows} rows, the measurement {rows}")
-    m = np.asarray(t.shutter(bin_lines=1), dtype=np.float64)
+    width = base_bin_lines(t.frame_lines, t.rows)
+    m = np.asarray(t.shutter(bin_lines=width), dtype=np.float64)
     if bool(np.all(m == m[:, :1])):
         return None, "global shutter: every row integrates the same window, no time resolution"
-    return m, (f"{t.pattern.value} readout, exposure {t.exposure_lines} lines: "
-               f"{m.shape[0]} one-line bins")
+    bins = (f"{m.shape[0]} one-line bins" if width == 1 else
+            f"{m.shape[0]} bins of {width} lines (the frame's {t.frame_lines} one-line bins "
+            f"merged to keep the shutter function within {MAX_SHUTTER_ELEMENTS} values)")
+    return m, f"{t.pattern.value} readout, exposure {t.exposure_lines} lines: {bins}"
+
+
+def base_bin_lines(frame_lines: int, rows: int) -> int:
+    """Width in lines of the finest shutter bins a timing is planned with (1 when it fits).
+
+    One-line bins (K0 = ``frame_lines``) unless the (K0, rows) shutter function would hold more
+    than :data:`MAX_SHUTTER_ELEMENTS` values (at least :data:`MIN_BASE_BINS` bins are kept):
+    then the narrowest whole-line width that fits. A wider bin is the mean of the one-line bins
+    it covers (``recon.preprocess.bin_time``), so nothing but time resolution finer than the
+    planner's K (at most 32 frames in its analysis) is lost. Without this a 1000-row sensor
+    exposed 100000 lines built 100499 one-line bins: 1.9 GB for ``plan``.
+    """
+    frame_lines, rows = int(frame_lines), int(rows)
+    cap = max(MIN_BASE_BINS, MAX_SHUTTER_ELEMENTS // max(rows, 1))
+    return max(1, -(-frame_lines // cap))
 
 
 def planned_model(plan: Plan, psf: Any = None, *, shutter: F64 | None = None,
@@ -596,6 +628,7 @@ def make_plan(
     fld = (h, w) if field is None else (int(field[0]), int(field[1]))
     if fld[0] < 1 or fld[1] < 1:
         raise ValueError(f"field must be positive, got {fld}")
+    check_field(fld, (h, w), (h, w))  # before the analysis pays for pixels no light leaves
     reasons: dict[str, str] = {}
     evidence: dict[str, Any] = {}
 
