@@ -12,7 +12,8 @@ API::
     prob.truth      # (C, K, Hs, Ws) float32 on the reconstruction grid, or None
     prob.inputs     # name -> {path, file_hash, array_hash, shape} (what a run record stores)
     prob.hashes     # name -> file hash
-    prob.metadata   # the preprocessing (mask_hash, psf_grid, ...), for a result's metadata
+    prob.metadata   # the preprocessing (mask_hash, psf_grid, ...), for a result's metadata;
+                    # metadata['warnings']: the MeasurementWarnings the inputs raised (text)
     prob.sensor     # the real sensor on the reconstruction grid (rows, cols)
     ProblemSpec.from_data_section(d) / spec.to_data_section()   # the [data] table of a job
     load_truth(spec, scene_shape)   # only the truth, prepared as load_problem prepares it
@@ -58,6 +59,8 @@ Rules (the same for every command):
 from __future__ import annotations
 
 import os
+import threading
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from dataclasses import field as dc_field
@@ -68,7 +71,7 @@ import numpy as np
 import numpy.typing as npt
 
 from recon.calibfile import DARK_CORRECTED_KINDS, calibration_kind
-from recon.checks import check_pair
+from recon.checks import MeasurementWarning, check_field, check_pair
 from recon.formats import array_hash
 from recon.preprocess import (
     box_downsample,
@@ -508,12 +511,40 @@ def _norm(mode: str) -> Any:
     return None if mode == "none" else mode
 
 
+#: held while a load catches its warnings (see :func:`load_problem`)
+_CATCH_LOCK = threading.RLock()
+
+
 def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
                  device: torch.device | str = "cpu") -> Problem:
     """Read, dark-correct, downsample and check the inputs of ``spec``; build the model.
 
     Raises FileNotFoundError or ValueError with one line naming the file at fault.
+
+    The :class:`~recon.checks.MeasurementWarning` s the inputs raise (a raw frame read without
+    a dark level, many zero pixels without a mask, saturation) are kept, as text, in
+    ``metadata['warnings']`` (so a run record, a batch item and a result's metadata say them
+    too), and emitted again as they were, after the load (stderr still shows them; the
+    warning filters in force decide as before).
     """
+    caught: list[warnings.WarningMessage] = []
+    try:
+        # catch_warnings swaps process-wide state: two loads in threads must not interleave
+        with _CATCH_LOCK, warnings.catch_warnings(record=True) as caught:
+            # recorded whatever the filters say; they decide when the warnings are emitted again
+            warnings.simplefilter("always", MeasurementWarning)
+            prob = _load_problem(spec, dtype=dtype, device=device)
+    finally:  # outside the catch (a failed load's too): the caller's filters and stderr
+        for w in caught:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+    prob.metadata["warnings"] = list(dict.fromkeys(
+        str(w.message) for w in caught if issubclass(w.category, MeasurementWarning)))
+    return prob
+
+
+def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
+                  device: torch.device | str) -> Problem:
+    """:func:`load_problem` without its catch of warnings."""
     import torch
 
     from recon.models import build_model
@@ -685,11 +716,7 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
     else:
         fld = (int(spec.field[0]), int(spec.field[1]))
     # a scene point farther out than the PSF reaches sends no light to the sensor
-    reach = (coarse[0] + int(psf_d.shape[-2]), coarse[1] + int(psf_d.shape[-1]))
-    if fld[0] > reach[0] or fld[1] > reach[1]:
-        raise ValueError(f"scene field {fld[0]}x{fld[1]} is larger than the {reach[0]}x"
-                         f"{reach[1]} from which light reaches the {coarse[0]}x{coarse[1]} "
-                         "sensor through this PSF: nothing outside it can be reconstructed")
+    check_field(fld, coarse, (int(psf_d.shape[-2]), int(psf_d.shape[-1])))
     psf_arg: Any = psf_d
     if spec.model != "depth" and psf_d.shape[0] == 1:
         psf_arg = psf_d[0]

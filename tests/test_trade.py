@@ -342,3 +342,77 @@ def test_an_interrupted_trade_goes_on_where_it_was(tmp_path, capsys, monkeypatch
     ran.clear()
     assert main([*argv, "--dark", "0", "--overwrite", "--out", str(tmp_path / "third")]) == 0
     assert "discarded" in capsys.readouterr().err and len(ran) == 9
+
+
+def test_a_resumed_trade_reports_the_time_of_every_session(tmp_path, capsys, monkeypatch):
+    """trade.md's "produced in N s" counted only the last session of a resumed trade: each
+    journal line now says its session and how long that session had run, and the total
+    counts the earlier sessions too."""
+    import re
+    import time
+    import types
+
+    import app.commands.trade as trade_cmd
+    import recon.trade as rt
+
+    case = _case()
+    for name, a in (("psf", case.psf[0]), ("meas", case.meas), ("mask", case.mask)):
+        np.save(tmp_path / f"{name}.npy", a)
+    argv = ["trade", *(x for n in ("meas", "psf", "mask")
+                       for x in (f"--{n}", str(tmp_path / f"{n}.npy"))),
+            "--quick", "--no-udn", "--threads", "1", "--out", str(tmp_path / "out")]
+    real = rt.run_trade
+    # the command's clock; the first session's second setting takes 1000 s (without waiting)
+    skew = [0.0]
+    monkeypatch.setattr(trade_cmd, "time", types.SimpleNamespace(
+        perf_counter=lambda: time.perf_counter() + skew[0]))
+
+    def long_then_interrupted(case, grid, **kw):
+        ran: list[str] = []
+        for row in real(case, grid, **kw):
+            if row.setting not in ran:
+                ran.append(row.setting)
+                if len(ran) == 2:
+                    skew[0] += 1000.0
+                if len(ran) == 3:  # two settings are complete
+                    raise KeyboardInterrupt
+            yield row
+
+    monkeypatch.setattr(rt, "run_trade", long_then_interrupted)
+    assert main(argv) == 130
+    journal = tmp_path / "out" / "trade.partial.jsonl"
+    lines = [json.loads(ln) for ln in journal.read_text().splitlines()[1:]]
+    assert len(lines) == 2
+
+    monkeypatch.setattr(rt, "run_trade", real)
+    capsys.readouterr()
+    t0 = time.perf_counter()
+    assert main(argv) == 0
+    second = time.perf_counter() - t0
+    capsys.readouterr()
+    md = (tmp_path / "out" / "trade.md").read_text()
+    m = re.search(r"Produced by `lenslesscam trade[^`]*` in (\d+) s", md)
+    assert m, md[:300]
+    # the first session's 1000 s are in the total (the old text gave this session's alone)
+    assert int(m.group(1)) >= 1000, m.group(0)
+    # the first session up to its last measured setting, and this one
+    assert int(m.group(1)) <= lines[1]["session_s"] + second + 1, m.group(0)
+    assert m.group(0) + " over 2 sessions" in md
+    # the journal said which session measured each setting and how long it had run
+    assert [e["session"] for e in lines] == [0, 0]
+    assert lines[1]["session_s"] >= 1000 and lines[1]["setting_s"] >= 1000
+    assert lines[1]["session_s"] == pytest.approx(lines[0]["session_s"] + lines[1]["setting_s"],
+                                                  abs=0.01)
+
+
+def test_a_trade_in_one_session_says_no_sessions(tmp_path, capsys):
+    case = _case()
+    for name, a in (("psf", case.psf[0]), ("meas", case.meas), ("mask", case.mask)):
+        np.save(tmp_path / f"{name}.npy", a)
+    assert main(["trade", "--meas", str(tmp_path / "meas.npy"), "--psf",
+                 str(tmp_path / "psf.npy"), "--mask", str(tmp_path / "mask.npy"), "--quick",
+                 "--no-udn", "--threads", "1", "--budgets", "1",
+                 "--out", str(tmp_path / "out")]) == 0
+    capsys.readouterr()
+    md = (tmp_path / "out" / "trade.md").read_text()
+    assert "session" not in md and "Produced by `lenslesscam trade" in md

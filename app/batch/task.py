@@ -122,6 +122,8 @@ def _run_recon(item: Item, out: Path) -> dict[str, Any]:
         "loss": final.get("objective"),
         "residual": final.get("residual", meta.get("residual", summary.get("residual"))),
         "solver_s": meta.get("wall_time_s", summary.get("wall_time_s")),
+        # what the loader warned of (its stderr is the command's, kept quiet here)
+        "warnings": list((meta.get("preprocessing") or {}).get("warnings") or []),
     }
 
 
@@ -159,6 +161,7 @@ def _run_udn(item: Item, run_dir: Path, threads: int, cancel_file: Path) -> dict
         "resumed": resumed or bool(outcome_rec.get("resumes")),
         "resumes": int(outcome_rec.get("resumes", 0)),
         "scores": (results.get("scores") or {}).get("final"),
+        "warnings": list(outcome_rec.get("warnings") or []),
     }
 
 

@@ -162,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
             setting: list[Any] = []
 
             def keep(label: str, setting: list[Any] = setting) -> None:
-                journal.add(label, setting)
+                journal.add(label, setting, time.perf_counter() - t_all)
                 setting.clear()
 
             for row in run_trade(case, grid, skip=frozenset(done), finished=keep):
@@ -173,7 +173,8 @@ def run(args: argparse.Namespace) -> int:
                       + (f"  PSNR {row.psnr:6.2f} dB" if row.psnr is not None else ""),
                       file=sys.stderr)
         rows = _in_grid_order(rows, cases, grid)
-        _write_outputs(args, out, rows, cases, threads, budgets, t_all)
+        _write_outputs(args, out, rows, cases, threads, budgets, t_all,
+                       earlier_s=journal.earlier_s(), sessions=journal.sessions())
         journal.remove()
     finally:
         lock.release()
@@ -197,6 +198,10 @@ class _Journal:
     requested threads (--threads; the count chosen from the load may differ between sessions);
     a journal of another command in the folder is refused (it would mix measurements), or
     discarded with ``--overwrite``. Removed when the trade's files are written.
+    Each setting's line says which session measured it (``session``: 0, 1, ...), the seconds
+    that session had run when it finished (``session_s``) and the seconds it took since the
+    session's previous one (``setting_s``), so trade.md's time counts every session (an earlier
+    one up to its last measured setting: a setting cut short leaves no line).
     """
 
     NAME = "trade.partial.jsonl"
@@ -219,7 +224,13 @@ class _Journal:
                 "grid": [c.label for c in grid], "threads": threads}
         self.key = hashlib.sha256(json.dumps(what, default=str).encode()).hexdigest()[:16]
         self.entries: dict[str, dict[str, list[Any]]] = {}
+        #: earlier sessions: their number -> seconds they had run at their last setting
+        self.earlier: dict[int, float] = {}
+        #: this session's number (one more than the journal's last)
+        self.session = 0
+        self._last_s = 0.0
         if self.path.is_file() and self._read(overwrite):
+            self.session = max(self.earlier, default=-1) + 1
             return
         head = {"format": self.FORMAT, "format_version": FORMAT_VERSION, "key": self.key}
         atomic_write_bytes(self.path, (json.dumps(head) + "\n").encode())
@@ -257,6 +268,10 @@ class _Journal:
                 continue
             self.entries.setdefault(e["case"], {})[e["setting"]] = rows
             n += 1
+            # a journal of an older release has no session: its time is not known
+            k, t = e.get("session", 0), e.get("session_s", 0.0)
+            if isinstance(k, int) and isinstance(t, (int, float)):
+                self.earlier[k] = max(self.earlier.get(k, 0.0), float(t))
         print(f"trade: resuming from {self.path}: {n} settings already measured",
               file=sys.stderr)
         return True
@@ -265,13 +280,24 @@ class _Journal:
         """The settings of ``case`` measured by an earlier session, with their rows."""
         return self.entries.get(case, {})
 
-    def add(self, label: str, rows: list[Any]) -> None:
-        """Record one finished setting (all its rows)."""
+    def add(self, label: str, rows: list[Any], session_s: float) -> None:
+        """Record one finished setting (all its rows), ``session_s`` into this session."""
         from dataclasses import asdict
 
         if rows:
             self._append({"case": rows[0].case, "setting": label,
-                          "rows": [asdict(r) for r in rows]})
+                          "rows": [asdict(r) for r in rows], "session": self.session,
+                          "session_s": round(session_s, 3),
+                          "setting_s": round(session_s - self._last_s, 3)})
+        self._last_s = session_s
+
+    def earlier_s(self) -> float:
+        """The seconds of the earlier sessions (each up to its last measured setting)."""
+        return sum(self.earlier.values())
+
+    def sessions(self) -> int:
+        """How many sessions measured this trade: the earlier ones and this one."""
+        return len(self.earlier) + 1
 
     def _append(self, entry: dict[str, Any]) -> None:
         import json
@@ -287,8 +313,13 @@ class _Journal:
 
 
 def _write_outputs(args: argparse.Namespace, out: Path, rows: list[Any], cases: list[Any],
-                   threads: Any, budgets: list[float], t_all: float) -> None:
-    """trade.csv, inputs.json, trade.md and trade_pareto.png, and the summary on stdout."""
+                   threads: Any, budgets: list[float], t_all: float, *,
+                   earlier_s: float = 0.0, sessions: int = 1) -> None:
+    """trade.csv, inputs.json, trade.md and trade_pareto.png, and the summary on stdout.
+
+    ``t_all``: when this session began; ``earlier_s``: the time of the ``sessions - 1``
+    earlier ones (a resumed trade), counted in the time trade.md gives.
+    """
     from recon.atomic import atomic_write_bytes
     from recon.trade import best_for_budgets, pareto_front, rank_correlation, write_trade_csv
 
@@ -303,8 +334,11 @@ def _write_outputs(args: argparse.Namespace, out: Path, rows: list[Any], cases: 
         # which measurement the trade was measured on: the app's job dialog offers it for that
         write_trade_inputs(out, input_hashes_of_files(args.meas, args.psf))
     # Markdown
+    took = earlier_s + time.perf_counter() - t_all
+    over = (f" over {sessions} sessions (resumed; an interrupted session counted up to its last "
+            "measured setting)" if sessions > 1 else "")
     md = [f"# Speed/accuracy trade\n\nProduced by `lenslesscam {command}` "
-          f"in {time.perf_counter() - t_all:.0f} s, {threads.reason}. Wall time "
+          f"in {took:.0f} s{over}, {threads.reason}. Wall time "
           "is the time to reach the iteration count (one run per setting, scored at several "
           "counts); peak memory is the run's peak resident memory above its start.\n"]
     for case in cases:

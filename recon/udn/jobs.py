@@ -5,7 +5,8 @@ Run folder layout (``RUN_DIR``)::
     job.toml           the spec as given (verbatim copy)
     run.json           run record: status, finish reason, error, spec (normalised, absolute
                        paths), input hashes, versions, device, memory estimate, timings,
-                       progress (iteration, loss, held-out error, ETA), checkpoint, results
+                       progress (iteration, loss, held-out error, ETA), checkpoint, results,
+                       warnings (the MeasurementWarnings the inputs raised, as text)
     loss.csv           iteration, loss, heldout, best_heldout, lr, gain, elapsed_s, restored
                        (after '# format: lenslesscam.udn_loss', '# format_version', ... lines)
     checkpoint.pt      latest checkpoint (weights, Adam state, RNG states, EMA, best, ...)
@@ -320,6 +321,7 @@ _RECORD_FIELDS: dict[str, tuple[type, ...]] = {
     "spec": (dict, _NONE),
     "inputs": (dict, _NONE),
     "notes": (list,),
+    "warnings": (list,),
     "sessions": (list,),
     "timings": (dict,),
     "device": (dict, _NONE),
@@ -422,6 +424,8 @@ class _Job:
         self.lock = lock
         #: what this session has to say about how it started (kept in the record's notes)
         self.notes: list[str] = []
+        #: told each note that arises once the session has begun (a resume's ``notice``)
+        self.notice: Callable[[str], None] | None = None
         self.progress = progress
         self.cancel = _CancelCheck(cancel, run_dir)
         self.rows: list[dict[str, Any]] = []
@@ -453,8 +457,11 @@ class _Job:
         if p.is_file():
             self.rows = [r for r in read_loss_rows(self.run_dir) if int(r["iteration"]) <= upto]
         if upto > 0 and not self.rows:
-            self.notes.append(f"{LOSS_FILE} was {'empty' if p.is_file() else 'missing'} at the "
-                              f"resume: the loss history restarts at iteration {upto + 1}")
+            note = (f"{LOSS_FILE} was {'empty' if p.is_file() else 'missing'} at the resume: "
+                    f"the loss history restarts at iteration {upto + 1}")
+            self.notes.append(note)
+            if self.notice is not None:
+                self.notice(note)
 
     def checkpoint(self) -> None:
         runner = self.runner
@@ -506,6 +513,9 @@ class _Job:
         threads = apply_threads(want)
         problem = _load_problem(spec, device)
         self.problem = problem
+        # what the inputs were warned of (a raw frame without its dark, zeros without a mask):
+        # the record keeps it beside the result, not only a terminal's stderr
+        self.record["warnings"] = list(problem.metadata.get("warnings", []))
         model = problem.model
         net = network_config(spec, model.k)
         cfg = udn_config(spec)
@@ -1084,6 +1094,7 @@ def _resume_locked(rd: Path, lock: RunLock, max_iter: int | None, time_limit_s: 
     job = _Job(rd, rec, progress, cancel, lock)
     job.threads = threads
     job.notes = notes
+    job.notice = notice
     return _session(job, max_memory, state, info or None, resuming=True)
 
 

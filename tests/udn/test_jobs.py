@@ -580,3 +580,24 @@ def test_loss_csv_reader_reads_old_files_and_refuses_newer_ones(tmp_path):
     (run / LOSS_FILE).write_text(f"{cols}\nx,0.5,,,,,,\n")
     with pytest.raises(FormatError, match="line 2: field 'iteration'"):
         read_loss_rows(run)
+
+
+def test_measurement_warnings_are_kept_in_the_run_record(tiny_data, tmp_path):
+    """The loader's MeasurementWarnings (here: half the pixels are 0 and no mask is given)
+    went to stderr only; run.json keeps them, and they are still emitted."""
+    from recon.checks import MeasurementWarning
+
+    spec = write_spec(tiny_data, data={"mask": None}, stopping={"max_iter": 4},
+                      output={"checkpoint_every": 4, "preview_every": 0})
+    out = tmp_path / "run"
+    with pytest.warns(MeasurementWarning, match="pixels are 0 and no mask was given"):
+        assert run_job(spec, out).finish_reason == "completed"
+    rec = record(out)
+    assert len(rec["warnings"]) == 1, rec["warnings"]
+    assert "meas.npy" in rec["warnings"][0]
+    assert "pixels are 0 and no mask was given" in rec["warnings"][0]
+    # a run without anything to warn of says so
+    clean = write_spec(tiny_data, name="clean.toml", stopping={"max_iter": 4},
+                       output={"checkpoint_every": 4, "preview_every": 0})
+    assert run_job(clean, tmp_path / "clean").finish_reason == "completed"
+    assert record(tmp_path / "clean")["warnings"] == []

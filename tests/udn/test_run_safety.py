@@ -429,6 +429,26 @@ def test_a_short_loss_row_is_named_and_a_lost_history_is_noted(tiny_data, tmp_pa
     assert int(read_loss_rows(out)[0]["iteration"]) == 9
 
 
+def test_a_lost_loss_csv_is_printed_at_the_resume(tiny_data, tmp_path, capsys):
+    """The note that loss.csv was missing went into run.json only; the resume prints it (one
+    line on stderr, as its other notes)."""
+    out = tmp_path / "run"
+    small_run(tiny_data, out)
+    (out / "loss.csv").unlink()
+    assert cli_main(["jobs", "resume", str(out), "--max-iter", "12", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    words = "loss.csv was missing at the resume: the loss history restarts at iteration 9"
+    assert [ln for ln in err.splitlines() if words in ln] == [
+        f"lenslesscam jobs resume: note: {words}"], err
+    assert sum(words in n for n in record(out)["notes"]) == 1
+    # an empty one too; a resume with its history says nothing of it
+    (out / "loss.csv").write_text("")
+    assert cli_main(["jobs", "resume", str(out), "--max-iter", "14", "--quiet"]) == 0
+    assert "loss.csv was empty at the resume" in capsys.readouterr().err
+    assert cli_main(["jobs", "resume", str(out), "--max-iter", "16", "--quiet"]) == 0
+    assert "loss.csv" not in capsys.readouterr().err
+
+
 def test_a_resume_with_a_time_limit_already_spent_is_refused(tiny_data, tmp_path, capsys):
     """It ran one iteration and reported 'completed' again, suggesting --time-limit 2, 4, ...
     (a --max-iter below the iteration reached is refused; so is this now)."""
