@@ -594,11 +594,12 @@ class PreviewEngine:
                 raise PreviewError(f"the ROI {geo.roi} is too small for downsampling by {d}")
         if geo.model == "video":
             from drivers.timing import shutter_function
-            from recon.preprocess import bin_time, downsample_rows
+            from recon.preprocess import downsample_rows
 
-            full = shutter_function(timing, 1)
-            factor = max(1, -(-full.shape[0] // geo.video_bins))
-            m_k = bin_time(full, factor)
+            # bins of `factor` lines directly (the mean of the one-line bins, as bin_time
+            # makes them): the one-line function of a long exposure takes GBs
+            factor = max(1, -(-int(timing.frame_lines) // geo.video_bins))
+            m_k = shutter_function(timing, factor)
             if binning > 1:
                 m_k = downsample_rows(m_k, binning)
             m_k = downsample_rows(m_k, d)[:, : psf_d.shape[0]]

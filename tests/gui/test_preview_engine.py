@@ -105,6 +105,31 @@ def test_video_model_shows_bins_side_by_side(psf: np.ndarray) -> None:
     assert r.shape == (24, k * 32 + (k - 1) * 2)
 
 
+def test_video_shutter_of_a_long_exposure_is_built_in_bounded_memory(psf: np.ndarray) -> None:
+    """The preview binned a one-line shutter function (frame_lines x rows): a 48-row frame
+    exposed 2 000 000 lines made 2e6 x 48 float64 (768 MB) before it was binned to 3."""
+    import tracemalloc
+
+    from drivers.timing import shutter_function
+    from recon.preprocess import bin_time
+
+    short = SensorTiming(rows=48, line_time_us=10.0, exposure_lines=12)
+    eng = PreviewEngine(psf, PreviewSettings(model="video", video_bins=3, downsample=1))
+    eng.process(_frame(psf), timing=short)
+    factor = -(-short.frame_lines // 3)
+    expected = bin_time(shutter_function(short, 1), factor)  # the one-line bins, binned
+    got = eng._build_args[1]["shutter"]
+    assert got.shape == expected.shape and np.allclose(got, expected, atol=1e-6)
+    long = SensorTiming(rows=48, line_time_us=10.0, exposure_lines=2_000_000)
+    tracemalloc.start()
+    try:
+        eng.process(_frame(psf), timing=long)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert eng._model.k >= 1 and peak < 100e6, peak
+
+
 def test_lenient_settings_replace_only_the_bad_keys() -> None:
     d = {"iters_per_frame": 5, "tau": "abc", "downsample": 0, "model": "video",
          "threads": None, "target_fps": 10.0, "unknown": 1}
