@@ -67,8 +67,10 @@ DEFAULT_TAU = 1e-3
 #: the smallest measurement (rows and columns) make_plan analyses
 MIN_PLAN_SIZE = 2
 MODELS = ("2d", "video", "depth")
-#: the most values of a base shutter function built from a timing (K0 x rows; 32 MB float64)
-MAX_SHUTTER_ELEMENTS = 1 << 22
+#: the most values of a base shutter function built from a timing (K0 x rows; 128 MB float64:
+#: one-line bins for a 2048-row sensor up to 8192 lines from the first row's start to the last
+#: row's end)
+MAX_SHUTTER_ELEMENTS = 1 << 24
 #: base bins kept however many rows the sensor has
 MIN_BASE_BINS = 256
 METHODS = ("fista-tv", "udn")
@@ -472,10 +474,12 @@ def _scaled_meas(meas: Any) -> F32:
 
 
 def base_shutter(shutter: Any, timing: SensorTimingLike | None,
-                 rows: int) -> tuple[F64 | None, str]:
+                 rows: int, bins: int | None = None) -> tuple[F64 | None, str]:
     """The finest shutter function (K0, rows) from an array or a sensor timing, and a note.
 
     None (with the reason) when there is no shutter, or the sensor has a global shutter.
+    ``bins``: a plan's ``base_bins`` (its timing's bins are then built that wide, so a plan
+    keeps working whatever :func:`base_bin_lines` would choose now).
     """
     if shutter is not None:
         m = np.asarray(shutter, dtype=np.float64)
@@ -493,7 +497,8 @@ def base_shutter(shutter: Any, timing: SensorTimingLike | None,
     t = timing
     if t.rows != rows:
         raise ValueError(f"sensor timing has {t.rows} rows, the measurement {rows}")
-    width = base_bin_lines(t.frame_lines, t.rows)
+    width = (base_bin_lines(t.frame_lines, t.rows) if bins is None
+             else max(1, -(-int(t.frame_lines) // max(int(bins), 1))))
     m = np.asarray(t.shutter(bin_lines=width), dtype=np.float64)
     if bool(np.all(m == m[:, :1])):
         return None, "global shutter: every row integrates the same window, no time resolution"
@@ -836,7 +841,7 @@ def prepare(
     if tuple(b.shape[1:]) != plan.sensor:
         raise ValueError(f"the plan is for a {plan.sensor} sensor, the measurement is "
                          f"{b.shape[1:]}")
-    base, _ = base_shutter(shutter, timing, plan.sensor[0])
+    base, _ = base_shutter(shutter, timing, plan.sensor[0], plan.base_bins)
     model = planned_model(plan, psf, shutter=base, psf_stack=psf_stack, mask=mask,
                           dtype=dtype, device=device)
     if mask is None:
