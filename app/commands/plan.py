@@ -189,7 +189,7 @@ def _make(args: argparse.Namespace, inputs: dict[str, Any], probe: bool = True) 
     plan = make_plan(
         inputs["psf"], inputs["meas"], shutter=inputs["shutter"], timing=inputs["timing"],
         psf_stack=inputs["stack"], mask=inputs["mask"],
-        field=inputs["field"],
+        field=inputs["field"], sensor=_window(inputs),
         budget_s=parse_budget(args.budget),
         tau=args.tau if args.tau is not None else DEFAULT_TAU, seed=args.seed, probe=probe,
         progress=progress)

@@ -100,7 +100,7 @@ def psf_resolution(psf: Any, *, max_factor: int = 8, min_size: int = 16,
 
     The width is :func:`recon.psfcheck.autocorrelation_fwhm` (the PSF's envelope removed: on
     the DiffuserCam MirFlickr PSF at 1/4 scale the envelope alone made the peak 12.6 px wide
-    where its caustics are 3.4 px). The factor is capped at ``max_factor`` and so that the
+    where its caustics are 3.5 px). The factor is capped at ``max_factor`` and so that the
     downsampled sensor keeps ``min_size`` rows and columns; ``sensor`` is the sensor's size
     when the PSF lies on a larger (padded) grid, or the scene field's size (default: the
     PSF's size).

@@ -575,6 +575,7 @@ def make_plan(
     psf_stack: Any = None,
     mask: Any = None,
     field: tuple[int, int] | None = None,
+    sensor: tuple[int, int] | None = None,
     budget_s: float | None = None,
     tau: float = DEFAULT_TAU,
     analysis_rows: int = 24,
@@ -594,6 +595,8 @@ def make_plan(
         psf_stack: (K, H, W) PSFs of depth planes: plan 2D (one plane) or depth.
         mask: (H, W) sensor mask, 1 = measured (erased / dead pixels are left out).
         field: scene field (Hs, Ws) to consider (default the sensor size).
+        sensor: the real sensor's (rows, cols) when ``meas`` lies on a larger (padded PSF)
+            grid; the downsampling keeps at least 16 px of it and of the field.
         budget_s: time budget of the reconstruction in seconds (None: none).
         tau: TV weight of the reconstruction.
         analysis_rows: the analysis runs on a grid of about this many rows.
@@ -637,12 +640,14 @@ def make_plan(
     reasons: dict[str, str] = {}
     evidence: dict[str, Any] = {}
 
-    # resolution (of a stack: its sharpest plane; the mean of the planes would be blurred)
+    # resolution (of a stack: its sharpest plane; the mean of the planes would be blurred),
+    # the factor capped so the real sensor and the field keep 16 px
+    cap_on = fld if sensor is None else (min(fld[0], int(sensor[0])), min(fld[1], int(sensor[1])))
     if stack is not None:
-        res = min((psf_resolution(plane, sensor=fld) for plane in stack),
+        res = min((psf_resolution(plane, sensor=cap_on) for plane in stack),
                   key=lambda r: min(r.fwhm_y, r.fwhm_x))
     else:
-        res = psf_resolution(psf_gray, sensor=fld)
+        res = psf_resolution(psf_gray, sensor=cap_on)
     d = res.factor
     evidence["resolution"] = res.to_dict()
     reasons["downsample"] = (

@@ -93,3 +93,16 @@ def test_cv_select_takes_the_simplest_candidate_within_tolerance():
     assert chosen == 1 and table[2].rel == 0.0 and table[0].rel == pytest.approx(0.5)
     chosen, _ = cv_select(errors, rel_tol=0.0, z_max=0.0)
     assert chosen == 2
+
+
+def test_make_plan_caps_the_downsampling_on_the_real_sensor():
+    """A padded-grid PSF with the full field: the plan's grid is the padded one (64x64), but
+    the sensor is 32x32; the factor keeps 16 px of the sensor, not of the grid."""
+    from recon.plan import make_plan
+
+    psf = make_psf(64, 64, blur=6.0)
+    meas = np.random.default_rng(0).random((64, 64)).astype(np.float32)
+    loose = make_plan(psf, meas, field=(64, 64), probe=False)
+    assert loose.downsample > 2
+    capped = make_plan(psf, meas, field=(64, 64), sensor=(32, 32), probe=False)
+    assert capped.downsample == 2 and "sensor size" in capped.reasons["downsample"]
