@@ -29,6 +29,7 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_json",
     "check_outputs",
+    "folder_swap_problem",
     "fsync_dir",
     "is_temp_name",
     "temp_files",
@@ -120,6 +121,34 @@ def atomic_folder(path: str | os.PathLike[str], *, owned: Iterable[str] = ()) ->
     fsync_dir(parent)
     if aside is not None:
         shutil.rmtree(aside, ignore_errors=True)
+
+
+def folder_swap_problem(path: str | os.PathLike[str]) -> str | None:
+    """Why :func:`atomic_folder` cannot replace the folder ``path`` whole (None: it can).
+
+    It renames the folder aside and a new one in: not possible for a mount point, not
+    wanted for the current folder or one above it (the shell would be left in a deleted
+    folder; ``.`` cannot be renamed at all), and not allowed when the folder's parent is not
+    writable (its sibling cannot be made). A caller then writes the files one by one, each
+    atomically. Ask before the work: the answer may need a probe of the parent.
+    """
+    given = Path(os.path.abspath(path))
+    target = Path(os.path.realpath(given))
+    if not target.is_dir():
+        return None  # a new folder: made in its parent, which the output checks probe
+    if os.path.ismount(target):
+        return f"{given} is a mount point"
+    try:
+        cwd = Path.cwd().resolve()
+    except OSError:
+        cwd = None
+    if cwd is not None and (cwd == target or target in cwd.parents):
+        return f"{given} holds the current folder"
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=f".{target.name}.probe-", dir=target.parent))
+    except OSError as exc:
+        return f"its parent {target.parent} is not writable ({exc.strerror or exc})"
+    return None
 
 
 def _carry(src: Path, dst: Path) -> None:

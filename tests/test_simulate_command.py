@@ -79,6 +79,16 @@ def test_a_scene_of_the_same_aspect_is_resized_without_stretching(case, capsys):
     assert meta["scene_resized_from"] == [48, 64] and meta["scene_stretched"] is False
 
 
+def test_a_small_stretch_along_one_axis_is_named(case, capsys):
+    """24x33 -> 24x32: the rows keep their count, the columns are squeezed by 3 %; a rule
+    that needed both axes off by a pixel called it unstretched."""
+    np.save(case / "wide.npy", np.random.default_rng(2).random((24, 33)))
+    code, _, err = _run(capsys, *_sim(case, scene="wide.npy"))
+    assert code == 0, err
+    assert "stretched" in err
+    assert json.loads((case / "sim" / "simulation.json").read_text())["scene_stretched"]
+
+
 def test_a_scene_of_the_sensor_shape_gets_no_note(case, capsys):
     code, _, err = _run(capsys, *_sim(case))
     assert code == 0, err
@@ -140,25 +150,73 @@ def test_a_failed_overwrite_leaves_the_old_folder_intact(case, capsys, monkeypat
 
 def test_an_overwrite_replaces_its_files_and_keeps_the_others(case, capsys):
     """The new simulation replaces the old one's files; a file simulate did not write (a
-    reconstruction) stays, an old output this model does not write (shutter.npy) goes."""
+    reconstruction, the user's own filters.npy) stays, an output of the earlier simulate
+    that this model does not write (its shutter.npy) goes."""
     code, _, err = _run(capsys, *_sim(case, "--noise", "0.01"))
     assert code == 0, err
     (case / "sim" / "recon.tif").write_bytes(b"a reconstruction")
     (case / "sim" / "runs").mkdir()
     (case / "sim" / "runs" / "r.json").write_text("{}")
     np.save(case / "sim" / "shutter.npy", np.ones((2, 24), np.float32))
+    np.save(case / "sim" / "filters.npy", np.ones((2, 24, 32), np.float32))  # the user's
+    meta = json.loads((case / "sim" / "simulation.json").read_text())
+    meta["files"]["shutter"] = "shutter.npy"  # as an earlier video simulation lists it
+    (case / "sim" / "simulation.json").write_text(json.dumps(meta))
     old_meas = np.load(case / "sim" / "meas.npy")
     code, _, err = _run(capsys, *_sim(case, "--noise", "0.05", "--seed", "3", "--overwrite"))
     assert code == 0, err
     names = sorted(p.name for p in (case / "sim").iterdir())
-    assert names == ["mask.npy", "meas.npy", "psf.npy", "recon.tif", "runs", "simulation.json",
-                     "truth.npy"]
+    assert names == ["filters.npy", "mask.npy", "meas.npy", "psf.npy", "recon.tif", "runs",
+                     "simulation.json", "truth.npy"]
     assert (case / "sim" / "recon.tif").read_bytes() == b"a reconstruction"
     assert (case / "sim" / "runs" / "r.json").read_text() == "{}"
+    assert np.array_equal(np.load(case / "sim" / "filters.npy"), np.ones((2, 24, 32)))
     assert not np.array_equal(np.load(case / "sim" / "meas.npy"), old_meas)
     meta = json.loads((case / "sim" / "simulation.json").read_text())
     assert meta["params"]["noise"] == 0.05
     assert _debris(case) == []
+
+
+def test_the_current_folder_is_written_file_by_file(case, capsys, monkeypatch):
+    """`--out .` could not be renamed (EBUSY after all the work), and `--out $PWD` swapped
+    the shell's folder for a new one. Both now write the files one by one, with a note."""
+    sim = case / "sim"
+    sim.mkdir()
+    (sim / "notes.txt").write_text("mine")
+    monkeypatch.chdir(sim)
+    for out in (".", str(sim)):
+        code, _, err = _run(capsys, "simulate", "--psf", case / "psf.npy", "--scene",
+                            case / "scene.npy", "--out", out, "--overwrite")
+        assert code == 0, err
+        assert "holds the current folder" in err and "one by one" in err
+        assert os.getcwd() == str(sim) and (sim / "meas.npy").is_file()
+        assert (sim / "notes.txt").read_text() == "mine"
+    assert _debris(case) == [] and _debris(sim) == []
+
+
+def test_a_folder_whose_parent_cannot_be_written_is_written_file_by_file(case, capsys,
+                                                                         monkeypatch):
+    """The folder save makes a sibling: an existing, writable --out in a read-only parent
+    passed the output check, then failed after the work. Now it is written file by file."""
+    import tempfile
+
+    from recon import atomic
+
+    code, _, err = _run(capsys, *_sim(case))
+    assert code == 0, err
+    real = tempfile.mkdtemp
+
+    def refuse_in_parent(*a, **kw):
+        if str(kw.get("dir", "")) == str(case):
+            raise PermissionError(errno.EACCES, "Permission denied")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(tempfile, "mkdtemp", refuse_in_parent)
+    assert "is not writable" in atomic.folder_swap_problem(case / "sim")
+    old = np.load(case / "sim" / "meas.npy")
+    code, _, err = _run(capsys, *_sim(case, "--seed", "5", "--noise", "0.05", "--overwrite"))
+    assert code == 0, err
+    assert "one by one" in err and not np.array_equal(np.load(case / "sim" / "meas.npy"), old)
 
 
 def test_an_existing_output_still_needs_overwrite(case, capsys):

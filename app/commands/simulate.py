@@ -86,7 +86,7 @@ def _stretched(src: tuple[int, int], dst: tuple[int, int]) -> bool:
     Beyond the rounding of one pixel: 150x200 -> 37x50 keeps it, 10x12 -> 24x32 does not.
     """
     (h, w), (hh, ww) = src, dst
-    return abs(h * ww / w - hh) >= 1 and abs(w * hh / h - ww) >= 1
+    return abs(h * ww / w - hh) >= 1 or abs(w * hh / h - ww) >= 1
 
 
 @dataclass
@@ -207,6 +207,31 @@ def _model_inputs(args: argparse.Namespace, sensor: tuple[int, int]) -> dict[str
     return {}
 
 
+def _written_before(out: Path) -> list[str]:
+    """The files an earlier simulate wrote into ``out`` (its simulation.json lists them)."""
+    from recon.formats import read_utf8
+
+    names = ["simulation.json"]
+    try:
+        old = json.loads(read_utf8(out / "simulation.json"))
+    except (OSError, ValueError, RecursionError):
+        return names
+    listed = old.get("files") if isinstance(old, dict) else None
+    if isinstance(listed, dict):
+        names += [v for v in listed.values() if isinstance(v, str) and Path(v).name == v]
+    return names
+
+
+def _write_files(folder: Path, files: dict[str, Any], meta: dict[str, Any]) -> None:
+    import numpy as np
+
+    from recon.atomic import atomic_write, atomic_write_json
+
+    for name, arr in files.items():
+        atomic_write(folder / f"{name}.npy", lambda p, a=arr: np.save(p, a, allow_pickle=False))
+    atomic_write_json(folder / "simulation.json", meta)
+
+
 def run(args: argparse.Namespace) -> int:
     """Simulate and write meas.npy, mask.npy, truth.npy, psf.npy and simulation.json.
 
@@ -216,14 +241,16 @@ def run(args: argparse.Namespace) -> int:
     """
     import numpy as np
 
-    from recon.atomic import atomic_folder, atomic_write, atomic_write_json
+    from recon.atomic import atomic_folder, folder_swap_problem
     from recon.formats import FORMAT_VERSION, array_hash, provenance
     from recon.models import build_model
     from recon.simulate import simulate
 
     out = Path(args.out)
-    owned = [f"{n}.npy" for n in OUTPUT_NAMES] + ["simulation.json"]
-    check_command_outputs(args, [out / n for n in owned])
+    check_command_outputs(args, [out / f"{n}.npy" for n in OUTPUT_NAMES]
+                          + [out / "simulation.json"])
+    # written whole where the folder can be swapped (else file by file, each atomically)
+    swap_problem = folder_swap_problem(out)
     psf = load_psf_spec(args.psf, args.downsample, parse_dark(args.dark))
     sensor = (int(psf.shape[-2]), int(psf.shape[-1]))
     extra = _model_inputs(args, sensor)
@@ -247,12 +274,16 @@ def run(args: argparse.Namespace) -> int:
             "scale": sim.scale, "saturated_pixels": sim.saturated,
             "hashes": {k: array_hash(v) for k, v in files.items()},
             "files": {k: f"{k}.npy" for k in files}, "notes": list(loaded.notes)}
-    # files of this simulate not written this time (a shutter.npy of an earlier video run)
-    # are dropped with the old folder; other files in it (a reconstruction) are kept
-    with atomic_folder(out, owned=owned) as tmp:
-        for name, arr in files.items():
-            atomic_write(tmp / f"{name}.npy", lambda p, a=arr: np.save(p, a, allow_pickle=False))
-        atomic_write_json(tmp / "simulation.json", meta)
+    if swap_problem is None:
+        # files an earlier simulate wrote here and this one does not (a shutter.npy of a
+        # video run) are dropped with the old folder; every other file in it is kept
+        with atomic_folder(out, owned=_written_before(out)) as tmp:
+            _write_files(tmp, files, meta)
+    else:
+        print(f"simulate: note: {swap_problem}: its files are replaced one by one, not the "
+              "folder whole", file=sys.stderr)
+        out.mkdir(parents=True, exist_ok=True)
+        _write_files(out, files, meta)
     print(json.dumps({"out": str(out), "model": args.model, "shape": list(sim.meas.shape),
                       "k": model.k, "erased": int((files["mask"] == 0).sum())}))
     measured = files["mask"] > 0
