@@ -29,6 +29,7 @@ from drivers.camera import Camera
 from drivers.lightsource import LightSource
 
 __all__ = [
+    "DARK_NOISE_DEFINITION",
     "PixelMaps",
     "calibrate_pixel_maps",
     "capture_darks",
@@ -70,6 +71,11 @@ def capture_darks(
     )
 
 
+#: what ``dark_noise_adu`` in a calibration file's metadata means (pixel maps and PSF)
+DARK_NOISE_DEFINITION = ("rms: sqrt of the mean per-pixel temporal variance of the pixels "
+                         "that are not hot or dead")
+
+
 def dark_noise_rms(std: np.ndarray, exclude: np.ndarray | None = None) -> float:
     """Temporal dark noise of the sensor in ADU: sqrt of the mean per-pixel variance.
 
@@ -78,7 +84,7 @@ def dark_noise_rms(std: np.ndarray, exclude: np.ndarray | None = None) -> float:
     code, most pixels never change code in a few frames (std 0, so the median is 0) while
     the few that do carry the variance. This is the noise the codes actually have; for a
     noise well below one code it is below the q / sqrt(12) of a dithered quantiser, and the
-    PSF calibration's noise floor (``max(median std, 1 / sqrt(12))``) still applies there.
+    PSF calibration's noise floor (``max(this, 1 / sqrt(12))``) still applies there.
     """
     var = np.square(np.asarray(std, dtype=np.float64))
     if exclude is not None:
@@ -209,8 +215,7 @@ class PixelMaps:
             # RMS of the good pixels' temporal std (see dark_noise_rms); the median per-pixel
             # std (0 when most pixels never change code) is kept beside it
             "dark_noise_adu": self.dark_noise_adu,
-            "dark_noise_definition": "rms: sqrt of the mean per-pixel temporal variance of "
-                                     "the pixels that are not hot or dead",
+            "dark_noise_definition": DARK_NOISE_DEFINITION,
             "dark_noise_median_std_adu": float(np.median(self.dark_std)),
         }
 

@@ -30,7 +30,13 @@ from typing import Any, Literal
 
 import numpy as np
 
-from calibration.darks import capture_darks, dark_noise_rms, hot_pixels, repair_pixels
+from calibration.darks import (
+    DARK_NOISE_DEFINITION,
+    capture_darks,
+    dark_noise_rms,
+    hot_pixels,
+    repair_pixels,
+)
 from calibration.frames import FrameStats, acquire_frames
 from calibration.sources import (
     camera_description,
@@ -630,6 +636,7 @@ def capture_psf(
             "darks_averaged": dark.n,
             "dark_level": float(np.median(dark.mean)),
             "dark_noise_adu": dark_noise_rms(dark.std, exclude=bad),
+            "dark_noise_definition": DARK_NOISE_DEFINITION,
             "full_scale": light.full_scale,
             "units": "ADU above the dark level",
             "timing": None if timing is None else timing.to_dict(),

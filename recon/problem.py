@@ -536,10 +536,29 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
             prob = _load_problem(spec, dtype=dtype, device=device)
     finally:  # outside the catch (a failed load's too): the caller's filters and stderr
         for w in caught:
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+            _reemit(w)
     prob.metadata["warnings"] = list(dict.fromkeys(
         str(w.message) for w in caught if issubclass(w.category, MeasurementWarning)))
     return prob
+
+
+def _reemit(w: warnings.WarningMessage) -> None:
+    """Emit a caught warning again as it was first raised: same place and module.
+
+    With the module named, the filters by module (``ignore::UserWarning:harvesters``) match
+    it as they did (without it they see a file path). Each load changes the filters (its
+    catch), which resets the registries: a repeated warning is shown again per load.
+    """
+    import sys
+
+    module, registry = None, None
+    for mod in list(sys.modules.values()):
+        if getattr(mod, "__file__", None) == w.filename:
+            module = mod.__name__
+            registry = mod.__dict__.setdefault("__warningregistry__", {})
+            break
+    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, module=module,
+                           registry=registry, source=w.source)
 
 
 def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,

@@ -451,3 +451,24 @@ def test_saturated_measurements_are_said_and_a_fully_saturated_one_is_refused(sm
     tifffile.imwrite(small / "hot.tif", frame)
     with pytest.warns(MeasurementWarning, match=r"3 pixels \(0\.104%\) are saturated"):
         load_measurement(str(small / "hot.tif"))
+
+
+def test_measurement_warnings_of_a_load_obey_module_filters(tmp_path):
+    """load_problem catches its inputs' warnings (to keep them in the metadata) and emits
+    them again as raised, so a filter by module still matches (it saw a file path)."""
+    import warnings
+
+    from recon.checks import MeasurementWarning
+    from recon.simulate import synthetic_psf
+
+    np.save(tmp_path / "psf.npy", synthetic_psf((24, 32), seed=2))
+    meas = np.random.default_rng(0).random((24, 32)).astype(np.float32)
+    meas[:, :20] = 0  # 62 % zeros, no mask: a MeasurementWarning
+    np.save(tmp_path / "meas.npy", meas)
+    spec = ProblemSpec(meas=str(tmp_path / "meas.npy"), psf=str(tmp_path / "psf.npy"))
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        warnings.filterwarnings("ignore", category=MeasurementWarning, module="recon.problem")
+        prob = load_problem(spec)
+    assert [str(w.message) for w in seen] == []
+    assert len(prob.metadata["warnings"]) == 1 and "no mask" in prob.metadata["warnings"][0]

@@ -403,6 +403,20 @@ def test_a_resumed_trade_reports_the_time_of_every_session(tmp_path, capsys, mon
     assert lines[1]["session_s"] >= 1000 and lines[1]["setting_s"] >= 1000
     assert lines[1]["session_s"] == pytest.approx(lines[0]["session_s"] + lines[1]["setting_s"],
                                                   abs=0.01)
+    # a journal of an older release (no session times): the time says it is this session's
+    monkeypatch.setattr(rt, "run_trade", long_then_interrupted)
+    skew[0] = 0.0
+    assert main([*argv, "--overwrite"]) == 130
+    head, *rest = journal.read_text().splitlines()
+    old = [{k: v for k, v in json.loads(ln).items()
+            if k not in ("session", "session_s", "setting_s")} for ln in rest]
+    journal.write_text("\n".join([head, *(json.dumps(e) for e in old)]) + "\n")
+    monkeypatch.setattr(rt, "run_trade", real)
+    assert main([*argv, "--overwrite"]) == 0
+    assert "2 settings already measured" in capsys.readouterr().err
+    md = (tmp_path / "out" / "trade.md").read_text()
+    assert "in this session of 2 (resumed; the earlier sessions' time is not in" in md
+    assert " over 2 sessions" not in md
 
 
 def test_a_trade_in_one_session_says_no_sessions(tmp_path, capsys):

@@ -226,6 +226,8 @@ class _Journal:
         self.entries: dict[str, dict[str, list[Any]]] = {}
         #: earlier sessions: their number -> seconds they had run at their last setting
         self.earlier: dict[int, float] = {}
+        #: an earlier session's time is not in the journal (written by an older release)
+        self.unknown_time = False
         #: this session's number (one more than the journal's last)
         self.session = 0
         self._last_s = 0.0
@@ -269,8 +271,11 @@ class _Journal:
             self.entries.setdefault(e["case"], {})[e["setting"]] = rows
             n += 1
             # a journal of an older release has no session: its time is not known
-            k, t = e.get("session", 0), e.get("session_s", 0.0)
-            if isinstance(k, int) and isinstance(t, (int, float)):
+            k, t = e.get("session", 0), e.get("session_s")
+            if not isinstance(t, int | float) or isinstance(t, bool):
+                self.unknown_time = True
+                t = 0.0
+            if isinstance(k, int):
                 self.earlier[k] = max(self.earlier.get(k, 0.0), float(t))
         print(f"trade: resuming from {self.path}: {n} settings already measured",
               file=sys.stderr)
@@ -291,9 +296,12 @@ class _Journal:
                           "setting_s": round(session_s - self._last_s, 3)})
         self._last_s = session_s
 
-    def earlier_s(self) -> float:
-        """The seconds of the earlier sessions (each up to its last measured setting)."""
-        return sum(self.earlier.values())
+    def earlier_s(self) -> float | None:
+        """The seconds of the earlier sessions (each up to its last measured setting).
+
+        None when the journal does not say (an older release wrote it).
+        """
+        return None if self.unknown_time else sum(self.earlier.values())
 
     def sessions(self) -> int:
         """How many sessions measured this trade: the earlier ones and this one."""
@@ -314,7 +322,7 @@ class _Journal:
 
 def _write_outputs(args: argparse.Namespace, out: Path, rows: list[Any], cases: list[Any],
                    threads: Any, budgets: list[float], t_all: float, *,
-                   earlier_s: float = 0.0, sessions: int = 1) -> None:
+                   earlier_s: float | None = 0.0, sessions: int = 1) -> None:
     """trade.csv, inputs.json, trade.md and trade_pareto.png, and the summary on stdout.
 
     ``t_all``: when this session began; ``earlier_s``: the time of the ``sessions - 1``
@@ -334,9 +342,15 @@ def _write_outputs(args: argparse.Namespace, out: Path, rows: list[Any], cases: 
         # which measurement the trade was measured on: the app's job dialog offers it for that
         write_trade_inputs(out, input_hashes_of_files(args.meas, args.psf))
     # Markdown
-    took = earlier_s + time.perf_counter() - t_all
-    over = (f" over {sessions} sessions (resumed; an interrupted session counted up to its last "
-            "measured setting)" if sessions > 1 else "")
+    this = time.perf_counter() - t_all
+    if earlier_s is None:  # a journal of an older release: the earlier sessions' time unknown
+        took = this
+        over = (f" in this session of {sessions} (resumed; the earlier sessions' time is not "
+                "in their journal, written by an older release)")
+    else:
+        took = earlier_s + this
+        over = (f" over {sessions} sessions (resumed; an interrupted session counted up to its "
+                "last measured setting)" if sessions > 1 else "")
     md = [f"# Speed/accuracy trade\n\nProduced by `lenslesscam {command}` "
           f"in {took:.0f} s{over}, {threads.reason}. Wall time "
           "is the time to reach the iteration count (one run per setting, scored at several "
