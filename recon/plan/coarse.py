@@ -71,5 +71,7 @@ def coarse_psf(psf: Any, factor: int, field: tuple[int, int]) -> tuple[F32, tupl
         return np.asarray(p, dtype=np.float32), (0, 0)
     ky, oy = _axis_kernel(p.shape[-2], a, crop_delta(int(field[0]), a))
     kx, ox = _axis_kernel(p.shape[-1], a, crop_delta(int(field[1]), a))
-    out = np.einsum("ys,...st,xt->...yx", ky, p, kx)
+    # two matrix products (BLAS); the same as np.einsum("ys,...st,xt->...yx", ky, p, kx),
+    # which without path optimisation took 20 s on a 540x960 PSF, four times per plan
+    out = ky @ p @ kx.T
     return np.asarray(out, dtype=np.float32), (oy, ox)
