@@ -135,3 +135,21 @@ def test_plan_file_is_still_a_plan(tmp_path: Path) -> None:
 @pytest.mark.parametrize("bad", [{"measurement": "x", "psf": ""}, {}, []])
 def test_inputs_match_rejects_incomplete_records(bad: object) -> None:
     assert not inputs_match(bad, {"measurement": "x", "psf": ""})
+
+
+def test_plan_out_with_a_dark_level_does_not_warn_of_none(tmp_path: Path, capsys) -> None:
+    """plan --out hashes its inputs for the app's job dialog by reading them again; that read
+    warned "raw uint16 data read with no dark level" although --dark was given (pytest turns
+    the warning into an error)."""
+    from app.cli import main
+    from recon.simulate import synthetic_psf
+
+    rng = np.random.default_rng(0)
+    frame = (100 + rng.integers(0, 400, (32, 32))).astype(np.uint16)  # black level 100
+    np.save(tmp_path / "frame.npy", frame)
+    np.save(tmp_path / "psf.npy", synthetic_psf((32, 32), seed=1))
+    argv = ["plan", "--psf", str(tmp_path / "psf.npy"), "--meas", str(tmp_path / "frame.npy"),
+            "--dark", "100", "--psf-dark", "0", "--no-probe", "--out", str(tmp_path / "p.json")]
+    assert main(argv) == 0
+    assert "no dark level" not in capsys.readouterr().err
+    assert json.loads((tmp_path / "p.json").read_text())["inputs"]["measurement"]
