@@ -248,9 +248,10 @@ def auto_tau_plan(plan: Any, inputs: dict[str, Any]) -> Any:
     why = (f"chosen from held-out measured pixels ({choice.heldout_pixels} pixels, "
            f"{len(choice.curve)} values of tau tried in {choice.cost_s:.1f} s; recon.autotau)")
     new = plan.override(tau=tau, iterations=iterations)
+    chosen = (f"within that limit {iterations} iterations" if plan.budget_s is not None else
+              f"then {iterations} iterations (at most {limit})")
     reasons = {**new.reasons, "tau": why, "iterations": why,
-               "method": f"{new.reasons.get('method', '')}; within that limit "
-                         f"{iterations} iterations were {why}"}
+               "method": f"{new.reasons.get('method', '')}; {chosen} were {why}"}
     # chosen by the planner, not set by the user
     return dataclasses.replace(new, reasons=reasons, overridden=plan.overridden)
 

@@ -370,6 +370,13 @@ class Plan:
             merged["estimated_s"] = None
             reasons["method"] = (reasons.get("method", "") + "; the cost estimate was made "
                                  "for the model before the override")
+        elif ("iterations" in changes and "estimated_s" not in changes
+              and merged["seconds_per_iter"] is not None and merged["method"] == "fista-tv"):
+            # the same model, another count: the estimate follows (recon.plan.cost's rule)
+            from recon.plan.cost import SETUP_ITERS
+
+            merged["estimated_s"] = (int(merged["iterations"]) + SETUP_ITERS) * float(
+                merged["seconds_per_iter"])
         merged["reasons"] = reasons
         merged["overridden"] = tuple(dict.fromkeys([*self.overridden, *changes]))
         return Plan(**merged)

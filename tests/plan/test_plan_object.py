@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -60,6 +61,9 @@ def test_overrides_follow_related_fields_and_say_so():
     assert (v.model, v.bin_factor, v.k) == ("video", 5, 8)  # ceil(36 / 8) = 5 -> 8 frames
     assert v.overridden == ("model", "k") and "set by the user" in v.reasons["k"]
     assert v.seconds_per_iter is None  # the size changed: the cost estimate is dropped
+    # the same model with another count: the estimate follows it (it kept the old count's)
+    timed = dataclasses.replace(p, seconds_per_iter=0.002, estimated_s=(300 + 25) * 0.002)
+    assert timed.override(iterations=100).estimated_s == pytest.approx((100 + 25) * 0.002)
     seven = p.override(model="video", k=7)  # ceil(36 / 7) = 6 -> 6 frames: the reason says why
     assert seven.k == 6 and "7 requested" in seven.reasons["k"]
     assert "36 shutter bins in groups of 6 make 6 frames" in seven.reasons["k"]
