@@ -13,7 +13,7 @@ API::
     prob.inputs     # name -> {path, file_hash, array_hash, shape} (what a run record stores)
     prob.hashes     # name -> file hash
     prob.metadata   # the preprocessing (mask_hash, psf_grid, ...), for a result's metadata;
-                    # metadata['warnings']: the MeasurementWarnings the inputs raised (text)
+                    # metadata['warnings']: the input warnings (measurement, PSF) as text
     prob.sensor     # the real sensor on the reconstruction grid (rows, cols)
     ProblemSpec.from_data_section(d) / spec.to_data_section()   # the [data] table of a job
     load_truth(spec, scene_shape)   # only the truth, prepared as load_problem prepares it
@@ -81,6 +81,7 @@ from recon.preprocess import (
     to_channel_first,
     to_gray,
 )
+from recon.psfcheck import PsfWarning
 from recon.readers import (
     EmptyPsfError,
     load_image,
@@ -521,8 +522,9 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
 
     Raises FileNotFoundError or ValueError with one line naming the file at fault.
 
-    The :class:`~recon.checks.MeasurementWarning` s the inputs raise (a raw frame read without
-    a dark level, many zero pixels without a mask, saturation) are kept, as text, in
+    The :class:`~recon.checks.MeasurementWarning` s and :class:`~recon.psfcheck.PsfWarning` s
+    the inputs raise (a raw frame read without a dark level, many zero pixels without a mask,
+    saturation, a constant or clipped PSF) are kept, as text, in
     ``metadata['warnings']`` (so a run record, a batch item and a result's metadata say them
     too), and emitted again as they were, after the load (stderr still shows them; the
     warning filters in force decide as before).
@@ -533,12 +535,14 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
         with _CATCH_LOCK, warnings.catch_warnings(record=True) as caught:
             # recorded whatever the filters say; they decide when the warnings are emitted again
             warnings.simplefilter("always", MeasurementWarning)
+            warnings.simplefilter("always", PsfWarning)
             prob = _load_problem(spec, dtype=dtype, device=device)
     finally:  # outside the catch (a failed load's too): the caller's filters and stderr
         for w in caught:
             _reemit(w)
     prob.metadata["warnings"] = list(dict.fromkeys(
-        str(w.message) for w in caught if issubclass(w.category, MeasurementWarning)))
+        str(w.message) for w in caught
+        if issubclass(w.category, MeasurementWarning | PsfWarning)))
     return prob
 
 

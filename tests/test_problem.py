@@ -472,3 +472,23 @@ def test_measurement_warnings_of_a_load_obey_module_filters(tmp_path):
         prob = load_problem(spec)
     assert [str(w.message) for w in seen] == []
     assert len(prob.metadata["warnings"]) == 1 and "no mask" in prob.metadata["warnings"][0]
+
+
+def test_psf_warnings_of_a_load_are_kept_too(tmp_path):
+    """A clipped PSF (the tutorial's psf_sample.tif has 192 pixels at 65520) was said on
+    stderr but not in run.json's warnings, which kept measurement warnings only."""
+    import warnings
+
+    from recon.psfcheck import PsfWarning
+    from recon.simulate import synthetic_psf
+
+    psf = synthetic_psf((24, 32), seed=2)
+    psf = np.minimum(psf, np.quantile(psf, 0.9))  # a flat top over 10 % of the pixels
+    np.save(tmp_path / "psf.npy", psf)
+    np.save(tmp_path / "meas.npy", np.random.default_rng(0).random((24, 32)).astype(np.float32))
+    spec = ProblemSpec(meas=str(tmp_path / "meas.npy"), psf=str(tmp_path / "psf.npy"))
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        prob = load_problem(spec)
+    assert any(issubclass(w.category, PsfWarning) for w in seen)
+    assert any("saturated" in t for t in prob.metadata["warnings"]), prob.metadata["warnings"]
