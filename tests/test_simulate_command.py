@@ -89,6 +89,15 @@ def test_a_small_stretch_along_one_axis_is_named(case, capsys):
     assert json.loads((case / "sim" / "simulation.json").read_text())["scene_stretched"]
 
 
+def test_a_colour_scene_made_gray_is_said(case, capsys):
+    np.save(case / "rgb.npy", np.random.default_rng(3).random((24, 32, 3)))
+    code, _, err = _run(capsys, *_sim(case, scene="rgb.npy"))
+    assert code == 0, err
+    assert "3 colour channels: made gray" in err
+    meta = json.loads((case / "sim" / "simulation.json").read_text())
+    assert any("made gray" in n for n in meta["notes"])
+
+
 def test_a_scene_of_the_sensor_shape_gets_no_note(case, capsys):
     code, _, err = _run(capsys, *_sim(case))
     assert code == 0, err

@@ -135,6 +135,10 @@ def load_scene(spec: str, shape: tuple[int, int], k: int = 1) -> Scene:
             frames = raw  # a (K, H, W) stack
         elif raw.ndim in (2, 3):
             frames = to_gray(to_channel_first(raw))
+            if raw.ndim == 3:  # the forward model is gray: said, as the resize is
+                notes.append(f"scene {spec} has {raw.shape[-1]} colour channels: made gray "
+                             "with the Rec. 601 luma weights of channels 1-3 read as R, G, B "
+                             "(a file stored B, G, R is weighted the wrong way round)")
         else:
             raise ValueError(f"scene {spec} must be an image (H, W) or (H, W, 3), a stack "
                              f"(K, H, W) or a truth (1, K, H, W); got shape {raw.shape}")
