@@ -291,3 +291,12 @@ def test_a_boolean_scene_is_read_as_zero_one_and_said(case, capsys):
     code, _, err = _run(capsys, "recon", "fista", "--psf", case / "psf.npy", "--meas",
                         case / "bmeas.npy", "--iters", "2", "--out", case / "r.tif")
     assert code == 2 and "unsupported dtype bool" in err
+
+
+def test_dark_with_the_bundled_psf_is_refused(tmp_path, capsys):
+    """`--psf sample:tutorial --dark 1e9` was ignored silently (the bundled PSF is
+    dark-subtracted already); with a PSF file the same option is applied."""
+    code, _, err = _run(capsys, "simulate", "--psf", "sample:tutorial", "--scene",
+                        "sample:im65", "--dark", "1e9", "--out", tmp_path / "sim")
+    assert code == 2 and "has its dark level (34.08) removed already" in err
+    assert not (tmp_path / "sim").exists()

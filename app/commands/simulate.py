@@ -180,6 +180,9 @@ def load_psf_spec(spec: str, downsample: int, dark: Any) -> Any:
     from recon.io import box_downsample, load_psf, normalise
 
     if spec == "sample:tutorial":
+        if dark is not None:  # it was ignored silently
+            raise ValueError("--dark applies to a PSF file; the bundled sample:tutorial PSF "
+                             "has its dark level (34.08) removed already")
         psf = samples.tutorial_psf()
         return normalise(box_downsample(psf, downsample), "sum") if downsample > 1 else psf
     return load_psf(spec, dark=dark, downsample=downsample)
