@@ -361,3 +361,28 @@ def test_simulate_reads_its_own_truth_and_refuses_scenes_that_are_not_light(tmp_
                             str(tmp_path / name[:-4]))
         assert code == 2 and why in err
         assert not (tmp_path / name[:-4]).exists()
+
+
+def test_the_tau_search_is_reported_beside_the_reconstructions_time(tmp_path, capsys):
+    """wall_time_s is the reconstruction alone (recon fista and demo alike: demo's included
+    the search); the automatic tau's search is tau_search_s, None when tau was given."""
+    import numpy as np
+
+    from recon.simulate import synthetic_psf
+
+    np.save(tmp_path / "psf.npy", synthetic_psf((24, 32), seed=2))
+    np.save(tmp_path / "meas.npy", np.random.default_rng(0).random((24, 32)).astype(np.float32))
+    base = ["recon", "fista", "--psf", str(tmp_path / "psf.npy"), "--meas",
+            str(tmp_path / "meas.npy")]
+    code, out, err = _run(capsys, *base, "--out", str(tmp_path / "a.tif"))
+    assert code == 0, err
+    auto = json.loads(out.splitlines()[-1])
+    assert auto["tau_search_s"] > 0 and auto["wall_time_s"] >= 0
+    code, out, err = _run(capsys, *base, "--tau", "1e-3", "--iters", "20",
+                          "--out", str(tmp_path / "b.tif"))
+    assert code == 0, err
+    assert json.loads(out.splitlines()[-1])["tau_search_s"] is None
+    code, out, err = _run(capsys, "demo", "--out", str(tmp_path / "demo"))
+    assert code == 0, err
+    demo = json.loads(out.splitlines()[-1])
+    assert demo["tau_search_s"] > 0 and demo["tau_rule"] != "given"

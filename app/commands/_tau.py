@@ -67,3 +67,13 @@ def resolve_tau(args: argparse.Namespace, model: Any, b: Any, tv: Any = None,
         return tau, AUTO_MAX_ITER, meta
     return resolve(model, b, tau, iters, tv=tv, log=lambda s: print(s, file=sys.stderr),
                    precondition=getattr(args, "precondition", "auto"))
+
+
+def tau_search_s(tau_meta: dict[str, Any]) -> float | None:
+    """Seconds the automatic tau's search took (None: tau and iterations were given).
+
+    Reported beside ``wall_time_s``, which is the reconstruction alone in every command.
+    """
+    auto = tau_meta.get("auto")
+    cost = auto.get("cost_s") if isinstance(auto, dict) else None
+    return None if cost is None else round(float(cost), 3)

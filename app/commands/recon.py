@@ -19,7 +19,7 @@ from app.commands._options import (
     check_command_outputs,
     finite_float,
 )
-from app.commands._tau import add_tau_arguments, resolve_tau
+from app.commands._tau import add_tau_arguments, resolve_tau, tau_search_s
 
 
 def register(sub: Any) -> None:
@@ -173,7 +173,7 @@ def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
         "method": method, "model": args.model, "parameters": solver.params,
         "regularisation": tau_meta, "iterations": solver.iteration,
         "stop_reason": solver.reason.value if solver.reason else "max_iter",
-        "wall_time_s": round(wall, 3),
+        "wall_time_s": round(wall, 3), "tau_search_s": tau_search_s(tau_meta),
         "final": {"objective": last.objective, "residual": last.residual} if last else None,
         "inputs": {k: v["path"] for k, v in prob.inputs.items()},
         "input_hashes": {k: v for k, v in prob.hashes.items() if v is not None},
@@ -183,6 +183,7 @@ def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
     summary = {"out": [str(p) for p in paths], "iterations": solver.iteration,
                "tau": tau, "tau_rule": tau_meta["tau_rule"],
                "stop_reason": meta["stop_reason"], "wall_time_s": meta["wall_time_s"],
+               "tau_search_s": tau_search_s(tau_meta),
                "residual": last.residual if last else None}
     print(json.dumps(summary), file=sys.stdout)
     return 0
