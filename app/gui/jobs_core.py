@@ -49,6 +49,7 @@ __all__ = [
     "discover_jobs",
     "estimate_job_memory",
     "job_view",
+    "jobs_dir_problem",
     "read_loss",
     "resolve_device_name",
     "spawn_job_process",
@@ -140,6 +141,32 @@ def estimate_job_memory(
     return est, avail, source
 
 
+def jobs_dir_problem(jobs_dir: str | Path) -> str | None:
+    """Why no job can be queued in ``jobs_dir`` (None: it is, or can be made, a folder).
+
+    Said when the app starts, not only when the first job fails to be written.
+    """
+    p = Path(jobs_dir)
+    if p.exists() and not p.is_dir():
+        return (f"the jobs folder {p} is a file, not a folder: no job can be queued; choose "
+                "another jobs folder (--jobs-dir, or jobs_dir in the settings file)")
+    if p.is_dir():
+        if not os.access(p, os.W_OK | os.X_OK):
+            return f"the jobs folder {p} is not writable: no job can be queued there"
+        return None
+    for parent in p.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                return (f"the jobs folder {p} lies inside {parent}, which is a file: no job "
+                        "can be queued; choose another jobs folder (--jobs-dir, or jobs_dir "
+                        "in the settings file)")
+            if not os.access(parent, os.W_OK | os.X_OK):
+                return (f"the jobs folder {p} cannot be made ({parent} is not writable): no "
+                        "job can be queued there")
+            return None
+    return None
+
+
 def create_job(
     jobs_dir: str | Path,
     name: str,
@@ -168,6 +195,9 @@ def create_job(
     p = np.asarray(psf, dtype=np.float32)
     if meas.ndim != 2:
         raise ValueError(f"the measurement must be one 2D frame, got shape {meas.shape}")
+    if int(downsample) < 1 or min(meas.shape) // int(downsample) < 1:
+        raise ValueError(f"downsampling by {downsample} leaves nothing of the "
+                         f"{meas.shape[0]}x{meas.shape[1]} frame: the job could not run")
     root = Path(jobs_dir)
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     folder = root / f"{stamp}-{_slug(name)}"

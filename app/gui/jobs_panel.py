@@ -8,6 +8,7 @@ own processes, so closing the window leaves them running; a new window finds the
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +47,7 @@ from app.gui.jobs_core import (
     combine_jobs,
     create_job,
     estimate_job_memory,
+    jobs_dir_problem,
     queue_resume,
     read_loss,
     spawn_job_process,
@@ -54,6 +56,8 @@ from app.gui.widgets import ComboBox, DoubleSpinBox, SpinBox, never_wider
 from app.gui.workers import TaskQueue
 
 __all__ = ["JobsPanel", "Measurement", "NewJobDialog", "ResultDialog"]
+
+_log = logging.getLogger(__name__)
 
 _COLUMNS = ("Job", "Device", "State", "Progress", "ETA", "Iteration", "Loss")
 
@@ -234,6 +238,8 @@ class NewJobDialog(QDialog):
         self.buttons.button(QDialogButtonBox.StandardButton.Ok).setText("Queue job")
         self.buttons.accepted.connect(self.accept)
         self.buttons.rejected.connect(self.reject)
+        #: why the job could not run with these settings (None: it can be queued)
+        self.refusal: str | None = None
         form.addRow(self.buttons)
         for w in (self.downsample, self.scales, self.channels):
             w.valueChanged.connect(self.update_estimate)
@@ -369,16 +375,39 @@ class NewJobDialog(QDialog):
                        "status_seconds": 1.0},
         }
 
+    @property
+    def ok_button(self) -> QPushButton:
+        """*Queue job* (disabled while the job could not run)."""
+        return self.buttons.button(QDialogButtonBox.StandardButton.Ok)
+
+    @property
+    def can_queue(self) -> bool:
+        """Whether the settings make a job that can run (the estimate could be made)."""
+        return self.refusal is None
+
+    def accept(self) -> None:
+        """Queue only a job that can run (Enter as well as the button)."""
+        if self.refusal is not None:
+            return
+        super().accept()
+
     def update_estimate(self) -> None:
-        """Recompute the memory estimate shown."""
+        """Recompute the memory estimate shown; refuse to queue a job that could not run."""
         try:
             est, avail, source = estimate_job_memory(self.sensor, int(self.downsample.value()),
                                                      self.sections())
         except Exception as exc:  # shown, and the job cannot be queued
-            self.memory.setText(f"cannot estimate: {exc}")
+            self.refusal = f"cannot queue this job: {exc}"
+            self.memory.setText(f"cannot estimate: {exc}; the job could not run")
+            self.memory.setToolTip(self.refusal)
             self.memory.setStyleSheet("color: #cf222e;")
             self.estimate_bytes = None
+            self.ok_button.setEnabled(False)
+            self.ok_button.setToolTip(self.refusal)
             return
+        self.refusal = None
+        self.ok_button.setEnabled(True)
+        self.ok_button.setToolTip("")
         self.estimate_bytes = est.total_bytes
         fits = avail is None or est.total_bytes <= avail
         h, w = self.sensor[0] // self.downsample.value(), self.sensor[1] // self.downsample.value()
@@ -484,11 +513,17 @@ class JobsPanel(QWidget):
         for b in (self.cancel_button, self.resume_button, self.open_button,
                   self.combine_button):
             b.setEnabled(False)  # nothing is selected until the first listing
+        #: why no job can be queued in the jobs folder (a file, not writable), or None
+        self.folder_problem = jobs_dir_problem(jobs_dir)
         self.folder_label = QLabel(f"jobs folder: {jobs_dir}")
         self.folder_label.setToolTip(str(jobs_dir))
         never_wider(self.folder_label)
         self.folder_label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         self.message = _MessageLabel()
+        if self.folder_problem is not None:  # said at start, not when a job fails to be written
+            _log.warning("%s", self.folder_problem)
+            self.message.setText(self.folder_problem)
+            self.folder_label.setStyleSheet("color: #cf222e;")
         bar = QHBoxLayout()
         for b in (self.new_button, self.cancel_button, self.resume_button, self.open_button,
                   self.combine_button, self.folder_button):
@@ -699,6 +734,11 @@ class JobsPanel(QWidget):
         ``NAME-sN``), for :meth:`combine_selected`; they run one after another.
         """
         frame, psf = m.frame, m.psf
+        try:  # what the dialog checks: a job it would refuse is not queued from here either
+            estimate_job_memory(frame.shape, int(downsample), sections)
+        except Exception as exc:
+            self.message.setText(f"cannot queue the job: {exc}")
+            return None
         if frame.shape != psf.shape:
             self.message.setText(
                 f"the frame ({frame.shape[0]}x{frame.shape[1]}) and the PSF "

@@ -22,6 +22,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
+import math
 import re
 import time
 from pathlib import Path
@@ -271,9 +272,12 @@ class MainWindow(QMainWindow):
 
         # preview
         # a bad key keeps its default; the other preview settings are kept
+        # (a number outside its range, RANGES, is clamped: the controls show what runs)
         ps, problems = PreviewSettings.from_dict_lenient(self.settings.preview)
         if problems:
             _log.warning("preview settings: ignoring %s", "; ".join(problems))
+            self._status("preview settings: ignoring " + "; ".join(problems))
+        self.settings.preview = ps.to_dict()
         self.preview_controls.set_settings(ps)
         self.preview_controls.enabled.setChecked(self.settings.preview_enabled)
         self.engine = PreviewEngine(None, ps)
@@ -300,6 +304,8 @@ class MainWindow(QMainWindow):
         self._connect_signals()
         self._build_menu()
         self._build_docks()
+        if self.jobs_panel.folder_problem is not None:  # also logged by the panel
+            self._status(self.jobs_panel.folder_problem)
         self.device_panel.set_scene(self.settings.sim_scene)
         self.device_panel.show_demo.setChecked(self.settings.show_demo_cameras)
         # discovery may block (GenTL producers): the lists fill in from the worker
@@ -421,7 +427,13 @@ class MainWindow(QMainWindow):
         """Use ``tau`` in the preview (controls and engine)."""
         import dataclasses
 
-        s = dataclasses.replace(self.preview_controls.settings(), tau=float(tau))
+        from app.gui.preview_engine import clamp_setting
+
+        if not math.isfinite(tau):
+            self.show_error(f"tau {tau!r} is not a number; the preview keeps its tau")
+            return
+        s = dataclasses.replace(self.preview_controls.settings(),
+                                tau=clamp_setting("tau", float(tau)))
         self.preview_controls.set_settings(s)
         self.set_preview_settings(s)
 
@@ -965,10 +977,15 @@ class MainWindow(QMainWindow):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", PsfWarning)
                 psf = load_psf_any(path)
+            planes = psf.shape[0] if psf.ndim == 3 and psf.shape[0] > 1 else 0
+            if planes:
+                raise ValueError(_stack_message(planes))
             self.engine.set_psf(psf)
         except Exception as exc:
+            planes = _psf_stack_planes(path) if isinstance(exc, ValueError) else 0
+            text = _stack_message(planes) if planes else _describe(exc)
             if not quiet:
-                self.show_error(f"PSF {path}: {_describe(exc)}")
+                self.show_error(f"PSF {path}: {text}")
             _log.warning("PSF %s: %s", path, exc)
             return False
         self.settings.psf_path = str(path)
@@ -1160,6 +1177,22 @@ class MainWindow(QMainWindow):
         self.light_queue.shutdown()
         self.bench.close()
         super().closeEvent(event)
+
+
+def _stack_message(planes: int) -> str:
+    return (f"this is a stack of {planes} PSFs (a depth calibration); the live preview takes "
+            "one PSF: choose one plane or a 2D PSF file")
+
+
+def _psf_stack_planes(path: str | Path) -> int:
+    """How many PSFs the file holds when it is a stack of several (else 0)."""
+    from recon.readers import load_psf_stack
+
+    try:
+        stack = load_psf_stack(path, normalise=None)
+    except Exception:  # not a stack either: the loader's own message is the one to show
+        return 0
+    return int(stack.shape[0]) if stack.ndim == 3 and stack.shape[0] > 1 else 0
 
 
 def load_psf_any(path: str | Path) -> Any:

@@ -8,11 +8,14 @@ echo back as user requests.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import re
 from collections.abc import Iterable, Mapping
 from typing import Any
 
 from PySide6.QtCore import QSignalBlocker, Signal
+from PySide6.QtGui import QValidator
 from PySide6.QtWidgets import (
     QCheckBox,
     QComboBox,
@@ -27,7 +30,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.gui.devices import SCENES, CameraChoice, PortChoice
-from app.gui.preview_engine import MODELS, PreviewSettings
+from app.gui.preview_engine import MODELS, RANGES, PreviewSettings
 from app.gui.widgets import ComboBox, DoubleSpinBox, SpinBox, double_spin
 
 __all__ = ["CameraControls", "DevicePanel", "PreviewControls", "set_status"]
@@ -346,8 +349,62 @@ class CameraControls(QGroupBox):
                     w.setValue(float(v) * scale)
 
 
+class TauSpinBox(DoubleSpinBox):
+    """A spin box for a TV weight: any value from 1e-9 up, shown with 3 significant digits.
+
+    tau spans decades (the tau auto estimate ranges over 1e-7 to 1e-2): a fixed number of
+    decimals showed 3e-6 as 0.00000 and gave back 0.
+    """
+
+    _PARTIAL = re.compile(r"[0-9.eE+-]*")
+
+    def __init__(self, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.setDecimals(9)
+
+    def textFromValue(self, value: float) -> str:
+        """3 significant digits: 0.0003, 2.5e-06."""
+        return f"{value:.3g}"
+
+    def valueFromText(self, text: str) -> float:
+        """The typed number (the current value while it is not one)."""
+        try:
+            return float(text.strip())
+        except ValueError:
+            return float(self.value())
+
+    def validate(self, text: str, pos: int) -> Any:
+        """Numbers in any notation; their beginnings while typing."""
+        t = text.strip()
+        try:
+            v = float(t)
+        except ValueError:
+            ok = self._PARTIAL.fullmatch(t) is not None
+            state = QValidator.State.Intermediate if ok else QValidator.State.Invalid
+            return state, text, pos
+        inside = self.minimum() <= v <= self.maximum()
+        return (QValidator.State.Acceptable if inside else QValidator.State.Intermediate,
+                text, pos)
+
+
+def _kept(shown: float, current: float | None, decimals: int) -> float:
+    """``current`` when the control shows it (rounded to its decimals), else ``shown``.
+
+    A dark level of 100.4 is shown as 100; taking the 100 back would change the setting the
+    engine runs and the file keeps without anyone touching it.
+    """
+    if current is not None and abs(shown - current) <= 0.5 * 10.0 ** -decimals + 1e-12:
+        return float(current)
+    return float(shown)
+
+
 class PreviewControls(QGroupBox):
-    """Preview on/off, model, tau, iterations per frame, downsampling, dark level, PSF."""
+    """Preview on/off, model, tau, iterations per frame, downsampling, dark level, PSF.
+
+    The spin boxes' ranges are the settings' ranges (:data:`~app.gui.preview_engine.RANGES`);
+    the settings without a control (threads, target frame rate, prox iterations) are kept
+    from the last :meth:`set_settings`, so :meth:`settings` never resets them.
+    """
 
     settings_changed = Signal(object)
     enabled_changed = Signal(bool)
@@ -361,9 +418,8 @@ class PreviewControls(QGroupBox):
         self.model = ComboBox()
         for m in MODELS:
             self.model.addItem({"2d": "2D (FISTA-TV)", "video": "video (dual shutter)"}[m], m)
-        self.tau = DoubleSpinBox()
-        self.tau.setDecimals(5)
-        self.tau.setRange(0.0, 1.0)
+        self.tau = TauSpinBox()
+        self.tau.setRange(*RANGES["tau"])
         self.tau.setSingleStep(0.0005)
         self.tau.setKeyboardTracking(False)
         self.tau_auto = QCheckBox("auto")
@@ -372,19 +428,19 @@ class PreviewControls(QGroupBox):
             "the PSF or the geometry changes; the value in the box serves until then"
         )
         self.iters = SpinBox()
-        self.iters.setRange(1, 200)
+        self.iters.setRange(*(int(v) for v in RANGES["iters_per_frame"]))
         self.iters.setKeyboardTracking(False)
         self.downsample = SpinBox()
-        self.downsample.setRange(1, 16)
+        self.downsample.setRange(*(int(v) for v in RANGES["downsample"]))
         self.downsample.setKeyboardTracking(False)
         self.dark = DoubleSpinBox()
-        self.dark.setRange(-1.0, 65535.0)
+        self.dark.setRange(-1.0, RANGES["dark"][1])  # -1: auto
         self.dark.setDecimals(0)
         self.dark.setSpecialValueText("auto")
         self.dark.setKeyboardTracking(False)
         self.dark.setToolTip("Dark level in camera codes (auto: the 1st percentile of the frame)")
         self.bins = SpinBox()
-        self.bins.setRange(2, 32)
+        self.bins.setRange(*(int(v) for v in RANGES["video_bins"]))
         self.bins.setKeyboardTracking(False)
         self.psf_label = QLabel("PSF: none")
         self.psf_label.setWordWrap(True)
@@ -408,7 +464,8 @@ class PreviewControls(QGroupBox):
         row.addWidget(self.reset)
         form.addRow(row)
         form.addRow(self.psf_label)
-        self.set_settings(PreviewSettings())
+        self._current = PreviewSettings()
+        self.set_settings(self._current)
 
         for sig in (self.model.currentIndexChanged, self.tau.valueChanged, self.tau_auto.toggled,
                     self.iters.valueChanged, self.downsample.valueChanged,
@@ -419,20 +476,23 @@ class PreviewControls(QGroupBox):
         self.reset.clicked.connect(self.reset_requested)
 
     def settings(self) -> PreviewSettings:
-        """The settings the controls show."""
+        """The settings the controls show, with the others from the last :meth:`set_settings`."""
+        cur = self._current
         dark = float(self.dark.value())
-        return PreviewSettings(
+        return dataclasses.replace(
+            cur,
             model=str(self.model.currentData()),
-            tau=float(self.tau.value()),
+            tau=_kept(float(self.tau.value()), cur.tau, self.tau.decimals()),
             tau_auto=self.tau_auto.isChecked(),
             iters_per_frame=int(self.iters.value()),
             downsample=int(self.downsample.value()),
-            dark=None if dark < 0 else dark,
+            dark=None if dark < 0 else _kept(dark, cur.dark, self.dark.decimals()),
             video_bins=int(self.bins.value()),
         )
 
     def set_settings(self, s: PreviewSettings) -> None:
-        """Show ``s`` without emitting."""
+        """Show ``s`` without emitting (and keep the settings that have no control)."""
+        self._current = s
         widgets = (self.model, self.tau, self.tau_auto, self.iters, self.downsample, self.dark,
                    self.bins)
         blockers = [QSignalBlocker(w) for w in widgets]
@@ -448,6 +508,7 @@ class PreviewControls(QGroupBox):
 
     def _emit(self, *_args: Any) -> None:
         s = self.settings()
+        self._current = s
         self.bins.setEnabled(s.model == "video")
         self.settings_changed.emit(s)
 

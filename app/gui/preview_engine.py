@@ -20,6 +20,9 @@ momentum when a new frame turns the step against it (a moving scene). Changing t
 the PSF starts over from zero; changing tau or the prox iterations keeps the iterate but
 restarts the momentum.
 
+A frame can be cancelled from another thread (:meth:`PreviewEngine.cancel`): it stops at the
+next stage of a model build or FISTA step and raises :class:`PreviewCancelled`.
+
 Models: ``2d`` (one PSF, one image) and ``video`` (dual rolling shutter: ``video_bins`` time
 bins from the frame's :class:`~drivers.timing.SensorTiming`, shown side by side).
 
@@ -32,6 +35,7 @@ from __future__ import annotations
 
 import atexit
 import math
+import numbers
 import os
 import threading
 import time
@@ -48,13 +52,16 @@ from recon.fista import Fista
 
 __all__ = [
     "MODELS",
+    "RANGES",
     "FrameSlot",
+    "PreviewCancelled",
     "PreviewEngine",
     "PreviewError",
     "PreviewLoop",
     "PreviewResult",
     "PreviewSettings",
     "PreviewStats",
+    "clamp_setting",
     "frame_keywords",
     "run_one",
 ]
@@ -79,6 +86,25 @@ def _stop_auto_estimates() -> None:
 #: Preview models the engine knows.
 MODELS: tuple[str, ...] = ("2d", "video")
 
+#: The one allowed range (inclusive) of each numeric preview setting. The preview controls'
+#: spin boxes use these ranges (app/gui/panels.py), :class:`PreviewSettings` refuses a value
+#: outside them and :meth:`PreviewSettings.from_dict_lenient` (the settings file) clamps one
+#: into them, so the controls always show what the engine runs. ``threads``, ``target_fps`` and
+#: ``prox_iters`` have no control; their ranges still bound a hand-edited settings file (a
+#: ``video_bins`` of 1000000 once made a 2.6 GB, 16 s preview frame). ``dark`` is a level in
+#: camera codes (None: auto).
+RANGES: dict[str, tuple[float, float]] = {
+    "tau": (0.0, 1.0),
+    "iters_per_frame": (1, 200),
+    "downsample": (1, 16),
+    "prox_iters": (1, 100),
+    "dark": (0.0, 65535.0),
+    "video_bins": (2, 32),
+    "threads": (0, 256),
+    "target_fps": (0.0, 1e6),  # an unreachable rate: one iteration per frame
+}
+_INT_SETTINGS = ("iters_per_frame", "downsample", "prox_iters", "video_bins", "threads")
+
 
 def _lower_priority(nice: int = 5) -> None:
     """Lower the calling thread's CPU priority.
@@ -99,9 +125,16 @@ class PreviewError(ValueError):
     """The frame cannot be previewed with this PSF and these settings (message says why)."""
 
 
+class PreviewCancelled(PreviewError):
+    """:meth:`PreviewEngine.cancel` stopped the frame in progress (no result)."""
+
+
 @dataclass(frozen=True)
 class PreviewSettings:
     """What the preview computes.
+
+    Every numeric setting has one allowed range, :data:`RANGES` (the preview controls'
+    ranges); a value outside it is refused here and clamped by :meth:`from_dict_lenient`.
 
     Attributes:
         model: ``2d`` or ``video``.
@@ -142,18 +175,21 @@ class PreviewSettings:
     def __post_init__(self) -> None:
         if self.model not in MODELS:
             raise ValueError(f"preview model must be one of {MODELS}, got {self.model!r}")
-        if not (math.isfinite(self.tau) and self.tau >= 0):
-            raise ValueError(f"tau must be a finite number >= 0, got {self.tau!r}")
-        for name in ("iters_per_frame", "downsample", "prox_iters", "video_bins"):
+        for name in ("tau", "target_fps", "dark", *_INT_SETTINGS):
             v = getattr(self, name)
-            if int(v) != v or v < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
-        if int(self.threads) != self.threads or self.threads < 0:
-            raise ValueError(f"threads must be an integer >= 0, got {self.threads!r}")
-        if not (math.isfinite(self.target_fps) and self.target_fps >= 0):
-            raise ValueError(f"target_fps must be a number >= 0, got {self.target_fps!r}")
-        if self.dark is not None and not math.isfinite(self.dark):
-            raise ValueError(f"dark must be a finite number or None, got {self.dark!r}")
+            if name == "dark" and v is None:
+                continue
+            integer = name in _INT_SETTINGS
+            kind = "an integer" if integer else "a finite number"
+            if isinstance(v, bool) or not isinstance(v, numbers.Real):
+                raise ValueError(f"{name} must be {kind}, got {v!r}")
+            if not math.isfinite(v) or (integer and int(v) != v):
+                raise ValueError(f"{name} must be {kind}, got {v!r}")
+            lo, hi = RANGES[name]
+            if not lo <= v <= hi:
+                raise ValueError(f"{name} must be {kind} from {lo:g} to {hi:g}, got {v!r}")
+            # one type per field: 4.0 bins are 4, a tau of 1 is 1.0 (the saved file says so)
+            object.__setattr__(self, name, int(v) if integer else float(v))
         if not isinstance(self.tau_auto, bool):
             raise ValueError(f"tau_auto must be true or false, got {self.tau_auto!r}")
 
@@ -171,8 +207,9 @@ class PreviewSettings:
     def from_dict_lenient(cls, d: dict[str, Any]) -> tuple[PreviewSettings, list[str]]:
         """Like :meth:`from_dict`, but only a key with a bad value (or type) keeps its default.
 
-        Every other key is kept. Returns the settings and one ``"key=value (why); using the
-        default X"`` line per key that was replaced (empty when all were good).
+        A number outside its range (:data:`RANGES`) is clamped into it. Every other key is
+        kept. Returns the settings and one ``"key=value (why); using X"`` line per key that was
+        replaced or clamped (empty when all were good).
         """
         defaults = cls()
         good: dict[str, Any] = {}
@@ -183,6 +220,11 @@ class PreviewSettings:
             try:  # the checks are per field, so each key can be tried on its own
                 cls(**{k: v})
             except (TypeError, ValueError, OverflowError) as exc:
+                clamped = _clamped(k, v)
+                if clamped is not None:
+                    problems.append(f"{k}={v!r} ({exc}); using {clamped!r}")
+                    good[k] = clamped
+                    continue
                 problems.append(f"{k}={v!r} ({exc}); using the default {getattr(defaults, k)!r}")
                 continue
             good[k] = v
@@ -190,6 +232,27 @@ class PreviewSettings:
             return cls(**good), problems
         except (TypeError, ValueError, OverflowError) as exc:  # not expected: keys interact
             return defaults, [*problems, f"{good!r} ({exc}); using the defaults"]
+
+
+def _clamped(name: str, v: Any) -> int | float | None:
+    """``v`` moved into the range of setting ``name``.
+
+    None when ``v`` is not a number of the right kind (a string, NaN, 2.5 iterations) or
+    ``name`` has no range.
+    """
+    if name not in RANGES or isinstance(v, bool) or not isinstance(v, numbers.Real):
+        return None
+    if not math.isfinite(v) or (name in _INT_SETTINGS and int(v) != v):
+        return None
+    lo, hi = RANGES[name]
+    out = min(max(v, lo), hi)
+    return int(out) if name in _INT_SETTINGS else float(out)
+
+
+def clamp_setting(name: str, value: float) -> float:
+    """``value`` moved into the range of setting ``name`` (:data:`RANGES`)."""
+    lo, hi = RANGES[name]
+    return min(max(value, lo), hi)
 
 
 @dataclass(frozen=True)
@@ -279,6 +342,7 @@ class PreviewEngine:
         self._auto_ref: F32 | None = None
         self._auto_note = ""
         self._tail_s = 0.0  # recent seconds from the last iteration to the result
+        self._cancel = threading.Event()
         if psf is not None:
             self._psf = self._check_psf(psf)
 
@@ -340,6 +404,36 @@ class PreviewEngine:
         if thread is not None:
             thread.join(timeout_s)
 
+    def cancel(self) -> None:
+        """Stop the frame in progress at its next cancellation point, and refuse new frames.
+
+        The cancellation points are the stages of a model build and every FISTA step (the
+        stepwise contract of :mod:`recon.stepwise`); the frame then raises
+        :class:`PreviewCancelled`, and so does every later one until :meth:`resume`. A running
+        tau auto estimate is cancelled too (not waited for). Any thread may call it: the GUI
+        calls it when the preview worker stops, so closing the window never waits for a long
+        frame to finish.
+        """
+        self._cancel.set()
+        with self._lock:
+            self._auto_gen += 1
+
+    def resume(self) -> None:
+        """Accept frames again after :meth:`cancel` (tau auto estimates afresh)."""
+        with self._lock:
+            self._auto_ref = None
+            self._auto_note = ""
+        self._cancel.clear()
+
+    @property
+    def cancelled(self) -> bool:
+        """Whether :meth:`cancel` was called (and not :meth:`resume`)."""
+        return self._cancel.is_set()
+
+    def _check_cancel(self) -> None:
+        if self._cancel.is_set():
+            raise PreviewCancelled("the preview was cancelled")
+
     @property
     def auto_pending(self) -> bool:
         """True while a tau auto estimate runs in the background."""
@@ -396,6 +490,7 @@ class PreviewEngine:
 
         """
         t0 = time.perf_counter()
+        self._check_cancel()
         s = self._apply_pending()
         if self._threads_set != s.threads:
             from recon.threads import apply_threads
@@ -451,6 +546,7 @@ class PreviewEngine:
             t_build = time.perf_counter()
             self._build(geo, sensor_psf, binning, timing)
             build_s = time.perf_counter() - t_build
+            self._check_cancel()
         b = self._measurement(frame, s, roi, binning, (ph, pw))
         bt = torch.from_numpy(b)[None]
         solver = self._solver
@@ -478,6 +574,7 @@ class PreviewEngine:
             if n and self._iter_s is not None and (
                     time.perf_counter() + self._iter_s + self._tail_s > deadline):
                 break  # one more would miss the display rate
+            self._check_cancel()  # every step is a cancellation point
             t_it = time.perf_counter()
             step = solver.step()
             n += 1
@@ -600,6 +697,7 @@ class PreviewEngine:
             # makes them): the one-line function of a long exposure takes GBs
             factor = max(1, -(-int(timing.frame_lines) // geo.video_bins))
             m_k = shutter_function(timing, factor)
+            self._check_cancel()
             if binning > 1:
                 m_k = downsample_rows(m_k, binning)
             m_k = downsample_rows(m_k, d)[:, : psf_d.shape[0]]
@@ -607,7 +705,9 @@ class PreviewEngine:
                 "video", {"psf": psf_d, "shutter": m_k.astype(np.float32), "mask": mask})
         else:
             recipe = ("2d", {"psf": psf_d, "mask": mask})
+        self._check_cancel()
         model = build_model(recipe[0], **recipe[1])
+        self._check_cancel()
         self._fit_threads(model)
         with self._lock:  # a new geometry or PSF: the next frame re-estimates tau
             self._build_args = recipe

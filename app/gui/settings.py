@@ -133,9 +133,11 @@ def load_settings(path: Path | None = None) -> AppSettings:
             p.replace(p.with_suffix(".json.bad"))
         return AppSettings()
     version = raw.get("format_version", 0)
+    if isinstance(version, float) and version.is_integer():
+        version = int(version)  # 1.0, as some JSON writers put 1, is version 1
     if not isinstance(version, int) or isinstance(version, bool):
-        _log.warning("settings file %s has format_version %r, not a number; using defaults",
-                     p, version)
+        _log.warning("settings file %s has format_version %r, not a whole number; using "
+                     "defaults", p, version)
         with contextlib.suppress(OSError):
             p.replace(p.with_suffix(".json.bad"))
         return AppSettings()

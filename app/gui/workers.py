@@ -5,23 +5,101 @@
   :class:`Task`. One queue per device serialises everything that touches it.
 - :class:`PreviewWorker`: a QObject moved to its own QThread that previews the newest frame
   only (:class:`~app.gui.preview_engine.FrameSlot` drops stale ones).
+
+A running QThread is never destroyed (Qt aborts the process: "QThread: Destroyed while thread
+is still running"): a thread that does not stop within its timeout is detached, kept alive in
+a module-level set until its ``finished`` signal, and waited for at interpreter exit.
 """
 
 from __future__ import annotations
 
+import atexit
 import inspect
 import logging
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
 from PySide6.QtCore import QObject, QThread, Signal, Slot
 
-from app.gui.preview_engine import FrameSlot, PreviewEngine, PreviewResult, frame_keywords
+from app.gui.preview_engine import (
+    FrameSlot,
+    PreviewCancelled,
+    PreviewEngine,
+    PreviewResult,
+    frame_keywords,
+)
 
-__all__ = ["Cancelled", "PreviewWorker", "Task", "TaskQueue"]
+__all__ = ["Cancelled", "PreviewWorker", "Task", "TaskQueue", "detached_threads"]
 
 _log = logging.getLogger(__name__)
+
+#: QThreads that did not stop in time, with the objects living in them: kept alive (destroying
+#: a running QThread aborts the process) until they finish
+_DETACHED: set[tuple[QThread, QObject]] = set()
+_reaper: _Reaper | None = None
+#: at interpreter exit, how long to wait for detached threads before leaving without them
+EXIT_WAIT_S = 120.0
+
+
+class _Reaper(QObject):
+    """Lives in the GUI thread: drops a detached thread once it has finished."""
+
+    @Slot()
+    def reap(self) -> None:
+        for item in list(_DETACHED):
+            thread = item[0]
+            if thread.isFinished() or thread.wait(1000):  # finished is emitted just before
+                _DETACHED.discard(item)
+                _log.info("detached thread %r has finished", thread.objectName())
+
+
+def detached_threads() -> list[str]:
+    """Names of the detached threads that still run."""
+    return [t.objectName() for t, _ in _DETACHED if t.isRunning()]
+
+
+def _detach(thread: QThread, inner: QObject) -> None:
+    """Keep ``thread`` (still running) and ``inner`` alive until the thread finishes."""
+    global _reaper
+    if _reaper is None:
+        _reaper = _Reaper()
+        atexit.register(_wait_detached)  # runs before PySide destroys its remaining objects
+    _DETACHED.add((thread, inner))
+    thread.finished.connect(_reaper.reap)  # queued: the reaper lives in the GUI thread
+    if thread.isFinished():  # it ended between the timeout and the connection
+        _reaper.reap()
+
+
+def _wait_detached(timeout_s: float | None = None) -> None:
+    """At exit: wait for the detached threads (their work was cancelled, so they end soon).
+
+    Python then destroys every QThread; a running one would abort the process, so one that
+    still runs after ``timeout_s`` ends the process at once (exit status 1) instead.
+    """
+    running = [t for t, _ in _DETACHED if t.isRunning()]
+    if not running:
+        return
+    limit = EXIT_WAIT_S if timeout_s is None else timeout_s
+    names = ", ".join(repr(t.objectName()) for t in running)
+    _log.warning("waiting up to %.0f s for the %s thread to end its cancelled work", limit,
+                 names)
+    deadline = time.monotonic() + limit
+    for t in running:
+        t.wait(max(0, int(1000 * (deadline - time.monotonic()))))
+    if any(t.isRunning() for t in running):
+        import os
+        import sys
+
+        _log.error("the %s thread did not end in %.0f s; leaving without it", names, limit)
+        logging.shutdown()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError, AttributeError):
+                pass
+        os._exit(1)
 
 
 class Cancelled(Exception):
@@ -171,8 +249,9 @@ class TaskQueue(QObject):
         self.cancel_all()
         self._thread.quit()
         ok = bool(self._thread.wait(timeout_ms))
-        if not ok:
+        if not ok:  # a hung device call: left to end in the background, never destroyed
             _log.error("%s: worker thread did not stop within %d ms", self.name, timeout_ms)
+            _detach(self._thread, self._runner)
         return ok
 
 
@@ -206,11 +285,25 @@ class PreviewWorker(QObject):
         self.slot.put(frame.pixels, **frame_keywords(frame))
         self._wake.emit()
 
-    def stop(self, timeout_ms: int = 10_000) -> None:
-        """End the worker thread (after the frame in progress)."""
+    def stop(self, timeout_ms: int = 10_000) -> bool:
+        """End the worker thread; returns whether it ended within ``timeout_ms``.
+
+        The frame in progress is cancelled (the engine's ``cancel()``: it stops at its next
+        cancellation point) and waited for up to ``timeout_ms``. A thread that did not end (a
+        single long computation) is detached, not destroyed: it stays alive until it finishes
+        (see the module docstring).
+        """
         self.slot.close()
+        cancel = getattr(self.engine, "cancel", None)
+        if cancel is not None:
+            cancel()
         self._thread.quit()
-        self._thread.wait(timeout_ms)
+        if self._thread.wait(timeout_ms):
+            return True
+        _log.error("the preview frame in progress did not stop within %d ms; its thread is "
+                   "left to finish in the background", timeout_ms)
+        _detach(self._thread, self._inner)
+        return False
 
 
 class _PreviewRunner(QObject):
@@ -224,12 +317,17 @@ class _PreviewRunner(QObject):
 
     @Slot()
     def process(self) -> None:
+        if self._slot.closed:
+            return  # the worker is stopping
         item = self._slot.take()
         if item is None:
             return  # a newer wake-up already took the frame (it was stale)
         pixels, meta = item
         try:
             res: PreviewResult = self._engine.process(pixels, **meta)
+        except PreviewCancelled as exc:  # the worker is stopping: nothing to show
+            self._slot.done(exc)
+            return
         except Exception as exc:  # shown in the preview panel
             self._slot.done(exc)
             self.error.emit(f"{type(exc).__name__}: {exc}" if not str(exc) else str(exc))

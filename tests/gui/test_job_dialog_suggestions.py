@@ -183,3 +183,30 @@ def _left() -> Any:
     from PySide6.QtCore import Qt
 
     return Qt.MouseButton.LeftButton
+
+
+def test_a_job_that_could_not_run_is_not_queued(panel: Any, tmp_path: Path) -> None:
+    """Downsampling 64 of a 48x64 frame: the Memory line said "cannot estimate: downsampling
+    by 64 leaves nothing", yet Queue job queued it (and its job.log then failed)."""
+    from PySide6.QtWidgets import QDialog, QDialogButtonBox
+
+    dlg = panel.new_job_dialog()
+    ok = dlg.buttons.button(QDialogButtonBox.StandardButton.Ok)
+    assert ok.isEnabled()
+    dlg.downsample.setValue(64)
+    assert "leaves nothing" in dlg.memory.text()
+    assert not ok.isEnabled() and "leaves nothing" in ok.toolTip()
+    dlg.accept()  # Enter in the dialog: refused as well
+    assert dlg.result() != QDialog.DialogCode.Accepted
+    jobs = tmp_path / "jobs"
+
+    def queued() -> list[Path]:
+        return [p for p in jobs.iterdir() if p.name != "suggestions"] if jobs.exists() else []
+
+    assert queued() == []
+    m = panel.state["m"]
+    assert panel.create_job(m, "x", 64, dlg.sections()) is None  # the panel refuses too
+    assert "cannot queue" in panel.message.text() and "leaves nothing" in panel.message.text()
+    assert queued() == []
+    dlg.downsample.setValue(2)
+    assert ok.isEnabled() and ok.toolTip() == ""

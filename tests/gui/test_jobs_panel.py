@@ -366,3 +366,38 @@ def test_a_damaged_newer_or_unknown_queued_job_is_never_started(tmp_path):
         assert "is damaged" in (v.detail or ""), name
     assert "newer lenslesscam" in (job_view(tmp_path / "c-newer").detail or "")
     assert job_view(tmp_path / "d-unknown-state").state is AppJobState.HELD
+
+
+def test_an_integral_float_format_version_is_that_version(tmp_path):
+    """"format_version": 1.0 (some JSON writers put 1 so) was discarded as "not a number" and
+    the file set aside as .bad."""
+    import json
+
+    from app.gui.settings import SETTINGS_FORMAT, AppSettings, load_settings
+
+    p = tmp_path / "app-settings.json"
+    p.write_text(json.dumps({"format": SETTINGS_FORMAT, "format_version": 1.0, "gain": 3.0}))
+    assert load_settings(p).gain == 3.0
+    assert p.exists() and not (tmp_path / "app-settings.json.bad").exists()
+    p.write_text(json.dumps({"format": SETTINGS_FORMAT, "format_version": 1.5, "gain": 3.0}))
+    assert load_settings(p) == AppSettings()
+    assert (tmp_path / "app-settings.json.bad").exists()
+    p.write_text(json.dumps({"format": SETTINGS_FORMAT, "format_version": 2.0, "gain": 3.0}))
+    assert load_settings(p) == AppSettings()  # a newer version: kept aside, as for 2
+    assert (tmp_path / "app-settings.json.v2").exists()
+
+
+def test_a_jobs_folder_that_cannot_hold_jobs_is_named(tmp_path):
+    from app.gui.jobs_core import create_job, jobs_dir_problem
+
+    afile = tmp_path / "afile"
+    afile.write_text("i am a file")
+    assert "is a file, not a folder" in jobs_dir_problem(afile)
+    assert "lies inside" in jobs_dir_problem(afile / "jobs")
+    assert jobs_dir_problem(tmp_path) is None
+    assert jobs_dir_problem(tmp_path / "new" / "jobs") is None  # made when the first job comes
+    import numpy as np
+
+    with pytest.raises(ValueError, match="leaves nothing"):
+        create_job(tmp_path / "jobs", "x", np.ones((48, 64)), np.ones((48, 64)), downsample=64)
+    assert not (tmp_path / "jobs").exists()

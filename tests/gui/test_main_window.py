@@ -240,3 +240,86 @@ def test_the_footer_says_where_a_frame_lies_on_its_sensor() -> None:
         "320x240 px, ROI at (100, 50) of 1440x1080, binning 2")
     assert frame_geometry(frame(Roi(0, 0, 640, 480), 1, None)) == (
         "640x480 px, ROI at (0, 0), sensor size unknown")
+
+
+def test_preview_settings_without_controls_survive_load_toggle_save(make_window: Any) -> None:
+    """threads, target_fps and prox_iters have no control: the controls' settings() reset them
+    to their defaults when anything was touched, and the file kept the defaults. A tau or dark
+    level finer than the boxes show came back rounded (3e-6 as 0)."""
+    import torch
+
+    from app.gui.settings import AppSettings, load_settings, save_settings, settings_path
+
+    mine = {"threads": 2, "target_fps": 5.0, "prox_iters": 7, "tau": 2.5e-6, "dark": 100.4,
+            "iters_per_frame": 4}
+    save_settings(AppSettings(frame_rate_hz=10.0, connect_light=False, preview=mine))
+    threads = torch.get_num_threads()
+    try:
+        w = make_window(load_settings(), autoconnect=False)
+        pc = w.preview_controls
+        pc.tau_auto.setChecked(not pc.tau_auto.isChecked())  # the user touches one control
+        for s in (pc.settings(), w.engine.settings):
+            assert (s.threads, s.target_fps, s.prox_iters) == (2, 5.0, 7)
+            assert (s.tau, s.dark, s.iters_per_frame) == (2.5e-6, 100.4, 4)
+        assert pc.tau.text() == "2.5e-06" and pc.iters.value() == 4
+        w.close()
+    finally:
+        torch.set_num_threads(threads)
+    saved = json.loads(settings_path().read_text(encoding="utf-8"))["preview"]
+    assert {k: saved[k] for k in mine} == mine
+    assert saved["tau_auto"] is False  # the touched control (on by default)
+
+
+def test_out_of_range_preview_settings_are_clamped_and_the_controls_show_what_runs(
+        make_window: Any, caplog: pytest.LogCaptureFixture) -> None:
+    """video_bins 1000000 in the settings file was used as is (2.6 GB, 16 s frames; closing
+    the app then aborted) while the Video bins box showed 32."""
+    import logging
+
+    from app.gui.settings import AppSettings, load_settings, save_settings
+
+    save_settings(AppSettings(frame_rate_hz=10.0, connect_light=False, preview={
+        "model": "video", "video_bins": 1_000_000, "iters_per_frame": 5000, "tau_auto": False}))
+    with caplog.at_level(logging.WARNING, logger="app.gui.main_window"):
+        w = make_window(load_settings(), autoconnect=False)
+    lines = [r.getMessage() for r in caplog.records if "preview settings" in r.getMessage()]
+    assert len(lines) == 1 and "video_bins=1000000" in lines[0] and "using 32" in lines[0]
+    assert "iters_per_frame=5000" in lines[0] and "using 200" in lines[0]
+    assert "video_bins=1000000" in w.status_label.text()
+    pc = w.preview_controls
+    assert (pc.bins.value(), pc.iters.value()) == (32, 200)
+    assert pc.settings() == w.engine.settings
+    assert (w.engine.settings.video_bins, w.engine.settings.iters_per_frame) == (32, 200)
+    assert w.engine.settings.model == "video" and w.engine.settings.tau_auto is False
+
+
+def test_a_psf_stack_is_refused_in_words_for_the_user(make_window: Any, tmp_path: Path) -> None:
+    """A (5, H, W) PSF file said "for a stack of PSFs use load_psf_stack" (a Python function)."""
+    import numpy as np
+
+    w = make_window(autoconnect=False)
+    stack = np.random.default_rng(0).random((5, 150, 200)).astype(np.float32)
+    np.save(tmp_path / "psf3d.npy", stack)
+    assert not w._load_psf(str(tmp_path / "psf3d.npy"))
+    text = w.banner.text()
+    assert "stack of 5 PSFs (a depth calibration)" in text and "choose one plane" in text
+    assert "load_psf_stack" not in text and not w.engine.has_psf
+    np.save(tmp_path / "plane2.npy", stack[2])
+    assert w._load_psf(str(tmp_path / "plane2.npy")) and w.engine.has_psf
+
+
+def test_a_jobs_folder_that_is_a_file_is_said_at_start(make_window: Any, tmp_path: Path,
+                                                       caplog: pytest.LogCaptureFixture) -> None:
+    """jobs_dir pointing at a file failed only when a job was queued."""
+    import logging
+
+    from app.gui.settings import AppSettings
+
+    afile = tmp_path / "afile"
+    afile.write_text("i am a file")
+    with caplog.at_level(logging.WARNING):
+        w = make_window(AppSettings(frame_rate_hz=10.0, connect_light=False,
+                                    jobs_dir=str(afile)), autoconnect=False)
+    assert "is a file, not a folder" in w.status_label.text()
+    assert "is a file, not a folder" in w.jobs_panel.message.text()
+    assert any("is a file, not a folder" in r.getMessage() for r in caplog.records)

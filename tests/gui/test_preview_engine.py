@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -297,3 +298,94 @@ def test_frames_of_the_simulated_camera_preview_with_their_sensor_size() -> None
     with pytest.raises(PreviewError, match=r"PSF is 12x16 but this camera's sensor is 24x32 "
                                            r"and the frame's region 24x32"):
         at_roi.process(full.pixels, **frame_keywords(full))
+
+
+def test_every_numeric_setting_has_one_range_the_controls_share(qtbot) -> None:
+    """video_bins was any number >= 1 although its spin box stopped at 32: a settings file with
+    1000000 bins made 2.6 GB, 16 s preview frames while the controls showed 32."""
+    from app.gui.panels import PreviewControls
+    from app.gui.preview_engine import RANGES
+
+    numeric = {f.name for f in dataclasses.fields(PreviewSettings)} - {"model", "tau_auto"}
+    assert set(RANGES) == numeric
+    for name, (lo, hi) in RANGES.items():
+        PreviewSettings(**{name: lo})
+        PreviewSettings(**{name: hi})
+        for bad in ((lo - 1, hi * 2 + 1) if lo > 0 else (hi * 2 + 1,)):
+            with pytest.raises(ValueError, match=f"{name} must be .* from"):
+                PreviewSettings(**{name: bad})
+    controls = PreviewControls()
+    qtbot.addWidget(controls)
+    for name, box in (("tau", controls.tau), ("iters_per_frame", controls.iters),
+                      ("downsample", controls.downsample), ("video_bins", controls.bins)):
+        assert (box.minimum(), box.maximum()) == RANGES[name], name
+    assert (controls.dark.minimum(), controls.dark.maximum()) == (-1.0, RANGES["dark"][1])
+
+
+def test_a_setting_outside_its_range_is_clamped_when_loaded_and_said() -> None:
+    d = {"model": "video", "video_bins": 1_000_000, "iters_per_frame": 500, "downsample": 0,
+         "threads": 10_000, "tau": 5.0, "dark": -3.0, "prox_iters": 2.5, "target_fps": 1e9}
+    s, problems = PreviewSettings.from_dict_lenient(d)
+    assert (s.video_bins, s.iters_per_frame, s.downsample, s.threads) == (32, 200, 1, 256)
+    assert (s.tau, s.dark, s.target_fps) == (1.0, 0.0, 1e6)
+    assert s.prox_iters == PreviewSettings().prox_iters  # 2.5 is no count: the default
+    assert len(problems) == len(d) - 1  # one line per key (model was fine)
+    line = next(p for p in problems if p.startswith("video_bins="))
+    assert line.startswith("video_bins=1000000 (") and line.endswith("; using 32")
+    assert type(PreviewSettings(video_bins=4.0).video_bins) is int  # one type per field
+
+
+def test_a_frame_can_be_cancelled_between_fista_steps(psf: np.ndarray, monkeypatch) -> None:
+    """Each FISTA step is a cancellation point (recon.stepwise): cancel() from another thread
+    ends the frame at the next one; frames are refused until resume()."""
+    from app.gui.preview_engine import PreviewCancelled
+    from recon.fista import Fista
+
+    eng = PreviewEngine(psf, PreviewSettings(iters_per_frame=50, target_fps=0, dark=100.0,
+                                             tau_auto=False))
+    calls: list[int] = []
+    step = Fista.step
+
+    me = threading.get_ident()
+
+    def counting_step(self):
+        if threading.get_ident() != me:  # another test's tau auto estimate, still running
+            return step(self)
+        calls.append(1)
+        if len(calls) == 2:
+            threading.Thread(target=eng.cancel).start()
+            time.sleep(0.1)
+        return step(self)
+
+    monkeypatch.setattr(Fista, "step", counting_step)
+    frame = _frame(psf)
+    with pytest.raises(PreviewCancelled):
+        eng.process(frame)
+    assert len(calls) == 2 and eng.cancelled
+    with pytest.raises(PreviewCancelled):
+        eng.process(frame)
+    assert len(calls) == 2
+    eng.resume()
+    monkeypatch.setattr(Fista, "step", step)
+    assert eng.process(frame).iterations == 50
+
+
+def test_the_tau_box_shows_and_takes_small_values(qtbot) -> None:
+    """tau spans decades: the box had 5 decimals, so 3e-6 showed as 0.00000 and came back 0."""
+    from PySide6.QtCore import Qt
+
+    from app.gui.panels import PreviewControls
+
+    controls = PreviewControls()
+    qtbot.addWidget(controls)
+    controls.set_settings(PreviewSettings(tau=3e-6))
+    assert controls.tau.text() == "3e-06" and controls.settings().tau == 3e-6
+    controls.tau.setFocus()
+    controls.tau.lineEdit().selectAll()
+    with qtbot.waitSignal(controls.settings_changed) as sig:
+        qtbot.keyClicks(controls.tau.lineEdit(), "2.5e-5")
+        qtbot.keyClick(controls.tau.lineEdit(), Qt.Key.Key_Return)
+    assert sig.args[0].tau == pytest.approx(2.5e-5)
+    assert controls.tau.text() == "2.5e-05"
+    qtbot.keyClicks(controls.tau.lineEdit(), "x")  # not a number: refused while typing
+    assert "x" not in controls.tau.lineEdit().text()
