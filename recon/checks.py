@@ -15,10 +15,20 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["MeasurementCheck", "MeasurementWarning", "check_field", "check_measurement",
-           "check_pair", "field_reach"]
+__all__ = ["NEGATIVE_WARN_DEPTH", "NEGATIVE_WARN_FRACTION", "MeasurementCheck",
+           "MeasurementWarning", "check_field", "check_measurement", "check_pair",
+           "field_reach", "negative_measurement"]
 
 Array = npt.NDArray[Any]
+
+#: a measurement (dark subtracted) is warned about when more than this fraction of its
+#: measured pixels lie below ``-NEGATIVE_WARN_DEPTH`` times its largest magnitude (see
+#: :func:`negative_measurement`)
+NEGATIVE_WARN_FRACTION = 0.05
+#: how far below 0, relative to the measurement's largest magnitude, a pixel must be to count
+#: for :data:`NEGATIVE_WARN_FRACTION`: read noise around a correct dark level stays within a
+#: few % of the maximum
+NEGATIVE_WARN_DEPTH = 0.05
 
 
 def field_reach(sensor: tuple[int, int], psf_hw: tuple[int, int]) -> tuple[int, int]:
@@ -183,3 +193,44 @@ def check_measurement(
     if warn and check.flagged:
         warnings.warn(check.message(), MeasurementWarning, stacklevel=2)
     return check
+
+
+def negative_measurement(b: Array, mask: Array | None = None) -> str | None:
+    """One line when a dark-subtracted measurement is negative in too many measured pixels.
+
+    The rule: more than :data:`NEGATIVE_WARN_FRACTION` (5 %) of the measured, finite pixels
+    are below ``-NEGATIVE_WARN_DEPTH`` (5 %) times the measurement's largest magnitude. Both
+    parts are needed: after a correct dark level, the read noise of dark pixels puts many of
+    them slightly below 0 (a sparse frame with noise of 1 % of its maximum: a third of its
+    pixels negative, none below -5 %), which is harmless; a dark level above the sensor's
+    black level (or a frame saved after subtracting one) puts a large share well below 0, and
+    the clip to 0 that follows (``clip_nonneg``) flattens them, which the reconstruction
+    fits as black (a simulated frame minus half its maximum: 55 % negative). A measurement
+    with no positive pixel is not warned about here: the loaders refuse it ("all zero").
+    None when the measurement passes.
+
+    Args:
+        b: the measurement after dark subtraction, before any clip (any shape, float).
+        mask: measured pixels (nonzero), broadcast to ``b``; default all.
+
+    """
+    vals = np.asarray(b, dtype=np.float64)
+    if mask is not None:
+        vals = vals[np.broadcast_to(np.asarray(mask) != 0, vals.shape)]
+    vals = vals[np.isfinite(vals)]
+    if vals.size == 0:
+        return None
+    if float(vals.max()) <= 0:  # nothing left to reconstruct: an error, not a warning
+        return None
+    scale = float(np.max(np.abs(vals)))
+    deep = int(np.count_nonzero(vals < -NEGATIVE_WARN_DEPTH * scale))
+    if deep <= NEGATIVE_WARN_FRACTION * vals.size:
+        return None
+    negative = int(np.count_nonzero(vals < 0))
+    n = int(vals.size)
+    return (f"{100 * negative / n:.0f}% of its measured pixels are negative, "
+            f"{100 * deep / n:.0f}% below -{100 * NEGATIVE_WARN_DEPTH:g}% of its largest "
+            f"value (minimum {float(vals.min()):.4g}, maximum {float(vals.max()):.4g}): the "
+            "dark level is likely above the sensor's black level (too large a dark, subtracted "
+            "here or before the file was saved); they are clipped to 0 and the reconstruction "
+            "fits them as black")

@@ -586,9 +586,18 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
     if spec.psf_dark is None and psf_dark_corrected:
         psf_dark = None
 
+    # the mask first, when it reads: the measurement's check of negative pixels counts the
+    # measured ones (a mask that does not read is said below, after the measurement's checks)
+    file_mask = None
+    if spec.mask is not None:
+        try:
+            file_mask = read_mask(spec.mask)
+        except (OSError, ValueError):
+            file_mask = None
+
     # measurement (full resolution, counts)
     meas = load_measurement(spec.meas, dark=dark, channels=color, channel_order=order,
-                            normalise=None, unmasked=spec.mask is None)
+                            normalise=None, unmasked=spec.mask is None, measured=file_mask)
     if spec.flip_rows:
         meas = np.ascontiguousarray(meas[:, ::-1])
     c, h_full, w_full = (int(s) for s in meas.shape)
@@ -634,7 +643,7 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
     raw_mask = None
     mask_coarse = False
     if spec.mask is not None:
-        raw_mask = read_mask(spec.mask)
+        raw_mask = file_mask if file_mask is not None else read_mask(spec.mask)
         if spec.flip_rows:
             raw_mask = np.ascontiguousarray(raw_mask[::-1])
         if raw_mask.shape == (h_full, w_full):

@@ -444,6 +444,7 @@ def _prepare(
     order: ChannelOrder = "rgb",
     shared_gray: bool = False,
     unmasked: bool = False,
+    measured: Array | None = None,
 ) -> tuple[F32, Path]:
     p = Path(path)
     raw = _load_image(p, key=key, prefer=prefer)
@@ -464,8 +465,30 @@ def _prepare(
     d = _dark_for(dark, key, arr, channels, what, p, order)
     if d is not None:
         arr = subtract_dark(arr, d).astype(np.float32, copy=False)
+    if what == "measurement":
+        _check_negative(arr, p, dark, measured)
     out = clip_nonneg(box_downsample(arr, downsample)).astype(np.float32, copy=False)
     return out, p
+
+
+def _check_negative(arr: Array, p: Path, dark: DarkSpec, measured: Array | None) -> None:
+    """Warn of a measurement mostly below 0 after its dark level, before the clip at 0.
+
+    The rule is :func:`recon.checks.negative_measurement` (a fraction of the measured pixels
+    and a depth relative to the maximum: read noise around a correct dark stays silent).
+    ``measured``: the mask (H, W) of the file's pixels, when known; else every pixel counts.
+    """
+    from recon.checks import MeasurementWarning, negative_measurement
+
+    mask = None
+    if measured is not None and np.shape(measured) == arr.shape[-2:]:
+        mask = measured
+    msg = negative_measurement(arr, mask)
+    if msg is None:
+        return
+    how = (f"with dark {_describe_dark(dark)}" if dark is not None else
+           "read with no dark level (negative in the file)")
+    warnings.warn(f"measurement file {p} {how}: {msg}", MeasurementWarning, stacklevel=4)
 
 
 def load_psf(
@@ -529,13 +552,18 @@ def load_measurement(
     key: str | None = None,
     channel_order: ChannelOrder = "rgb",
     unmasked: bool = False,
+    measured: Array | None = None,
 ) -> F32:
     """Load a measurement as float32 ``(C, H, W)``: dark -> downsample -> clip -> normalise.
 
     Same arguments as :func:`load_psf`; by default the result is scaled to maximum 1
     (``normalise=None`` keeps the counts). ``unmasked``: it is read without an erasure mask
-    (a file that is 0 on many pixels is warned about). Raises for NaN/inf values, a bad dtype
-    or shape, and an all-zero measurement when it is to be normalised.
+    (a file that is 0 on many pixels is warned about). ``measured``: its erasure mask (H, W)
+    in the file's layout (nonzero = measured), for the check of negative pixels. A measurement
+    negative in many measured pixels after its dark level is warned about
+    (:func:`recon.checks.negative_measurement`: a dark level above the black level) before they
+    are clipped to 0. Raises for NaN/inf values, a bad dtype or shape, and an all-zero
+    measurement when it is to be normalised.
     """
     arr, p = _prepare(
         path,
@@ -547,6 +575,7 @@ def load_measurement(
         prefer=_MEAS_KEYS,
         order=channel_order,
         unmasked=unmasked,
+        measured=measured,
     )
     if normalise is not None:
         if not np.any(arr > 0):

@@ -45,7 +45,9 @@ def register(subparsers: Any) -> None:
                    "made from (colour, "
                    "--channel-order, --flip-rows, --downsample from EST's metadata, and for a "
                    "recon auto result its plan's downsampling and region; ref_prepared in the "
-                   "JSON)")
+                   "JSON); when GT and EST are both lenslesscam reconstructions of a different "
+                   "geometry (scene field, downsampling, region, colour, row flip, channel "
+                   "order) they are refused unless this is given (geometry_differs in the JSON)")
     p.add_argument("--spectral", action="store_true",
                    help="K is the spectral axis: also report the spectral cosine (automatic "
                    "for spectral reconstruction TIFFs)")
@@ -112,6 +114,62 @@ def _layout(meta: dict[str, Any] | None) -> dict[str, Any] | None:
     return layout
 
 
+def _geometry(meta: dict[str, Any] | None) -> dict[str, Any] | None:
+    """Where a reconstruction's pixels lie in the scene, from its metadata.
+
+    Scene field and region in full-resolution pixels of the measurement (the field centred on
+    the sensor axis), the total downsampling (the loader's, times a plan's), and how the
+    inputs were read (colour, row flip, channel order). None when the metadata does not say
+    (not a reconstruction, or one from before ``preprocessing`` recorded the field).
+    """
+    pre = (meta or {}).get("preprocessing")
+    if not isinstance(pre, dict):
+        return None
+    try:
+        ds = int(pre.get("downsample") or 1)
+        plan = (meta or {}).get("plan")
+        if isinstance(plan, dict) and "field" in plan:  # recon auto: the plan's field and grid
+            pd = int(plan.get("downsample") or 1)
+            field = [int(n) * ds for n in plan["field"]]
+            grid = [int(n) for n in (meta or {})["region_on_grid"]]
+        else:  # the loader's field, in pixels of its (downsampled) grid, all of it
+            pd = 1
+            field = [int(n) * ds for n in pre["field"]]
+            grid = [0, 0, int(pre["field"][0]), int(pre["field"][1])]
+    except (KeyError, TypeError, ValueError):
+        return None
+    if len(field) != 2 or len(grid) != 4:
+        return None
+    d = ds * pd
+    color = pre.get("color") or ("rgb" if pre.get("rgb") else "gray")
+    geo: dict[str, Any] = {"field": field, "downsample": d,
+                           "region": [n * d for n in grid], "color": color,
+                           "flip_rows": bool(pre.get("flip_rows"))}
+    if color == "rgb":  # a gray read takes no channel order
+        geo["channel_order"] = pre.get("channel_order") or "rgb"
+    return geo
+
+
+def _geometry_differences(ref: dict[str, Any], est: dict[str, Any]) -> list[str]:
+    """What differs between two reconstructions' geometries (:func:`_geometry`), in words."""
+    def hw(v: list[int]) -> str:
+        return f"{v[0]}x{v[1]}"
+
+    def reg(v: list[int]) -> str:
+        return f"{v[2]}x{v[3]} at ({v[0]}, {v[1]})"
+
+    words = {"field": ("scene field", hw), "downsample": ("downsampling", str),
+             "region": ("region (full-resolution px of the field)", reg),
+             "color": ("colour", str), "flip_rows": ("rows flipped", str),
+             "channel_order": ("channel order", str)}
+    out = []
+    for key, (name, fmt) in words.items():
+        a, b = ref.get(key), est.get(key)
+        if a != b and a is not None and b is not None:
+            out.append(f"{name} {fmt(a)} vs {fmt(b)}")
+    return out
+
+
 def _prepare_ref(path: Path, est_shape: tuple[int, ...], layout: dict[str, Any],
                  key: str | None) -> Any:
     """The reference in the frame of the reconstruction.
@@ -168,6 +226,15 @@ def run(args: argparse.Namespace) -> int:
     if layout is not None and not args.ref_as_is and est.shape[1] == 1 and ref_meta is None:
         ref = _prepare_ref(args.ref, tuple(est.shape), layout, args.key)
         prepared = layout
+    # two reconstructions: equal shapes do not make equal pixels (a 150x200 result of the
+    # sensor field at downsample 1 and one of the 2x field at downsample 2 cover other scenes)
+    ref_geo, est_geo = _geometry(ref_meta), _geometry(est_meta)
+    differs = (_geometry_differences(ref_geo, est_geo)
+               if ref_geo is not None and est_geo is not None else [])
+    if differs and not args.ref_as_is:
+        raise ValueError(f"ref {args.ref} and est {args.est} are reconstructions of different "
+                         f"geometry (ref vs est): {'; '.join(differs)}; their pixels are not "
+                         "the same scene points (--ref-as-is compares them as stored)")
     if ref.shape != est.shape:
         raise ValueError(
             f"shapes differ: ref {args.ref} is {tuple(ref.shape)} (C, K, H, W), est {args.est} "
@@ -177,6 +244,8 @@ def run(args: argparse.Namespace) -> int:
     report = {"ref": str(args.ref), "est": str(args.est), **report}
     if prepared is not None:
         report["ref_prepared"] = prepared
+    if differs:  # compared as stored on request (--ref-as-is)
+        report["geometry_differs"] = "; ".join(differs)
     if args.spectral or "spectral" in (ref_kind, est_kind):
         if ref.shape[1] < 2:
             raise ValueError(f"a spectral score needs K >= 2 bands, got shape {ref.shape}")

@@ -67,7 +67,9 @@ def add_plan_inputs(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timing", help="sensor timing JSON (SensorTiming fields, or a frame's "
                    "metadata with a 'timing' key)")
     p.add_argument("--mask", help="dead-pixel / erasure mask (1 = measured)")
-    p.add_argument("--budget", help="time budget of the reconstruction: 60s, 5min, 2h")
+    p.add_argument("--budget", help="time budget of the reconstruction: 60s, 5min, 2h (the "
+                   "analysis and the automatic tau's search come on top: plan_s, "
+                   "tau_search_s; --tau skips the search)")
     p.add_argument("--trade", help="a trade.csv from `lenslesscam trade` on similar data: the "
                                    "method, tau and iterations for the budget come from it")
     p.add_argument("--field", default="sensor", help="scene field: sensor, full (2x) or HxW")
@@ -176,7 +178,7 @@ def check_field_reach(field: Any, inputs: dict[str, Any]) -> None:
 
 
 def _make(args: argparse.Namespace, inputs: dict[str, Any], probe: bool = True) -> Any:
-    from recon.plan import DEFAULT_TAU, make_plan
+    from recon.plan import make_plan
 
     overrides = parse_overrides(args.set)
     if "field" in overrides:  # before the analysis: a field past the light's reach costs GBs
@@ -191,16 +193,31 @@ def _make(args: argparse.Namespace, inputs: dict[str, Any], probe: bool = True) 
         psf_stack=inputs["stack"], mask=inputs["mask"],
         field=inputs["field"], sensor=_window(inputs),
         budget_s=parse_budget(args.budget),
-        tau=args.tau if args.tau is not None else DEFAULT_TAU, seed=args.seed, probe=probe,
+        tau=args.tau, seed=args.seed, probe=probe,
         progress=progress)
     if getattr(args, "trade", None):
         plan = plan_from_trade(plan, args.trade, inputs,
                                who=f"lenslesscam {getattr(args, 'command', None) or 'plan'}")
     plan = plan.override(**overrides) if overrides else plan
+    warn_region(plan, args)
     if (args.tau is None and not getattr(args, "trade", None) and plan.method == "fista-tv"
             and "tau" not in overrides):
         plan = auto_tau_plan(plan, inputs)
     return plan
+
+
+def warn_region(plan: Any, args: argparse.Namespace) -> None:
+    """Print, on stderr, the plan's warning about a region or field the user set too small.
+
+    :func:`recon.plan.planner.region_energy_warning`: it holds less of the scene's energy than
+    the plan's extent analysis found (the plan's reasons say it too).
+    """
+    from recon.plan.planner import region_energy_warning
+
+    warning = region_energy_warning(plan)
+    if warning is not None:
+        who = f"lenslesscam {getattr(args, 'command', None) or 'plan'}"
+        print(f"{who}: warning: {warning}", file=sys.stderr)
 
 
 def _timing_source(path: Path) -> Any:
@@ -228,12 +245,14 @@ def auto_tau_plan(plan: Any, inputs: dict[str, Any]) -> Any:
     (x downsample; x K for a video's per-frame weight).
     """
     import dataclasses
+    import time
 
     import torch
 
     from recon.autotau import AUTO_MAX_ITER, choose_tau
     from recon.plan.planner import plan_tv, prepare
 
+    t0 = time.perf_counter()
     prep = prepare(plan, inputs["psf"], inputs["meas"], shutter=inputs["shutter"],
                    timing=inputs["timing"], psf_stack=inputs["stack"], mask=inputs["mask"])
     model, b_d = prep.model, prep.b
@@ -245,15 +264,31 @@ def auto_tau_plan(plan: Any, inputs: dict[str, Any]) -> Any:
                         tau_range=(1e-7 / per_frame, 1e-2 / per_frame))
     tau = choice.tau * per_frame * plan.downsample
     iterations = min(choice.iterations, limit)
+    search_s = time.perf_counter() - t0  # the search and its preparation
+    spent = (f"{search_s:.1f} s, not counted in plan_s" + (
+        f" nor in the {plan.budget_s:g} s budget, which covers the reconstruction only"
+        if plan.budget_s is not None else ""))
     why = (f"chosen from held-out measured pixels ({choice.heldout_pixels} pixels, "
-           f"{len(choice.curve)} values of tau tried in {choice.cost_s:.1f} s; recon.autotau)")
+           f"{len(choice.curve)} values of tau tried; recon.autotau); the search took {spent}")
     new = plan.override(tau=tau, iterations=iterations)
     chosen = (f"within that limit {iterations} iterations" if plan.budget_s is not None else
               f"then {iterations} iterations (at most {limit})")
     reasons = {**new.reasons, "tau": why, "iterations": why,
                "method": f"{new.reasons.get('method', '')}; {chosen} were {why}"}
+    evidence = {**new.evidence, "tau_search": {
+        "seconds": round(search_s, 3), "values_tried": len(choice.curve),
+        "heldout_pixels": choice.heldout_pixels, "max_iter": max(limit, 1)}}
     # chosen by the planner, not set by the user
-    return dataclasses.replace(new, reasons=reasons, overridden=plan.overridden)
+    return dataclasses.replace(new, reasons=reasons, evidence=evidence,
+                               overridden=plan.overridden)
+
+
+def tau_search_seconds(plan: Any) -> float | None:
+    """Seconds :func:`auto_tau_plan` took for ``plan`` (None: tau was not searched)."""
+    found = plan.evidence.get("tau_search") if isinstance(plan.evidence, dict) else None
+    if not isinstance(found, dict) or not isinstance(found.get("seconds"), int | float):
+        return None
+    return float(found["seconds"])
 
 
 def trade_data_warning(trade: Any, inputs: dict[str, Any], who: str = "plan") -> str | None:
@@ -350,6 +385,40 @@ def run_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_plan_matches(saved: Any, inputs: dict[str, Any], name: str) -> None:
+    """Refuse a saved plan (its JSON) made for another measurement size, naming both.
+
+    A plan's ``sensor`` is the grid it runs on: the measurement's size, or the padded PSF grid
+    it is embedded in (``plan --out`` then records the real size as ``measurement_window``).
+    Both are compared with this measurement's (its field, chosen for the real sensor, means
+    another scene on another one); the message names the real sizes of both. A plan whose
+    ``sensor`` is not two integers is left to :meth:`recon.plan.Plan.from_json`.
+    """
+    if not isinstance(saved, dict):
+        return
+    sensor = saved.get("sensor")
+    if not (isinstance(sensor, list) and len(sensor) == 2 and all(
+            isinstance(n, int) and not isinstance(n, bool) for n in sensor)):
+        return
+    grid = tuple(int(n) for n in inputs["sensor"])
+    window = _window(inputs)
+    plan_window = saved.get("measurement_window")
+    plan_window = (tuple(plan_window) if isinstance(plan_window, list) and len(plan_window) == 2
+                   else None)
+    if tuple(sensor) == grid and plan_window == window:
+        return
+
+    def size(grid_hw: Any, window: Any) -> str:
+        g = f"{grid_hw[0]}x{grid_hw[1]}"
+        if isinstance(window, list | tuple) and len(window) == 2:
+            return f"{window[0]}x{window[1]} measurement (on a {g} padded PSF grid)"
+        return f"{g} measurement"
+
+    raise ValueError(f"plan file {name} is for a {size(sensor, plan_window)}; this is a "
+                     f"{size(grid, window)}: the plan does not fit it; "
+                     "make a plan for this measurement (lenslesscam plan ... --out)")
+
+
 def _window(inputs: dict[str, Any]) -> tuple[int, int] | None:
     """The real sensor's size on the plan's grid when the PSF is on a padded grid, else None."""
     prob = inputs["problem"]
@@ -382,13 +451,19 @@ def run_auto(args: argparse.Namespace) -> int:
         if not path.is_file():
             raise FileNotFoundError(f"plan file not found: {args.plan}")
         try:
-            plan = Plan.from_json(json.loads(path.read_text(encoding="utf-8")))
+            saved = json.loads(path.read_text(encoding="utf-8"))
+            # which measurement it is for, before its own checks (they know only its numbers)
+            check_plan_matches(saved, inputs, args.plan)
+            plan = Plan.from_json(saved)
         except (ValueError, RecursionError) as exc:  # bad JSON, not UTF-8, a bad field
-            raise ValueError(f"plan file {args.plan}: {exc}") from None
+            msg = str(exc)
+            raise ValueError(msg if msg.startswith(f"plan file {args.plan}") else
+                             f"plan file {args.plan}: {msg}") from None
         overrides = parse_overrides(args.set)
         if overrides:
             plan = plan.override(**overrides)
         check_field_reach(list(plan.field), inputs)  # the saved plan's, or the one set
+        warn_region(plan, args)
     else:
         plan = _make(args, inputs)
     kind = {"2d": "image", "video": "video", "depth": "depth"}[plan.model]
@@ -413,6 +488,9 @@ def run_auto(args: argparse.Namespace) -> int:
     summary = {"out": [str(p) for p in paths], "model": plan.model, "k": plan.k,
                "region": list(plan.region), "downsample": plan.downsample,
                "iterations": res.iterations, "stop_reason": res.stop_reason,
-               "wall_time_s": round(res.wall_s, 3), "plan_s": round(plan.plan_s, 3)}
+               "wall_time_s": round(res.wall_s, 3), "plan_s": round(plan.plan_s, 3),
+               # the automatic tau's search in this command (None: none ran; a saved plan's
+               # was paid when it was made); plan_s is the analysis alone
+               "tau_search_s": None if args.plan else tau_search_seconds(plan)}
     print(json.dumps(summary))
     return 0

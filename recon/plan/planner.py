@@ -58,6 +58,7 @@ __all__ = [
     "execute",
     "make_plan",
     "planned_model",
+    "region_energy_warning",
 ]
 
 PLAN_FORMAT = "lenslesscam.plan"
@@ -67,6 +68,12 @@ DEFAULT_TAU = 1e-3
 #: the smallest measurement (rows and columns) make_plan analyses
 MIN_PLAN_SIZE = 2
 MODELS = ("2d", "video", "depth")
+#: a region (or field) set by the user that holds less than this fraction of the energy the
+#: extent analysis found in the plan's own region is warned about (reasons['region'], and
+#: ``plan`` / ``recon auto`` print it): the scene reaches beyond it
+REGION_ENERGY_WARN = 0.8
+#: cells per axis of the extent analysis' energy map kept in a plan's evidence
+ENERGY_MAP_CELLS = 12
 #: the most values of a base shutter function built from a timing (K0 x rows; 128 MB float64:
 #: one-line bins for a 2048-row sensor up to 8192 lines from the first row's start to the last
 #: row's end)
@@ -226,6 +233,9 @@ class Plan:
             raise ValueError(f"plan.tau must be >= 0, got {self.tau!r}")
         # the one field rule (recon.checks.check_field); the plan's PSF is on its sensor grid
         check_field(self.field, self.sensor, self.sensor, "plan field 'field'")
+        if self.region[2] < 1 or self.region[3] < 1:  # as given, not as Region prints it
+            raise ValueError(f"plan.region {list(self.region)!r} (top, left, height, width) "
+                             "has an empty size: height and width must be >= 1")
         Region(*self.region, *self.field)  # raises if outside the field
         if self.model == "2d" and self.k != 1:
             raise ValueError(f"a 2d plan has k = 1, got {self.k}")
@@ -288,9 +298,16 @@ class Plan:
                 _check_plan_field(key, types[key], v)
             if key in ("k", "downsample", "bin_factor") and v is not None and v < 1:
                 raise ValueError(f"plan field {key!r} must be >= 1, got {v!r}")
+            if key == "iterations" and v is not None and v < 1 and changes.get(
+                    "method", self.method) == "fista-tv":
+                # the rule of validate(), said for the value the user gave
+                raise ValueError(f"plan field 'iterations' must be >= 1 for fista-tv, got {v!r}")
             if key in ("iterations", "tau", "lambda_t", "tv_depth", "estimated_s") and (
                     v is not None and v < 0):
                 raise ValueError(f"plan field {key!r} must be >= 0, got {v!r}")
+            if key == "region" and v not in (None, "whole") and (v[2] < 1 or v[3] < 1):
+                raise ValueError(f"plan field 'region' {list(v)!r} (top, left, height, width) "
+                                 "has an empty size: height and width must be >= 1")
             if key in ("budget_s", "seconds_per_iter") and v is not None and v <= 0:
                 raise ValueError(f"plan field {key!r} must be > 0, got {v!r}")
             if key in ("field", "planes") and v is not None and (
@@ -359,6 +376,11 @@ class Plan:
         for key in changes:
             old = getattr(self, key)
             reasons[key] = f"set by the user (the plan had {old!r})"
+        if {"region", "field"} & set(changes):
+            warning = _region_energy_text(self.evidence, tuple(merged["field"]),
+                                          tuple(merged["region"]))
+            if warning is not None:
+                reasons["region"] = f"{reasons.get('region', '')}; warning: {warning}"
         if model == "video" and "k" in changes and merged["k"] != changes["k"]:
             # K frames are whole bins of the finest shutter function
             reasons["k"] = (f"set by the user: {changes['k']!r} requested (the plan had "
@@ -455,6 +477,98 @@ class Plan:
             if why:
                 lines.append(f"  {'':<11}why: {why}")
         return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------
+# where the energy lies (the extent analysis' map, kept in the evidence)
+
+
+def _energy_map(preview: Any, field: tuple[int, int], factor: int,
+                cells: int = ENERGY_MAP_CELLS) -> dict[str, Any] | None:
+    """The extent analysis' reconstruction (its positive part) as a small energy map.
+
+    ``preview`` is on the analysis grid (``field // factor``, pixel i covering full-resolution
+    rows ``[i factor, (i + 1) factor)``; the last cell reaches to the field's end). At most
+    ``cells`` x ``cells`` cells, with their edges in full-resolution field pixels; the energy
+    of each cell as a fraction of the whole. None when the reconstruction holds no energy.
+    """
+    e = np.clip(np.asarray(preview, dtype=np.float64), 0, None)
+    total = float(e.sum())
+    if e.ndim != 2 or total <= 0 or not math.isfinite(total):
+        return None
+    starts = []
+    for axis, n in enumerate(e.shape):
+        groups = np.array_split(np.arange(n), min(cells, n))
+        starts.append([int(g[0]) for g in groups])
+        e = np.add.reduceat(e, starts[-1], axis=axis)
+    edges = [[s * factor for s in st] + [int(field[i])] for i, st in enumerate(starts)]
+    return {"field": [int(field[0]), int(field[1])], "row_edges": edges[0],
+            "col_edges": edges[1], "energy": np.round(e / total, 4).tolist()}
+
+
+def _map_energy(emap: Mapping[str, Any], field: tuple[int, int],
+                region: tuple[int, int, int, int]) -> float:
+    """Fraction of the map's energy inside ``region`` of a field ``field``.
+
+    Both fields are centred on the sensor axis (field pixel ``H // 2`` images to the PSF's
+    origin), so a region of another field is moved onto the map's; a cell partly inside
+    counts in proportion to its area inside (energy taken as uniform within a cell).
+    """
+    mh, mw = emap["field"]
+    top = region[0] + mh // 2 - field[0] // 2
+    left = region[1] + mw // 2 - field[1] // 2
+
+    def overlap(edges: list[int], lo: int, n: int) -> Any:
+        a, b = np.asarray(edges[:-1], float), np.asarray(edges[1:], float)
+        inside = np.clip(np.minimum(b, lo + n) - np.maximum(a, lo), 0, None)
+        return inside / np.maximum(b - a, 1.0)
+
+    wy = overlap(emap["row_edges"], top, region[2])
+    wx = overlap(emap["col_edges"], left, region[3])
+    return float(wy @ np.asarray(emap["energy"], dtype=np.float64) @ wx)
+
+
+def _region_energy_text(evidence: Mapping[str, Any], field: tuple[int, int],
+                        region: tuple[int, int, int, int]) -> str | None:
+    """One line when ``region`` of ``field`` holds too little of the energy the plan found.
+
+    Too little: under :data:`REGION_ENERGY_WARN` of what the extent analysis' own region
+    held (``evidence['extent']``, its energy map). None when it holds enough, or the plan
+    has no map (made by an earlier version).
+    """
+    ext = evidence.get("extent") if isinstance(evidence, Mapping) else None
+    emap = ext.get("energy_map") if isinstance(ext, Mapping) else None
+    if not isinstance(emap, Mapping):
+        return None
+    try:
+        found_region = tuple(int(n) for n in ext["region"])
+        found = _map_energy(emap, tuple(emap["field"]), found_region)  # type: ignore[arg-type]
+        held = _map_energy(emap, field, region)
+    except (KeyError, TypeError, ValueError, IndexError):  # a map edited by hand
+        return None
+    if found <= 0 or held >= REGION_ENERGY_WARN * found:
+        return None
+    whole = tuple(region) == (0, 0, field[0], field[1])
+    what = (f"the {field[0]}x{field[1]} field" if whole else
+            f"region {region[2]}x{region[3]} at ({region[0]}, {region[1]}) of the "
+            f"{field[0]}x{field[1]} field")
+    fh, fw = emap["field"]
+    t, lft, h, w = found_region
+    return (f"{what} holds {100 * held / found:.0f}% of the scene's energy that the extent "
+            f"analysis found in {h}x{w} at ({t}, {lft}) of the {fh}x{fw} field (threshold "
+            f"{100 * REGION_ENERGY_WARN:.0f}%): the scene reaches beyond it, and the light from "
+            "outside is fitted inside it")
+
+
+def region_energy_warning(plan: Plan) -> str | None:
+    """The warning about a region or field the user set, as :meth:`Plan.override` gives it.
+
+    None when neither was set by the user or the region holds enough of the scene's energy
+    (see :data:`REGION_ENERGY_WARN`).
+    """
+    if not {"region", "field"} & set(plan.overridden):
+        return None
+    return _region_energy_text(plan.evidence, plan.field, plan.region)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -584,7 +698,7 @@ def make_plan(
     field: tuple[int, int] | None = None,
     sensor: tuple[int, int] | None = None,
     budget_s: float | None = None,
-    tau: float = DEFAULT_TAU,
+    tau: float | None = None,
     analysis_rows: int = 24,
     seed: int = 0,
     probe: bool = True,
@@ -605,7 +719,8 @@ def make_plan(
         sensor: the real sensor's (rows, cols) when ``meas`` lies on a larger (padded PSF)
             grid; the downsampling keeps at least 16 px of it and of the field.
         budget_s: time budget of the reconstruction in seconds (None: none).
-        tau: TV weight of the reconstruction.
+        tau: TV weight of the reconstruction (None: :data:`DEFAULT_TAU`, the reasons say
+            "default"; a value given, even the default's, is "given").
         analysis_rows: the analysis runs on a grid of about this many rows.
         seed: seeds the held-out pixels of the cross-validation.
         probe: measure the planned model's cost (else no time estimate, default iterations).
@@ -614,6 +729,7 @@ def make_plan(
 
     """
     t_start = time.perf_counter()
+    given_tau, tau = tau, DEFAULT_TAU if tau is None else float(tau)
 
     def say(msg: str) -> None:
         if progress is not None:
@@ -689,6 +805,9 @@ def make_plan(
     ext = scene_extent(psf_gray, b_a, fld, a, measured=measured)
     region = ext.region
     evidence["extent"] = ext.to_dict()
+    emap = _energy_map(ext.preview, fld, a)
+    if emap is not None:  # where the energy lies: a region the user sets is checked on it
+        evidence["extent"]["energy_map"] = emap
     if ext.cropped:
         reasons["region"] = (
             f"a {b_a.shape[0]}x{b_a.shape[1]} reconstruction puts the energy in "
@@ -783,7 +902,7 @@ def make_plan(
         "; rule and cost probe of recon.plan.cost (measured here at plan time)"
         if cost is not None else "")
     reasons["tau"] = ("the default TV weight of recon fista (measurement scaled to max 1)"
-                      if tau == DEFAULT_TAU else "given")
+                      if given_tau is None else "given")
     if cost is not None:
         evidence["cost"] = cost.to_dict()
     return dataclasses.replace(
@@ -850,9 +969,12 @@ def prepare(
     :func:`execute` runs on it and ``plan``'s tau auto searches on it: one preparation for both.
     """
     b = _scaled_meas(meas)
-    if tuple(b.shape[1:]) != plan.sensor:
-        raise ValueError(f"the plan is for a {plan.sensor} sensor, the measurement is "
-                         f"{b.shape[1:]}")
+    if tuple(b.shape[1:]) != tuple(plan.sensor):
+        # both are grids: a measurement embedded in a padded PSF grid is that grid here
+        # (lenslesscam recon auto names the real sensor before it gets here)
+        raise ValueError(f"the plan is for a {plan.sensor[0]}x{plan.sensor[1]} measurement "
+                         f"grid (its 'sensor'), this measurement's grid is {b.shape[1]}x"
+                         f"{b.shape[2]}: make the plan for this measurement")
     base, _ = base_shutter(shutter, timing, plan.sensor[0], plan.base_bins)
     model = planned_model(plan, psf, shutter=base, psf_stack=psf_stack, mask=mask,
                           dtype=dtype, device=device)
