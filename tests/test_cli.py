@@ -8,14 +8,8 @@ import numpy as np
 import pytest
 import tifffile
 
-from app.cli import main
 from recon.io import read_reconstruction
-
-
-def _run(capsys, *argv):
-    code = main(list(argv))
-    out = capsys.readouterr()
-    return code, out.out, out.err
+from tests.clirun import run_cli as _run
 
 
 def test_simulate_recon_metrics_round_trip(tmp_path, capsys):

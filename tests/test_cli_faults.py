@@ -20,14 +20,11 @@ import pytest
 import torch
 
 from app.cli import build_parser, main
+from tests.clirun import run_cli as _run
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _run(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def _walk(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):

@@ -14,13 +14,7 @@ import json
 import numpy as np
 import pytest
 
-from app.cli import main
-
-
-def _run(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
+from tests.clirun import run_cli as _run
 
 
 @pytest.fixture()

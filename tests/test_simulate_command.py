@@ -10,14 +10,8 @@ import os
 import numpy as np
 import pytest
 
-from app.cli import main
 from recon.simulate import synthetic_psf
-
-
-def _run(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
+from tests.clirun import run_cli as _run
 
 
 @pytest.fixture

@@ -21,6 +21,7 @@ from drivers.timing import SensorTiming
 from recon.plan import Plan, make_plan
 from recon.plan.planner import MAX_SHUTTER_ELEMENTS, base_bin_lines, base_shutter
 from recon.preprocess import bin_time
+from tests.clirun import run_cli as _run
 
 H, W = 48, 64
 
@@ -66,12 +67,6 @@ def test_make_plan_refuses_the_field_before_the_analysis(static_cap, monkeypatch
         make_plan(static_cap.psf, static_cap.meas, field=(1500, 1500), probe=False)
 
 
-def _run(capsys, *argv):
-    from app.cli import main
-
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 @pytest.fixture

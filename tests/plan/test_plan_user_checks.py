@@ -20,12 +20,7 @@ import pytest
 from app.cli import main
 from recon.plan import make_plan
 from recon.plan.planner import prepare
-
-
-def _run(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
+from tests.clirun import run_cli as _run
 
 
 @pytest.fixture()
