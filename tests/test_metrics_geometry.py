@@ -108,3 +108,25 @@ def test_a_row_flip_or_channel_order_is_a_difference_too(tmp_path, capsys):
                           tmp_path / "c.tif")
     assert code == 0, err
     assert json.loads(out)["mse"] == 0.0
+
+
+def test_a_remainder_the_downsampling_drops_is_no_difference(tmp_path, capsys):
+    """A 26x34 frame at downsample 4: recon fista records the 24x32 it covers, recon auto the
+    26x34 field; both results are the same 6x8 grid and are compared, not refused."""
+    import torch
+
+    from recon.models import build_model
+    from recon.simulate import synthetic_psf
+    from tests.scenes import blocks_scene
+
+    h, w = 26, 34
+    psf = synthetic_psf((h, w), seed=2)
+    b = build_model("2d", psf).apply(torch.as_tensor(
+        blocks_scene(h, w, seed=1).astype(np.float32)[None, None])).numpy()[0]
+    np.save(tmp_path / "psf.npy", psf)
+    np.save(tmp_path / "meas.npy", b)
+    fista = _recon(capsys, tmp_path, "f.tif", "--downsample", "4", method="fista")
+    auto = _recon(capsys, tmp_path, "a.tif", "--set", "downsample=4")
+    code, out, err = _run(capsys, "metrics", "--ref", fista, "--est", auto)
+    assert code == 0, err
+    assert "geometry_differs" not in json.loads(out)

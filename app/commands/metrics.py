@@ -141,6 +141,9 @@ def _geometry(meta: dict[str, Any] | None) -> dict[str, Any] | None:
     if len(field) != 2 or len(grid) != 4:
         return None
     d = ds * pd
+    # the field the grid covers: a remainder the downsampling drops is no difference (a
+    # 270-row field at downsample 4 covers 268 rows, as a 268-row field does)
+    field = [n // d * d for n in field]
     color = pre.get("color") or ("rgb" if pre.get("rgb") else "gray")
     geo: dict[str, Any] = {"field": field, "downsample": d,
                            "region": [n * d for n in grid], "color": color,

@@ -156,6 +156,15 @@ def test_a_plan_for_another_measurement_names_the_real_sizes(files, static_cap, 
                         "--plan", padded_plan, "--set", "iterations=3", "--quiet",
                         "--out", files / "q.tif")
     assert code == 0, err
+    # a plan from Python (Plan.to_json: no window, no inputs) is checked on its grid only
+    bare = json.loads(padded_plan.read_text())
+    for key in ("measurement_window", "inputs", "created_utc"):
+        bare.pop(key, None)
+    (files / "bare.json").write_text(json.dumps(bare))
+    code, _, err = _run(capsys, "recon", "auto", *_inputs(files, meas="quarter.npy"),
+                        "--plan", files / "bare.json", "--set", "iterations=3", "--quiet",
+                        "--out", files / "b.tif")
+    assert code == 0, err
     # a plan whose sensor was edited: the mismatch first, not its own field check
     saved = json.loads(plan_file.read_text())
     saved["sensor"] = [10, 10]
