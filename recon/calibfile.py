@@ -46,6 +46,7 @@ from recon.formats import (
     json_default,
     provenance,
     software_version,
+    whole_version,
 )
 
 __all__ = [
@@ -352,15 +353,11 @@ def _check_meta(p: Path, meta: Any, expect: str | None) -> tuple[str, dict[str, 
         )
     if expect is not None and kind != expect:
         raise FormatError(f"{p} is a {kind} calibration, expected a {expect} calibration")
-    version = meta.get("format_version")
-    if (
-        not isinstance(version, int)
-        or isinstance(version, bool)
-        or not (1 <= version <= FORMAT_VERSION)
-    ):
+    version = whole_version(meta.get("format_version"))
+    if version is None or not (1 <= version <= FORMAT_VERSION):
         raise FormatError(
-            f"{p}: {kind} calibration format_version {version!r} is not supported by this "
-            f"release (reads 1..{FORMAT_VERSION})"
+            f"{p}: {kind} calibration format_version {meta.get('format_version')!r} is not "
+            f"supported by this release (reads 1..{FORMAT_VERSION})"
         )
     missing = [k for k in REQUIRED_KEYS[kind] if k not in meta]
     if missing:

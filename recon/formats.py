@@ -22,6 +22,7 @@ __all__ = [
     "json_default",
     "provenance",
     "software_version",
+    "whole_version",
 ]
 
 #: Version of the on-disk formats written by this release (bumped on incompatible changes).
@@ -115,3 +116,18 @@ def read_utf8(path: str | os.PathLike[str], *, error: type[Exception] = ValueErr
     except UnicodeDecodeError as exc:
         raise error(f"{path}: {what}not UTF-8 text (byte {data[exc.start]:#04x} at offset "
                     f"{exc.start}){hint}") from None
+
+
+def whole_version(value: Any) -> int | None:
+    """A file's ``format_version`` as an integer, or None when it is not a whole number.
+
+    The one rule every reader of a versioned file uses: an int (not a bool), or a float that
+    is a whole number (``1.0``: some JSON writers put 1 so).
+    """
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return None

@@ -21,7 +21,14 @@ import numpy.typing as npt
 
 from recon.atomic import atomic_write
 from recon.falsecolor import load_false_color_weights
-from recon.formats import FORMAT_VERSION, FormatError, array_hash, json_default, provenance
+from recon.formats import (
+    FORMAT_VERSION,
+    FormatError,
+    array_hash,
+    json_default,
+    provenance,
+    whole_version,
+)
 from recon.previews import (
     _montage,
     _preview_channels,
@@ -250,11 +257,11 @@ def read_reconstruction(path: PathLike) -> tuple[F32, dict[str, Any]]:
             f"{p} is not a lenslesscam reconstruction (format {found!r}, expected "
             f"{RECONSTRUCTION_FORMAT!r})"
         )
-    version = meta.get("format_version")
-    if not isinstance(version, int) or version < 1 or version > FORMAT_VERSION:
+    version = whole_version(meta.get("format_version"))
+    if version is None or version < 1 or version > FORMAT_VERSION:
         raise FormatError(
-            f"{p}: reconstruction format_version {version!r} is not supported by this release "
-            f"(reads 1..{FORMAT_VERSION})"
+            f"{p}: reconstruction format_version {meta.get('format_version')!r} is not "
+            f"supported by this release (reads 1..{FORMAT_VERSION})"
         )
     shape = meta.get("shape")
     if (

@@ -169,11 +169,11 @@ def _read_trade_folder(csv_path: Path, hashes: Mapping[str, str]) -> Suggestion 
         return None
     if not isinstance(rec, dict) or not inputs_match(rec, hashes):
         return None
-    from recon.formats import FORMAT_VERSION
+    from recon.formats import FORMAT_VERSION, whole_version
 
-    version = rec.get("format_version", 1)  # files before the format line: version 1
+    version = whole_version(rec.get("format_version", 1))  # none: version 1
     if rec.get("format", TRADE_INPUTS_FORMAT) != TRADE_INPUTS_FORMAT or not (
-            isinstance(version, int) and version <= FORMAT_VERSION):
+            version is not None and version <= FORMAT_VERSION):
         return None  # another file, or a newer version than this release reads
     try:
         rows = read_trade_csv(csv_path)

@@ -36,6 +36,8 @@ from typing import IO, Any
 import numpy as np
 import numpy.typing as npt
 
+from recon.formats import whole_version
+
 __all__ = [
     "APP_JOB_FILE",
     "APP_JOB_FORMAT",
@@ -413,11 +415,11 @@ def job_view(folder: str | Path) -> JobView | None:
                 state=AppJobState.read(entry.get("state", "queued")),
                 memory=dict(entry.get("memory") or {}),
                 created_utc=str(entry.get("created_utc", "")))
-    version = entry.get("format_version", APP_JOB_VERSION)
-    if not isinstance(version, int) or version > APP_JOB_VERSION:
+    version = whole_version(entry.get("format_version", APP_JOB_VERSION))
+    if version is None or version > APP_JOB_VERSION:
         v.state = AppJobState.HELD  # never started by a version that does not know it
-        v.detail = (f"written by a newer lenslesscam (app job format {version!r}); this "
-                    "version does not start it")
+        v.detail = (f"written by a newer lenslesscam (app job format "
+                    f"{entry.get('format_version')!r}); this version does not start it")
         return v
     problem = _entry_problem(entry)
     if problem is not None:

@@ -387,15 +387,17 @@ class TauSpinBox(DoubleSpinBox):
                 text, pos)
 
 
-def _kept(shown: float, current: float | None, decimals: int) -> float:
-    """``current`` when the control shows it (rounded to its decimals), else ``shown``.
+def _kept(box: QDoubleSpinBox, current: float | None) -> float:
+    """``current`` when ``box`` shows it (the same text), else the box's value.
 
-    A dark level of 100.4 is shown as 100; taking the 100 back would change the setting the
-    engine runs and the file keeps without anyone touching it.
+    A dark level of 100.4 is shown as 100, a tau of 1.23456e-4 as 0.000123: taking the shown
+    value back (Enter in the box, a toggle elsewhere) would change the setting the engine
+    runs and the file keeps without anyone editing it.
     """
-    if current is not None and abs(shown - current) <= 0.5 * 10.0 ** -decimals + 1e-12:
+    shown = float(box.value())
+    if current is not None and box.textFromValue(float(current)) == box.textFromValue(shown):
         return float(current)
-    return float(shown)
+    return shown
 
 
 class PreviewControls(QGroupBox):
@@ -482,11 +484,11 @@ class PreviewControls(QGroupBox):
         return dataclasses.replace(
             cur,
             model=str(self.model.currentData()),
-            tau=_kept(float(self.tau.value()), cur.tau, self.tau.decimals()),
+            tau=_kept(self.tau, cur.tau),
             tau_auto=self.tau_auto.isChecked(),
             iters_per_frame=int(self.iters.value()),
             downsample=int(self.downsample.value()),
-            dark=None if dark < 0 else _kept(dark, cur.dark, self.dark.decimals()),
+            dark=None if dark < 0 else _kept(self.dark, cur.dark),
             video_bins=int(self.bins.value()),
         )
 

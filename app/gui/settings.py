@@ -17,6 +17,8 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from recon.formats import whole_version
+
 __all__ = [
     "SETTINGS_FORMAT",
     "SETTINGS_VERSION",
@@ -132,12 +134,11 @@ def load_settings(path: Path | None = None) -> AppSettings:
         with contextlib.suppress(OSError):  # the save at exit would write over it
             p.replace(p.with_suffix(".json.bad"))
         return AppSettings()
-    version = raw.get("format_version", 0)
-    if isinstance(version, float) and version.is_integer():
-        version = int(version)  # 1.0, as some JSON writers put 1, is version 1
-    if not isinstance(version, int) or isinstance(version, bool):
+    raw_version = raw.get("format_version", 0)
+    version = whole_version(raw_version)  # 1.0, as some JSON writers put 1, is version 1
+    if version is None:
         _log.warning("settings file %s has format_version %r, not a whole number; using "
-                     "defaults", p, version)
+                     "defaults", p, raw_version)
         with contextlib.suppress(OSError):
             p.replace(p.with_suffix(".json.bad"))
         return AppSettings()

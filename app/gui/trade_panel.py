@@ -209,7 +209,10 @@ class TradePanel(QWidget):
         self.measure_button.setEnabled(True)
         if self._thread is not None:
             self._thread.quit()
-            self._thread.wait(5000)
+            if not self._thread.wait(5000):
+                from app.gui.workers import detach_thread
+
+                detach_thread(self._thread, self._worker)
         self._thread = self._worker = None
         self._suggest()
         self.rows_changed.emit()
@@ -225,7 +228,10 @@ class TradePanel(QWidget):
             self._worker.stop()
         if self._thread is not None:
             self._thread.quit()
-            self._thread.wait(30_000)
+            if not self._thread.wait(30_000):  # a long setting: never destroy a running thread
+                from app.gui.workers import detach_thread
+
+                detach_thread(self._thread, self._worker)
             self._thread = self._worker = None
             self.measure_button.setEnabled(True)
 

@@ -31,7 +31,8 @@ from app.gui.preview_engine import (
     frame_keywords,
 )
 
-__all__ = ["Cancelled", "PreviewWorker", "Task", "TaskQueue", "detached_threads"]
+__all__ = ["Cancelled", "PreviewWorker", "Task", "TaskQueue", "detach_thread",
+           "detached_threads"]
 
 _log = logging.getLogger(__name__)
 
@@ -60,7 +61,7 @@ def detached_threads() -> list[str]:
     return [t.objectName() for t, _ in _DETACHED if t.isRunning()]
 
 
-def _detach(thread: QThread, inner: QObject) -> None:
+def detach_thread(thread: QThread, inner: QObject) -> None:
     """Keep ``thread`` (still running) and ``inner`` alive until the thread finishes."""
     global _reaper
     if _reaper is None:
@@ -251,7 +252,7 @@ class TaskQueue(QObject):
         ok = bool(self._thread.wait(timeout_ms))
         if not ok:  # a hung device call: left to end in the background, never destroyed
             _log.error("%s: worker thread did not stop within %d ms", self.name, timeout_ms)
-            _detach(self._thread, self._runner)
+            detach_thread(self._thread, self._runner)
         return ok
 
 
@@ -270,6 +271,10 @@ class PreviewWorker(QObject):
     def __init__(self, engine: PreviewEngine) -> None:
         super().__init__()
         self.engine = engine
+        # a new worker previews: an earlier worker's stop() cancelled this engine
+        resume = getattr(engine, "resume", None)
+        if resume is not None:
+            resume()
         self.slot = FrameSlot()
         self._thread = QThread()
         self._thread.setObjectName("preview")
@@ -302,7 +307,7 @@ class PreviewWorker(QObject):
             return True
         _log.error("the preview frame in progress did not stop within %d ms; its thread is "
                    "left to finish in the background", timeout_ms)
-        _detach(self._thread, self._inner)
+        detach_thread(self._thread, self._inner)
         return False
 
 

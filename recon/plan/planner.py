@@ -31,6 +31,7 @@ import torch
 
 from recon.checks import check_field
 from recon.fista import Fista, FistaStep
+from recon.formats import whole_version
 from recon.models import ForwardModel
 from recon.plan.analysis import (
     LAMBDA_T,
@@ -419,10 +420,11 @@ class Plan:
             raise ValueError(f"a plan is a JSON object, got {type(d).__name__}")
         if d.get("format") != PLAN_FORMAT:
             raise ValueError(f"not a plan: format {d.get('format')!r}, expected {PLAN_FORMAT!r}")
-        version = d.get("format_version", 1)  # a file without one: the first version
-        if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raw_version = d.get("format_version", 1)  # a file without one: the first version
+        version = whole_version(raw_version)
+        if version is None or version < 1:
             raise ValueError(f"plan format_version must be a whole number >= 1, got "
-                             f"{version!r}")
+                             f"{raw_version!r}")
         if version > PLAN_VERSION:
             raise ValueError(f"plan format version {d.get('format_version')} is newer than "
                              f"this software reads ({PLAN_VERSION})")

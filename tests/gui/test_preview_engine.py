@@ -389,3 +389,12 @@ def test_the_tau_box_shows_and_takes_small_values(qtbot) -> None:
     assert controls.tau.text() == "2.5e-05"
     qtbot.keyClicks(controls.tau.lineEdit(), "x")  # not a number: refused while typing
     assert "x" not in controls.tau.lineEdit().text()
+    # a tau finer than the 3 digits shown (from the trade panel or the file) survives Enter
+    # in the untouched box: the shown 0.000123 was taken back
+    controls.set_settings(PreviewSettings(tau=1.23456e-4, dark=100.4))
+    controls.tau.setFocus()
+    qtbot.keyClick(controls.tau.lineEdit(), Qt.Key.Key_Return)
+    controls.tau.setValue(controls.tau.valueFromText(controls.tau.text()))  # as an edit does
+    controls.tau_auto.toggle()
+    got = controls.settings()
+    assert got.tau == 1.23456e-4 and got.dark == 100.4

@@ -102,6 +102,25 @@ def test_stopping_cancels_a_long_real_frame_at_its_next_step(monkeypatch: pytest
     assert errors == []  # a cancelled frame is not an error to show
 
 
+def test_a_new_worker_on_a_stopped_engine_previews_again(qtbot: Any) -> None:
+    """stop() cancels the engine it shares with the window; a worker started on it later
+    (a restart of the preview) showed nothing and said nothing."""
+    from app.gui.preview_engine import PreviewEngine, PreviewSettings
+    from app.gui.workers import PreviewWorker
+    from recon.simulate import synthetic_psf
+
+    engine = PreviewEngine(synthetic_psf((48, 64), n_points=20, seed=1),
+                           PreviewSettings(iters_per_frame=3, tau_auto=False, dark=0.0))
+    first = PreviewWorker(engine)
+    assert first.stop(timeout_ms=5_000) is True and engine.cancelled
+    second = PreviewWorker(engine)
+    results: list[Any] = []
+    second.result.connect(results.append)
+    second.submit(_frame((np.random.default_rng(0).random((48, 64)) * 1000).astype(np.uint16)))
+    qtbot.waitUntil(lambda: bool(results), timeout=20_000)
+    assert second.stop(timeout_ms=5_000) is True
+
+
 def test_the_process_exits_cleanly_with_a_detached_frame_still_running(tmp_path: Path) -> None:
     """The app closing while a frame runs on past the stop timeout: the process waits for the
     thread at exit instead of aborting ("QThread: Destroyed while thread 'preview' is still

@@ -202,3 +202,18 @@ def test_planes_beyond_the_stack_are_refused():
     with pytest.raises(ValueError, match=r"\[0, 5\] reaches past the 3-plane stack"):
         p.override(planes=[0, 5])
     assert p.override(model="depth", planes=[0, 2]).k == 2
+
+
+def test_a_whole_float_format_version_is_that_version():
+    """1.0 (as some JSON writers put 1) is version 1, in plans as in every versioned file
+    (recon.formats.whole_version); it was "must be a whole number >= 1, got 1.0"."""
+    from recon.formats import whole_version
+
+    d = _plan().to_json()
+    d["format_version"] = 1.0
+    assert Plan.from_json(d) == _plan()
+    d["format_version"] = 1.5
+    with pytest.raises(ValueError, match="whole number >= 1, got 1.5"):
+        Plan.from_json(d)
+    assert [whole_version(v) for v in (1, 2.0, 1.5, True, "1", None)] == [1, 2, None, None,
+                                                                          None, None]
