@@ -148,24 +148,17 @@ def jobs_dir_problem(jobs_dir: str | Path) -> str | None:
 
     Said when the app starts, not only when the first job fails to be written.
     """
+    from app.commands._options import check_output_folders
+
     p = Path(jobs_dir)
     if p.exists() and not p.is_dir():
         return (f"the jobs folder {p} is a file, not a folder: no job can be queued; choose "
                 "another jobs folder (--jobs-dir, or jobs_dir in the settings file)")
-    if p.is_dir():
-        if not os.access(p, os.W_OK | os.X_OK):
-            return f"the jobs folder {p} is not writable: no job can be queued there"
-        return None
-    for parent in p.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                return (f"the jobs folder {p} lies inside {parent}, which is a file: no job "
-                        "can be queued; choose another jobs folder (--jobs-dir, or jobs_dir "
-                        "in the settings file)")
-            if not os.access(parent, os.W_OK | os.X_OK):
-                return (f"the jobs folder {p} cannot be made ({parent} is not writable): no "
-                        "job can be queued there")
-            return None
+    try:  # the one probe of a folder the system lets us write (os.access says yes to root)
+        check_output_folders([p / "probe"])
+    except PermissionError as exc:
+        return (f"the jobs folder {p} cannot hold jobs ({exc}): no job can be queued there; "
+                "choose another jobs folder (--jobs-dir, or jobs_dir in the settings file)")
     return None
 
 

@@ -393,7 +393,9 @@ def test_a_jobs_folder_that_cannot_hold_jobs_is_named(tmp_path):
     afile = tmp_path / "afile"
     afile.write_text("i am a file")
     assert "is a file, not a folder" in jobs_dir_problem(afile)
-    assert "lies inside" in jobs_dir_problem(afile / "jobs")
+    inside = jobs_dir_problem(afile / "jobs")
+    assert "cannot hold jobs" in inside and "is a file, not a folder" in inside
+    assert jobs_dir_problem("/proc/lenslesscam-jobs") is not None  # root too: probed, not asked
     assert jobs_dir_problem(tmp_path) is None
     assert jobs_dir_problem(tmp_path / "new" / "jobs") is None  # made when the first job comes
     import numpy as np
