@@ -1150,7 +1150,6 @@ class MainWindow(QMainWindow):
         s.window_state = bytes(self.saveState().toBase64().data()).decode("ascii")
         s.preview = self.preview_controls.settings().to_dict()
         s.preview_enabled = self.preview_controls.enabled.isChecked()
-        s.display_hz = 1000.0 / max(1, self.poll_timer.interval())
         if not s.jobs_dir:
             s.jobs_dir = str(default_jobs_dir())
         return s

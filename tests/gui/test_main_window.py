@@ -252,7 +252,8 @@ def test_preview_settings_without_controls_survive_load_toggle_save(make_window:
 
     mine = {"threads": 2, "target_fps": 5.0, "prox_iters": 7, "tau": 2.5e-6, "dark": 100.4,
             "iters_per_frame": 4}
-    save_settings(AppSettings(frame_rate_hz=10.0, connect_light=False, preview=mine))
+    save_settings(AppSettings(frame_rate_hz=10.0, connect_light=False, preview=mine,
+                              display_hz=30.0))
     threads = torch.get_num_threads()
     try:
         w = make_window(load_settings(), autoconnect=False)
@@ -265,7 +266,9 @@ def test_preview_settings_without_controls_survive_load_toggle_save(make_window:
         w.close()
     finally:
         torch.set_num_threads(threads)
-    saved = json.loads(settings_path().read_text(encoding="utf-8"))["preview"]
+    whole = json.loads(settings_path().read_text(encoding="utf-8"))
+    assert whole["display_hz"] == 30.0  # was read back from the 33 ms timer: 30.303
+    saved = whole["preview"]
     assert {k: saved[k] for k in mine} == mine
     assert saved["tau_auto"] is False  # the touched control (on by default)
 

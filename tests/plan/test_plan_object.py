@@ -213,7 +213,7 @@ def test_a_whole_float_format_version_is_that_version():
     d["format_version"] = 1.0
     assert Plan.from_json(d) == _plan()
     d["format_version"] = 1.5
-    with pytest.raises(ValueError, match="whole number >= 1, got 1.5"):
+    with pytest.raises(ValueError, match=r"whole number >= 1, got 1\.5"):
         Plan.from_json(d)
     assert [whole_version(v) for v in (1, 2.0, 1.5, True, "1", None)] == [1, 2, None, None,
                                                                           None, None]
