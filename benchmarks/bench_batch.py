@@ -12,24 +12,90 @@ a time) and the start of Ray. Every task uses 1 torch thread; the table states t
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import re
+import shutil
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-from app.commands._options import POSITIVE_INT
+from app.commands._options import POSITIVE_INT, add_overwrite_option
+from benchmarks._cli import hxw, int_list
+
+#: the smallest side of ``--size`` (the synthetic scenes' rectangles need 5 to h/2 pixels)
+MIN_SIDE = 16
+#: file in a ``--keep`` folder listing what this benchmark wrote there (all it removes)
+KEEP_MARKER = ".lenslesscam-bench-batch.json"
+#: names this benchmark writes in a ``--keep`` folder (nothing else is ever removed)
+KEEP_NAMES = re.compile(r"data|seq-(cold|warm)|ray\d+-(cold|warm)")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of ``lenslesscam bench batch``."""
     p.add_argument("--items", type=POSITIVE_INT, default=16, help="items per batch (16)")
-    p.add_argument("--size", default="48x64", help="measurement size HxW (48x64)")
+    p.add_argument("--size", type=hxw(MIN_SIDE), default="48x64",
+                   help=f"measurement size HxW, both sides >= {MIN_SIDE} (48x64)")
     p.add_argument("--iters", type=POSITIVE_INT, default=100, help="FISTA iterations (100)")
-    p.add_argument("--workers", default="1,2", help="Ray CPU counts to try (1,2)")
+    p.add_argument("--workers", type=int_list(POSITIVE_INT), default="1,2",
+                   help="comma-separated Ray CPU counts to try, each >= 1 (1,2)")
     p.add_argument("--noop", type=POSITIVE_INT, default=50,
                    help="empty tasks timed for Ray's overhead (50)")
-    p.add_argument("--keep", help="keep the data and batch folders here")
+    p.add_argument("--keep", help="keep the data and batch folders here: a new or empty folder, "
+                   "or with --overwrite one an earlier bench batch wrote to (what it wrote "
+                   "there is removed first, nothing else)")
+    add_overwrite_option(p)
+
+
+def _keep_entries(workers: list[int]) -> list[str]:
+    """The names this benchmark writes in its folder."""
+    return ["data", "seq-cold", "seq-warm",
+            *(f"ray{k}-{label}" for k in workers for label in ("cold", "warm"))]
+
+
+def prepare_keep(folder: Path, workers: list[int], overwrite: bool) -> None:
+    """Make ``--keep`` ready for a fresh run, before any work.
+
+    A folder that is not empty is refused without ``overwrite`` (the batch folders of an earlier
+    run would be resumed against newly written data); with it, the entries an earlier run of
+    this benchmark listed in :data:`KEEP_MARKER` are removed, and nothing else: a name this run
+    writes that is there but was not written by it is refused. The marker then lists this run's
+    entries (written first, so an interrupted run is recognised too).
+    """
+    from app.commands._options import check_output_folders
+    from recon.atomic import atomic_write_bytes
+
+    if folder.exists() and not folder.is_dir():
+        raise FileExistsError(f"--keep {folder} is a file: name a folder")
+    check_output_folders([folder / KEEP_MARKER])
+    planned = _keep_entries(workers)
+    owned: set[str] = set()
+    marker = folder / KEEP_MARKER
+    if folder.is_dir() and any(folder.iterdir()):
+        if not overwrite:
+            raise FileExistsError(
+                f"--keep {folder} is not empty: pass --overwrite to replace what an earlier "
+                "bench batch wrote there, or name a new or empty folder")
+        try:
+            listed = json.loads(marker.read_text(encoding="utf-8")).get("entries", [])
+            owned = {e for e in listed if isinstance(e, str) and KEEP_NAMES.fullmatch(e)}
+        except (OSError, ValueError, AttributeError):
+            owned = set()
+        foreign = [e for e in planned if (folder / e).exists() and e not in owned]
+        if foreign:
+            raise FileExistsError(
+                f"--keep {folder} holds {', '.join(foreign)}, which bench batch did not write "
+                "there: name another folder")
+        for e in sorted(owned):
+            path = folder / e
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            elif path.exists() or path.is_symlink():
+                path.unlink()
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(marker, json.dumps(
+        {"format": "lenslesscam.bench_batch.keep", "entries": planned}).encode())
 
 
 def _make(folder: Path, n: int, h: int, w: int, iters: int) -> Path:
@@ -83,11 +149,12 @@ def run(args: argparse.Namespace) -> int:
     from app.batch.state import BatchPaths
     from app.batch.task import run_item
 
-    m = __import__("re").fullmatch(r"(\d+)x(\d+)", args.size)
-    if not m:
-        raise ValueError(f"--size must be HxW, got {args.size!r}")
-    h, w = int(m.group(1)), int(m.group(2))
-    workers = [int(x) for x in args.workers.split(",") if x.strip()]
+    h, w = args.size
+    workers = args.workers
+    if args.keep is not None and not args.keep.strip():
+        raise ValueError("--keep: the path is empty: name a folder")
+    if args.keep is not None:
+        prepare_keep(Path(args.keep), workers, bool(getattr(args, "overwrite", False)))
     tmp = None if args.keep else tempfile.TemporaryDirectory(prefix="bench-batch-")
     root = Path(args.keep or tmp.name)  # type: ignore[union-attr]
     os.environ["OMP_NUM_THREADS"] = "1"

@@ -26,7 +26,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from app.commands._options import POSITIVE_INT, integer
+from app.commands._options import POSITIVE_INT, add_overwrite_option, integer
+from benchmarks._cli import check_outputs
 
 #: Padded FFT sizes of the 2D cases (the sensor and the PSF are half of it).
 SIZES = (256, 512, 1024, 2048)
@@ -73,6 +74,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "`git show REV:recon/admm.py`) in the same rounds, as the row "
                    "'admm-baseline' (it imports the current recon package otherwise)")
     p.add_argument("--json", default=None, help="also write the results as JSON here")
+    add_overwrite_option(p)
 
 
 def _quantile(xs: list[float], q: float) -> float:
@@ -131,14 +133,29 @@ def ratio_stats(num: list[float], den: list[float]) -> dict[str, float]:
 
 
 def _load_admm(path: str) -> Any:
-    """The ``Admm`` class of an admm.py at ``path``, loaded as a separate module."""
+    """The ``Admm`` class of an admm.py at ``path``, loaded as a separate module.
+
+    A missing file, a file that is not Python or one without an ``Admm`` class is a
+    :class:`ValueError` with one line naming ``--admm-baseline``.
+    """
     import importlib.util
 
+    where = f"--admm-baseline {path}"
+    if not os.path.exists(path):
+        raise ValueError(f"{where}: no such file")
+    if not os.path.isfile(path):
+        raise ValueError(f"{where}: not a file (name an admm.py)")
     spec = importlib.util.spec_from_file_location("_admm_baseline", path)
     if spec is None or spec.loader is None:
-        raise ValueError(f"cannot load {path} as a module")
+        raise ValueError(f"{where}: cannot be loaded as a Python module (name an admm.py)")
     mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    try:
+        spec.loader.exec_module(mod)
+    except Exception as exc:  # any failure of someone else's file: one line, not a traceback
+        first = next((ln for ln in str(exc).splitlines() if ln.strip()), "")
+        raise ValueError(f"{where}: cannot be loaded ({type(exc).__name__}: {first})") from None
+    if not isinstance(getattr(mod, "Admm", None), type):
+        raise ValueError(f"{where}: defines no Admm class")
     return mod.Admm
 
 
@@ -295,6 +312,10 @@ def run(args: argparse.Namespace) -> int:
     """Run the cases and print the table."""
     from recon.threads import apply_threads
 
+    baseline = getattr(args, "admm_baseline", None)
+    check_outputs(args, {"--json": args.json}, inputs={"--admm-baseline": baseline})
+    if baseline is not None:
+        _load_admm(baseline)  # a bad file stops here, before any timing
     choice = getattr(args, "thread_choice", None)  # set by the global --threads
     if args.threads is not None or choice is None:
         choice = apply_threads(args.threads)

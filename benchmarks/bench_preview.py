@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import statistics
 import subprocess
 import sys
@@ -35,12 +36,14 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from app.commands._options import NONNEG, POSITIVE, POSITIVE_INT
+from app.commands._options import NONNEG, NONNEG_INT, POSITIVE, POSITIVE_INT, add_overwrite_option
+from benchmarks._cli import check_outputs, int_list
 
 TARGET_RATE = 15.0
 TARGET_LATENCY_MS = 150.0
 SIZE = 256
 AUTO_WAIT_S = 60.0  # the longest wait for the one-off tau auto estimate
+CONFIGS = "1x3,1x5,1x10,2x5"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -52,13 +55,41 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "policy, recon.threads, as the app)")
     p.add_argument("--target-fps", type=NONNEG, default=15.0,
                    help="display rate the engine holds by cutting iterations (15; 0: never)")
-    p.add_argument("--loads", default="0",
-                   help="comma-separated numbers of busy processes to run beside (0,2)")
+    p.add_argument("--loads", type=int_list(NONNEG_INT), default="0",
+                   help="comma-separated numbers of busy processes to run beside, each >= 0 "
+                   "(default 0; for example 0,2)")
     p.add_argument("--fps", type=POSITIVE, default=30.0, help="simulated camera frame rate")
-    p.add_argument("--configs", default="1x3,1x5,1x10,2x5",
-                   help="comma-separated DOWNSAMPLExITERATIONS settings to measure")
+    p.add_argument("--configs", type=_configs, default=CONFIGS,
+                   help="comma-separated DOWNSAMPLExITERATIONS settings to measure, DOWNSAMPLE "
+                   f"{DOWNSAMPLE_RANGE[0]}..{DOWNSAMPLE_RANGE[1]}, ITERATIONS "
+                   f"{ITERS_RANGE[0]}..{ITERS_RANGE[1]} (default {CONFIGS})")
     p.add_argument("--tau", type=NONNEG, default=3e-4, help="TV weight of the preview (3e-4)")
     p.add_argument("--json", default=None, help="also write the results as JSON here")
+    add_overwrite_option(p)
+
+
+#: ranges of DOWNSAMPLE and ITERATIONS in ``--configs``: the engine's own
+#: (``app.gui.preview_engine.RANGES``, not imported here: building the CLI imports no torch)
+DOWNSAMPLE_RANGE = (1, 16)
+ITERS_RANGE = (1, 200)
+
+
+def _configs(text: str) -> list[tuple[int, int]]:
+    """``--configs``: comma-separated ``DxI`` (downsample, iterations per frame)."""
+    (dlo, dhi), (ilo, ihi) = DOWNSAMPLE_RANGE, ITERS_RANGE
+    out = []
+    for c in (c.strip() for c in text.split(",")):
+        if not c:
+            continue
+        m = re.fullmatch(r"(\d+)[xX](\d+)", c)
+        if not m or not (dlo <= int(m.group(1)) <= dhi and ilo <= int(m.group(2)) <= ihi):
+            raise argparse.ArgumentTypeError(
+                f"must be comma-separated DOWNSAMPLExITERATIONS, DOWNSAMPLE {dlo}..{dhi} and "
+                f"ITERATIONS {ilo}..{ihi} (for example 1x5,2x5), got {text!r}")
+        out.append((int(m.group(1)), int(m.group(2))))
+    if not out:
+        raise argparse.ArgumentTypeError(f"must list at least one setting, got {text!r}")
+    return out
 
 
 def _psf256() -> Any:
@@ -190,14 +221,11 @@ def run(args: argparse.Namespace) -> int:
     from app.gui.preview_engine import PreviewSettings
     from recon.threads import apply_threads
 
+    check_outputs(args, {"--json": args.json})
     choice = getattr(args, "thread_choice", None)  # set by the global --threads
     if args.threads is not None or choice is None:
         choice = apply_threads(args.threads)
-    loads = [int(v) for v in args.loads.split(",") if v.strip()]
-    configs = []
-    for c in args.configs.split(","):
-        d, _, it = c.strip().partition("x")
-        configs.append((int(d), int(it)))
+    loads, configs = args.loads, args.configs
     psf = _psf256()
     cam = make_sim_camera(SimConfig(psf=psf, scene="im65", frame_rate_hz=args.fps))
     cam.open()

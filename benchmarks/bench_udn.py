@@ -22,7 +22,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from app.commands._options import NONNEG_INT, POSITIVE_INT
+from app.commands._options import NONNEG_INT, POSITIVE_INT, add_overwrite_option
+from benchmarks._cli import check_outputs
 
 CASES: dict[str, dict[str, Any]] = {
     "2d-75x100": {"model": "2d", "shape": (75, 100), "k": 1, "variant": "2d"},
@@ -48,15 +49,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    choices=["float32", "bf16"], help="network precision: float32 or bf16")
     p.add_argument("--compile", nargs="+", default=["off", "on"], choices=["off", "on"],
                    help="torch.compile the network")
-    p.add_argument("--threads", type=NONNEG_INT, default=0, help="torch threads (0: torch default)")
+    p.add_argument("--threads", type=NONNEG_INT, default=0,
+                   help="torch threads (0, the default: chosen by the thread policy, "
+                   "recon.threads, from the free cores and the load)")
     p.add_argument("--grad-checkpoint", action="store_true", help="gradient checkpointing")
-    p.add_argument("--json", help="also write the rows as JSON here")
+    p.add_argument("--json", help="also write the rows as JSON here (not with --ratio)")
     p.add_argument("--ratio", action="store_true",
                    help="bf16 / float32 step-time ratio instead of the matrix: both runners in "
                    "one process, steps interleaved over --rounds rounds, median and p25-p75, "
                    "and where the time goes (a torch.profiler breakdown by kind of op)")
     p.add_argument("--rounds", type=POSITIVE_INT, default=9, help="rounds of --ratio (9)")
     p.add_argument("--case-json", help=argparse.SUPPRESS)  # internal: run one case, print JSON
+    add_overwrite_option(p)
 
 
 def _peak_rss_bytes() -> int:
@@ -227,6 +231,28 @@ def _profile_step(runner: Any) -> dict[str, float]:
     return out
 
 
+def profile_table(base: dict[str, float], other: dict[str, float], label: str) -> str:
+    """The Markdown table of two profiles (:func:`_profile_step`): float32 against ``label``
+    (the variant compared, for example "bf16 channels-last"), headed by what was compared.
+
+    The casts row says "autocast" only when the variant is bf16 (float32 runs no autocast).
+    """
+    kinds = sorted(set(base) | set(other), key=lambda k: -base.get(k, 0.0))
+    tot_a, tot_c = sum(base.values()), sum(other.values())
+    autocast = label.startswith("bf16")
+    lines = [f"| kind of op | float32 (ms) | share | {label} (ms) | share | "
+             f"{label} / float32 |", "|---|---|---|---|---|---|"]
+    for kd in kinds:
+        a, c = base.get(kd, 0.0), other.get(kd, 0.0)
+        name = kd if autocast else kd.replace(" (autocast)", "")
+        lines.append(f"| {name} | {1e3 * a:.0f} | {100 * a / tot_a:.0f} % | "
+                     f"{1e3 * c:.0f} | {100 * c / tot_c:.0f} % | "
+                     f"{(c / a) if a > 0 else float('nan'):.2f} |")
+    lines.append(f"| total | {1e3 * tot_a:.0f} | 100 % | {1e3 * tot_c:.0f} | "
+                 f"100 % | {tot_c / tot_a:.2f} |")
+    return "\n".join(lines)
+
+
 def run_ratio(args: argparse.Namespace) -> int:
     """bf16 / float32 per-step time, interleaved in one process, and where the time goes."""
     import statistics
@@ -277,26 +303,20 @@ def run_ratio(args: argparse.Namespace) -> int:
             print(f"| {v} | {1e3 * statistics.median(times[v]):.0f} | "
                   f"**{statistics.median(ratios):.2f}** | {q[0]:.2f}-{q[2]:.2f} |")
         best = min(names[1:], key=lambda v: statistics.median(times[v]))
-        prof = {"float32": _profile_step(runners["float32"]), "bf16": _profile_step(runners[best])}
+        prof = {"float32": _profile_step(runners["float32"]), best: _profile_step(runners[best])}
         print(f"\n(profile: float32 against {best})")
-        kinds = sorted(set(prof["float32"]) | set(prof["bf16"]),
-                       key=lambda k: -prof["float32"].get(k, 0.0))
-        tot = {p: sum(v.values()) for p, v in prof.items()}
         print("\nWhere one step's time goes (torch.profiler, self CPU time of aten ops):\n")
-        print("| kind of op | float32 (ms) | share | bf16 (ms) | share | bf16 / float32 |")
-        print("|---|---|---|---|---|---|")
-        for kd in kinds:
-            a, c = prof["float32"].get(kd, 0.0), prof["bf16"].get(kd, 0.0)
-            print(f"| {kd} | {1e3 * a:.0f} | {100 * a / tot['float32']:.0f} % | "
-                  f"{1e3 * c:.0f} | {100 * c / tot['bf16']:.0f} % | "
-                  f"{(c / a) if a > 0 else float('nan'):.2f} |")
-        print(f"| total | {1e3 * tot['float32']:.0f} | 100 % | {1e3 * tot['bf16']:.0f} | "
-              f"100 % | {tot['bf16'] / tot['float32']:.2f} |")
+        print(profile_table(prof["float32"], prof[best], best))
     return 0
 
 
 def run_udn_benchmark(args: argparse.Namespace) -> int:
     """Run the benchmark matrix and print the table."""
+    if args.ratio and args.json and not args.case_json:
+        raise ValueError("--json: --ratio writes no JSON (its tables are printed); leave out "
+                         "one of them")
+    if not args.case_json:
+        check_outputs(args, {"--json": args.json})
     if args.ratio and not args.case_json:
         return run_ratio(args)
     if args.case_json:

@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from app.commands._options import NONNEG_INT, POSITIVE_INT
+from app.commands._options import NONNEG_INT, POSITIVE_INT, add_overwrite_option
+from benchmarks._cli import check_outputs, hxw
 
 #: The shutter: line time 10 us, exposure ``E`` lines with E = rows // 4 + 1.
 LINE_US = 10.0
@@ -331,14 +332,25 @@ def run_all(h: int, w: int, iters: int = 300, seed: int = 0,
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of ``lenslesscam bench plan``."""
-    p.add_argument("--size", default="96x128", help="sensor HxW (default 96x128)")
+    p.add_argument("--size", type=hxw(32), default="96x128",
+                   help="sensor HxW, both sides >= 32 (default 96x128)")
     p.add_argument("--iters", type=POSITIVE_INT, default=300, help="FISTA iteration limit (300)")
     p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (default 1)")
     p.add_argument("--seed", type=NONNEG_INT, default=0, help="camera noise and CV seed")
-    p.add_argument("--cases", default=",".join(CASES),
+    p.add_argument("--cases", type=_case_list, default=",".join(CASES),
                    help=f"comma-separated cases (default all: {','.join(CASES)})")
     p.add_argument("--markdown", action="store_true", help="print a Markdown table")
     p.add_argument("--json", default=None, help="also write the rows as JSON here")
+    add_overwrite_option(p)
+
+
+def _case_list(text: str) -> tuple[str, ...]:
+    """``--cases``: comma-separated names of :data:`CASES`, at least one."""
+    names = tuple(c.strip() for c in text.split(",") if c.strip())
+    if not names or set(names) - set(CASES):
+        raise argparse.ArgumentTypeError(
+            f"must be comma-separated cases of {', '.join(CASES)}, got {text!r}")
+    return names
 
 
 def _table(rows: list[dict[str, Any]], markdown: bool) -> str:
@@ -362,13 +374,11 @@ def run(args: argparse.Namespace) -> int:
 
     from recon.threads import apply_threads
 
+    check_outputs(args, {"--json": args.json})
     apply_threads(args.threads)
-    h, w = (int(v) for v in args.size.lower().split("x"))
-    if h < 32 or w < 32:
-        raise ValueError("--size must be at least 32x32")
+    h, w = args.size
     t0 = time.perf_counter()
-    rows = run_all(h, w, args.iters, args.seed,
-                   tuple(c.strip() for c in args.cases.split(",") if c.strip()))
+    rows = run_all(h, w, args.iters, args.seed, tuple(args.cases))
     print(f"lenslesscam bench plan: sensor {h}x{w}, torch threads {args.threads}, "
           f"FISTA-TV up to {args.iters} iterations, total {time.perf_counter() - t0:.0f} s")
     print(_table(rows, args.markdown))

@@ -44,7 +44,15 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from app.commands._options import FRACTION, NONNEG, NONNEG_INT, POSITIVE, POSITIVE_INT
+from app.commands._options import (
+    FRACTION,
+    NONNEG,
+    NONNEG_INT,
+    POSITIVE,
+    POSITIVE_INT,
+    add_overwrite_option,
+)
+from benchmarks._cli import check_outputs, read_jsonl
 
 PAIRS = ("im65", "im408", "im740", "im1000")
 ERASURES = (0.0, 0.5, 0.9, 0.95, 0.99)
@@ -126,6 +134,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "by band of scale (fine / mid / smooth, beside the truth's own content), "
                    "and the PSNR once the shading learned from the other pairs is removed "
                    "(leave one pair out)")
+    add_overwrite_option(p)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -708,15 +717,13 @@ METHODS = (("fista_auto", "FISTA-TV auto tau"), ("fista_oracle", "FISTA-TV oracl
 def read_results(path: str) -> list[dict[str, Any]]:
     """The rows of a results file; a later row of the same case replaces an earlier one."""
     rows: dict[tuple[str, float], dict[str, Any]] = {}
-    p = Path(path)
-    if not p.is_file():
-        return []
-    for line in p.read_text().splitlines():
-        if line.strip():
-            r = json.loads(line)
-            if "udn_oracle_stop" not in r and r.get("udn_curve"):  # rows of older runs
-                r["udn_oracle_stop"] = _oracle_stop(r["udn_curve"])
-            rows[(r["pair"], r["erasure"])] = r
+    for r in read_jsonl(path, "--results"):
+        if "pair" not in r or "erasure" not in r:
+            raise ValueError(f"--results {path} is not a results file of bench real-pairs (a "
+                             "line without pair and erasure): choose another file")
+        if "udn_oracle_stop" not in r and r.get("udn_curve"):  # rows of older runs
+            r["udn_oracle_stop"] = _oracle_stop(r["udn_curve"])
+        rows[(r["pair"], r["erasure"])] = r
     return list(rows.values())
 
 
@@ -971,13 +978,17 @@ def write_figure(images: dict[tuple[str, float], dict[str, Any]], path: str) -> 
     atomic_write(Path(path), lambda tmp: img.save(tmp, format="PNG", optimize=True))
 
 
+def images_folder(results: str) -> Path:
+    """Where the cases of ``results`` keep their images (beside it)."""
+    return Path(results).parent / f"{Path(results).stem}-images"
+
+
 def _save_images(results: str, pair: str, erasure: float, keep: dict[str, Any]) -> None:
     import numpy as np
 
     from recon.atomic import atomic_write
 
-    path = Path(results).with_suffix("") .parent / f"{Path(results).stem}-images" / \
-        f"{pair}-{round(erasure * 100)}.npz"
+    path = images_folder(results) / f"{pair}-{round(erasure * 100)}.npz"
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda tmp: np.savez_compressed(
         tmp, **{k: np.asarray(v, np.float32).reshape(3, *v.shape[-2:]) for k, v in keep.items()}))
@@ -986,7 +997,7 @@ def _save_images(results: str, pair: str, erasure: float, keep: dict[str, Any]) 
 def _load_images(results: str) -> dict[tuple[str, float], dict[str, Any]]:
     import numpy as np
 
-    folder = Path(results).parent / f"{Path(results).stem}-images"
+    folder = images_folder(results)
     out: dict[tuple[str, float], dict[str, Any]] = {}
     for f in sorted(folder.glob("*.npz")) if folder.is_dir() else []:
         pair, pct = f.stem.rsplit("-", 1)
@@ -1086,6 +1097,17 @@ def fill_defaults(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the cases not yet in ``--results`` (unless --table-only), then write the table."""
     import torch
+
+    from app.commands._options import check_output_folders
+
+    runs = not (args.table_only or args.time_threads)
+    check_outputs(args, {"--out": args.out, "--figure": args.figure},
+                  appended={"--results": args.results} if runs else None,
+                  inputs={"--data": args.data, **({} if runs else {"--results": args.results})})
+    if not args.time_threads:
+        read_results(args.results)  # a JSON-lines file of another benchmark stops here
+    if runs:
+        check_output_folders([images_folder(args.results) / "x.npz"])
 
     torch.set_num_threads(args.threads)
     fill_defaults(args)

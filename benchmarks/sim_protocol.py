@@ -39,7 +39,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from app.commands._options import POSITIVE_INT
+from app.commands._options import POSITIVE_INT, add_overwrite_option
+from benchmarks._cli import check_outputs, read_jsonl
 
 CASE_VERSION = 3  # cached cases of another version (solver defaults, columns) are not reused
 ORACLE_TAUS = (1e-8, 3e-8, 1e-7, 3e-7, 1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4)
@@ -74,6 +75,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hand", action="store_true",
                    help="instead: the real DiffuserCam-Tutorial hand (no truth): the held-out "
                    "error over tau and the automatic choice")
+    add_overwrite_option(p)
 
 
 def _score(truth: Any, x: Any) -> tuple[float, float]:
@@ -134,7 +136,9 @@ def run_auto(case: Any, iters: int) -> dict[str, Any]:
     from recon.autotau import choose_tau
 
     sim, model, b = case
-    choice = choose_tau(model, b, max_iter=iters)
+    # as `recon fista` does (recon.autotau.resolve), also below 100 iterations
+    choice = choose_tau(model, b, max_iter=iters, min_iter=min(100, iters),
+                        patience=max(min(100, iters), 10), check_every=min(10, iters))
     x, wall = _fista(model, b, choice.tau, choice.iterations)
     return {"tau": choice.tau, "iterations": choice.iterations, "psnr_ssim": _score(
         sim.truth, x), "search_s": choice.cost_s, "recon_s": wall,
@@ -424,6 +428,13 @@ def run(args: argparse.Namespace) -> int:
     """Run (or resume) the protocol and print (and optionally write) the tables."""
     import os
 
+    tables_only = args.restart_check or args.hand or args.momentum_check or args.convergence_check
+    if tables_only and args.out:
+        raise ValueError("--out: the Markdown is written by the protocol run only, not with "
+                         "--restart-check, --momentum-check, --convergence-check or --hand "
+                         "(their table is printed)")
+    check_outputs(args, {"--out": args.out},
+                  appended=None if tables_only else {"--cache": args.cache})
     if args.restart_check:
         from recon.threads import apply_threads
 
@@ -459,12 +470,9 @@ def run(args: argparse.Namespace) -> int:
     noises = (0.01,) if args.quick else NOISES
     cache = Path(args.cache)
     done: dict[tuple[str, float, float], dict[str, Any]] = {}
-    if cache.is_file():
-        for line in cache.read_text().splitlines():
-            if line.strip():
-                c = json.loads(line)
-                if c.get("iters") == args.iters and c.get("version") == CASE_VERSION:
-                    done[(c["scene"], c["erasure"], c["noise"])] = c
+    for c in read_jsonl(cache, "--cache"):
+        if c.get("iters") == args.iters and c.get("version") == CASE_VERSION:
+            done[(c["scene"], c["erasure"], c["noise"])] = c
     t_all = time.perf_counter()
     for noise in sorted(noises, reverse=True):  # noisy cases first: they stop early
         for er in erasures:

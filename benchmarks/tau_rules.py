@@ -23,12 +23,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from collections.abc import Iterator
 from typing import Any
 
-from app.commands._options import FRACTION, POSITIVE_INT
+from app.commands._options import FRACTION, POSITIVE_INT, add_overwrite_option
+from benchmarks._cli import check_outputs
 
 GRID = (1e-7, 1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3)
 
@@ -44,11 +46,54 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--block", type=POSITIVE_INT, default=None,
                    help="side in pixels of the held-out blocks (default: recon.holdout's, 4 px "
                    "on sensors of 32 to 159 px, 1/32 of the shorter side above; 1: single "
-                   "pixels, the search before blocks)")
+                   "pixels, the search before blocks); at most the side at which the held-out "
+                   "10 %% of the pixels span 2 blocks (38 px on sim's 150x200)")
     p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
     p.add_argument("--data", default=None, help="the dlmd folder (default: the shared one)")
     p.add_argument("--results", default=None, help="also append each case as JSON lines here")
     p.add_argument("--out", default=None, help="write the Markdown table here")
+    add_overwrite_option(p)
+
+
+def _sensor_shapes(args: argparse.Namespace) -> dict[str, tuple[int, int]]:
+    """(H, W) of the sensor of each kind of case run (cheap: no model is built)."""
+    shapes: dict[str, tuple[int, int]] = {}
+    if "real" in args.cases:
+        from benchmarks import real_pairs as rp
+
+        name = rp.PAIRS[0]
+        pair = rp.load_pair(name, rp.pair_files(name, rp.data_dir(args.data)), 4)
+        shapes["real"] = tuple(pair.truth.shape[1:])  # type: ignore[assignment]
+    if "sim" in args.cases:
+        from recon import samples
+
+        shapes["sim"] = tuple(samples.tutorial_psf().shape[-2:])  # type: ignore[assignment]
+    return shapes
+
+
+def block_limit(h: int, w: int) -> int:
+    """The largest ``--block`` side on an ``h`` x ``w`` sensor: the held-out share of the pixels
+    (choose_tau's ``holdout``, 10 %) must span at least 2 blocks, or the held-out error has no
+    standard error (one block: infinite, and the 1se rule takes the largest tau) and a block
+    the size of the sensor holds out everything."""
+    import inspect
+
+    from recon.autotau import choose_tau
+
+    holdout = float(inspect.signature(choose_tau).parameters["holdout"].default)
+    return max(1, math.isqrt(int(holdout * h * w / 2)))
+
+
+def check_block(block: int | None, shapes: dict[str, tuple[int, int]]) -> None:
+    """Refuse a ``--block`` side larger than a sensor run allows (:func:`block_limit`)."""
+    if block is None:
+        return
+    for kind, (h, w) in shapes.items():
+        limit = block_limit(h, w)
+        if block > limit:
+            raise ValueError(
+                f"--block {block} is larger than the {kind} cases' {h}x{w} sensor allows: at "
+                f"most {limit} px (the held-out 10 % of the pixels must span 2 blocks or more)")
 
 
 def _cases(args: argparse.Namespace) -> Iterator[tuple[str, Any, Any, Any]]:
@@ -153,6 +198,9 @@ def run(args: argparse.Namespace) -> int:
     from recon.atomic import atomic_write_bytes
     from recon.threads import apply_threads
 
+    check_outputs(args, {"--out": args.out}, appended={"--results": args.results},
+                  inputs={"--data": args.data})
+    check_block(args.block, _sensor_shapes(args))
     choice = apply_threads(args.threads)
     rows = []
     t0 = time.perf_counter()

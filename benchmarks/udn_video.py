@@ -26,7 +26,16 @@ import sys
 import time
 from typing import Any
 
-from app.commands._options import FINITE, FRACTION, NONNEG, POSITIVE, POSITIVE_INT, integer
+from app.commands._options import (
+    FINITE,
+    FRACTION,
+    NONNEG,
+    POSITIVE,
+    POSITIVE_INT,
+    add_overwrite_option,
+    integer,
+)
+from benchmarks._cli import check_outputs
 
 TAUS = (1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3)
 WEIGHT_K = 1.0
@@ -58,6 +67,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cpu", help="torch device of the UDN runs (auto, cpu, cuda)")
     p.add_argument("--scenes", nargs="+", default=None, help="subset of the lensed scenes")
     p.add_argument("--out", default=None, help="write the Markdown here")
+    add_overwrite_option(p)
 
 
 def moving_scene(image: Any, k: int, total: tuple[float, float]) -> Any:
@@ -193,6 +203,7 @@ def run(args: argparse.Namespace) -> int:
 
     from recon.threads import apply_threads
 
+    check_outputs(args, {"--out": args.out})
     apply_threads(args.threads)
     t_all = time.perf_counter()
     psf, shutter, sims, timing = make_cases(args.scale, args.frames, tuple(args.motion),

@@ -34,7 +34,15 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
-from app.commands._options import FRACTION, NONNEG, NONNEG_INT, POSITIVE, POSITIVE_INT
+from app.commands._options import (
+    FRACTION,
+    NONNEG,
+    NONNEG_INT,
+    POSITIVE,
+    POSITIVE_INT,
+    add_overwrite_option,
+)
+from benchmarks._cli import check_outputs
 
 TAUS = (1e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3)
 FISTA_CHECKPOINTS = (50, 100, 200, 300, 500)
@@ -62,13 +70,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--holdout", type=FRACTION, default=0.1, help="UDN held-out fraction (0.1)")
     p.add_argument("--eval-every", type=POSITIVE_INT, default=100, help="UDN checkpoints (100)")
     p.add_argument("--fista-iters", type=POSITIVE_INT, default=500,
-                   help="FISTA iterations per tau (500)")
+                   help="FISTA iterations per tau (500); scored at the checkpoints "
+                   f"{', '.join(map(str, FISTA_CHECKPOINTS))} below it and at the last")
     p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads per process (1)")
-    p.add_argument("--jobs", type=POSITIVE_INT, default=min(2, os.cpu_count() or 1),
-                   help="UDN runs in parallel processes (2)")
+    jobs = min(2, os.cpu_count() or 1)
+    p.add_argument("--jobs", type=POSITIVE_INT, default=jobs,
+                   help=f"UDN runs in parallel processes (default min(2, CPU count): {jobs} here)")
     p.add_argument("--device", default="cpu", help="torch device of the UDN runs (auto, cpu, cuda)")
     p.add_argument("--scenes", nargs="+", default=None, help="subset of the lensed scenes")
     p.add_argument("--out", default=None, help="write the Markdown here")
+    add_overwrite_option(p)
 
 
 def make_data(scale: int, names: list[str] | None, erasure: float,
@@ -99,14 +110,21 @@ def score(truth: Any, est: Any) -> float:
     return float(psnr(truth, gain_fit(truth, est)[0]))
 
 
+def fista_checkpoints(iters: int) -> list[int]:
+    """The iteration counts FISTA is scored at: :data:`FISTA_CHECKPOINTS` below ``iters``, and
+    ``iters`` itself (so a limit below the first checkpoint is scored at its last iteration)."""
+    return sorted({c for c in FISTA_CHECKPOINTS if c < iters} | {iters})
+
+
 def run_fista(psf: Any, sims: dict[str, Any], iters: int,
               taus: tuple[float, ...] = TAUS) -> dict[str, Any]:
-    """Best (tau, checkpoint) by mean PSNR over the scenes."""
+    """Best (tau, checkpoint of :func:`fista_checkpoints`) by mean PSNR over the scenes."""
     import torch
 
     from recon.fista import Fista
     from recon.models import build_model
 
+    checkpoints = fista_checkpoints(iters)
     best: dict[str, Any] | None = None
     for tau in taus:
         per: dict[str, dict[int, tuple[float, float]]] = {}
@@ -116,22 +134,21 @@ def run_fista(psf: Any, sims: dict[str, Any], iters: int,
             t0 = time.perf_counter()
             per[name] = {}
             for step in solver.steps():
-                if step.iteration in FISTA_CHECKPOINTS or solver.done:
+                if step.iteration in checkpoints or solver.done:
                     per[name][step.iteration] = (score(sim.truth, solver.x.numpy()),
                                                  time.perf_counter() - t0)
             last = per[name][max(per[name])]
-            for c in FISTA_CHECKPOINTS:
-                if c <= iters and c not in per[name]:
+            for c in checkpoints:  # a run that stopped early: its last estimate from there on
+                if c not in per[name]:
                     per[name][c] = last
-        for c in FISTA_CHECKPOINTS:
-            if c > iters:
-                continue
+        for c in checkpoints:
             mean = sum(per[n][c][0] for n in sims) / len(sims)
             if best is None or mean > best["mean"]:
                 best = {"mean": mean, "tau": tau, "iterations": c,
                         "psnr": {n: per[n][c][0] for n in sims},
                         "wall": {n: per[n][c][1] for n in sims}}
-    assert best is not None
+    if best is None:  # no tau given
+        raise ValueError("run_fista: no tau to try")
     return best
 
 
@@ -223,7 +240,7 @@ def pick_iteration(udn: dict[str, Any]) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Run both methods on the scenes and print / write the table."""
-
+    check_outputs(args, {"--out": args.out})
     if not 0 < args.holdout < 1:
         raise SystemExit(f"--holdout must be in (0, 1) (the held-out choice needs held-out "
                          f"pixels), got {args.holdout}")
@@ -297,7 +314,7 @@ def run(args: argparse.Namespace) -> int:
             f"- FISTA-TV: tau {fista['tau']:g} and {fista['iterations']} iterations, both chosen "
             f"on the ground truth to maximise the mean PSNR (tau grid "
             f"{', '.join(f'{t:g}' for t in TAUS)}; checkpoints "
-            f"{', '.join(map(str, FISTA_CHECKPOINTS))}).\n"
+            f"{', '.join(map(str, fista_checkpoints(args.fista_iters)))}).\n"
             f"- UDN: {args.scales} scales x {args.channels} channels, skip channels "
             f"{args.skip}, output gain headroom {args.headroom:g}, TV weight {args.tv_weight:g}, "
             f"lr {args.lr:g}, input noise 0.05, "

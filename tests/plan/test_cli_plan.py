@@ -79,7 +79,7 @@ def test_parsers():
 
 def test_bench_plan_is_registered():
     args = build_parser().parse_args(["bench", "plan", "--size", "48x64", "--markdown"])
-    assert args.size == "48x64" and args.markdown and callable(args.func)
+    assert args.size == (48, 64) and args.markdown and callable(args.func)
 
 
 def test_plan_names_the_measurement_not_the_padded_psf_grid(tmp_path, capsys):
