@@ -61,9 +61,10 @@ def register(sub: Any) -> None:
     c.set_defaults(func=cmd_cancel)
 
     e = act.add_parser("combine", help="average finished runs of one problem with different "
-                                       "seeds (an ensemble)")
+                                       "seeds (an ensemble; failed runs are refused)")
     e.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run folders (two or more)")
-    e.add_argument("--out", required=True, help="reconstruction TIFF to write")
+    e.add_argument("--out", required=True,
+                   help="reconstruction TIFF to write (never inside a run folder)")
     e.add_argument("--estimate", choices=["best", "final"], default="best",
                    help="which estimate of each run: best (held-out choice, default) or final")
     add_overwrite_option(e)
@@ -185,8 +186,11 @@ def cmd_combine(args: argparse.Namespace) -> int:
     """``jobs combine``."""
     from recon.io import reconstruction_paths
     from recon.udn.ensemble import combine_runs
+    from recon.udn.jobs import refuse_outputs_in_run_folders
 
-    check_command_outputs(args, reconstruction_paths(args.out, "image"))  # TIFF and its PNG
+    outputs = reconstruction_paths(args.out, "image")  # TIFF and its PNG
+    refuse_outputs_in_run_folders(outputs, "--out")  # a run's folder, --overwrite or not
+    check_command_outputs(args, outputs)
     res = combine_runs(args.run_dirs, args.out, estimate=args.estimate)
     for m in res.members:
         print(f"  seed {m['seed']:>4}  {args.estimate} at iteration {m['iteration']}  "

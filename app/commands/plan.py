@@ -71,7 +71,9 @@ def add_plan_inputs(p: argparse.ArgumentParser) -> None:
                    "analysis and the automatic tau's search come on top: plan_s, "
                    "tau_search_s; --tau skips the search)")
     p.add_argument("--trade", help="a trade.csv from `lenslesscam trade` on similar data: the "
-                                   "method, tau and iterations for the budget come from it")
+                                   "method, tau and iterations for the budget come from it "
+                                   "(its full-resolution settings in the precision the run "
+                                   "uses: float32, or float64 with recon auto --float64)")
     p.add_argument("--field", default="sensor", help="scene field: sensor, full (2x) or HxW")
     p.add_argument("--dark", help="dark level: a number, 'auto' or a dark-frame file")
     p.add_argument("--psf-dark", help="dark level of the PSF (default: same as --dark; none "
@@ -197,7 +199,9 @@ def _make(args: argparse.Namespace, inputs: dict[str, Any], probe: bool = True) 
         progress=progress)
     if getattr(args, "trade", None):
         plan = plan_from_trade(plan, args.trade, inputs,
-                               who=f"lenslesscam {getattr(args, 'command', None) or 'plan'}")
+                               who=f"lenslesscam {getattr(args, 'command', None) or 'plan'}",
+                               precision="float64" if getattr(args, "float64", False)
+                               else "float32")
     plan = plan.override(**overrides) if overrides else plan
     warn_region(plan, args)
     if (args.tau is None and not getattr(args, "trade", None) and plan.method == "fista-tv"
@@ -319,12 +323,27 @@ def trade_data_warning(trade: Any, inputs: dict[str, Any], who: str = "plan") ->
             f"({which}: {', '.join(diffs)}); its timings and tau may not hold here")
 
 
+def check_trade_option(args: argparse.Namespace) -> None:
+    """``--trade`` names a file: one line for a folder (it said "[Errno 21] Is a directory")."""
+    path = getattr(args, "trade", None)
+    if path and Path(path).is_dir():
+        inside = Path(path) / "trade.csv"
+        hint = (f": give the trade.csv in it (--trade {inside})" if inside.is_file() else
+                ": give the trade.csv that 'lenslesscam trade --out' wrote")
+        raise ValueError(f"--trade {path} is a folder, not a trade.csv{hint}")
+
+
 def plan_from_trade(plan: Any, trade_csv: str, inputs: dict[str, Any] | None = None,
-                    who: str = "plan") -> Any:
+                    who: str = "plan", precision: str = "float32") -> Any:
     """Take method, tau and iterations from the best trade setting within the plan's budget.
 
     With the plan's ``inputs`` (:func:`load_inputs`), a trade measured on other data is
     warned about on stderr (:func:`trade_data_warning`); the plan still uses it.
+
+    Only settings the plan's run reproduces are candidates: full resolution, and the
+    ``precision`` it will compute in (a plan records no precision: ``recon auto`` runs it in
+    float32, in float64 with ``--float64``; a plan's UDN runs the network in float32, never
+    bf16). A better setting of another precision is named in the reason.
     """
     import dataclasses
 
@@ -335,21 +354,33 @@ def plan_from_trade(plan: Any, trade_csv: str, inputs: dict[str, Any] | None = N
     trade = read_trade(trade_csv)
     if inputs is not None and (warning := trade_data_warning(trade, inputs, who)):
         print(warning, file=sys.stderr)
-    rows = [r for r in trade.rows if r.downsample == 1]
-    key = "psnr" if rows and all(r.psnr is not None for r in rows) else "heldout_psnr"
+    full = [r for r in trade.rows if r.downsample == 1]
+    rows = [r for r in full if r.precision == precision]
+    key = "psnr" if full and all(r.psnr is not None for r in full) else "heldout_psnr"
     best = best_for_budgets(rows, [plan.budget_s], key)[plan.budget_s]
     if best is None:
+        other = sorted({r.precision for r in full} - {precision})
+        also = (f" in {precision} (its {', '.join(other)} settings are not candidates: the "
+                f"plan runs in {precision})" if other else "")
         raise ValueError(f"{trade_csv}: no measured setting fits the budget of "
-                         f"{plan.budget_s:g} s")
+                         f"{plan.budget_s:g} s{also}")
     method = "udn" if best.method == "udn" else "fista-tv"
     new = plan.override(method=method, iterations=best.iterations,
                         **({"tau": best.tau} if method == "fista-tv" else {}))
     quality = getattr(best, key)
-    why = (f"from the trade ({trade_csv}): the best of {len(rows)} measured settings within "
-           f"{plan.budget_s:g} s was {best.setting} at {best.iterations} iterations "
-           f"({best.wall_s:.2f} s, {quality:.2f} dB {'PSNR' if key == 'psnr' else 'held-out'})")
+    unit = "PSNR" if key == "psnr" else "held-out"
+    why = (f"from the trade ({trade_csv}): the best of {len(rows)} measured {precision} "
+           f"settings within {plan.budget_s:g} s was {best.setting} at {best.iterations} "
+           f"iterations ({best.wall_s:.2f} s, {quality:.2f} dB {unit})")
     if best.method == "admm":
         why += "; run as FISTA-TV, which minimises the same objective"
+    top = best_for_budgets(full, [plan.budget_s], key)[plan.budget_s]
+    if top is not None and top.precision != precision and getattr(top, key) > quality:
+        how = ("; recon auto --float64 chooses among the float64 ones"
+               if top.precision == "float64" else "")
+        why += (f"; {top.setting} ({getattr(top, key):.2f} dB) was better but computes in "
+                f"{top.precision}, which the plan does not record, so its run could not "
+                f"reproduce it{how}")
     reasons = {**new.reasons, "method": why, "tau": why, "iterations": why}
     # chosen from the trade's measurements, not set by the user
     return dataclasses.replace(new, reasons=reasons, overridden=plan.overridden)
@@ -361,6 +392,7 @@ def run_plan(args: argparse.Namespace) -> int:
 
     if args.out:
         check_command_outputs(args, [args.out])
+    check_trade_option(args)
     inputs = load_inputs(args)
     plan = _make(args, inputs, probe=not args.no_probe)
     window = _window(inputs)
@@ -439,6 +471,7 @@ def run_auto(args: argparse.Namespace) -> int:
     from recon.plan import Plan, execute
 
     check_command_outputs(args, reconstruction_paths(args.out, "image"))
+    check_trade_option(args)
     inputs = load_inputs(args)
     if args.plan:
         # the plan fixed what these choose: taking them silently would run another plan

@@ -73,8 +73,12 @@ def _add_tv_solver_arguments(p: argparse.ArgumentParser) -> None:
     add_overwrite_option(p)
 
 
-def add_input_arguments(p: argparse.ArgumentParser) -> None:
-    """Inputs shared by every reconstruction method."""
+def add_input_arguments(p: argparse.ArgumentParser, *, float64: bool = True) -> None:
+    """Inputs shared by every reconstruction method.
+
+    ``float64``: offer ``--float64`` (the UDN's network runs in float32 or bf16, its
+    ``--precision``).
+    """
     p.add_argument("--model", choices=["2d", "video", "spectral", "depth"], default="2d",
                    help="forward model: 2d, video (rolling shutter), spectral (filter "
                    "array), depth (PSF stack)")
@@ -90,7 +94,8 @@ def add_input_arguments(p: argparse.ArgumentParser) -> None:
                    "for a calibrated PSF file, which is dark-subtracted)")
     p.add_argument("--rgb", action="store_true", help="reconstruct colour channels")
     p.add_argument("--field", default="sensor", help="scene field: sensor, full (2x) or HxW")
-    p.add_argument("--float64", action="store_true", help="compute in float64")
+    if float64:
+        p.add_argument("--float64", action="store_true", help="compute in float64")
     add_layout_arguments(p)
 
 

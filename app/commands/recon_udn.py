@@ -29,7 +29,7 @@ def register_udn(methods: Any) -> None:
     from app.commands.recon import add_input_arguments
 
     u = methods.add_parser("udn", help="untrained deep network (deep image prior) as a job")
-    add_input_arguments(u)
+    add_input_arguments(u, float64=False)  # the network runs in float32 or bf16 (--precision)
     g = u.add_argument_group("network")
     g.add_argument("--variant", choices=["auto", "2d", "frames", "3d"], default="auto",
                    help="2d, frames (K as channels), 3d, auto (2d for K=1 else frames)")
@@ -85,9 +85,6 @@ def build_spec(args: argparse.Namespace) -> dict[str, Any]:
     """
     from app.commands._inputs import problem_spec
 
-    if getattr(args, "float64", False):
-        raise ValueError("--float64 is not available for UDN (the network runs in float32 or "
-                         "bf16)")
     spec: dict[str, Any] = {
         "job": {"name": args.name},
         "data": problem_spec(args).to_data_section(),
@@ -122,6 +119,11 @@ def run_udn(args: argparse.Namespace) -> int:
     normalise_spec(spec, Path.cwd(), source="command line")  # fail early, before any file
     text = spec_to_toml(spec)  # written once, as RUN_DIR/job.toml (or --write-spec)
     if args.write_spec:
+        from recon.udn.jobs import refuse_outputs_in_run_folders
+
+        # never into a run's folder (over its run.json, --overwrite or not: the run would be
+        # unreadable)
+        refuse_outputs_in_run_folders([args.write_spec], "--write-spec")
         check_command_outputs(args, [args.write_spec])
         from recon.atomic import atomic_write_bytes
 

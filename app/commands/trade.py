@@ -22,6 +22,8 @@ QUALITY_LABEL = {"psnr": "PSNR vs truth (dB)", "heldout_psnr": "held-out predict
 
 #: What ``trade`` writes into ``--out``.
 TRADE_FILES = ("trade.csv", "trade.md", "trade_pareto.png", "inputs.json")
+#: The lock a trade holds on ``--out`` while it writes (left in place, as every RunLock's file).
+LOCK_FILE = "trade.lock"
 
 
 def register(sub: Any) -> None:
@@ -47,10 +49,13 @@ def register(sub: Any) -> None:
     p.add_argument("--field", default="sensor", help="scene field: sensor, full (2x) or HxW")
     p.add_argument("--quick", action="store_true", help="a small grid")
     p.add_argument("--no-udn", action="store_true", help="leave the UDN out of the grid")
-    p.add_argument("--budgets", default="0.5,2,10,60", help="time budgets in seconds")
-    p.add_argument("--threads", type=NONNEG_INT, default=0,
-                   help="torch threads (default 0: chosen from cores and load, recon.threads)")
-    p.add_argument("--out", required=True, help="output folder (CSV, Markdown, PNG)")
+    p.add_argument("--budgets", default="0.5,2,10,60",
+                   help="time budgets in seconds, comma-separated (default 0.5,2,10,60)")
+    p.add_argument("--threads", type=NONNEG_INT, default=None,
+                   help="torch threads (default: lenslesscam --threads N if given, else chosen "
+                        "from cores and load, recon.threads; 0: choose)")
+    p.add_argument("--out", required=True,
+                   help="output folder (CSV, Markdown, PNG; not a UDN run folder)")
     add_overwrite_option(p)
     p.set_defaults(func=run)
 
@@ -139,10 +144,14 @@ def run(args: argparse.Namespace) -> int:
     """Run the grid on each case; write trade.csv, trade.md and trade_pareto.png."""
     from recon.threads import apply_threads
     from recon.trade import default_grid, run_trade
+    from recon.udn.jobs import refuse_outputs_in_run_folders
     from recon.udn.rundir import RunFolderBusy, RunLock
 
-    check_command_outputs(args, [Path(args.out) / n for n in TRADE_FILES])
-    threads = apply_threads(args.threads)
+    outputs = [Path(args.out) / n for n in TRADE_FILES]
+    refuse_outputs_in_run_folders(outputs, "--out", args.out)  # never beside a run's files
+    check_command_outputs(args, outputs)
+    requested = _requested_threads(args)
+    threads = apply_threads(requested)
     budgets = _budgets(args.budgets)
     grid = default_grid(quick=args.quick, with_udn=not args.no_udn)
     out = Path(args.out)
@@ -150,12 +159,15 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     cases = _cases(args)
     try:
-        lock = RunLock(out).acquire()  # one trade writes a folder at a time
-    except RunFolderBusy:
-        raise ValueError(f"{out}: another trade is writing this folder (its run.lock is held); "
-                         "wait for it, or choose another --out") from None
+        # one trade writes a folder at a time; its own lock file, so that a UDN job's or a
+        # batch's run.lock is never taken for a trade's (the file stays, as every RunLock's)
+        lock = RunLock(out, name=LOCK_FILE).acquire()
+    except RunFolderBusy as exc:
+        who = f" ({exc.holder})" if exc.holder else ""
+        raise ValueError(f"{out}: another trade is writing this folder{who}: its {LOCK_FILE} "
+                         "is held; wait for it, or choose another --out") from None
     try:
-        journal = _Journal(out, cases, grid, args.threads, overwrite=args.overwrite)
+        journal = _Journal(out, cases, grid, requested, overwrite=args.overwrite)
         for case in cases:
             done = journal.done(case.name)
             rows.extend(r for s in done.values() for r in s)
@@ -179,6 +191,18 @@ def run(args: argparse.Namespace) -> int:
     finally:
         lock.release()
     return 0
+
+
+def _requested_threads(args: argparse.Namespace) -> int:
+    """The thread request: ``trade --threads``, else ``lenslesscam --threads``, else 0 (choose).
+
+    0 rather than None when neither is given: the journal records the request, and those of
+    earlier releases recorded the default as 0.
+    """
+    if args.threads is not None:
+        return int(args.threads)
+    g = getattr(args, "global_threads", None)
+    return 0 if g is None else int(g)
 
 
 def _in_grid_order(rows: list[Any], cases: list[Any], grid: Any) -> list[Any]:
@@ -333,6 +357,8 @@ def _write_outputs(args: argparse.Namespace, out: Path, rows: list[Any], cases: 
 
     argv = sys.argv[1:]
     command = " ".join(argv[argv.index("trade"):] if "trade" in argv else ["trade"])
+    if getattr(args, "global_threads", None) is not None:  # lenslesscam --threads N trade ...
+        command = f"--threads {args.global_threads} {command}"
     # CSV, with the data of every case in its header (plan --trade checks them)
     write_trade_csv(out / "trade.csv", rows, cases, command=f"lenslesscam {command}",
                     threads=threads.threads)

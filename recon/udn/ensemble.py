@@ -11,7 +11,9 @@ independent.
     lenslesscam jobs combine runs/s0 runs/s1 runs/s2 runs/s3 --out ensemble.tif
 
 :func:`combine_runs` refuses runs of different inputs (PSF, measurement, mask, ... by file
-hash), model or shape, runs that share a seed, and runs without a result.
+hash; not the truth, which only scores a run and is never fitted), model or shape, runs that
+share a seed, failed runs (their estimate is from before the failure: a diverged run's drags the
+average down) and runs without a result. It never writes into a run folder.
 """
 
 from __future__ import annotations
@@ -70,16 +72,47 @@ def _member(run_dir: Path, estimate: Estimate) -> tuple[dict[str, Any], F32, dic
     return rec, x, meta
 
 
+#: inputs a run records that its fit never uses (the truth only scores it)
+_SCORING_ONLY = frozenset({"truth"})
+
+
 def _inputs_key(rec: dict[str, Any]) -> dict[str, Any]:
-    """The inputs by content: file hashes and the hashes of the arrays as processed.
+    """The inputs the fit uses, by content: file hashes and the hashes of the arrays as processed.
 
     The array hashes come after dark subtraction, downsampling and normalisation, so runs of
-    the same files read with other settings differ.
+    the same files read with other settings differ. The truth is left out: a run with
+    ``--truth`` and one without fit the same problem.
     """
     out: dict[str, Any] = {}
     for name, info in (rec.get("inputs") or {}).items():
-        out[name] = (info.get("file_hash"), info.get("array_hash"))
+        if name not in _SCORING_ONLY:
+            out[name] = (info.get("file_hash"), info.get("array_hash"))
     return out
+
+
+def _refuse_failed(dirs: Sequence[Path]) -> None:
+    """Refuse, in one line naming them, the members whose record says they failed.
+
+    A record that cannot be read is left to :func:`_member`, which names it.
+    """
+    from recon.udn.jobs import read_record
+    from recon.udn.state import FinishReason
+
+    failed: list[str] = []
+    for d in dirs:
+        try:
+            rec = read_record(d)
+        except (OSError, ValueError):
+            continue
+        if rec.get("finish_reason") == FinishReason.FAILED:
+            why = str(rec.get("detail") or "no detail").split(";")[0]
+            if len(why) > 160:
+                why = why[:160].rsplit(" ", 1)[0] + " ..."
+            failed.append(f"{d} ({why})")
+    if failed:
+        raise ValueError(f"refusing {len(failed)} failed run(s): {'; '.join(failed)}: a failed "
+                         "run's estimate is from before its failure and would pull the average "
+                         "down; leave it out, or resume it ('lenslesscam jobs resume') first")
 
 
 def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
@@ -103,6 +136,7 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
         raise ValueError("an ensemble needs at least two runs")
     if len({d.resolve() for d in dirs}) < len(dirs):
         raise ValueError("the same run folder is named twice")
+    _refuse_failed(dirs)
     loaded = [_member(d, estimate) for d in dirs]
     target = Path(out).resolve()
     for d in dirs:  # a member's files are inputs of the ensemble: never written
@@ -111,6 +145,10 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
                              "inputs of the ensemble; write it elsewhere")
     from recon.atomic import check_outputs
     from recon.io import reconstruction_paths
+    from recon.udn.jobs import refuse_outputs_in_run_folders
+
+    # nor into any other run's folder: its files are what status, resume and cancel read
+    refuse_outputs_in_run_folders(reconstruction_paths(out, "image"), "the ensemble")
 
     # nor are the members' own inputs (their PSF, measurement, ...): a run must stay resumable
     inputs = {f"data.{name} of {d}": info.get("path") for d, (rec, _, _) in zip(
@@ -152,13 +190,15 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
     x: F32 = np.asarray(np.mean([m[1] for m in loaded], axis=0, dtype=np.float64),
                         dtype=np.float32)
     scores = None
-    truth_path = rec0["spec"]["data"].get("truth")
-    if truth_path:
+    # the truth of the first member that names one (the truth is not part of the problem:
+    # some members may have run without it)
+    scorer = next((rec for rec, _, _ in loaded if rec["spec"]["data"].get("truth")), None)
+    if scorer is not None:
         from recon.metrics import metrics_report
         from recon.problem import ProblemSpec, load_truth
 
         try:  # the truth on the runs' grid, prepared as the runs prepared it
-            truth: Any = load_truth(ProblemSpec.from_data_section(rec0["spec"]["data"]),
+            truth: Any = load_truth(ProblemSpec.from_data_section(scorer["spec"]["data"]),
                                     x.shape)
         except (OSError, FormatError, ValueError):
             truth = None  # the truth moved or changed: the ensemble is still written

@@ -51,7 +51,7 @@ import signal
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
@@ -109,8 +109,10 @@ __all__ = [
     "RunFolderBusy",
     "cancel_on_signals",
     "format_status",
+    "is_run_folder",
     "job_status",
     "load_checkpoint",
+    "refuse_outputs_in_run_folders",
     "request_cancel",
     "resume_job",
     "run_job",
@@ -305,6 +307,52 @@ def read_record(run_dir: str | Path) -> dict[str, Any]:
         raise FormatError(f"{p}: run record version {rec.get('format_version')} is newer than "
                           f"this release reads ({FORMAT_VERSION})")
     return rec
+
+
+def is_run_folder(folder: str | Path) -> bool:
+    """Whether ``folder`` holds a UDN run: a ``run.json`` that is a run record.
+
+    A ``run.json`` that cannot be read counts too when the folder also holds the run's
+    ``job.toml`` (a damaged record is still a run's). The one test of the commands that must
+    never write into a run (``recon udn --write-spec``, ``jobs combine --out``, ``trade --out``).
+    """
+    p = Path(folder) / RECORD_FILE
+    if not p.is_file():
+        return False
+    try:
+        with open(p, "rb") as fh:
+            rec = json.loads(fh.read(1 << 24))
+    except (OSError, ValueError):
+        return (Path(folder) / SPEC_FILE).is_file()
+    return isinstance(rec, dict) and rec.get("format") == RUN_RECORD_FORMAT
+
+
+def run_folder_holding(path: str | os.PathLike[str]) -> Path | None:
+    """The UDN run folder that ``path`` (a file to write) lies in, at any depth; or None."""
+    p = Path(os.path.abspath(path))
+    with contextlib.suppress(OSError, RuntimeError):
+        p = p.resolve()  # through symbolic links: a link to a run folder is that folder
+    for folder in p.parents:
+        if is_run_folder(folder):
+            return folder
+    return None
+
+
+def refuse_outputs_in_run_folders(outputs: Iterable[str | os.PathLike[str]], option: str,
+                                  shown: str | os.PathLike[str] | None = None) -> None:
+    """Raise ValueError (one line) when an output lies inside a UDN run folder.
+
+    A run's files are what ``jobs status``, ``resume``, ``cancel`` and ``combine`` read: a
+    file written over them (``--write-spec RUN/run.json --overwrite`` made the run unreadable)
+    or beside them is refused whatever ``--overwrite`` says. ``option`` and ``shown`` (what
+    the user gave, when the outputs are files in it, as ``trade --out``'s) name it.
+    """
+    for o in outputs:
+        folder = run_folder_holding(o)
+        if folder is not None:
+            raise ValueError(f"{option} {o if shown is None else shown} writes into the UDN run "
+                             f"folder {folder} (it holds {RECORD_FILE}): a run's folder holds "
+                             "only the run's own files; choose another place")
 
 
 _NUM = (int, float)
@@ -656,11 +704,26 @@ def _limit_detail(job: _Job, reason: str, detail: str) -> str:
         return detail
     if reason == "max_iter":
         more = f"--max-iter {2 * r.iteration}"
-    else:
-        more = f"--time-limit {2 * (r.config.time_limit_s or r.elapsed_s):.0f}"
+    else:  # past what the run has used (resume refuses a limit it has reached)
+        more = f"--time-limit {_seconds_arg(2 * max(r.config.time_limit_s or 0.0, r.elapsed_s))}"
     return (f"{detail}; the held-out error was still improving (best at iteration "
             f"{r.best_iteration} of {r.iteration}): more iterations would likely give a better "
             f"result: lenslesscam jobs resume {shlex.quote(str(job.run_dir))} {more}")
+
+
+def _seconds_arg(s: float) -> str:
+    """A number of seconds > 0 as a command-line value, never rounded down to 0.
+
+    Whole seconds (rounded up) from 10 s; three significant digits below, rounded up (a
+    limit of 0.001 s doubled is "0.002", where ``:.0f`` printed "0", which is refused).
+    """
+    if s >= 10:
+        return str(math.ceil(s))
+    text = f"{s:.3g}"
+    if float(text) < s:  # rounded down: the next step up at that precision
+        exp = math.floor(math.log10(s)) - 2
+        text = f"{math.ceil(s / 10.0 ** exp) * 10.0 ** exp:.3g}"
+    return text
 
 
 def _finish_reason(reason: str) -> FinishReason:

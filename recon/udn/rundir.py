@@ -76,7 +76,13 @@ class JobError(RuntimeError):
 
 
 class RunFolderBusy(JobError):
-    """Another process writes this run folder (it holds the run's lock)."""
+    """Another process writes this run folder (it holds the run's lock).
+
+    ``holder``: the holder's line from the lock file (``pid N on HOST since T``), or "" when
+    it could not be read.
+    """
+
+    holder: str = ""
 
 
 class CheckpointError(JobError):
@@ -187,12 +193,14 @@ class RunLock:
     """Exclusive OS lock on a run folder (``RUN_DIR/run.lock``), released by the kernel.
 
     Use as a context manager or with :meth:`acquire` / :meth:`release`. The lock file stays
-    in the folder (removing it would let two processes lock two different files).
+    in the folder (removing it would let two processes lock two different files). ``name``:
+    another lock file in the folder, for a writer that is not a UDN job (``trade`` takes
+    ``trade.lock``, so that its refusal and a job's never name each other).
     """
 
-    def __init__(self, run_dir: str | Path) -> None:
+    def __init__(self, run_dir: str | Path, name: str = LOCK_FILE) -> None:
         self.run_dir = Path(run_dir)
-        self.path = self.run_dir / LOCK_FILE
+        self.path = self.run_dir / name
         self._fd: int | None = None
         self._holder = b""
 
@@ -216,10 +224,12 @@ class RunLock:
                 holder = _wait_for_holder(fd)
                 if holder is not None:
                     who = holder.decode("utf-8", "replace").strip() or "another process"
-                    raise RunFolderBusy(
+                    busy = RunFolderBusy(
                         f"{self.run_dir} is in use ({who}): one process at a time may write a "
                         f"run folder; wait for it to end, or stop it with 'lenslesscam jobs "
-                        f"cancel {self.run_dir}'") from None
+                        f"cancel {self.run_dir}'")
+                    busy.holder = holder.decode("utf-8", "replace").strip()
+                    raise busy from None
         except BaseException:
             os.close(fd)
             raise

@@ -75,6 +75,18 @@ CLIP_MAX_ADAPT = 30
 #: ended so on 11 of 12 real cases (docs/udn.md, "Full resolution on a GPU").
 STILL_IMPROVING_TAIL = 0.1
 
+#: The settings that scale the loss or its gradient, each with the value above which it is far
+#: from anything a run needs (100x its default, or the range the docs give): a divergence or
+#: an overflow names those above it, rather than a setting that is at its default.
+OVERFLOW_LIMITS: dict[str, float] = {
+    "optimizer.lr": 1.0,
+    "optimizer.reg_noise": 5.0,
+    "optimizer.headroom": 100.0,
+    "optimizer.tv_weight": 1.0,
+    "optimizer.gain": 1e3,
+    "network.input_scale": 10.0,
+}
+
 
 @dataclass(frozen=True)
 class UDNConfig:
@@ -631,12 +643,39 @@ class UDNRunner(Stepwise[UDNStep]):
             eta = min(eta, max(0.0, self.config.time_limit_s - self.elapsed_s))
         return eta
 
+    def overflow_suspects(self) -> str:
+        """What a divergence or overflow message advises, from this run's settings.
+
+        Names the settings above :data:`OVERFLOW_LIMITS` (value and default) when there are
+        any; otherwise says that none is and points at the data.
+        """
+        cfg, net = self.config, self.network_config
+        defaults, net_defaults = UDNConfig(), NetworkConfig()
+        values = {
+            "optimizer.lr": (cfg.lr, f"{defaults.lr:g}"),
+            "optimizer.reg_noise": (cfg.reg_noise, f"{defaults.reg_noise:g}"),
+            "optimizer.headroom": (cfg.headroom, f"{defaults.headroom:g}"),
+            "optimizer.tv_weight": (cfg.tv_weight, f"{defaults.tv_weight:g}"),
+            "optimizer.gain": (cfg.gain, "auto"),
+            "network.input_scale": (net.input_scale, f"{net_defaults.input_scale:g}"),
+        }
+        far = [f"{name} = {v:g} (default {d})" for name, (v, d) in values.items()
+               if v is not None and v > OVERFLOW_LIMITS[name]]
+        if far:
+            return (f"settings far above their usual range: {', '.join(far)}; lower "
+                    f"{'it' if len(far) == 1 else 'them'}, or check the data for NaN/inf")
+        now = ", ".join(f"{name} {v:g}" for name, (v, _) in values.items() if v is not None)
+        return (f"no setting that scales the loss or its gradient is far from its usual range "
+                f"({now}): check the data for NaN/inf or its scale, or try a smaller "
+                "optimizer.lr")
+
     def _check_optimizer_state(self, it: int) -> None:
         """Raise :class:`NumericalError` when Adam's moments are no longer finite.
 
-        A gradient beyond float32's range (a huge ``tv_weight``, say 1e30) makes the second
-        moment infinite; Adam's steps are then 0 and the network stops moving while the loss
-        stays finite, so nothing else would notice: the run would end with its first output.
+        A gradient beyond float32's range (a huge ``tv_weight`` or ``input_scale``, say 1e30)
+        makes the second moment infinite; Adam's steps are then 0 and the network stops moving
+        while the loss stays finite, so nothing else would notice: the run would end with its
+        first output.
         Checked at the first iteration and at every snapshot (cheap: one pass over the state).
         """
         with torch.no_grad():
@@ -646,9 +685,8 @@ class UDNRunner(Stepwise[UDNStep]):
                     if t is not None and not bool(torch.isfinite(t).all()):
                         raise NumericalError(
                             f"UDN: the gradient overflowed {t.dtype} at iteration {it} (Adam's "
-                            f"{name} is not finite, so the network stopped moving); lower "
-                            f"optimizer.tv_weight (now {self.config.tv_weight:g}) or rescale "
-                            "the data")
+                            f"{name} is not finite, so the network stopped moving); "
+                            f"{self.overflow_suspects()}")
 
     def step(self, preview: bool = False) -> UDNStep:
         """Do one iteration and report it (``preview``: attach the estimate as numpy).
@@ -684,7 +722,7 @@ class UDNRunner(Stepwise[UDNStep]):
                 raise NumericalError(
                     f"UDN: the loss {what} at iteration {it}, after {cfg.max_backoffs} restores "
                     f"of the last good state with the learning rate lowered to {self.lr:.3g}; "
-                    "giving up (lower optimizer.lr, or check the data for NaN/inf)"
+                    f"giving up ({self.overflow_suspects()})"
                 )
             self.notes.append(f"iteration {it}: loss {what}; restored the state of iteration "
                               f"{self._snapshot['iteration']}, lr -> "

@@ -238,7 +238,7 @@ def test_nan_in_the_loss_fails_with_a_record(tiny_data, tmp_path, capsys):
     rec = record(out)
     assert rec["finish_reason"] == "failed" and rec["error"]["type"] == "NumericalError"
     assert "not finite at iteration" in rec["error"]["message"]
-    assert "lower optimizer.lr" in rec["error"]["message"]
+    assert "optimizer.lr = 1e+30 (default 0.01); lower it" in rec["error"]["message"]
     assert len(rec["notes"]) == 2  # the two restores before giving up
     with pytest.raises(NumericalError):
         run_job(spec, tmp_path / "run2")

@@ -1,0 +1,189 @@
+"""``trade`` and ``plan --trade``: threads, locks, output folders and reproducible choices.
+
+Each test is a finding of a hostile review (the old behaviour in its docstring).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from app.cli import build_parser
+from recon.formats import FORMAT_VERSION
+from recon.simulate import synthetic_psf
+from recon.trade import Config, TradeRow
+from recon.udn.rundir import RunLock
+from tests.clirun import run_cli
+
+#: two cheap settings: the tests are about the command, not the grid
+GRID = [Config("fista", 1e-4, (5, 10)), Config("fista", 1e-3, (5,))]
+
+
+@pytest.fixture
+def small_grid(monkeypatch):
+    import recon.trade as rt
+
+    monkeypatch.setattr(rt, "default_grid", lambda quick=False, with_udn=True: list(GRID))
+
+
+@pytest.fixture
+def pair(tmp_path):
+    psf = synthetic_psf((24, 32), seed=1)
+    meas = np.random.default_rng(0).random((24, 32)).astype(np.float32)
+    np.save(tmp_path / "psf.npy", psf)
+    np.save(tmp_path / "meas.npy", meas)
+    return ["--meas", str(tmp_path / "meas.npy"), "--psf", str(tmp_path / "psf.npy")]
+
+
+@pytest.fixture
+def keep_torch_threads():
+    old = torch.get_num_threads()
+    yield
+    torch.set_num_threads(old)
+
+
+def test_the_global_threads_option_reaches_trade(pair, small_grid, tmp_path, capsys,
+                                                 monkeypatch, keep_torch_threads):
+    """`lenslesscam --threads 1 trade ...` reported 'N torch thread(s): auto': trade's own
+    --threads default (0) replaced the global request; trade.md's command dropped it."""
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    out = tmp_path / "t"
+    code, _, err = run_cli(capsys, "--threads", 1, "trade", *pair, "--budgets", "1",
+                           "--out", out)
+    assert code == 0, err
+    md = (out / "trade.md").read_text()
+    assert "1 torch thread(s): requested" in md
+    assert "Produced by `lenslesscam --threads 1 trade" in md
+    csv_text = (out / "trade.csv").read_text()
+    assert "# command: lenslesscam --threads 1 trade" in csv_text and "# threads: 1" in csv_text
+    # trade's own --threads wins over the global one
+    code, _, err = run_cli(capsys, "--threads", 2, "trade", *pair, "--threads", 1,
+                           "--budgets", "1", "--out", tmp_path / "t2")
+    assert code == 0, err
+    assert "1 torch thread(s): requested" in (tmp_path / "t2" / "trade.md").read_text()
+    assert build_parser().parse_args(["trade", *pair, "--out", "x"]).threads is None
+
+
+def test_trade_refuses_a_udn_run_folder(pair, small_grid, tmp_path, capsys):
+    """`trade --out RUN` on a UDN run folder said 'another trade is writing this folder'
+    while the job ran (trade took the job's run.lock), and wrote beside the run's files
+    once it had ended."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "run.json").write_text(json.dumps({"format": "lenslesscam.udn_run",
+                                              "format_version": FORMAT_VERSION,
+                                              "status": "running"}))
+    before = sorted(p.name for p in run.iterdir())
+    with RunLock(run):  # the job holds its lock
+        code, stdout, err = run_cli(capsys, "trade", *pair, "--out", run, "--overwrite")
+    assert code == 2 and stdout == ""
+    assert len(err.strip().splitlines()) == 1
+    assert f"--out {run} writes into the UDN run folder {run}" in err
+    assert "another trade" not in err
+    code, _, err = run_cli(capsys, "trade", *pair, "--out", run)  # the job has ended
+    assert code == 2 and "writes into the UDN run folder" in err
+    assert sorted(p.name for p in run.iterdir()) == [*before, "run.lock"]
+
+
+def test_a_busy_trade_folder_names_the_trade_that_holds_it(pair, small_grid, tmp_path, capsys):
+    """The lock is the trade's own (trade.lock), and the refusal names its holder; a folder
+    with a run.lock held by someone else (a batch driver, say) is no trade's."""
+    out = tmp_path / "t"
+    with RunLock(out, name="trade.lock"):
+        code, _, err = run_cli(capsys, "trade", *pair, "--budgets", "1", "--out", out)
+    assert code == 2
+    assert f"another trade is writing this folder (pid {os.getpid()} on " in err
+    assert "trade.lock is held" in err
+    other = tmp_path / "o"
+    with RunLock(other):  # run.lock: not a trade's lock
+        code, _, err = run_cli(capsys, "trade", *pair, "--budgets", "1", "--out", other)
+    assert code == 0, err
+    # the lock file stays, as every RunLock's (removing it would let two writers lock two
+    # different files)
+    assert {"trade.lock", "trade.csv"} <= {p.name for p in other.iterdir()}
+
+
+def test_trade_help_states_the_budgets_default(capsys):
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["trade", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default 0.5,2,10,60)" in text
+    assert "lenslesscam --threads N" in text
+
+
+# -- plan --trade --------------------------------------------------------------------------------
+
+
+def _write_trade(path):
+    import csv
+
+    def row(setting, method, tau, precision, its, wall, q, channels=0):
+        return TradeRow("c", setting, method, tau, precision, 1, channels, its, wall, 4.0, q,
+                        0.01)
+
+    rows = [row("fista tau=1e-05", "fista", 1e-5, "float32", 50, 0.1, 30.0),
+            row("fista tau=0.0003", "fista", 3e-4, "float32", 200, 0.8, 32.0),
+            row("fista tau=0.0001 float64", "fista", 1e-4, "float64", 200, 0.9, 35.0),
+            row("udn ch32 bf16", "udn", 0.0, "bf16", 100, 0.05, 36.0, channels=32)]
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0].as_dict()))
+        w.writeheader()
+        for r in rows:
+            w.writerow(r.as_dict())
+
+
+@pytest.fixture
+def plan_inputs(tmp_path):
+    psf = synthetic_psf((48, 64), seed=1)
+    meas = np.random.default_rng(0).random((48, 64)).astype(np.float32)
+    np.save(tmp_path / "psf.npy", psf)
+    np.save(tmp_path / "meas.npy", meas)
+    _write_trade(tmp_path / "trade.csv")
+    return ["--psf", str(tmp_path / "psf.npy"), "--meas", str(tmp_path / "meas.npy")]
+
+
+def test_plan_chooses_among_settings_its_run_reproduces(plan_inputs, tmp_path, capsys):
+    """`plan --trade --budget 1s` chose 'fista tau=0.0001 float64', but a plan has no
+    precision: recon auto ran it in float32. The bf16 UDN is no plan's either."""
+    trade = tmp_path / "trade.csv"
+    code, stdout, err = run_cli(capsys, "plan", *plan_inputs, "--trade", trade, "--budget", "1s",
+                                "--json", "--no-probe")
+    assert code == 0, err
+    plan = json.loads(stdout)
+    assert plan["method"] == "fista-tv" and plan["tau"] == pytest.approx(3e-4)
+    assert plan["iterations"] == 200
+    why = plan["reasons"]["method"]
+    assert "the best of 2 measured float32 settings within 1 s was fista tau=0.0003" in why
+    assert "udn ch32 bf16 (36.00 dB) was better but computes in bf16" in why
+    # recon auto --float64 computes in float64: the float64 setting is its to take
+    code, stdout, err = run_cli(capsys, "recon", "auto", *plan_inputs, "--trade", trade,
+                                "--budget", "1s", "--float64", "--quiet",
+                                "--out", tmp_path / "r.tif")
+    assert code == 0, err
+    from recon.io import read_reconstruction
+
+    _, meta = read_reconstruction(tmp_path / "r.tif")
+    assert meta["plan"]["tau"] == pytest.approx(1e-4)
+    assert "measured float64 settings" in meta["plan"]["reasons"]["method"]
+    # a budget only another precision fits: refused, saying why
+    code, _, err = run_cli(capsys, "plan", *plan_inputs, "--trade", trade, "--budget", "0.07s",
+                           "--no-probe")
+    assert code == 2
+    assert "no measured setting fits the budget of 0.07 s in float32 (its bf16, float64" in err
+
+
+def test_plan_trade_names_a_folder_in_one_line(plan_inputs, tmp_path, capsys):
+    """`plan --trade DIR` said '[Errno 21] Is a directory'."""
+    folder = tmp_path / "tr"
+    folder.mkdir()
+    for cmd in (["plan"], ["recon", "auto", "--out", tmp_path / "x.tif"]):
+        code, _, err = run_cli(capsys, *cmd, *plan_inputs, "--trade", folder, "--budget", "1s")
+        assert code == 2 and len(err.strip().splitlines()) == 1
+        assert f"--trade {folder} is a folder, not a trade.csv" in err and "Errno" not in err
+    (folder / "trade.csv").write_text((tmp_path / "trade.csv").read_text())
+    code, _, err = run_cli(capsys, "plan", *plan_inputs, "--trade", folder, "--budget", "1s")
+    assert code == 2 and f"(--trade {folder / 'trade.csv'})" in err
