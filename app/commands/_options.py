@@ -29,6 +29,7 @@ __all__ = [
     "check_output_folders",
     "finite_float",
     "integer",
+    "refuse_run_folder_outputs",
 ]
 
 
@@ -170,3 +171,21 @@ def check_output_folders(outputs: Iterable[str | os.PathLike[str]]) -> None:
             raise PermissionError(f"cannot write {o}: {where} ({why}); choose another output "
                                   "location") from None
         probed.add(existing)
+
+
+def refuse_run_folder_outputs(outputs: Iterable[str | os.PathLike[str]], option: str) -> None:
+    """Refuse outputs inside a UDN run folder (:func:`recon.udn.jobs.is_run_folder`).
+
+    A run's folder holds only the run's files (``jobs status/resume/combine`` read them). The
+    check walks the outputs' folders for a ``run.json`` and imports the job module (and torch)
+    only when one is there.
+    """
+    from pathlib import Path
+
+    outs = list(outputs)
+    near = any((parent / "run.json").is_file()
+               for o in outs for parent in Path(os.path.abspath(o)).parents)
+    if near:
+        from recon.udn.jobs import refuse_outputs_in_run_folders
+
+        refuse_outputs_in_run_folders(outs, option)
