@@ -12,8 +12,9 @@
 - :mod:`recon.udn.state`: :class:`~recon.udn.state.JobState` and
   :class:`~recon.udn.state.FinishReason`, the str-Enums of job states.
 
-Torch is imported by the network and the runner; the names below are loaded on first use, so
-``import recon.udn.jobs`` (``jobs status``, ``jobs cancel``) does not pay for torch.
+The network and the runner (the names below) are loaded on first use, so ``import recon.udn``
+and the job module (``jobs status``, ``jobs cancel``) do not build them; the job module itself
+imports torch (its checkpoints are torch files).
 """
 
 from __future__ import annotations
