@@ -48,10 +48,13 @@ def int_list(item: Callable[[str], int]) -> Callable[[str], list[int]]:
         values = []
         for s in parts:
             try:
-                values.append(item(s))
+                v = item(s)
             except argparse.ArgumentTypeError:
                 raise argparse.ArgumentTypeError(
                     f"must be a comma-separated list, each {what}, got {text!r}") from None
+            if v in values:  # a repeat would be measured twice, as two (bogus) rows
+                raise argparse.ArgumentTypeError(f"lists {v} twice, got {text!r}")
+            values.append(v)
         if not values:
             raise argparse.ArgumentTypeError(f"must list at least one value, got {text!r}")
         return values

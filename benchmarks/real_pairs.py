@@ -1236,7 +1236,7 @@ def run(args: argparse.Namespace) -> int:
             f"real-pairs --downsample {s['downsample']} --udn-iters {s['udn_iters']}"
             + (f" --seeds {s['seeds']}" if s.get("seeds", 1) > 1 else "")
             + (f" --warm-start {s['warm_start']}" if s.get("warm_start") else "")
-            + f" --out {args.out} --figure {args.figure or 'FIGURE.png'}`.\n"
+            + f" --out {args.out} --figure {args.figure or 'FIGURE.png'} --overwrite`.\n"
         )
         atomic_write_bytes(args.out, text.encode())
     print(f"total {time.perf_counter() - t_all:.0f} s", file=sys.stderr)

@@ -523,7 +523,8 @@ def run(args: argparse.Namespace) -> int:
             "is the automatic choice's own time per case (the reconstruction excluded), on\n"
             f"{args.threads} torch thread(s) on a shared, loaded 2-core machine.\n\n"
             f"Produced by `lenslesscam bench protocol --threads {args.threads} --out "
-            f"docs/simulation-protocol.md` ({time.perf_counter() - t_all:.0f} s in the last "
+            f"docs/simulation-protocol.md --overwrite` ({time.perf_counter() - t_all:.0f} s in "
+            "the last "
             "session; finished cases are cached in the JSON-lines file `--cache`).\n\n"
         )
         atomic_write_bytes(args.out, (header + table + "\n").encode())

@@ -16,7 +16,7 @@ x-update divides by ``pad(1) + mu1``; for the masked case that divisor is set to
 Its penalties are set to ours (mu1 = 1, mu2 = mu3 = 0.01 max|H|^2); its TV is circular on the
 padded grid (ours: only differences inside the field).
 
-    lenslesscam bench time-to-quality [--iters 500] [--out docs/auto-tau.md]
+    lenslesscam bench time-to-quality [--iters 500]   (prints the table; docs/auto-tau.md quotes it)
 """
 
 from __future__ import annotations

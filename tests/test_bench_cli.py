@@ -286,6 +286,9 @@ def test_list_and_size_options_parse():
     assert p["batch"].parse_args([]).size == (48, 64)
     assert p["batch"].parse_args([]).workers == [1, 2]
     assert p["plan"].parse_args(["--size", "40x50"]).size == (40, 50)
+    # a repeated value would be measured twice, its second row timing nothing (ray1 reused)
+    with pytest.raises(SystemExit):
+        p["batch"].parse_args(["--workers", "1,1"])
 
 
 def test_preview_config_ranges_are_the_engines():

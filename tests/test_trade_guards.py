@@ -68,6 +68,36 @@ def test_the_global_threads_option_reaches_trade(pair, small_grid, tmp_path, cap
     assert build_parser().parse_args(["trade", *pair, "--out", "x"]).threads is None
 
 
+def test_a_trade_begun_with_the_global_threads_before_resumes(pair, small_grid, tmp_path,
+                                                              capsys, monkeypatch,
+                                                              keep_torch_threads):
+    """An earlier release keyed `lenslesscam --threads 1 trade ...`'s journal with threads 0
+    (trade's own default won); the same command must still go on where it stopped."""
+    import recon.trade as rt
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    out = tmp_path / "t"
+    real = rt.run_trade
+
+    def one_setting_then_interrupted(case, grid, **kw):
+        seen: list[str] = []
+        for row in real(case, grid, **kw):
+            if row.setting not in seen:
+                seen.append(row.setting)
+                if len(seen) == 2:
+                    raise KeyboardInterrupt
+            yield row
+
+    monkeypatch.setattr(rt, "run_trade", one_setting_then_interrupted)
+    # as the earlier release ran it: the request recorded as 0
+    assert run_cli(capsys, "trade", *pair, "--budgets", "1", "--out", out)[0] == 130
+    monkeypatch.setattr(rt, "run_trade", real)
+    code, _, err = run_cli(capsys, "--threads", 1, "trade", *pair, "--budgets", "1",
+                           "--out", out)
+    assert code == 0, err
+    assert "1 settings already measured" in err
+
+
 def test_trade_refuses_a_udn_run_folder(pair, small_grid, tmp_path, capsys):
     """`trade --out RUN` on a UDN run folder said 'another trade is writing this folder'
     while the job ran (trade took the job's run.lock), and wrote beside the run's files

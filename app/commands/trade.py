@@ -167,7 +167,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{out}: another trade is writing this folder{who}: its {LOCK_FILE} "
                          "is held; wait for it, or choose another --out") from None
     try:
-        journal = _Journal(out, cases, grid, requested, overwrite=args.overwrite)
+        journal = _Journal(out, cases, grid, requested, overwrite=args.overwrite,
+                           also_threads=0 if args.threads is None else None)
         for case in cases:
             done = journal.done(case.name)
             rows.extend(r for s in done.values() for r in s)
@@ -232,7 +233,7 @@ class _Journal:
     FORMAT = "lenslesscam.trade_journal"
 
     def __init__(self, out: Path, cases: list[Any], grid: Any, threads: int | None,
-                 overwrite: bool = False) -> None:
+                 overwrite: bool = False, also_threads: int | None = None) -> None:
         import hashlib
         import json
 
@@ -247,6 +248,13 @@ class _Journal:
                                              for a in (c.mask, c.truth))] for c in cases],
                 "grid": [c.label for c in grid], "threads": threads}
         self.key = hashlib.sha256(json.dumps(what, default=str).encode()).hexdigest()[:16]
+        # ``also_threads``: a request that keys the same trade (the earlier releases recorded
+        # 0 when only the global --threads was given)
+        self.keys = {self.key}
+        if also_threads is not None and also_threads != threads:
+            other = {**what, "threads": also_threads}
+            self.keys.add(hashlib.sha256(json.dumps(other, default=str).encode()
+                                         ).hexdigest()[:16])
         self.entries: dict[str, dict[str, list[Any]]] = {}
         #: earlier sessions: their number -> seconds they had run at their last setting
         self.earlier: dict[int, float] = {}
@@ -277,7 +285,7 @@ class _Journal:
             head = json.loads(lines[0]) if lines else {}
         except ValueError:
             head = {}
-        if head.get("format") != self.FORMAT or head.get("key") != self.key:
+        if head.get("format") != self.FORMAT or head.get("key") not in self.keys:
             if overwrite:
                 print(f"trade: note: {self.path} was another trade's partial result "
                       "(--overwrite): discarded", file=sys.stderr)

@@ -331,7 +331,8 @@ def run_folder_holding(path: str | os.PathLike[str]) -> Path | None:
     """The UDN run folder that ``path`` (a file to write) lies in, at any depth; or None."""
     p = Path(os.path.abspath(path))
     with contextlib.suppress(OSError, RuntimeError):
-        p = p.resolve()  # through symbolic links: a link to a run folder is that folder
+        # through symbolic links, before '..' (a/link/../x is where the link points, then up)
+        p = Path(path).resolve()
     for folder in p.parents:
         if is_run_folder(folder):
             return folder

@@ -660,7 +660,7 @@ class UDNRunner(Stepwise[UDNStep]):
             "network.input_scale": (net.input_scale, f"{net_defaults.input_scale:g}"),
         }
         far = [f"{name} = {v:g} (default {d})" for name, (v, d) in values.items()
-               if v is not None and v > OVERFLOW_LIMITS[name]]
+               if v is not None and v > OVERFLOW_LIMITS.get(name, math.inf)]
         if far:
             return (f"settings far above their usual range: {', '.join(far)}; lower "
                     f"{'it' if len(far) == 1 else 'them'}, or check the data for NaN/inf")

@@ -257,3 +257,16 @@ def test_recon_udn_does_not_offer_float64(tiny_data, capsys):
         build_parser().parse_args(["recon", "fista", "--help"])
     assert "--float64" in capsys.readouterr().out  # the other methods keep it
 
+
+
+def test_a_link_then_dotdot_into_a_run_folder_is_found(tmp_path):
+    """a/link -> RUN/inner: a/link/../x.tif is RUN/x.tif; '..' was taken off by text first."""
+    from recon.udn.jobs import run_folder_holding
+
+    run = tmp_path / "run"
+    (run / "inner").mkdir(parents=True)
+    (run / "run.json").write_text(json.dumps({"format": "lenslesscam.udn_run",
+                                              "format_version": 1, "status": "completed"}))
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "link").symlink_to(run / "inner")
+    assert run_folder_holding(tmp_path / "a" / "link" / ".." / "x.tif") == run.resolve()
