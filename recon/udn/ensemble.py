@@ -192,6 +192,17 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
     scores = None
     # the truth of the first member that names one (the truth is not part of the problem:
     # some members may have run without it)
+    truths = {}
+    for rec, _, _ in loaded:
+        t = (rec.get("inputs") or {}).get("truth")
+        if isinstance(t, dict) and rec["spec"]["data"].get("truth"):
+            truths.setdefault(t.get("array_hash") or t.get("file_hash"), []).append(
+                str(rec["spec"]["data"]["truth"]))
+    if len(truths) > 1:  # scored against one of them silently, before
+        raise ValueError("the runs name different truths ("
+                         + "; ".join(sorted({p for ps in truths.values() for p in ps}))
+                         + "): the ensemble would be scored against one of them; combine runs "
+                         "of one truth, or runs without one")
     scorer = next((rec for rec, _, _ in loaded if rec["spec"]["data"].get("truth")), None)
     if scorer is not None:
         from recon.metrics import metrics_report
@@ -210,6 +221,9 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
     metadata = {
         "method": "udn-ensemble", "model": meta0.get("model"), "estimate": estimate,
         "members": members, "inputs": rec0.get("inputs"), "scores": scores,
+        # the truth the scores are against (the first member's inputs may lack it)
+        "scored_against": None if scorer is None or scores is None
+        else (scorer.get("inputs") or {}).get("truth"),
     }
     if meta0.get("preprocessing") is not None:  # how the members read their inputs
         metadata["preprocessing"] = meta0["preprocessing"]

@@ -81,6 +81,10 @@ def test_combine_takes_a_run_without_truth_and_scores_with_the_others(two_runs, 
     for members in ([runs[0], bare], [bare, runs[0]]):  # the first member without a truth too
         res = combine_runs(members, tmp_path / "ens.tif")
         assert res.scores is not None and np.isfinite(res.scores["psnr"])
+        from recon.io import read_reconstruction
+
+        meta = read_reconstruction(tmp_path / "ens.tif")[1]
+        assert meta["scored_against"]["path"].endswith("truth.npy")
     code, stdout, err = run_cli(capsys, "jobs", "combine", bare, runs[1], "--out",
                                 tmp_path / "ens2.tif")
     assert code == 0, err
@@ -97,6 +101,16 @@ def test_combine_takes_a_run_without_truth_and_scores_with_the_others(two_runs, 
     run_job(write_spec(other, stopping=SHORT), odd, seed=6)
     with pytest.raises(ValueError, match=r"other data than .* \(differs in: data.mask\)"):
         combine_runs([runs[0], odd], tmp_path / "ens3.tif")
+    # two truths: the ensemble would be scored against one of them silently
+    other_truth = tiny_data.parent / "other_truth.npy"
+    t2 = np.load(tiny_data / "truth.npy").copy()
+    t2.flat[0] += 1.0
+    np.save(other_truth, t2)
+    second = tmp_path / "second"
+    run_job(write_spec(tiny_data, "t2.toml", stopping=SHORT, data={"truth": str(other_truth)}),
+            second, seed=7)
+    with pytest.raises(ValueError, match="different truths"):
+        combine_runs([runs[0], second], tmp_path / "ens4.tif")
 
 
 # -- no output inside a run folder ---------------------------------------------------------------
