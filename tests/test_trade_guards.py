@@ -217,3 +217,27 @@ def test_plan_trade_names_a_folder_in_one_line(plan_inputs, tmp_path, capsys):
     (folder / "trade.csv").write_text((tmp_path / "trade.csv").read_text())
     code, _, err = run_cli(capsys, "plan", *plan_inputs, "--trade", folder, "--budget", "1s")
     assert code == 2 and f"(--trade {folder / 'trade.csv'})" in err
+
+
+def test_a_float32_udn_setting_stays_a_candidate_under_float64(tmp_path):
+    """With recon auto --float64 only float64 rows were candidates, though a plan's UDN runs
+    its network in float32 whatever the flag says (its float32 rows are reproduced)."""
+    import csv
+
+    from app.commands.plan import plan_from_trade
+
+    rows = [TradeRow("c", "fista tau=0.0001 float64", "fista", 1e-4, "float64", 1, 0, 200,
+                     0.9, 4.0, 35.0, 0.01),
+            TradeRow("c", "udn ch32", "udn", 0.0, "float32", 1, 32, 100, 0.5, 4.0, 40.0, 0.01)]
+    path = tmp_path / "trade.csv"
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0].as_dict()))
+        w.writeheader()
+        for r in rows:
+            w.writerow(r.as_dict())
+    from recon.plan import Plan
+
+    base = Plan(model="2d", k=1, sensor=(48, 64), field=(48, 64), region=(0, 0, 48, 64),
+                downsample=1, method="fista-tv", iterations=300, budget_s=1.0)
+    assert plan_from_trade(base, path, None, precision="float64").method == "udn"
+    assert plan_from_trade(base, path, None, precision="float32").method == "udn"

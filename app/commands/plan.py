@@ -356,7 +356,9 @@ def plan_from_trade(plan: Any, trade_csv: str, inputs: dict[str, Any] | None = N
     if inputs is not None and (warning := trade_data_warning(trade, inputs, who)):
         print(warning, file=sys.stderr)
     full = [r for r in trade.rows if r.downsample == 1]
-    rows = [r for r in full if r.precision == precision]
+    # a plan's UDN runs its network in float32 whatever recon auto's --float64 says
+    rows = [r for r in full
+            if r.precision == ("float32" if r.method == "udn" else precision)]
     key = "psnr" if full and all(r.psnr is not None for r in full) else "heldout_psnr"
     best = best_for_budgets(rows, [plan.budget_s], key)[plan.budget_s]
     if best is None:
