@@ -81,6 +81,8 @@ _PSF_KEYS: tuple[str, ...] = ("psf", "arr_0", "image", "data")
 
 
 _MEAS_KEYS: tuple[str, ...] = ("meas", "measurement", "b", "arr_0", "image", "data")
+#: a dark file: a plain dark frame, or the pixel maps of ``calibrate darks`` (its mean dark)
+_DARK_KEYS: tuple[str, ...] = ("dark_mean", "dark", *_DEFAULT_KEYS)
 
 
 _STACK_KEYS: tuple[str, ...] = ("psf", "psfs", "zstack", "stack", "arr_0", "data")
@@ -330,7 +332,7 @@ def _dark_for(
         return "auto"
     if isinstance(dark, str | os.PathLike):
         dp = Path(dark)
-        d = _load_image(dp, key=key, prefer=_DEFAULT_KEYS)
+        d = _load_image(dp, key=key, prefer=_DARK_KEYS)
         _validate_raw(d, dp, "dark")
         if channels is None:
             if d.ndim == 3:

@@ -547,6 +547,14 @@ def test_a_sensor_size_of_zero_is_refused_in_words(tmp_path, capsys):
     assert main(["snap", "--camera", "sim", "--sim-size", "100000x100000", "--out",
                  str(tmp_path / "f.tif")]) == 2
     assert "--sim-size must be at most 16384 pixels a side" in capsys.readouterr().err
+    # a sensor size, but more than the simulator renders within a frame's timeout: snap hung,
+    # calibrate darks ended in a traceback after 40 s
+    for cmd, out in ((["snap", "--camera", "sim"], "g.tif"),
+                     (["calibrate", "darks", "--camera", "sim", "--no-prompt", "--frames", "1"],
+                      "g.npz")):
+        assert main([*cmd, "--sim-size", "16384x16384", "--out", str(tmp_path / out)]) == 2
+        assert "renders at most 16.8 M pixels a frame" in capsys.readouterr().err
+        assert not (tmp_path / out).exists()
 
 
 def test_a_closed_output_pipe_ends_quietly(monkeypatch, capsys):

@@ -169,6 +169,8 @@ def _hw(value: str, what: str) -> tuple[int, int]:
 #: the largest side of a (simulated) sensor or PSF shape: the largest sCMOS sensors are about
 #: 14000 pixels wide
 MAX_SIDE = 16384
+#: the largest frame the simulated camera renders within a frame timeout on one core
+SIM_MAX_PIXELS = 4096 * 4096
 
 
 @contextlib.contextmanager
@@ -257,6 +259,11 @@ def sim_camera_kwargs(args: argparse.Namespace, state_path: Path | None) -> dict
         h, w = (int(psf.shape[0]), int(psf.shape[1]))
     else:
         h, w = _hw(args.sim_size or "64x80", "--sim-size")
+    if h * w > SIM_MAX_PIXELS:  # a 16384x16384 frame timed out, then a traceback (or a hang)
+        raise ValueError(f"the simulated camera is {h}x{w}: it renders at most "
+                         f"{SIM_MAX_PIXELS / 1e6:.1f} M pixels a frame in time (4096x4096); "
+                         "choose a smaller --sim-size (or --sim-psf)")
+    if not args.sim_psf:
         psf = synthetic_psf((h, w), seed=args.sim_seed)
     return {
         "width": w,

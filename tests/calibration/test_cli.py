@@ -309,3 +309,28 @@ def test_firmware_exits_when_the_calibrate_process_is_killed(tmp_path):
         if alive(fw):
             os.kill(fw, signal.SIGKILL)
         proc.communicate(timeout=30)  # the firmware held its stderr open
+
+
+def test_a_darks_calibration_is_a_dark_file(tmp_path, capsys):
+    """`calibrate darks`'s own file as `--dark` was "contains several arrays (dark_mean, ...):
+    choose one with --key" (recon has no --key); its mean dark is the dark frame."""
+    from recon.io import read_reconstruction
+    from recon.simulate import synthetic_psf
+
+    darks = tmp_path / "darks.npz"
+    assert main(["calibrate", "darks", "--camera", "sim", "--no-prompt", "--frames", "4",
+                 "--settle", "0", "--out", str(darks)]) == 0
+    dark_mean = np.load(darks)["dark_mean"]
+    np.save(tmp_path / "dark_frame.npy", dark_mean)
+    rng = np.random.default_rng(0)
+    frame = (dark_mean + rng.integers(0, 2000, dark_mean.shape)).astype(np.uint16)
+    np.save(tmp_path / "frame.npy", frame)
+    np.save(tmp_path / "psf.npy", synthetic_psf(dark_mean.shape, seed=1))
+    out = {}
+    for name, dark in (("maps", darks), ("plain", tmp_path / "dark_frame.npy")):
+        argv = ["recon", "fista", "--psf", str(tmp_path / "psf.npy"), "--meas",
+                str(tmp_path / "frame.npy"), "--dark", str(dark), "--psf-dark", "0", "--tau",
+                "1e-3", "--iters", "10", "--out", str(tmp_path / f"{name}.tif")]
+        assert main(argv) == 0, capsys.readouterr().err
+        out[name] = read_reconstruction(tmp_path / f"{name}.tif")[0]
+    np.testing.assert_allclose(out["maps"], out["plain"], rtol=0, atol=1e-6)
