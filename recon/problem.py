@@ -585,6 +585,11 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
         DARK_CORRECTED_KINDS)
     if spec.psf_dark is None and psf_dark_corrected:
         psf_dark = None
+    elif psf_dark_corrected and psf_dark not in (None, 0, 0.0):
+        # given by the user: taken, and said (a second dark off a calibrated PSF)
+        warnings.warn(f"PSF file {psf_file} is a calibrated PSF, dark-subtracted already: the "
+                      f"PSF dark {spec.psf_dark} takes a second dark level off it (leave "
+                      "psf_dark out, or 0)", MeasurementWarning, stacklevel=2)
 
     # the mask first, when it reads: the measurement's check of negative pixels counts the
     # measured ones (a mask that does not read is said below, after the measurement's checks)

@@ -369,8 +369,13 @@ def test_a_calibrated_psf_file_does_not_take_the_measurement_dark(tmp_path):
     plain = load(psf_file="plain.tif")
     assert plain.metadata["psf_dark_corrected_file"] is False
     np.testing.assert_allclose(plain.psf[0], np.maximum(psf - 100, 0), rtol=1e-6, atol=1e-4)
-    np.testing.assert_allclose(load(psf_file="psf.tif", psf_dark=100.0).psf[0],
-                               np.maximum(psf - 100, 0), rtol=1e-6, atol=1e-4)
+    # (and said: a second dark off a calibrated PSF was silent)
+    from recon.checks import MeasurementWarning
+
+    with pytest.warns(MeasurementWarning, match="calibrated PSF, dark-subtracted already"):
+        twice = load(psf_file="psf.tif", psf_dark=100.0)
+    np.testing.assert_allclose(twice.psf[0], np.maximum(psf - 100, 0), rtol=1e-6, atol=1e-4)
+    assert any("second dark level" in w for w in twice.metadata["warnings"])
 
 
 def test_an_all_zero_shutter_or_filter_cube_is_named(tmp_path):

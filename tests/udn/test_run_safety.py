@@ -494,6 +494,8 @@ def test_another_runs_checkpoint_is_refused(tiny_data, tmp_path, capsys):
     assert record(a)["run_id"] != record(b)["run_id"]
 
 
+# the old rule's double dark, on purpose: said by a warning each time the problem is loaded
+@pytest.mark.filterwarnings("ignore:PSF file .* is a calibrated PSF, dark-subtracted already")
 def test_a_run_begun_before_the_calibrated_psf_rule_resumes_as_it_began(tiny_data, tmp_path):
     """A calibrated PSF no longer takes data.dark; a run begun before (its PSF's array hash made
     with the dark taken off) was refused on resume: 'data.psf changed (hash H -> H)'."""
