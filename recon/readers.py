@@ -288,7 +288,8 @@ def _to_chw(a: Array, p: Path, what: str) -> Array:
     try:
         return to_channel_first(a)
     except ValueError as exc:
-        hint = "; for a stack of PSFs use load_psf_stack" if what == "PSF" else ""
+        hint = ("; a stack of PSFs (depth planes) is read with --model depth --psf-stack "
+                "FILE (psf_stack in a job spec)" if what == "PSF" else "")
         raise ValueError(f"{what} file {p}: {exc}{hint}") from exc
 
 

@@ -321,7 +321,7 @@ def test_load_psf_bad_dtype_and_ndim(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"has shape \(8,\)"):
         rio.load_psf(tmp_path / "v.npy")
     tifffile.imwrite(tmp_path / "st.tif", np.ones((5, 8, 8), dtype=np.float32))
-    with pytest.raises(ValueError, match="load_psf_stack"):
+    with pytest.raises(ValueError, match="--model depth --psf-stack FILE"):
         rio.load_psf(tmp_path / "st.tif")
 
 
