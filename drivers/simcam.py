@@ -357,7 +357,8 @@ class SimulatedCamera(CameraBase):
     ) -> None:
         super().__init__(camera_id)
         if int(width) != width or int(height) != height or width < 1 or height < 2:
-            raise ValueError(f"sensor size must be integers >= (1, 2), got {width}x{height}")
+            raise ValueError(f"sensor size (rows x columns) must be whole numbers of at least "
+                             f"2x1, got {height}x{width}")
         self._width, self._height = int(width), int(height)
         self._renderer: Renderer = renderer if renderer is not None else CropRenderer(width)
         self._scene: Scene | None = StillScene(scene) if isinstance(scene, np.ndarray) else scene

@@ -543,6 +543,11 @@ def test_a_sensor_size_of_zero_is_refused_in_words(tmp_path, capsys):
     assert main(["calibrate", "darks", "--camera", "sim", "--sim-size", "0x0", "--frames", "1",
                  "--no-prompt", "--out", str(tmp_path / "d.npz")]) == 2
     assert "--sim-size must be at least 1x1 pixels" in capsys.readouterr().err
+    # one row: the simulator needs two (it said "integers >= (1, 2), got 2x1", W x H)
+    assert main(["snap", "--camera", "sim", "--sim-size", "1x2", "--out",
+                 str(tmp_path / "f1.tif")]) == 2
+    assert "(rows x columns) must be whole numbers of at least 2x1, got 1x2" in (
+        capsys.readouterr().err)
     # larger than any sensor: it was "Unable to allocate 74.5 GiB", no option named
     assert main(["snap", "--camera", "sim", "--sim-size", "100000x100000", "--out",
                  str(tmp_path / "f.tif")]) == 2
