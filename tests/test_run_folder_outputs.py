@@ -50,3 +50,14 @@ def test_simulate_is_not_written_into_a_run(run_and_inputs, capsys):
                            d / "meas.npy", "--tau", "1e-3", "--iters", "5", "--out",
                            d / "beside.tif")
     assert code == 0, err
+
+
+def test_every_writer_command_takes_the_rule_from_the_shared_output_check(run_and_inputs,
+                                                                          capsys):
+    """The rule sits in check_command_outputs: calibrate (never given its own check) refuses
+    too, before the camera is opened."""
+    _, run = run_and_inputs
+    code, _, err = run_cli(capsys, "calibrate", "darks", "--camera", "sim", "--no-prompt",
+                           "--frames", "2", "--out", run / "darks.npz")
+    assert code == 2 and "writes into the UDN run folder" in err, err
+    assert sorted(p.name for p in run.iterdir()) == ["run.json"]

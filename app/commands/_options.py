@@ -116,16 +116,18 @@ def add_overwrite_option(p: argparse.ArgumentParser) -> None:
 
 def check_command_outputs(args: argparse.Namespace, outputs: Iterable[str | os.PathLike[str]]
                           ) -> None:
-    """Refuse outputs that are inputs, exist without ``--overwrite``, or cannot be written.
+    """Refuse outputs that lie in a run folder, are inputs, exist, or cannot be written.
 
-    An output may not be an input of this command, nor exist without ``--overwrite``, nor lie
-    in a folder that cannot be created or written. One rule for every writer command
-    (:func:`recon.atomic.check_outputs`, then :func:`check_output_folders`), called before
-    any work is done.
+    An output may not lie inside a UDN run folder (whatever ``--overwrite`` says), be an input
+    of this command, exist without ``--overwrite``, or lie in a folder that cannot be created
+    or written. One rule for every writer command (:func:`refuse_run_folder_outputs`,
+    :func:`recon.atomic.check_outputs`, then :func:`check_output_folders`), called before any
+    work is done.
     """
     from recon.atomic import check_outputs
 
     outputs = list(outputs)
+    refuse_run_folder_outputs(outputs, "output")
     inputs = {f"--{name.replace('_', '-')}": value for name in INPUT_OPTIONS
               if isinstance(value := getattr(args, name, None), (str, os.PathLike))}
     check_outputs(outputs, inputs, overwrite=bool(getattr(args, "overwrite", False)))

@@ -21,7 +21,6 @@ from app.commands._options import (
     NONNEG_INT,
     add_overwrite_option,
     check_command_outputs,
-    refuse_run_folder_outputs,
 )
 from app.commands._tau import tau_type
 
@@ -395,7 +394,6 @@ def run_plan(args: argparse.Namespace) -> int:
 
     if args.out:
         check_command_outputs(args, [args.out])
-        refuse_run_folder_outputs([args.out], "--out")
     check_trade_option(args)
     inputs = load_inputs(args)
     plan = _make(args, inputs, probe=not args.no_probe)
@@ -475,7 +473,6 @@ def run_auto(args: argparse.Namespace) -> int:
     from recon.plan import Plan, execute
 
     check_command_outputs(args, reconstruction_paths(args.out, "image"))
-    refuse_run_folder_outputs([args.out], "--out")
     check_trade_option(args)
     inputs = load_inputs(args)
     if args.plan:

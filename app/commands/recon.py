@@ -18,7 +18,6 @@ from app.commands._options import (
     add_overwrite_option,
     check_command_outputs,
     finite_float,
-    refuse_run_folder_outputs,
 )
 from app.commands._tau import add_tau_arguments, resolve_tau, tau_search_s
 
@@ -161,7 +160,6 @@ def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
     from recon.io import reconstruction_paths, save_reconstruction
 
     check_command_outputs(args, reconstruction_paths(args.out, kind))
-    refuse_run_folder_outputs(reconstruction_paths(args.out, kind), "--out")
     prob = load_problem(args)
     fit_command_threads(args, prob.model.scene_shape)  # small grids: one thread
     dtype = torch.float64 if args.float64 else torch.float32

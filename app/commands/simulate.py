@@ -29,7 +29,6 @@ from app.commands._options import (
     POSITIVE_INT,
     add_overwrite_option,
     check_command_outputs,
-    refuse_run_folder_outputs,
 )
 
 #: Files written into ``--out`` (``shutter`` / ``filters`` only for those models).
@@ -257,7 +256,6 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     check_command_outputs(args, [out / f"{n}.npy" for n in OUTPUT_NAMES]
                           + [out / "simulation.json"])
-    refuse_run_folder_outputs([out / "simulation.json"], "--out")
     # written whole where the folder can be swapped (else file by file, each atomically)
     swap_problem = folder_swap_problem(out)
     psf = load_psf_spec(args.psf, args.downsample, parse_dark(args.dark))
