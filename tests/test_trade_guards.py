@@ -149,7 +149,6 @@ def test_trade_help_states_the_budgets_default(capsys):
 
 
 def _write_trade(path):
-    import csv
 
     def row(setting, method, tau, precision, its, wall, q, channels=0):
         return TradeRow("c", setting, method, tau, precision, 1, channels, its, wall, 4.0, q,
@@ -159,6 +158,13 @@ def _write_trade(path):
             row("fista tau=0.0003", "fista", 3e-4, "float32", 200, 0.8, 32.0),
             row("fista tau=0.0001 float64", "fista", 1e-4, "float64", 200, 0.9, 35.0),
             row("udn ch32 bf16", "udn", 0.0, "bf16", 100, 0.05, 36.0, channels=32)]
+    _write_rows(path, rows)
+
+
+def _write_rows(path, rows):
+    """A trade.csv as ``lenslesscam trade`` writes it (DictWriter over TradeRow.as_dict)."""
+    import csv
+
     with open(path, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0].as_dict()))
         w.writeheader()
@@ -222,7 +228,6 @@ def test_plan_trade_names_a_folder_in_one_line(plan_inputs, tmp_path, capsys):
 def test_a_float32_udn_setting_stays_a_candidate_under_float64(tmp_path):
     """With recon auto --float64 only float64 rows were candidates, though a plan's UDN runs
     its network in float32 whatever the flag says (its float32 rows are reproduced)."""
-    import csv
 
     from app.commands.plan import plan_from_trade
 
@@ -230,11 +235,7 @@ def test_a_float32_udn_setting_stays_a_candidate_under_float64(tmp_path):
                      0.9, 4.0, 35.0, 0.01),
             TradeRow("c", "udn ch32", "udn", 0.0, "float32", 1, 32, 100, 0.5, 4.0, 40.0, 0.01)]
     path = tmp_path / "trade.csv"
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0].as_dict()))
-        w.writeheader()
-        for r in rows:
-            w.writerow(r.as_dict())
+    _write_rows(path, rows)
     from recon.plan import Plan
 
     base = Plan(model="2d", k=1, sensor=(48, 64), field=(48, 64), region=(0, 0, 48, 64),
