@@ -786,7 +786,17 @@ FINE_FRACTION = 1 / 64
 #: the methods of the error analysis, from the images a run keeps
 ERROR_METHODS = (("fista_auto", "FISTA-TV auto tau"), ("fista_oracle", "FISTA-TV oracle tau"),
                  ("udn", "UDN (held-out stop)"), ("udn_blend", "UDN+FISTA blend"),
-                 ("udn_ensemble", "UDN seed ensemble"))
+                 ("udn_ensemble", "UDN seed ensemble"),
+                 ("ensemble_fista_mean", "UDN seed ensemble and FISTA-TV auto, averaged"))
+
+#: The derived estimate of ``ensemble_fista_mean``: the plain mean of the seed ensemble and the
+#: automatic-tau FISTA-TV result, neither weighted by the truth (both fit the same measurement,
+#: so their scales agree; the seed ensemble's own rule, one weight per member, extended to one
+#: more member whose errors are of another kind).
+def _derived(imgs: dict[str, Any]) -> dict[str, Any]:
+    if "udn_ensemble" in imgs and "fista_auto" in imgs and "ensemble_fista_mean" not in imgs:
+        imgs = {**imgs, "ensemble_fista_mean": 0.5 * (imgs["udn_ensemble"] + imgs["fista_auto"])}
+    return imgs
 
 
 ERROR_TEXT = (
@@ -870,10 +880,11 @@ def error_analysis(images: dict[tuple[str, float], dict[str, Any]]) -> list[dict
     corrected with its own truth). A smooth error that the other scenes share is the camera's
     (vignetting, the reference camera's shading), not the scene's: no prior can remove it
     from one measurement, and if removing it lifts the methods alike it is not what separates
-    them. ``mid_factor_1db`` (oracle FISTA-TV's row only): the factor on its mid-band error,
-    its fine and smooth errors kept, that would raise its mean PSNR by 1 dB, the issue's
-    margin (what a method that shares the other two bands would have to do in the mid band).
-    Levels with fewer than two pairs are left out.
+    them. ``ensemble_fista_mean``: the mean of the seed ensemble and automatic-tau FISTA-TV
+    (:func:`_derived`), where a case kept both. ``mid_factor_1db`` (oracle FISTA-TV's row
+    only): the factor on its mid-band error, its fine and smooth errors kept, that would raise
+    its mean PSNR by 1 dB, the issue's margin (what a method that shares the other two bands
+    would have to do in the mid band). Levels with fewer than two pairs are left out.
     """
     import numpy as np
 
@@ -881,7 +892,8 @@ def error_analysis(images: dict[tuple[str, float], dict[str, Any]]) -> list[dict
 
     out: list[dict[str, Any]] = []
     for e in sorted({e for _, e in images}):
-        cases = {p: imgs for (p, ee), imgs in images.items() if ee == e and "truth" in imgs}
+        cases = {p: _derived(imgs) for (p, ee), imgs in images.items()
+                 if ee == e and "truth" in imgs}
         if len(cases) < 2:
             continue
         short = min(next(iter(cases.values()))["truth"].shape[-2:])
