@@ -8,12 +8,13 @@ pixels, as a :class:`MeasurementCheck`). Pure numpy.
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
+from recon.inputwarnings import warn_input
 
 __all__ = ["NEGATIVE_WARN_DEPTH", "NEGATIVE_WARN_FRACTION", "MeasurementCheck",
            "MeasurementWarning", "check_field", "check_measurement", "check_pair",
@@ -191,7 +192,7 @@ def check_measurement(
                              saturated / n if n else 0.0, negative, negative / n if n else 0.0,
                              nonfinite, tuple(flags))
     if warn and check.flagged:
-        warnings.warn(check.message(), MeasurementWarning, stacklevel=2)
+        warn_input(check.message(), MeasurementWarning, stacklevel=2)
     return check
 
 

@@ -59,8 +59,6 @@ Rules (the same for every command):
 from __future__ import annotations
 
 import os
-import threading
-import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from dataclasses import field as dc_field
@@ -73,6 +71,7 @@ import numpy.typing as npt
 from recon.calibfile import DARK_CORRECTED_KINDS, calibration_kind
 from recon.checks import MeasurementWarning, check_field, check_pair
 from recon.formats import array_hash
+from recon.inputwarnings import warn_input
 from recon.preprocess import (
     box_downsample,
     downsample_masked,
@@ -81,7 +80,6 @@ from recon.preprocess import (
     to_channel_first,
     to_gray,
 )
-from recon.psfcheck import PsfWarning
 from recon.readers import (
     EmptyPsfError,
     load_image,
@@ -512,10 +510,6 @@ def _norm(mode: str) -> Any:
     return None if mode == "none" else mode
 
 
-#: held while a load catches its warnings (see :func:`load_problem`)
-_CATCH_LOCK = threading.RLock()
-
-
 def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
                  device: torch.device | str = "cpu") -> Problem:
     """Read, dark-correct, downsample and check the inputs of ``spec``; build the model.
@@ -526,48 +520,21 @@ def load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None = None,
     the inputs raise (a raw frame read without a dark level, many zero pixels without a mask,
     saturation, a constant or clipped PSF) are kept, as text, in
     ``metadata['warnings']`` (so a run record, a batch item and a result's metadata say them
-    too), and emitted again as they were, after the load (stderr still shows them; the
-    warning filters in force decide as before).
+    too), whatever the warning filters say; the filters decide, as ever, what is shown. They
+    are collected in this thread only (:mod:`recon.inputwarnings`): loads in other threads, and
+    their warnings, are neither blocked nor recorded here.
     """
-    caught: list[warnings.WarningMessage] = []
-    try:
-        # catch_warnings swaps process-wide state: two loads in threads must not interleave
-        with _CATCH_LOCK, warnings.catch_warnings(record=True) as caught:
-            # recorded whatever the filters say; they decide when the warnings are emitted again
-            warnings.simplefilter("always", MeasurementWarning)
-            warnings.simplefilter("always", PsfWarning)
-            prob = _load_problem(spec, dtype=dtype, device=device)
-    finally:  # outside the catch (a failed load's too): the caller's filters and stderr
-        for w in caught:
-            _reemit(w)
-    prob.metadata["warnings"] = list(dict.fromkeys(
-        str(w.message) for w in caught
-        if issubclass(w.category, MeasurementWarning | PsfWarning)))
+    from recon.inputwarnings import collect_input_warnings
+
+    with collect_input_warnings() as got:
+        prob = _load_problem(spec, dtype=dtype, device=device)
+    prob.metadata["warnings"] = list(got)
     return prob
-
-
-def _reemit(w: warnings.WarningMessage) -> None:
-    """Emit a caught warning again as it was first raised: same place and module.
-
-    With the module named, the filters by module (``ignore::UserWarning:harvesters``) match
-    it as they did (without it they see a file path). Each load changes the filters (its
-    catch), which resets the registries: a repeated warning is shown again per load.
-    """
-    import sys
-
-    module, registry = None, None
-    for mod in list(sys.modules.values()):
-        if getattr(mod, "__file__", None) == w.filename:
-            module = mod.__name__
-            registry = mod.__dict__.setdefault("__warningregistry__", {})
-            break
-    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, module=module,
-                           registry=registry, source=w.source)
 
 
 def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
                   device: torch.device | str) -> Problem:
-    """:func:`load_problem` without its catch of warnings."""
+    """:func:`load_problem` without its collection of warnings."""
     import torch
 
     from recon.models import build_model
@@ -587,7 +554,7 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
         psf_dark = None
     elif psf_dark_corrected and psf_dark not in (None, 0, 0.0):
         # given by the user: taken, and said (a second dark off a calibrated PSF)
-        warnings.warn(f"PSF file {psf_file} is a calibrated PSF, dark-subtracted already: the "
+        warn_input(f"PSF file {psf_file} is a calibrated PSF, dark-subtracted already: the "
                       f"PSF dark {spec.psf_dark} takes a second dark level off it (leave "
                       "psf_dark out, or 0)", MeasurementWarning, stacklevel=2)
 

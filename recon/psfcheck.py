@@ -21,12 +21,13 @@ Rules (raw data, before dark subtraction and normalisation):
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
+from recon.inputwarnings import warn_input
 
 __all__ = ["CONSTANT_RTOL", "ENVELOPE_SIGMA_FRACTION", "PLATEAU_FRACTION", "PLATEAU_MIN",
            "PsfCheck", "PsfWarning", "autocorrelation_fwhm", "check_psf"]
@@ -115,7 +116,7 @@ def check_psf(raw: npt.ArrayLike, *, bits: int | None = None, warn: bool = False
         flags.append("saturated")
     check = PsfCheck(n, lo, hi, at_max, full_scale, saturated, tuple(flags))
     if warn and flags:
-        warnings.warn(check.message(name), PsfWarning, stacklevel=2)
+        warn_input(check.message(name), PsfWarning, stacklevel=2)
     return check
 
 

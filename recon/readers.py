@@ -11,7 +11,6 @@ downsampling rules) are loaded by :func:`recon.problem.load_problem`.
 from __future__ import annotations
 
 import os
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -20,6 +19,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from recon.inputwarnings import warn_input
 from recon.preprocess import (
     ChannelOrder,
     Channels,
@@ -378,7 +378,7 @@ def _check_saturation(raw: Array, p: Path) -> None:
     if check.saturated_fraction < SATURATION_WARN_FRACTION:
         return
     only = replace(check, flags=("saturated",))
-    warnings.warn(f"measurement file {p}: {only.message()}", MeasurementWarning, stacklevel=4)
+    warn_input(f"measurement file {p}: {only.message()}", MeasurementWarning, stacklevel=4)
 
 
 #: a raw measurement read without a dark level whose darkest pixels are at least this fraction
@@ -407,7 +407,7 @@ def _check_unmasked_zeros(chw: Array, p: Path) -> None:
 
     zero = float(np.mean(np.all(chw == 0, axis=0)))
     if zero >= UNMASKED_ZERO_WARN_FRACTION:
-        warnings.warn(
+        warn_input(
             f"measurement file {p}: {100 * zero:.0f} % of its pixels are 0 and no mask was "
             "given: erased or dead pixels would be fitted as black; give their mask (--mask, "
             "the spec's mask; 1 = measured)", MeasurementWarning, stacklevel=4)
@@ -428,7 +428,7 @@ def _check_black_level(raw: Array, p: Path) -> None:
     floor = float(np.percentile(raw, 0.1))
     if top <= 0 or floor < BLACK_LEVEL_WARN_FRACTION * top:
         return
-    warnings.warn(
+    warn_input(
         f"measurement file {p}: raw {raw.dtype} data read with no dark level, and its darkest "
         f"pixels are at {floor:g} ({100 * floor / top:.0f} % of its maximum {top:g}): a "
         "sensor's black level would be taken for light; give the dark level (--dark N, 'auto' "
@@ -491,7 +491,7 @@ def _check_negative(arr: Array, p: Path, dark: DarkSpec, measured: Array | None)
         return
     how = (f"with dark {_describe_dark(dark)}" if dark is not None else
            "read with no dark level (negative in the file)")
-    warnings.warn(f"measurement file {p} {how}: {msg}", MeasurementWarning, stacklevel=4)
+    warn_input(f"measurement file {p} {how}: {msg}", MeasurementWarning, stacklevel=4)
 
 
 def load_psf(

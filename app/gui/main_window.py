@@ -969,13 +969,12 @@ class MainWindow(QMainWindow):
 
     def _load_psf(self, path: str, *, quiet: bool = False) -> bool:
         """Use the PSF in ``path`` for the preview (a calibration file or an image)."""
-        import warnings
-
-        from recon.psfcheck import PsfWarning
+        from recon.inputwarnings import collect_input_warnings
 
         try:
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always", PsfWarning)
+            # this thread's PSF warnings only (a catch of warnings is process-wide), shown in
+            # the banner and the log below, not on stderr
+            with collect_input_warnings(emit=False) as doubts:
                 psf = load_psf_any(path)
             planes = psf.shape[0] if psf.ndim == 3 and psf.shape[0] > 1 else 0
             if planes:
@@ -991,7 +990,6 @@ class MainWindow(QMainWindow):
         self.settings.psf_path = str(path)
         self.psf_source = f"{Path(path).name} ({psf.shape[-2]}x{psf.shape[-1]})"
         self._show_psf_label()
-        doubts = [str(w.message) for w in caught if issubclass(w.category, PsfWarning)]
         for d in doubts:
             _log.warning("PSF %s: %s", path, d)
         if doubts and not quiet:  # loaded, but the user should know (it went to stderr only)
