@@ -1,6 +1,7 @@
 """Dark frames, hot and dead pixel maps, and pixel repair.
 
-- :func:`capture_darks`: N frames with the light off, averaged (a workflow step).
+- :func:`capture_darks`: N frames with the light off, averaged (a workflow step); dark frames
+  at full scale (a saturated sensor, not a dark one) are refused by :func:`check_darks`.
 - :func:`hot_pixels`: pixels whose dark level stands out from the sensor's (robust statistics).
 - :func:`dead_pixels`: pixels whose response to a flat field is far below their neighbours'.
 - :func:`pixel_maps` combines both into :class:`PixelMaps`, whose ``mask`` (1 = good,
@@ -30,9 +31,11 @@ from drivers.lightsource import LightSource
 
 __all__ = [
     "DARK_NOISE_DEFINITION",
+    "DARK_SATURATION_LIMIT",
     "PixelMaps",
     "calibrate_pixel_maps",
     "capture_darks",
+    "check_darks",
     "dark_noise_rms",
     "dead_pixels",
     "hot_pixels",
@@ -58,17 +61,43 @@ def capture_darks(
     if source is not None:
         source_off(source, stage="darks")
     yield Progress("darks", "source off; taking dark frames", fractions[0])
-    return (
-        yield from acquire_frames(
-            camera,
-            n,
-            stage="darks",
-            what="dark frame",
-            timeout_s=timeout_s,
-            settle=settle,
-            fractions=fractions,
-        )
+    darks = yield from acquire_frames(
+        camera,
+        n,
+        stage="darks",
+        what="dark frame",
+        timeout_s=timeout_s,
+        settle=settle,
+        fractions=fractions,
     )
+    check_darks(darks)
+    return darks
+
+
+#: dark frames with more than this fraction of their pixels at full scale (in any frame) are
+#: refused: the sensor saw light or the exposure / gain / black level is far too high. Hot
+#: pixels are a per-mille on real sensors (up to 1 % in the simulated tests) and are mapped.
+DARK_SATURATION_LIMIT = 0.05
+
+
+def check_darks(darks: FrameStats, *, stage: str = "darks") -> None:
+    """Refuse dark frames that are not dark: too many pixels at full scale.
+
+    A dark frame at full scale (a Mono8 camera at 255 in 99.7 % of its pixels) has no dark
+    level or noise to measure: its mean is the clipping level, its temporal noise 0.
+    Raises :class:`CalibrationError` naming the fraction at full scale and what to change.
+    """
+    frac = float((np.asarray(darks.saturated) > 0).mean()) if darks.saturated.size else 0.0
+    if frac > DARK_SATURATION_LIMIT:
+        fmt = darks.last.pixel_format
+        raise CalibrationError(
+            f"dark frames are at full scale ({darks.full_scale}, {fmt}) in {100 * frac:.1f}% "
+            f"of the pixels (limit {100 * DARK_SATURATION_LIMIT:g}%): the sensor is saturated, "
+            "not dark",
+            "Close the shutter or cap the lens and lower the exposure or gain (or the black "
+            "level), then capture again; nothing was saved",
+            stage=stage,
+        )
 
 
 #: what ``dark_noise_adu`` in a calibration file's metadata means (pixel maps and PSF)
@@ -213,15 +242,23 @@ class PixelMaps:
             "dead_pixels": int(self.dead.sum()),
             "dark_level": float(np.median(self.dark_mean)),
             # RMS of the good pixels' temporal std (see dark_noise_rms); the median per-pixel
-            # std (0 when most pixels never change code) is kept beside it
+            # std (0 when most pixels never change code) is kept beside it. Both are None
+            # (unknown) for a single dark frame: one frame has no temporal noise to measure
             "dark_noise_adu": self.dark_noise_adu,
             "dark_noise_definition": DARK_NOISE_DEFINITION,
-            "dark_noise_median_std_adu": float(np.median(self.dark_std)),
+            "dark_noise_median_std_adu": (
+                None if self.dark_noise_adu is None else float(np.median(self.dark_std))
+            ),
         }
 
     @property
-    def dark_noise_adu(self) -> float:
-        """Temporal dark noise in ADU (:func:`dark_noise_rms` over the good pixels)."""
+    def dark_noise_adu(self) -> float | None:
+        """Temporal dark noise in ADU (:func:`dark_noise_rms` over the good pixels).
+
+        None (unknown) from a single dark frame: temporal noise needs two frames or more.
+        """
+        if self.frames_averaged < 2:
+            return None
         return dark_noise_rms(self.dark_std, exclude=self.bad)
 
     def save(self, path: str | os.PathLike[str]) -> Path:
@@ -248,7 +285,11 @@ def pixel_maps(
     dead_fraction: float = 0.5,
     camera: dict[str, Any] | None = None,
 ) -> PixelMaps:
-    """Hot pixels from ``darks``, dead pixels from ``flats`` (none without flats)."""
+    """Hot pixels from ``darks``, dead pixels from ``flats`` (none without flats).
+
+    Dark frames at full scale are refused (:func:`check_darks`).
+    """
+    check_darks(darks)
     hot, t_hot = hot_pixels(darks, sigma=hot_sigma, min_adu=hot_min_adu)
     thresholds = dict(t_hot)
     if flats is not None:

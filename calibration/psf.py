@@ -63,11 +63,20 @@ __all__ = [
     "centroid",
     "check_quality",
     "crop_or_pad",
+    "light_kept",
     "process_psf",
     "psf_quality",
 ]
 
 Centre = Literal["none", "centroid"] | tuple[float, float]
+
+#: a PSF peak this many times the noise is light, not noise: the auto-exposure's test for
+#: light (capped at ``min_snr``), and the line between "no PSF signal" and "the SNR target is
+#: beyond this exposure and averaging" when a PSF misses ``min_snr``
+SIGNAL_SNR = 10.0
+#: a centring or crop (``centre``, ``shape``) that leaves out more than this fraction of the
+#: PSF's light (its pixels above 3 x noise) is warned about
+CROP_WARN_FRACTION = 0.05
 
 
 @dataclass(frozen=True)
@@ -179,7 +188,12 @@ class PsfQuality:
 
 @dataclass(frozen=True)
 class PsfCalibration:
-    """A captured PSF (float32, ADU, dark subtracted), its report and file metadata."""
+    """A captured PSF (float32, ADU, dark subtracted), its report and file metadata.
+
+    ``quality`` is the report of the PSF as saved (centred, cropped or padded to
+    ``PsfSettings.shape``); the refusal checks ran on ``captured_quality``, the PSF as the
+    sensor saw it.
+    """
 
     psf: np.ndarray
     quality: PsfQuality
@@ -188,6 +202,11 @@ class PsfCalibration:
     exposure_us: float
     gain: float | None
     path: Path | None = None
+    #: the report of the PSF as captured (before ``centre`` / ``shape``); ``quality``
+    #: describes the saved PSF, and the two are one when neither moved or cropped it
+    captured_quality: PsfQuality | None = None
+    #: one line each for people: what was saved but deserves a look (a crop that cut the PSF)
+    warnings: tuple[str, ...] = ()
 
     def normalised(self) -> np.ndarray:
         """The PSF scaled to unit sum (the convention of ``recon.io.load_psf``), float32."""
@@ -271,6 +290,25 @@ def centre_psf(
     return out, (int(shift[0]), int(shift[1]))
 
 
+def _place(img: np.ndarray, shift: tuple[int, int], shape: tuple[int, int]) -> np.ndarray:
+    """``img`` shifted by ``shift`` and cropped/padded to ``shape``, as :func:`centre_psf`."""
+    out = _shift(img, *shift) if tuple(shift) != (0, 0) else img
+    return crop_or_pad(out, shape) if tuple(shape) != out.shape else out
+
+
+def light_kept(captured: np.ndarray, saved: np.ndarray, noise_adu: float) -> float:
+    """Fraction of the PSF's light that a centring or crop kept (1 when nothing was lost).
+
+    Light is the sum of the pixels above 3 x ``noise_adu`` (the clipped noise floor of the
+    many dark pixels of a large sensor is not light); 1 for a PSF without any.
+    """
+    thr = 3.0 * float(noise_adu)
+    a = np.asarray(captured, dtype=np.float64)
+    b = np.asarray(saved, dtype=np.float64)
+    total = float(a[a > thr].sum())
+    return float(b[b > thr].sum()) / total if total > 0 else 1.0
+
+
 def psf_quality(
     psf: np.ndarray,
     *,
@@ -320,11 +358,30 @@ def check_quality(q: PsfQuality, settings: PsfSettings, *, exposure_us: float | 
             stage="quality",
         )
     if not q.snr >= settings.min_snr:
+        if not q.snr >= SIGNAL_SNR:
+            raise CalibrationError(
+                f"no PSF signal above the dark noise: peak {q.peak_adu:.3g} ADU vs noise "
+                f"{q.noise_adu:.3g} ADU (SNR {q.snr:.3g}, need {settings.min_snr:g}){exp}",
+                "Check that the point source is on and shines on the diffuser; raise its "
+                "intensity, the exposure or the number of frames; nothing was saved",
+                stage="quality",
+            )
+        # the light is there: the SNR target is beyond what this exposure and averaging reach
+        n, nd = settings.n_frames, settings.n_darks
+        need = (settings.min_snr / q.snr) ** 2 * 2.0 / (1.0 / n + 1.0 / nd)
+        low = q.peak_fraction < settings.target_peak - settings.peak_tolerance
+        longer = (
+            f"a longer exposure or a brighter source (the peak is at "
+            f"{100 * q.peak_fraction:.0f}% of full scale), " if low else ""
+        )
         raise CalibrationError(
-            f"no PSF signal above the dark noise: peak {q.peak_adu:.3g} ADU vs noise "
-            f"{q.noise_adu:.3g} ADU (SNR {q.snr:.3g}, need {settings.min_snr:g}){exp}",
-            "Check that the point source is on and shines on the diffuser; raise its "
-            "intensity, the exposure or the number of frames; nothing was saved",
+            f"PSF SNR {q.snr:.3g} is below the SNR target {settings.min_snr:g}: the light is "
+            f"there (peak {q.peak_adu:.3g} ADU, {100 * q.peak_fraction:.0f}% of full scale){exp}, "
+            f"but {n} PSF and {nd} dark frames average the noise only down to "
+            f"{q.noise_adu:.3g} ADU",
+            f"Average more frames (about {math.ceil(need):d} PSF and {math.ceil(need):d} dark "
+            f"frames reach it: the SNR grows as the square root of their number), {longer}"
+            "or lower the SNR target (--min-snr); nothing was saved",
             stage="quality",
         )
     fy, fx = q.offset_fraction
@@ -431,6 +488,11 @@ def _auto_exposure(
     good = ~hot
     offset = float(np.median(dark.mean[good])) if good.any() else float(np.median(dark.mean))
     noise1 = max(dark_noise_rms(dark.std, exclude=hot), 1.0 / math.sqrt(12.0))
+    # light is a signal above SIGNAL_SNR x the noise of one frame; an SNR target above that
+    # (min_snr, for the averaged PSF) is checked on the averaged frames (check_quality): a
+    # single test frame cannot reach it, and auto-exposure went round between "no light" and
+    # "saturated" until it gave up blaming an unstable light
+    light_snr = min(settings.min_snr, SIGNAL_SNR)
     target = settings.target_peak
     exposure = min(max(start_us, lo), hi)
     log: list[dict[str, Any]] = []
@@ -483,7 +545,7 @@ def _auto_exposure(
                 )
             exposure = max(lo, exposure / 4.0)
             continue
-        if signal <= settings.min_snr * noise1:
+        if signal <= light_snr * noise1:
             if exposure >= hi * (1 - 1e-9):
                 said = (
                     ""
@@ -509,7 +571,7 @@ def _auto_exposure(
             entry["limited"] = "max" if frac < target else "min"
             return exposure, log  # at a bound of the range: the best we can do
         exposure = want
-    if log and log[-1]["saturated"] == 0 and log[-1]["signal_adu"] > settings.min_snr * noise1:
+    if log and log[-1]["saturated"] == 0 and log[-1]["signal_adu"] > light_snr * noise1:
         log[-1]["limited"] = "steps"
         return float(log[-1]["exposure_us"]), log
     raise CalibrationError(
@@ -526,12 +588,17 @@ def capture_psf(
     *,
     out: str | os.PathLike[str] | None = None,
     bad_pixels: np.ndarray | None = None,
+    bad_pixels_from: str = "the bad-pixel map",
     extra_metadata: dict[str, Any] | None = None,
 ) -> Steps[PsfCalibration]:
     """Capture, check and (with ``out``) save a PSF; see the module docstring for the steps.
 
     ``bad_pixels`` (for example the dead pixels of a pixel-maps file) are repaired with the
-    hot pixels found in the darks. Raises :class:`CalibrationError` when it must refuse.
+    hot pixels found in the darks; they must have the frames' shape (``bad_pixels_from``
+    names them in the refusal, for example the file they came from). Raises
+    :class:`CalibrationError` when it must refuse. A centring or crop that leaves out more
+    than :data:`CROP_WARN_FRACTION` of the PSF's light is saved, with a line in the result's
+    ``warnings`` (and the file's metadata).
     """
     s = settings or PsfSettings()
     light_on = False
@@ -564,6 +631,16 @@ def capture_psf(
             settle=s.settle_frames,
             fractions=(0.02, 0.2),
         )
+        if bad_pixels is not None and np.shape(bad_pixels) != dark0.shape:
+            have = "x".join(str(int(v)) for v in np.shape(bad_pixels))
+            raise CalibrationError(
+                f"{bad_pixels_from} is {have} (rows x columns) and the camera's frames are "
+                f"{dark0.shape[0]}x{dark0.shape[1]}: the maps belong to another sensor size, "
+                "ROI or binning",
+                "Take pixel maps at this ROI and binning (calibrate darks) or leave them out; "
+                "nothing was saved",
+                stage="darks",
+            )
         hot, _ = hot_pixels(dark0, sigma=s.hot_sigma)
 
         source_on(source, s.intensity, stage="exposure")
@@ -626,6 +703,33 @@ def capture_psf(
         target_shape = s.shape or psf.shape
         out_psf, shift = centre_psf(psf, s.centre, target_shape)
         out_psf = out_psf.astype(np.float32)
+        captured_quality = quality
+        notes: list[str] = []
+        if out_psf.shape != psf.shape or shift != (0, 0):
+            # the report describes what is saved: the centred, cropped or padded PSF
+            shape2 = (int(out_psf.shape[0]), int(out_psf.shape[1]))
+            raw = _place(np.where(good, light.mean, 0.0), shift, shape2)
+            sat = _place(((light.saturated > 0) & good).astype(np.uint8), shift, shape2)
+            quality = psf_quality(
+                out_psf,
+                noise_adu=noise,
+                peak_fraction=float(raw.max()) / light.full_scale,
+                saturated_pixels=int(np.count_nonzero(sat)),
+                support_level=s.support_level,
+            )
+            kept = light_kept(psf, out_psf, noise)
+            if 1.0 - kept > CROP_WARN_FRACTION:
+                what = []
+                if shift != (0, 0):
+                    what.append(f"centring shift ({shift[0]:+d}, {shift[1]:+d}) px")
+                if shape2[0] < psf.shape[0] or shape2[1] < psf.shape[1]:
+                    what.append(f"crop to {shape2[0]}x{shape2[1]}")
+                notes.append(
+                    f"the {' and '.join(what)} of the {psf.shape[0]}x{psf.shape[1]} capture "
+                    f"leaves out {100 * (1 - kept):.0f}% of the PSF's light: reconstructions "
+                    "with it miss that part of the caustic; choose a larger shape, or move the "
+                    "source to the sensor centre"
+                )
         timing = light.last.timing
         metadata: dict[str, Any] = {
             "camera": camera_description(camera, light.last),
@@ -635,12 +739,15 @@ def capture_psf(
             "frames_averaged": light.n,
             "darks_averaged": dark.n,
             "dark_level": float(np.median(dark.mean)),
-            "dark_noise_adu": dark_noise_rms(dark.std, exclude=bad),
+            # unknown (None) from one dark frame: it has no temporal noise to measure
+            "dark_noise_adu": dark_noise_rms(dark.std, exclude=bad) if dark.n > 1 else None,
             "dark_noise_definition": DARK_NOISE_DEFINITION,
             "full_scale": light.full_scale,
             "units": "ADU above the dark level",
             "timing": None if timing is None else timing.to_dict(),
             "quality": quality.to_dict(),
+            "quality_as_captured": captured_quality.to_dict(),
+            "warnings": notes,
             "auto_exposure": {
                 "enabled": s.auto_exposure,
                 "target_peak": s.target_peak,
@@ -653,6 +760,8 @@ def capture_psf(
                 "centre": s.centre if isinstance(s.centre, str) else list(s.centre),
                 "shift_px": list(shift),
                 "shape": list(out_psf.shape),
+                # fraction of the PSF's light (pixels above 3 x noise) the centring/crop kept
+                "light_kept": light_kept(psf, out_psf, noise),
                 "clipped_at_zero": True,
             },
             "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(s).items()},
@@ -665,6 +774,8 @@ def capture_psf(
             hot=hot,
             exposure_us=float(light.exposure_us if light.exposure_us is not None else exposure),
             gain=light.gain,
+            captured_quality=captured_quality,
+            warnings=tuple(notes),
         )
         if out is not None:
             yield Progress("save", f"saving {out}", 0.98)

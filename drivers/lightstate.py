@@ -31,6 +31,7 @@ __all__ = [
     "LightState",
     "LightStateFile",
     "LightStateSource",
+    "check_light_state_file",
     "read_light_state",
     "write_light_state",
 ]
@@ -117,6 +118,47 @@ def read_light_state(path: str | os.PathLike[str]) -> LightState:
             return LightState.from_dict(json.load(fh))
     except (OSError, ValueError, KeyError, TypeError):
         return LightState(available=False)
+
+
+#: a state file is a few hundred bytes; anything much larger is some other file
+_MAX_STATE_BYTES = 64 * 1024
+
+
+def check_light_state_file(path: str | os.PathLike[str]) -> LightState:
+    """The state in a light-state file a user names (one that :func:`write_light_state` wrote).
+
+    That is JSON, format ``lenslesscam-light-state``, a version this release reads.
+    :func:`read_light_state` takes any unreadable file as a dark source (a state file may be
+    missing for a while); this is for a file a user names. Raises :class:`ValueError` with one
+    line naming the file and what is wrong, :class:`FileNotFoundError` for a missing one.
+    """
+    p = Path(path)
+    what = f"{p} is not a light-state file of a simulated point source"
+    if not p.exists():
+        raise FileNotFoundError(f"{p}: no such file (the simulated source's state file)")
+    if not p.is_file():
+        raise ValueError(f"{what} (not a regular file)")
+    if p.stat().st_size > _MAX_STATE_BYTES:
+        raise ValueError(f"{what} ({p.stat().st_size} bytes; a state file is a small JSON file)")
+    try:
+        d = json.loads(p.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise ValueError(f"{what} (it is not text)") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{what} (not JSON: {exc.msg} at line {exc.lineno})") from None
+    if not isinstance(d, dict) or d.get("format") != LIGHT_STATE_FORMAT:
+        fmt = d.get("format") if isinstance(d, dict) else None
+        raise ValueError(f"{what} (format {fmt!r}, expected {LIGHT_STATE_FORMAT!r})")
+    version = d.get("format_version")
+    if isinstance(version, float) and version.is_integer():  # 1.0 is 1, as for every file
+        version = int(version)
+    if type(version) is not int or not 1 <= version <= LIGHT_STATE_VERSION:
+        raise ValueError(f"{p}: light-state format_version {version!r} is not one this "
+                         f"release reads (1..{LIGHT_STATE_VERSION})")
+    try:
+        return LightState.from_dict(d)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{what} (bad or missing field: {exc})") from None
 
 
 @runtime_checkable

@@ -341,6 +341,13 @@ def _dark_for(
         else:
             d = _select_channels(_to_chw(d, dp, "dark"), channels, dp, "dark", order)
         d = _as_float(d)
+        if d.ndim >= 2 and image.ndim >= 2 and d.shape[-2:] != image.shape[-2:]:
+            # a dark frame (or the pixel maps of ``calibrate darks``) of another sensor size
+            raise ValueError(
+                f"dark file {dp} is {d.shape[-2]}x{d.shape[-1]} (rows x columns) and the "
+                f"{what} file {p} is {image.shape[-2]}x{image.shape[-1]}: take the dark at the "
+                "same sensor size, ROI and binning"
+            )
     elif isinstance(dark, int | float | np.integer | np.floating):
         return float(dark)
     else:

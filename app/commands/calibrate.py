@@ -329,15 +329,25 @@ def run_psf(args: argparse.Namespace) -> int:
     from calibration.workflow import Workflow
 
     settings = _psf_settings(args)
+    bad = _bad_pixels(args)
     with _devices(args) as (camera, source):
         wf = Workflow(
-            capture_psf(camera, source, settings, out=args.out, bad_pixels=_bad_pixels(args)),
+            capture_psf(camera, source, settings, out=args.out, bad_pixels=bad,
+                        bad_pixels_from=f"--pixel-maps {args.pixel_maps}"),
             "PSF calibration",
         )
         cal = _drive(wf, "PSF")
-    print(f"wrote {cal.path}")
+    _warn(cal.warnings)
+    # the report of the PSF as saved (centred, cropped or padded with --centre, --shape)
+    print(f"wrote {cal.path} ({cal.psf.shape[0]}x{cal.psf.shape[1]})")
     print(f"exposure {cal.exposure_us:g} us; {cal.quality.summary()}")
     return 0
+
+
+def _warn(lines: Any, where: str = "") -> None:
+    """Print a workflow's warnings on stderr, one line each (the CLI's warning format)."""
+    for line in lines:
+        print(f"lenslesscam: warning: {where}{line}", file=sys.stderr)
 
 
 def run_depth(args: argparse.Namespace) -> int:
@@ -374,6 +384,8 @@ def run_depth(args: argparse.Namespace) -> int:
             "depth stack",
         )
         result = _drive(wf, "depth")
+    for pos, plane in zip(result.positions, result.planes, strict=True):
+        _warn(plane.warnings, f"position {pos}: ")
     print(f"wrote {result.path} ({len(positions)} planes)")
     for pos, plane in zip(result.positions, result.planes, strict=True):
         print(f"  {pos}: exposure {plane.exposure_us:g} us; {plane.quality.summary()}")
@@ -417,10 +429,16 @@ def run_darks(args: argparse.Namespace) -> int:
         )
         maps = _drive(wf, "darks")
     print(f"wrote {maps.path}")
+    noise = maps.dark_noise_adu
+    said = (
+        "noise: unknown (one dark frame; capture 2 or more with --frames)"
+        if noise is None
+        else f"noise {noise:.3g} ADU rms (sqrt of the mean per-pixel temporal variance, "
+        "hot/dead pixels excluded)"
+    )
     print(
         f"{int(maps.hot.sum())} hot, {int(maps.dead.sum())} dead pixels; dark level "
-        f"{maps.metadata()['dark_level']:.4g} ADU, noise {maps.dark_noise_adu:.3g} ADU rms "
-        "(sqrt of the mean per-pixel temporal variance, hot/dead pixels excluded)"
+        f"{maps.metadata()['dark_level']:.4g} ADU, {said}"
     )
     return 0
 

@@ -128,9 +128,16 @@ def _snap(args: argparse.Namespace) -> int:
     if Path(args.out).suffix.lower() not in (".tif", ".tiff"):
         raise CliError(f"--out {args.out}: a frame is saved as TIFF with its metadata; name "
                        "it .tif")
-    if args.light_state and not Path(args.light_state).is_file():
-        raise CliError(f"--light-state {args.light_state}: no such file (the simulated "
-                       "source's state file)")
+    if args.light_state:
+        from drivers.lightstate import check_light_state_file
+
+        if not Path(args.light_state).exists():
+            raise CliError(f"--light-state {args.light_state}: no such file (the simulated "
+                           "source's state file)")
+        try:  # a light-state file as the simulated firmware writes it, not any file
+            check_light_state_file(args.light_state)
+        except ValueError as exc:
+            raise CliError(f"--light-state {exc}") from None
     check_command_outputs(args, [args.out])  # before the camera is opened
     kwargs: dict[str, Any] = {}
     name = args.camera.partition(":")[0].lower()

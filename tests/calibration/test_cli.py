@@ -334,3 +334,80 @@ def test_a_darks_calibration_is_a_dark_file(tmp_path, capsys):
         assert main(argv) == 0, capsys.readouterr().err
         out[name] = read_reconstruction(tmp_path / f"{name}.tif")[0]
     np.testing.assert_allclose(out["maps"], out["plain"], rtol=0, atol=1e-6)
+
+
+def test_one_dark_frame_reports_the_noise_unknown_and_is_still_a_dark_file(tmp_path, capsys):
+    """`calibrate darks --frames 1` printed and saved "noise 0": one frame has no temporal
+    noise. The file (noise None in its metadata) still serves as --dark and --mask."""
+    from recon.simulate import synthetic_psf
+
+    darks = tmp_path / "darks.npz"
+    assert main(["calibrate", "darks", "--camera", "sim", "--no-prompt", "--frames", "1",
+                 "--settle", "0", "--out", str(darks)]) == 0
+    text = capsys.readouterr().out
+    assert "noise: unknown (one dark frame; capture 2 or more with --frames)" in text
+    assert "noise 0" not in text
+    meta = load_calibration(darks, expect="pixel-maps").metadata
+    assert meta["dark_noise_adu"] is None
+    dark_mean = np.load(darks)["dark_mean"]
+    frame = (dark_mean + np.random.default_rng(0).integers(0, 2000, dark_mean.shape))
+    np.save(tmp_path / "frame.npy", frame.astype(np.uint16))
+    np.save(tmp_path / "psf.npy", synthetic_psf(dark_mean.shape, seed=1))
+    argv = ["recon", "fista", "--psf", str(tmp_path / "psf.npy"), "--meas",
+            str(tmp_path / "frame.npy"), "--dark", str(darks), "--mask", str(darks),
+            "--psf-dark", "0", "--tau", "1e-3", "--iters", "5", "--out", str(tmp_path / "r.tif")]
+    assert main(argv) == 0, capsys.readouterr().err
+    capsys.readouterr()
+
+
+def test_calibrate_psf_prints_the_report_of_the_cropped_psf(tmp_path, capsys):
+    """--shape printed the uncropped capture's report; a crop that cuts off much of the PSF's
+    light is warned about in one line."""
+    from calibration.psf import psf_quality
+
+    out = tmp_path / "psf.tif"
+    assert main(["calibrate", "psf", "--camera", "sim", "--source", "sim", "--frames", "2",
+                 "--darks", "2", "--settle", "0", "--shape", "32x40", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    cal = load_calibration(out, expect="psf")
+    q = cal.metadata["quality"]
+    assert cal.data.shape == (32, 40)
+    assert f"wrote {out} (32x40)" in captured.out
+    assert f"peak {float(cal.data.max()):.4g} ADU" in captured.out
+    assert f"support {q['support_pixels']} px ({100 * q['support_fraction']:.1f}%)" in captured.out
+    again = psf_quality(cal.data, noise_adu=q["noise_adu"], peak_fraction=q["peak_fraction"],
+                        saturated_pixels=0)
+    assert again.summary() in captured.out  # the report of what was saved
+    assert cal.metadata["quality_as_captured"]["peak_adu"] > q["peak_adu"]
+    warnings = [ln for ln in captured.err.splitlines() if "warning" in ln]
+    assert len(warnings) == 1, captured.err
+    assert warnings[0].startswith("lenslesscam: warning: the crop to 32x40 of the 64x80 "
+                                  "capture leaves out ")
+
+
+def test_pixel_maps_of_another_size_are_one_line_naming_both_sizes(tmp_path, capsys):
+    """Pixel maps of a 32x40 sensor with a 64x80 camera: "operands could not be broadcast
+    together with shapes (64,80) (32,40)"; as --dark, shapes as tuples and no dark file."""
+    small = tmp_path / "small.npz"
+    assert main(["calibrate", "darks", "--camera", "sim", "--sim-size", "32x40", "--no-prompt",
+                 "--frames", "2", "--settle", "0", "--out", str(small)]) == 0
+    capsys.readouterr()
+    out = tmp_path / "psf.tif"
+    assert main(["calibrate", "psf", "--camera", "sim", "--source", "sim", "--frames", "2",
+                 "--darks", "2", "--settle", "0", "--pixel-maps", str(small),
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "broadcast" not in err
+    assert err.startswith(f"lenslesscam calibrate: error: --pixel-maps {small} is 32x40 (rows x "
+                          "columns) and the camera's frames are 64x80")
+    assert not out.exists()
+    np.save(tmp_path / "frame.npy", np.full((64, 80), 500, dtype=np.uint16))
+    np.save(tmp_path / "psf.npy", np.ones((64, 80), dtype=np.float32))
+    argv = ["recon", "fista", "--psf", str(tmp_path / "psf.npy"), "--meas",
+            str(tmp_path / "frame.npy"), "--dark", str(small), "--psf-dark", "0",
+            "--iters", "2", "--out", str(tmp_path / "r.tif")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err
+    assert (f"dark file {small} is 32x40 (rows x columns) and the measurement file "
+            f"{tmp_path / 'frame.npy'} is 64x80") in err

@@ -143,3 +143,37 @@ def test_repair_pixels():
     assert np.array_equal(out[~bad], img[~bad])
     with pytest.raises(ValueError, match="does not match"):
         repair_pixels(img, bad[:3])
+
+
+def test_darks_at_full_scale_are_refused(tmp_path):
+    """A Mono8 camera whose dark frames sat at 255 (the sensor saturated) was calibrated:
+    dark level 255, noise 0, no hot pixel, a file written."""
+    cam = SimulatedCamera(COLS, ROWS, pixel_format="Mono8", dark_offset_adu=300.0,
+                          exposure_us=100.0, pacing=False, seed=2)
+    out = tmp_path / "darks.npz"
+    with cam, pytest.raises(CalibrationError) as info:
+        Workflow(calibrate_pixel_maps(cam, n_darks=4, settle=0, out=out)).run()
+    text = str(info.value)
+    assert "dark frames are at full scale (255, Mono8) in 100.0% of the pixels" in text
+    assert "Close the shutter" in text and "lower the exposure" in text and "\n" not in text
+    assert info.value.stage == "darks"
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+    with cam:  # the pure function refuses them too
+        darks = Workflow(acquire_frames(cam, 2, stage="darks", what="dark")).run()
+    with pytest.raises(CalibrationError, match="at full scale"):
+        pixel_maps(darks)
+
+
+def test_one_dark_frame_leaves_the_noise_unknown(tmp_path):
+    """One frame has no temporal noise: it reported (and saved) "noise 0"."""
+    cam = SimulatedCamera(COLS, ROWS, exposure_us=100.0, pacing=False, seed=4)
+    out = tmp_path / "darks.npz"
+    with cam:
+        maps = Workflow(calibrate_pixel_maps(cam, n_darks=1, settle=0, out=out)).run()
+    assert maps.frames_averaged == 1 and maps.dark_noise_adu is None
+    meta = load_calibration(out, expect="pixel-maps").metadata
+    assert meta["dark_noise_adu"] is None and meta["dark_noise_median_std_adu"] is None
+    assert meta["frames_averaged"] == 1
+    with cam:  # two frames measure it
+        two = Workflow(calibrate_pixel_maps(cam, n_darks=2, settle=0)).run()
+    assert two.dark_noise_adu is not None and two.dark_noise_adu > 0

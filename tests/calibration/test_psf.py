@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -324,3 +326,90 @@ def test_source_killed_mid_capture_stops_within_one_frame(
     assert "port vanished" in str(info.value) and "nothing was saved" in str(info.value)
     assert not out.exists()
     assert not source.is_open  # the driver dropped the dead port
+
+
+def test_an_unreachable_snr_target_is_not_blamed_on_the_light(make_camera, source, tmp_path):
+    """--min-snr 100000: auto-exposure went round between "no light" (one test frame below
+    the target) and "saturated" until it gave up: "did not converge ... Check that the light
+    is stable". The light is there; the averaging cannot reach the target."""
+    cam = make_camera()
+    settings = replace(FAST, min_snr=1e5)
+    out = tmp_path / "psf.tif"
+    with pytest.raises(CalibrationError) as info:
+        Workflow(capture_psf(cam, source, settings, out=out)).run()
+    text = str(info.value)
+    assert info.value.stage == "quality" and "\n" not in text
+    assert "stable" not in text and "no PSF signal" not in text
+    m = re.search(r"PSF SNR (\S+) is below the SNR target 100000: the light is there", text)
+    assert m and 1e3 < float(m.group(1)) < 1e5, text
+    assert "8 PSF and 8 dark frames" in text and "lower the SNR target" in text
+    # the number of frames it names would reach the target (SNR ~ sqrt(frames))
+    n = int(re.search(r"about (\d+) PSF and \d+ dark frames reach it", text).group(1))
+    assert float(m.group(1)) * math.sqrt(n / 8) >= 1e5 > float(m.group(1)) * math.sqrt(
+        (n - 1) / 8)
+    assert out_dir_files(tmp_path) == ["light-state.json"]
+
+
+def test_quality_check_tells_no_signal_from_an_unreachable_target():
+    from calibration.psf import check_quality
+
+    peak = np.zeros((ROWS, COLS))
+    peak[30:34, 38:42] = 50.0  # 50 x the noise: light
+    q = psf_quality(peak, noise_adu=1.0, peak_fraction=0.3, saturated_pixels=0)
+    with pytest.raises(CalibrationError, match="below the SNR target 100") as info:
+        check_quality(q, PsfSettings(min_snr=100), exposure_us=1000.0)
+    # the peak is below the target peak: a longer exposure helps too
+    assert "a longer exposure or a brighter source" in str(info.value)
+    check_quality(q, PsfSettings(min_snr=40), exposure_us=1000.0)  # reached: no refusal
+    weak = psf_quality(peak / 10, noise_adu=1.0, peak_fraction=0.03, saturated_pixels=0)
+    with pytest.raises(CalibrationError, match="no PSF signal above the dark noise"):
+        check_quality(weak, PsfSettings(min_snr=100), exposure_us=1000.0)
+
+
+def test_the_report_describes_the_saved_cropped_psf(make_camera, source, tmp_path):
+    """--shape 32x40 printed the report of the 64x80 capture (its peak, support, centroid)
+    and said nothing of the two thirds of the light the crop cut off."""
+    cam = make_camera()
+    out = tmp_path / "psf.tif"
+    cal = Workflow(capture_psf(cam, source, replace(FAST, shape=(32, 40)), out=out)).run()
+    saved, meta = load_psf_calibration(out)
+    q = cal.quality
+    assert saved.shape == (32, 40)
+    assert q.peak_adu == pytest.approx(float(saved.max())) and q.total_adu == pytest.approx(
+        float(saved.sum(dtype=np.float64)), rel=1e-6)
+    assert q.support_fraction == pytest.approx(q.support_pixels / (32 * 40))
+    assert cal.captured_quality is not None and cal.captured_quality.peak_adu > q.peak_adu
+    assert meta["quality"] == q.to_dict()
+    assert meta["quality_as_captured"] == cal.captured_quality.to_dict()
+    # the crop cut off about half of the light: warned, one line, and kept in the file
+    kept = meta["processing"]["light_kept"]
+    assert 0.2 < kept < 0.8
+    assert len(cal.warnings) == 1 and "\n" not in cal.warnings[0]
+    assert (f"crop to 32x40 of the 64x80 capture leaves out {100 * (1 - kept):.0f}% of the "
+            "PSF's light") in cal.warnings[0]
+    assert meta["warnings"] == list(cal.warnings)
+    # padding loses nothing: no warning, the same peak
+    padded = Workflow(capture_psf(cam, source, replace(FAST, shape=(80, 96)))).run()
+    assert padded.warnings == () and padded.metadata["processing"]["light_kept"] == 1.0
+    assert padded.quality.peak_adu == pytest.approx(padded.captured_quality.peak_adu)
+
+
+def test_pixel_maps_of_another_size_are_refused_naming_both_sizes(make_camera, source):
+    """The bad-pixel map of another sensor size was a numpy broadcast error."""
+    cam = make_camera()
+    bad = np.zeros((32, 40), dtype=bool)
+    with pytest.raises(CalibrationError) as info:
+        Workflow(capture_psf(cam, source, FAST, bad_pixels=bad,
+                             bad_pixels_from="--pixel-maps small.npz")).run()
+    text = str(info.value)
+    assert text.startswith("--pixel-maps small.npz is 32x40 (rows x columns) and the camera's "
+                           "frames are 64x80")
+    assert "broadcast" not in text and "\n" not in text
+    assert source.status().mode is LightMode.OFF
+
+
+def test_one_dark_frame_leaves_the_psf_dark_noise_unknown(make_camera, source):
+    cam = make_camera()
+    cal = Workflow(capture_psf(cam, source, replace(FAST, n_darks=1))).run()
+    assert cal.metadata["darks_averaged"] == 1 and cal.metadata["dark_noise_adu"] is None
+    assert Workflow(capture_psf(cam, source, FAST)).run().metadata["dark_noise_adu"] > 0
