@@ -180,13 +180,21 @@ def refuse_run_folder_outputs(outputs: Iterable[str | os.PathLike[str]], option:
 
     A run's folder holds only the run's files (``jobs status/resume/combine`` read them). The
     check walks the outputs' folders for a ``run.json`` and imports the job module (and torch)
-    only when one is there.
+    only when one is there: among the folders above the output as given and above the path it
+    leads to through symbolic links (``LINK/x`` with ``LINK`` to ``RUN/deep``: ``RUN`` is in
+    neither the given path's folders nor ``LINK``'s own ``run.json``).
     """
+    import contextlib
     from pathlib import Path
 
+    def above(o: str | os.PathLike[str]) -> list[Path]:
+        folders = list(Path(os.path.abspath(o)).parents)
+        with contextlib.suppress(OSError, RuntimeError):
+            folders += Path(o).resolve().parents
+        return folders
+
     outs = list(outputs)
-    near = any((parent / "run.json").is_file()
-               for o in outs for parent in Path(os.path.abspath(o)).parents)
+    near = any((parent / "run.json").is_file() for o in outs for parent in above(o))
     if near:
         from recon.udn.jobs import refuse_outputs_in_run_folders
 

@@ -23,6 +23,7 @@ from app.commands._options import (
     POSITIVE_INT,
     add_overwrite_option,
     check_command_outputs,
+    refuse_run_folder_outputs,
 )
 
 EXIT_CANCELLED = 3
@@ -117,6 +118,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from recon.udn.jobs import run_job
     from recon.udn.memory import parse_bytes
 
+    # never a new run inside another run's folder (RUN itself: 'already holds a run', below)
+    refuse_run_folder_outputs([args.out], "--out")
     mm = parse_bytes(args.max_memory) if args.max_memory else None
     total = _spec_max_iter(args.spec)
     threads = getattr(args, "global_threads", None)  # lenslesscam --threads N: this session's

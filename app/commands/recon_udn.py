@@ -3,12 +3,16 @@
 Builds a job spec from the command line, writes it as ``RUN_DIR/job.toml`` and runs it exactly
 as ``lenslesscam jobs run`` would (same run folder, checkpoints, record; resumable with
 ``lenslesscam jobs resume RUN_DIR``). ``--write-spec FILE`` writes the spec and stops, to start
-an overnight job later.
+an overnight job later; it names data under FILE's folder relative to it (the folder can be
+moved, copied or shared) and other data as given, made absolute (:func:`spec_file_path`).
+``--out`` may not lie inside another run's folder.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -21,6 +25,7 @@ from app.commands._options import (
     POSITIVE_INT,
     add_overwrite_option,
     check_command_outputs,
+    refuse_run_folder_outputs,
 )
 
 
@@ -72,7 +77,8 @@ def register_udn(methods: Any) -> None:
     d.add_argument("--name", default="", help="a name for the run")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.add_argument("--write-spec", metavar="FILE",
-                   help="only write the job spec (TOML) to FILE and exit")
+                   help="only write the job spec (TOML) to FILE and exit (data under "
+                   "FILE's folder is named relative to it)")
     u.add_argument("--out", help="run folder to create (required unless --write-spec)")
     add_overwrite_option(u)  # for --write-spec; a run folder that holds a run is always refused
     u.set_defaults(func=run_udn)
@@ -109,6 +115,62 @@ def build_spec(args: argparse.Namespace) -> dict[str, Any]:
     return {sec: {k: v for k, v in keys.items() if v is not None} for sec, keys in spec.items()}
 
 
+#: ``[data]`` keys that name files, and the option that gave each (the depth model's
+#: ``data.psf`` is ``--psf-stack``)
+_DATA_PATH_OPTIONS = {"psf": "psf", "measurement": "meas", "mask": "mask", "shutter": "shutter",
+                      "filters": "filters", "truth": "truth", "dark": "dark",
+                      "psf_dark": "psf_dark"}
+
+
+def spec_file_path(value: str | os.PathLike[str], spec_file: str | os.PathLike[str]) -> str:
+    """How a spec written to ``spec_file`` names the data file ``value`` (as the user gave it).
+
+    Relative to the spec file's folder when the file lies under it (the folder of data and
+    spec can then be moved, copied or shared; a spec's relative paths are read relative to
+    it), as the path is or as both resolve through symbolic links; otherwise the path as
+    given, made absolute against the current folder only (links and ``..`` kept). A relative
+    path is written only when it leads to the very file, checked on the disk.
+    """
+    p = Path(value).expanduser()
+    if not p.is_absolute():
+        p = Path.cwd() / p
+    folder = Path(spec_file).expanduser()
+    folder = (folder if folder.is_absolute() else Path.cwd() / folder).parent
+    if not folder.is_dir():
+        return str(p)  # a folder still to be made holds no data
+    tries = [(Path(os.path.normpath(p)), Path(os.path.normpath(folder)))]
+    with contextlib.suppress(OSError, RuntimeError):
+        tries.append((p.resolve(), folder.resolve()))
+    for target, base in tries:
+        try:
+            rel = target.relative_to(base)
+        except ValueError:
+            continue
+        with contextlib.suppress(OSError):
+            if os.path.samefile(folder / rel, p):
+                return rel.as_posix()
+    return str(p)
+
+
+def _portable_data_paths(spec: dict[str, Any], args: argparse.Namespace,
+                         spec_file: str | os.PathLike[str]) -> dict[str, Any]:
+    """``spec`` with its ``[data]`` files named as :func:`spec_file_path` writes them.
+
+    :func:`build_spec` names them absolute and resolved through links (what a run folder's
+    ``job.toml`` and the run record keep); a spec written for later names them as the user
+    did, relative to the spec's folder where the data lies under it.
+    """
+    data = dict(spec["data"])
+    for key, option in _DATA_PATH_OPTIONS.items():
+        if key == "psf" and data.get("model") == "depth":
+            option = "psf_stack"
+        given = getattr(args, option, None)
+        if not isinstance(data.get(key), str) or data[key] == "auto" or given is None:
+            continue  # not a file (a dark level, 'auto'), or not given
+        data[key] = spec_file_path(given, spec_file)
+    return {**spec, "data": data}
+
+
 def run_udn(args: argparse.Namespace) -> int:
     """Write the spec and run it as a job."""
     from app.commands.jobs import run_with_progress
@@ -117,7 +179,7 @@ def run_udn(args: argparse.Namespace) -> int:
 
     spec = build_spec(args)
     normalise_spec(spec, Path.cwd(), source="command line")  # fail early, before any file
-    text = spec_to_toml(spec)  # written once, as RUN_DIR/job.toml (or --write-spec)
+    text = spec_to_toml(spec)  # written once, as RUN_DIR/job.toml (--write-spec: below)
     if args.write_spec:
         from recon.udn.jobs import refuse_outputs_in_run_folders
 
@@ -127,6 +189,9 @@ def run_udn(args: argparse.Namespace) -> int:
         check_command_outputs(args, [args.write_spec])
         from recon.atomic import atomic_write_bytes
 
+        # data under the spec's folder named relative to it (the folder can be moved or
+        # shared), other files as given (absolute)
+        text = spec_to_toml(_portable_data_paths(spec, args, args.write_spec))
         atomic_write_bytes(args.write_spec, text.encode("utf-8"))
         import shlex
 
@@ -135,6 +200,8 @@ def run_udn(args: argparse.Namespace) -> int:
         return 0
     if not args.out:
         raise ValueError("--out RUN_DIR is required (or --write-spec FILE)")
+    # never a new run inside another run's folder (RUN itself: 'already holds a run')
+    refuse_run_folder_outputs([args.out], "--out")
     out = Path(args.out)
     return run_with_progress(
         lambda progress, cancel: run_job(out / "job.toml", out, progress=progress,

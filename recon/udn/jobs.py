@@ -314,7 +314,9 @@ def is_run_folder(folder: str | Path) -> bool:
 
     A ``run.json`` that cannot be read counts too when the folder also holds the run's
     ``job.toml`` (a damaged record is still a run's). The one test of the commands that must
-    never write into a run (``recon udn --write-spec``, ``jobs combine --out``, ``trade --out``).
+    never write into a run (every writer command's outputs, through
+    ``app.commands._options.check_command_outputs``; a new run's folder in ``jobs run`` and
+    ``recon udn``, and :func:`run_job` itself).
     """
     p = Path(folder) / RECORD_FILE
     if not p.is_file():
@@ -957,8 +959,15 @@ def _check_new_run_folder(rd: Path, spec_copy: str) -> None:
     A run would overwrite them, inputs among them. A folder left by a start that failed before
     its first iteration (a refused spec, a device or memory refusal) holds only that attempt's
     record and spec: it may be used again; so may one left by a start killed before its record
-    (the lock, temporary files, and a ``job.toml`` that is this very spec).
+    (the lock, temporary files, and a ``job.toml`` that is this very spec). A folder inside
+    another run's folder (at any depth, through links) is refused: that folder holds only its
+    own run's files (:func:`refuse_outputs_in_run_folders`).
     """
+    holder = run_folder_holding(rd)
+    if holder is not None:
+        raise ValueError(f"{rd} lies inside the UDN run folder {holder} (it holds "
+                         f"{RECORD_FILE}): a run's folder holds only the run's own files; "
+                         "choose a run folder outside it")
     if (rd / RECORD_FILE).exists():
         try:
             rec = read_record(rd)
