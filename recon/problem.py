@@ -10,7 +10,8 @@ API::
     prob.meas       # (C, H, W) float32, max 1 on the measured pixels
     prob.mask       # (H, W) float32 0/1 (the model's mask) or None
     prob.truth      # (C, K, Hs, Ws) float32 on the reconstruction grid, or None
-    prob.inputs     # name -> {path, file_hash, array_hash, shape} (what a run record stores)
+    prob.inputs     # name -> {path, file_hash, array_hash, shape} (what a run record stores;
+                    # dark-frame files by their file hash alone)
     prob.hashes     # name -> file hash
     prob.metadata   # the preprocessing (mask_hash, psf_grid, ...), for a result's metadata;
                     # metadata['warnings']: the input warnings (measurement, PSF) as text
@@ -476,6 +477,11 @@ def _dark_arg(d: Dark) -> Any:
     return d
 
 
+#: the inputs a problem names by file hash alone, when they are dark-frame files (a run record
+#: written before they were hashed lacks them: such a record is not of other data)
+DARK_INPUTS = frozenset({"dark", "psf_dark"})
+
+
 def _file_hash(path: Any) -> str | None:
     from recon.formats import file_hash
 
@@ -740,6 +746,9 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
         inputs["filters"] = _describe(spec.filters, filters)
     if truth is not None:
         inputs["truth"] = _describe(spec.truth, truth)
+    for key, d in (("dark", spec.dark), ("psf_dark", spec.psf_dark)):  # DARK_INPUTS
+        if isinstance(d, str) and d != "auto":  # a dark-frame file: its hash (what it did is
+            inputs[key] = _describe(d, None)    # in the measurement's / PSF's array hash)
     hashes = {"psf": _file_hash(psf_label), "meas": _file_hash(spec.meas),
               "mask": _file_hash(spec.mask), "shutter": _file_hash(spec.shutter),
               "filters": _file_hash(spec.filters), "truth": _file_hash(spec.truth)}

@@ -90,6 +90,18 @@ def _inputs_key(rec: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _differ(key: dict[str, Any], key0: dict[str, Any]) -> list[str]:
+    """The inputs two runs differ in.
+
+    A dark file one record names and the other does not (a run recorded before dark files
+    were hashed) is not a difference.
+    """
+    from recon.problem import DARK_INPUTS
+
+    return sorted(n for n in set(key) | set(key0) if key.get(n) != key0.get(n)
+                  and not (n in DARK_INPUTS and (n not in key or n not in key0)))
+
+
 def _refuse_failed(dirs: Sequence[Path]) -> None:
     """Refuse, in one line naming them, the members whose record says they failed.
 
@@ -161,8 +173,8 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
     members: list[dict[str, Any]] = []
     for d, (rec, xm, meta) in zip(dirs, loaded, strict=True):
         key = _inputs_key(rec)
-        if key != key0:
-            diff = sorted(n for n in set(key) | set(key0) if key.get(n) != key0.get(n))
+        diff = _differ(key, key0)
+        if diff:
             same_files = all((key.get(n) or (None,))[0] == (key0.get(n) or (None,))[0]
                              for n in diff)
             how = (" as read: the same files with other settings (downsample, dark, colour, "
