@@ -148,7 +148,7 @@ def jobs_dir_problem(jobs_dir: str | Path) -> str | None:
 
     Said when the app starts, not only when the first job fails to be written.
     """
-    from app.commands._options import check_output_folders
+    from app.commands._options import check_output_folders, refuse_run_folder_outputs
 
     p = Path(jobs_dir)
     if p.exists() and not p.is_dir():
@@ -159,6 +159,15 @@ def jobs_dir_problem(jobs_dir: str | Path) -> str | None:
     except PermissionError as exc:
         return (f"the jobs folder {p} cannot hold jobs ({exc}): no job can be queued there; "
                 "choose another jobs folder (--jobs-dir, or jobs_dir in the settings file)")
+    try:  # a run's folder holds only its run's files (the shared output rule)
+        refuse_run_folder_outputs([p / "probe"], "the jobs folder")
+    except ValueError:
+        from recon.udn.jobs import run_folder_holding
+
+        return (f"the jobs folder {p} lies inside the UDN run folder "
+                f"{run_folder_holding(p / 'probe')}, which holds only its run's files: no job "
+                "can be queued there; choose another jobs folder (--jobs-dir, or jobs_dir in "
+                "the settings file)")
     return None
 
 
@@ -194,6 +203,9 @@ def create_job(
         raise ValueError(f"downsampling by {downsample} leaves nothing of the "
                          f"{meas.shape[0]}x{meas.shape[1]} frame: the job could not run")
     root = Path(jobs_dir)
+    problem = jobs_dir_problem(root)  # before anything is written there
+    if problem is not None:
+        raise ValueError(problem)
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     folder = root / f"{stamp}-{_slug(name)}"
     n = 1

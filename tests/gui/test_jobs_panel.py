@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 from collections.abc import Iterator
 from typing import Any
@@ -403,3 +404,23 @@ def test_a_jobs_folder_that_cannot_hold_jobs_is_named(tmp_path):
     with pytest.raises(ValueError, match="leaves nothing"):
         create_job(tmp_path / "jobs", "x", np.ones((48, 64)), np.ones((48, 64)), downsample=64)
     assert not (tmp_path / "jobs").exists()
+
+
+def test_a_jobs_folder_inside_a_run_folder_is_named_and_gets_nothing(tmp_path):
+    """A run's folder holds only its run's files: a job written into it (inputs, job.toml,
+    the app's entry) was refused only later, by ``jobs run``, after the files were there."""
+    import numpy as np
+
+    tiny_run = tmp_path / "run"
+    tiny_run.mkdir()
+    (tiny_run / "run.json").write_text(json.dumps({"format": "lenslesscam.udn_run",
+                                                   "format_version": 1, "status": "finished"}))
+
+    from app.gui.jobs_core import create_job, jobs_dir_problem
+
+    before = sorted(p.relative_to(tiny_run) for p in tiny_run.rglob("*"))
+    said = jobs_dir_problem(tiny_run / "jobs")
+    assert said is not None and "inside the UDN run folder" in said and "\n" not in said
+    with pytest.raises(ValueError, match="inside the UDN run folder"):
+        create_job(tiny_run / "jobs", "x", np.ones((48, 64)), np.ones((48, 64)))
+    assert sorted(p.relative_to(tiny_run) for p in tiny_run.rglob("*")) == before
