@@ -487,6 +487,8 @@ def psf_report(result: Any) -> str:
         f"exposure, gain  {result.exposure_us / 1000:.3f} ms, {gain}",
         f"frames          {md.get('frames_averaged')} PSF, {md.get('darks_averaged')} dark "
         "(averaged)",
+        # saved, but worth a look (a crop that cut off part of the PSF's light)
+        *(f"warning         {w}" for w in getattr(result, "warnings", ())),
     ])
 
 

@@ -388,6 +388,9 @@ def test_the_report_describes_the_saved_cropped_psf(make_camera, source, tmp_pat
     assert (f"crop to 32x40 of the 64x80 capture leaves out {100 * (1 - kept):.0f}% of the "
             "PSF's light") in cal.warnings[0]
     assert meta["warnings"] == list(cal.warnings)
+    from app.gui.calibration_wizard import psf_report  # the wizard's report says it too
+
+    assert f"warning         {cal.warnings[0]}" in psf_report(cal).splitlines()
     # padding loses nothing: no warning, the same peak
     padded = Workflow(capture_psf(cam, source, replace(FAST, shape=(80, 96)))).run()
     assert padded.warnings == () and padded.metadata["processing"]["light_kept"] == 1.0
