@@ -139,17 +139,20 @@ def downsample_masked(meas: Array, mask: Array, factor: int) -> tuple[F32, F32]:
 
     A coarse pixel is the mean over its *measured* sub-pixels (erased pixels hold no data, so
     averaging their zeros in would bias it) and counts as measured when any sub-pixel is.
-    Returns (measurement, mask), float32.
+    Erased pixels (coarse ones with no measured sub-pixel) are 0 in the result, whatever the
+    file held there (a hot pixel, NaN): they must not set the measurement's scale nor count in
+    a residual. Returns (measurement, mask), float32.
     """
     m = np.asarray(mask, dtype=np.float64)
     b = np.asarray(meas, dtype=np.float64)
     if m.shape != b.shape[-2:]:
         raise ValueError(f"mask of shape {m.shape} does not match the measurement {b.shape}")
     m = (m > 0.5).astype(np.float64)
+    b = np.where(m > 0, b, 0.0)
     if factor == 1:
         return b.astype(np.float32), m.astype(np.float32)
     count = box_downsample(m, factor)
-    total = box_downsample(b * m, factor)
+    total = box_downsample(b, factor)
     out = np.where(count > 0, total / np.maximum(count, 1e-12), 0.0)
     return out.astype(np.float32), downsample_mask(m, factor)
 

@@ -654,8 +654,10 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
     if raw_mask is None:
         meas_d = box_downsample(meas, ds).astype(np.float32)
     elif mask_coarse:
-        meas_d = box_downsample(meas, ds).astype(np.float32)
         mask = (raw_mask > 0.5).astype(np.float32)
+        # erased coarse pixels hold no data: 0, whatever the file held (a hot pixel set the
+        # measurement's scale and the residual)
+        meas_d = np.where(mask > 0, box_downsample(meas, ds), 0.0).astype(np.float32)
     else:
         meas_d, mask = downsample_masked(meas, raw_mask, ds)  # the one mask rule
     sel = slice(None) if mask is None else (mask > 0)
