@@ -273,3 +273,20 @@ def test_blocks_see_a_smooth_model_mismatch_that_single_pixels_fit():
     assert got[4] >= oracle - 0.5 and got[4] >= got[1] + 1.0 and blocks.tau > 10 * pixels.tau
     with pytest.raises(ValueError, match="block must be"):
         choose_tau(model, bm, block=0, **kw)
+
+
+def test_a_choice_on_few_held_out_pixels_says_it_is_uncertain():
+    """At 99 % erasures of a video the search chose tau on 18 held-out pixels, below the
+    frames' own means, and said nothing of it."""
+    _, model, b = _case(0.97)
+    few = choose_tau(model, b, max_iter=60, min_iter=20, patience=20)
+    assert few.heldout_pixels < 100
+    w = few.metadata()["warning"]
+    assert w is not None and f"only {few.heldout_pixels} held-out pixels choose tau" in w
+    assert "uncertain" in few.describe() and "give --tau" in few.describe()
+    given = choose_tau(model, b, max_iter=60, min_iter=20, patience=20, fixed_tau=1e-3)
+    assert "held-out pixels choose the iteration count" in given.describe()
+    _, model, b = _case(0.0)
+    enough = choose_tau(model, b, max_iter=60, min_iter=20, patience=20)
+    assert enough.heldout_pixels >= 100 and enough.metadata()["warning"] is None
+    assert "uncertain" not in enough.describe()

@@ -386,6 +386,13 @@ class UDNRunner(Stepwise[UDNStep]):
         self.fit = measured & ~self.heldout
         self.n_fit = int(self.fit.sum())
         self.n_heldout = int(self.heldout.sum())
+        if self.n_heldout:
+            from recon.autotau import few_heldout_note
+
+            few = few_heldout_note(self.n_heldout, "the stopping iteration")
+            if few is not None:  # kept in the run record's notes
+                self.notes.append(f"{few}; raise holdout ({cfg.holdout:g}) or set the "
+                                  "iteration count (max_iter) yourself")
 
         with torch.random.fork_rng(devices=[]):  # seeded weights; the global RNG is untouched
             torch.manual_seed(cfg.seed)

@@ -338,7 +338,7 @@ def test_warm_steps_report_progress_cancel_and_restore_on_nan(monkeypatch):
     monkeypatch.setattr(r2, "_forward", poisoned)
     with pytest.raises(NumericalError, match="as it was before the warm start"):
         r2.warm_start(truth, 10)
-    assert same(weights(r2), w0) and r2.notes == []
+    assert same(weights(r2), w0) and not any("warm start" in n for n in r2.notes)
 
 
 def test_warm_start_refuses_a_wrong_image():
@@ -351,3 +351,13 @@ def test_warm_start_refuses_a_wrong_image():
         r.warm_start(bad, 5)
     with pytest.raises(ValueError, match=">= 1"):
         r.warm_start(sim.truth, 0)
+
+
+def test_a_stop_on_few_held_out_pixels_is_noted():
+    """4 held-out pixels chose a 99 %-erased video's stopping iteration, and no note said so."""
+    r, _ = make_runner(erasure=0.99, max_iter=2)
+    assert 0 < r.n_heldout < 100
+    assert any(n.startswith(f"only {r.n_heldout} held-out pixels choose the stopping "
+                            "iteration") and "raise holdout" in n for n in r.notes)
+    r, _ = make_runner(erasure=0.0, max_iter=2, holdout=0.3)
+    assert r.n_heldout >= 100 and not any("held-out pixels choose" in n for n in r.notes)
