@@ -13,7 +13,12 @@ goes on.
 Joining a cluster at ``HOST:PORT`` first opens a plain TCP connection to that address, bounded
 by ``connect_timeout_s`` (``--connect-timeout``): ``ray.init`` itself retries an address where
 nothing listens for many minutes, so a wrong host or port, or a head that is not running, is
-reported as a one-line error within seconds instead of a silent hang.
+reported as a one-line error within seconds instead of a silent hang. On that connection it
+then opens HTTP/2 as a gRPC client does (Ray's GCS, and the Ray Client server of a ``ray://``
+address, are gRPC servers) and waits, as long again at most, for the server's first frame: a
+service that is not one (an HTTP/1 server, an SSH or database port, a socket that never
+answers) is a one-line error too, where ``ray.init`` retried it for minutes. With
+``RAY_USE_TLS`` the GCS speaks TLS first, and that probe is left out.
 
 Ray is imported here only, inside the functions (``import ray`` takes seconds).
 """
@@ -107,12 +112,60 @@ def split_address(address: str) -> tuple[str, int] | None:
     return host, int(port_s)
 
 
-def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
-    """Raise a one-line :class:`~app.cli.CliError` unless ``address`` accepts a TCP connection.
+#: The HTTP/2 client connection preface and an empty SETTINGS frame (RFC 9113, 3.4 and 6.5):
+#: what a gRPC client sends first. A gRPC server answers with its own SETTINGS frame.
+_H2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
 
-    ``auto`` is left to Ray (it finds a local cluster or fails at once). The probe goes where
-    Ray would connect: Ray's own reading of the address (a loopback host becomes this
-    machine's IP) when it can give one.
+
+def _tls() -> bool:
+    """Ray's own test of ``RAY_USE_TLS`` (its gRPC then starts with a TLS handshake)."""
+    return os.environ.get("RAY_USE_TLS", "0").lower() in ("1", "true")
+
+
+def _not_grpc(sock: socket.socket, timeout_s: float) -> str | None:
+    """None when the peer answers an HTTP/2 preface as a gRPC server (Ray's GCS) does.
+
+    That is with a SETTINGS frame; else what it did instead, in words. At most ``timeout_s``
+    seconds.
+    """
+    deadline = time.monotonic() + timeout_s
+    head = b""
+    try:
+        sock.settimeout(timeout_s)
+        sock.sendall(_H2_PREFACE)
+        while len(head) < 9:
+            sock.settimeout(max(deadline - time.monotonic(), 1e-3))
+            chunk = sock.recv(9 - len(head))
+            if not chunk:
+                return ("closed the connection without answering a gRPC (HTTP/2) client"
+                        if not head else f"answered {head!r} and closed the connection")
+            head += chunk
+    except TimeoutError:
+        return (f"did not answer a gRPC (HTTP/2) client within {timeout_s:g} s "
+                "(--connect-timeout waits longer)" if not head else
+                f"answered only {head!r} within {timeout_s:g} s")
+    except OSError as exc:
+        return f"then failed ({exc.strerror or exc})"
+    length, kind, stream = int.from_bytes(head[:3], "big"), head[3], head[5:9]
+    if kind == 4 and stream == bytes(4) and length % 6 == 0:  # SETTINGS on stream 0
+        return None
+    if head.startswith(b"HTTP/"):
+        return "answered as an HTTP/1 server"
+    text = head.decode("ascii", "replace")
+    if text.isprintable():
+        return f"answered {text!r}..., not HTTP/2 (gRPC)"
+    return "answered with something that is not an HTTP/2 (gRPC) frame"
+
+
+def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """Raise a one-line :class:`~app.cli.CliError` unless ``address`` is a gRPC server.
+
+    First it must accept a TCP connection within ``timeout_s``; then (unless ``RAY_USE_TLS``)
+    answer an HTTP/2 preface with a SETTINGS frame within ``timeout_s`` again, as Ray's GCS
+    does: another service there (``ray.init`` retried it for minutes) is named at once, or at
+    the timeout when it never answers. ``auto`` is left to Ray (it finds a local cluster or
+    fails at once). The probe goes where Ray would connect: Ray's own reading of the address
+    (a loopback host becomes this machine's IP) when it can give one.
     """
     hp = split_address(address)
     if hp is None:
@@ -126,8 +179,8 @@ def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
             if canon:
                 host, port = split_address(canon) or (host, port)
     try:
-        with socket.create_connection((host, port), timeout=timeout_s):
-            pass
+        with socket.create_connection((host, port), timeout=timeout_s) as sock:
+            not_ray = None if _tls() else _not_grpc(sock, timeout_s)
     except OSError as exc:
         if isinstance(exc, socket.gaierror):
             why = f"cannot resolve the host {host!r}"
@@ -143,14 +196,26 @@ def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
                        f"runs there ('ray start --head --port={port}', 'ray status') and that "
                        f"the port is right (the GCS port, default {RAY_DEFAULT_PORT}) and open "
                        f"(firewall); --connect-timeout waits longer") from None
+    if not_ray is not None:
+        from app.cli import CliError
+
+        if address.strip().lower().startswith("ray://"):  # the Ray Client server (gRPC)
+            what, port_hint = "a Ray Client server", "its Ray Client port (default 10001)"
+        else:
+            what, port_hint = "a Ray cluster (GCS)", (
+                f"the Ray head's GCS port (default {RAY_DEFAULT_PORT}; 'ray status' on the "
+                "head names it)")
+        raise CliError(f"{address} does not answer as {what}: {host}:{port} accepts "
+                       f"connections but {not_ray}; give {port_hint}") from None
 
 
 def start_ray(address: str | None, num_cpus: int | None,
               connect_timeout_s: float = CONNECT_TIMEOUT_S) -> bool:
     """Start embedded Ray or join a cluster; True when this call started it (and owns it).
 
-    A ``HOST:PORT`` address that does not accept a TCP connection within ``connect_timeout_s``
-    is a one-line :class:`~app.cli.CliError` (see :func:`check_reachable`).
+    A ``HOST:PORT`` address that does not accept a TCP connection within ``connect_timeout_s``,
+    or then does not answer as a gRPC server (Ray's GCS) within it again, is a one-line
+    :class:`~app.cli.CliError` (see :func:`check_reachable`).
     """
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no usage reports, ever
     try:

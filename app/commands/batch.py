@@ -31,7 +31,8 @@ def register(sub: Any) -> None:
                                      "Ray inside this command on this machine)")
     r.add_argument("--connect-timeout", type=POSITIVE, default=10.0, metavar="SECONDS",
                    help="with --address HOST:PORT: give up when the address does not accept a "
-                        "connection within this time (default 10)")
+                        "connection within this time, or then does not answer as a Ray "
+                        "cluster's GCS (gRPC) within it again (default 10)")
     r.add_argument("--num-cpus", type=POSITIVE_INT,
                    help="CPUs of the embedded Ray (default: all cores)")
     r.add_argument("--cpus-per-item", type=POSITIVE_INT, default=1,

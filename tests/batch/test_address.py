@@ -3,15 +3,25 @@
 ``ray.init(address=HOST:PORT)`` retries an address where nothing listens for many minutes, so a
 typo in the port or a head that was never started looked like a hung command. The driver now
 probes the address with a bounded TCP connect first (``--connect-timeout``).
+
+A listening service that is not Ray (an HTTP server, a socket that never answers) passed that
+probe, and ``ray.init`` then retried it for minutes (over 300 s with Ray 2.60). The driver now
+opens HTTP/2 on the connection as a gRPC client does and names a service that does not answer
+as one (at once, or at ``--connect-timeout`` when it stays silent).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import socket
 import subprocess
 import sys
+import threading
+import time
+from contextlib import contextmanager
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
@@ -95,3 +105,112 @@ def test_a_bad_address_is_refused_before_anything_is_written(tmp_path: Path, cap
               "--address", "head.lab:6379", "--connect-timeout", "0"])
     assert exc.value.code == 2
     assert "--connect-timeout: must be a finite number > 0" in capsys.readouterr().err
+
+
+class _Quiet(BaseHTTPRequestHandler):
+    """An HTTP/1 server that serves nothing (it answers every request with an error)."""
+
+    def log_message(self, *args) -> None:
+        pass
+
+
+@contextmanager
+def _http_server():
+    # every interface: the probe goes where Ray would connect (this machine's IP for 127.0.0.1)
+    srv = ThreadingHTTPServer(("0.0.0.0", 0), _Quiet)
+    t = threading.Thread(target=srv.serve_forever, daemon=True)
+    t.start()
+    try:
+        yield int(srv.server_address[1])
+    finally:
+        srv.shutdown()
+        srv.server_close()
+        t.join(5)
+
+
+@contextmanager
+def _tcp_server(answer: bytes | None):
+    """Accept connections; send ``answer`` on each (None: never a byte), keep it open."""
+    srv = socket.socket()
+    srv.bind(("0.0.0.0", 0))
+    srv.listen(8)
+    srv.settimeout(0.2)
+    conns: list[socket.socket] = []
+    stop = threading.Event()
+
+    def serve() -> None:
+        while not stop.is_set():
+            try:
+                c, _ = srv.accept()
+            except OSError:
+                continue
+            conns.append(c)
+            if answer is not None:
+                c.sendall(answer)
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    try:
+        yield int(srv.getsockname()[1])
+    finally:
+        stop.set()
+        t.join(5)
+        for c in conns:
+            c.close()
+        srv.close()
+
+
+#: what a gRPC server sends first: a SETTINGS frame (one setting) on stream 0
+_SETTINGS = bytes([0, 0, 6, 4, 0, 0, 0, 0, 0]) + bytes([0, 3, 0, 0, 0, 100])
+
+
+def test_a_service_that_is_not_ray_is_named_quickly() -> None:
+    """An HTTP server, a port that closes at once and one that never answers are each one
+    line naming the address and saying it does not answer as a Ray cluster (GCS); a server
+    that answers as gRPC (as the GCS does) passes."""
+    with _http_server() as port:
+        t0 = time.monotonic()
+        with pytest.raises(CliError) as err:
+            check_reachable(f"127.0.0.1:{port}", 5.0)
+        assert time.monotonic() - t0 < 3.0
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert msg.startswith(f"127.0.0.1:{port} does not answer as a Ray cluster (GCS): ")
+    assert f":{port} accepts connections but answered " in msg and "not HTTP/2" in msg
+    assert "the Ray head's GCS port (default 6379" in msg
+    with _tcp_server(None) as port:
+        t0 = time.monotonic()
+        with pytest.raises(CliError, match=r"does not answer as a Ray cluster \(GCS\): .* did not "
+                                           r"answer a gRPC \(HTTP/2\) client within 1 s "
+                                           r"\(--connect-timeout waits longer\)"):
+            check_reachable(f"127.0.0.1:{port}", 1.0)
+        assert time.monotonic() - t0 < 3.0
+    with _tcp_server(b"SSH-2.0-OpenSSH_9.6\r\n") as port:
+        with pytest.raises(CliError, match=re.escape("answered 'SSH-2.0-O'..., not HTTP/2")):
+            check_reachable(f"127.0.0.1:{port}", 5.0)
+    with _tcp_server(_SETTINGS) as port:
+        check_reachable(f"127.0.0.1:{port}", 5.0)  # a gRPC server: left to ray.init
+
+
+def test_batch_run_on_an_http_server_is_one_line_within_seconds(tmp_path: Path) -> None:
+    """`batch run --address HOST:PORT` on a listening HTTP server: ray.init retried it for
+    minutes; now one line naming the address, before Ray is started, within seconds."""
+    d = make_data(tmp_path / "data", 1)
+    (d / "m.csv").write_text("measurement,psf,method\nmeas/m00.npy,psf.npy,fista\n")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "RAY_ADDRESS": ""}
+    with _http_server() as port:
+        t0 = time.monotonic()
+        out = subprocess.run(
+            [sys.executable, "-m", "app", "batch", "run", str(d / "m.csv"), "--out",
+             str(tmp_path / "b"), "--address", f"127.0.0.1:{port}", "--quiet"],
+            capture_output=True, text=True, cwd=Path(__file__).parents[2], env=env, timeout=60)
+        wall = time.monotonic() - t0
+    assert out.returncode == 2, out.stderr
+    lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
+    assert lines == [ln for ln in lines if ln.startswith("lenslesscam batch: error: ")], lines
+    assert len(lines) == 1 and lines[0].startswith(
+        f"lenslesscam batch: error: 127.0.0.1:{port} does not answer as a Ray cluster (GCS): ")
+    assert wall < 30, wall  # the interpreter and Ray's import take most of it
+    state = json.loads((tmp_path / "b" / "state.json").read_text(encoding="utf-8"))
+    assert state["status"] == "interrupted"
+    assert not list((tmp_path / "b").rglob("*.npy"))  # nothing ran
