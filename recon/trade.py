@@ -60,6 +60,7 @@ __all__ = [
     "read_trade",
     "read_trade_csv",
     "run_trade",
+    "udn_settings",
     "write_trade_csv",
 ]
 
@@ -132,6 +133,11 @@ class TradeRow:
     residual: float
     psnr: float | None = None
     ssim: float | None = None
+    #: a UDN row's settings as run (:func:`udn_settings`): ``{"network": NetworkConfig fields,
+    #: "config": UDNConfig fields}`` (the config's ``max_iter`` and ``time_limit_s`` left out:
+    #: the row's ``iterations`` is the count); None for the other methods, and for a UDN row of
+    #: a trade.csv written before they were recorded
+    udn_settings: dict[str, Any] | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
@@ -269,6 +275,36 @@ def _upsample(x: F32, shape: tuple[int, int]) -> F32:
     return out
 
 
+def _udn_configs(cfg: Config, seed: int, max_iter: int) -> tuple[Any, Any]:
+    """The UDN's NetworkConfig and UDNConfig of a grid setting.
+
+    No early stop: the trade hides its own held-out pixels and scores every checkpoint.
+    """
+    from recon.udn import NetworkConfig, UDNConfig
+
+    net = NetworkConfig(scales=cfg.scales, channels=cfg.channels)
+    conf = UDNConfig(max_iter=max_iter, seed=seed, precision=cfg.precision,  # type: ignore[arg-type]
+                     holdout=0.0)
+    return net, conf
+
+
+#: UDNConfig fields a trade row does not record: its ``iterations`` is the count, and a wall
+#: limit is the caller's (a plan's budget)
+UDN_RUN_LIMITS = ("max_iter", "time_limit_s")
+
+
+def udn_settings(cfg: Config, seed: int = 0) -> dict[str, Any]:
+    """What a UDN setting of the grid runs: ``{"network": ..., "config": ...}`` (JSON-ready).
+
+    Every field of :class:`recon.udn.NetworkConfig` and of :class:`recon.udn.UDNConfig`
+    except :data:`UDN_RUN_LIMITS`; a trade row records it (``udn_settings``) so that a plan
+    made from the row runs the network the row measured.
+    """
+    net, conf = _udn_configs(cfg, seed, max(cfg.checkpoints))
+    run = {k: v for k, v in conf.to_dict().items() if k not in UDN_RUN_LIMITS}
+    return {"network": net.to_dict(), "config": run}
+
+
 def _iterate(cfg: Config, psf: F32, meas: F32, mask: F32, seed: int,
              field: tuple[int, int] | None = None) -> Iterator[tuple[int, F32, float]]:
     """Yield (iteration, estimate, elapsed) at each checkpoint of one run (scene ``field``)."""
@@ -299,12 +335,10 @@ def _iterate(cfg: Config, psf: F32, meas: F32, mask: F32, seed: int,
                         yield c, x, elapsed
         return
     if cfg.method == "udn":
-        from recon.udn import NetworkConfig, UDNConfig, UDNRunner
+        from recon.udn import UDNRunner
 
         model = build_model("2d", psf, mask=mask, field=field)
-        net = NetworkConfig(scales=cfg.scales, channels=cfg.channels)
-        conf = UDNConfig(max_iter=last, seed=seed, precision=cfg.precision,  # type: ignore[arg-type]
-                         holdout=0.0)
+        net, conf = _udn_configs(cfg, seed, last)
         runner = UDNRunner(model, meas, network=net, config=conf)
         t0 = time.perf_counter()
         for step in runner.steps():
@@ -360,6 +394,7 @@ def run_trade(
             continue
         psf_d, meas_d, mask_d = _downsample_case(case.psf, case.meas,
                                                  fit_mask.astype(np.float32), cfg.downsample)
+        settings = udn_settings(cfg, seed) if cfg.method == "udn" else None
         base = _reset_peak()
         field_d = (fh // cfg.downsample, fw // cfg.downsample)
         for it, x, elapsed in _iterate(cfg, psf_d, meas_d, mask_d, seed, field_d):
@@ -378,7 +413,7 @@ def run_trade(
                 precision=cfg.precision, downsample=cfg.downsample, channels=cfg.channels,
                 iterations=it, wall_s=round(elapsed, 3), peak_mem_mb=mem,
                 heldout_psnr=10 * math.log10(peak**2 / max(err_hold, 1e-30)),
-                residual=res_fit,
+                residual=res_fit, udn_settings=settings,
             )
             if case.truth is not None:
                 est = gain_fit(case.truth, xf)[0]
@@ -520,6 +555,33 @@ class TradeFile:
     cases: list[dict[str, Any]]  # the case_record of each case measured
 
 
+def _csv_row(row: TradeRow) -> dict[str, Any]:
+    """A row's cells: ``udn_settings`` as compact JSON (empty when there are none)."""
+    import json
+
+    d = row.as_dict()
+    d["udn_settings"] = ("" if row.udn_settings is None else
+                         json.dumps(row.udn_settings, separators=(",", ":")))
+    return d
+
+
+def _read_udn_settings(text: str, where: str) -> dict[str, Any] | None:
+    """The ``udn_settings`` cell: None when empty, else ``{"network": {...}, "config": {...}}``."""
+    import json
+
+    if text in ("", "None"):
+        return None
+    try:
+        v = json.loads(text)
+    except ValueError:
+        v = None
+    if not (isinstance(v, dict) and set(v) == {"network", "config"}
+            and all(isinstance(v[k], dict) for k in v)):
+        raise ValueError(f"{where}: column udn_settings is {text!r:.80}, not a JSON object "
+                         "with a 'network' and a 'config' object")
+    return v
+
+
 def write_trade_csv(path: str | Path, rows: Sequence[TradeRow], cases: Sequence[Case],
                     **meta: Any) -> Path:
     """Write ``trade.csv`` atomically: the header (format, provenance, ``meta``, cases), rows."""
@@ -534,7 +596,7 @@ def write_trade_csv(path: str | Path, rows: Sequence[TradeRow], cases: Sequence[
     items += [("case", case_record(c)) for c in cases]
     fields = [f.name for f in dataclasses.fields(TradeRow) if f.name != "extra"]
     text = format_table(TRADE_FORMAT, FORMAT_VERSION, items, fields,
-                        [r.as_dict() for r in rows])
+                        [_csv_row(r) for r in rows])
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
@@ -565,6 +627,9 @@ def read_trade(path: str | Path) -> TradeFile:
             if f.name == "extra":
                 continue
             v = rec.get(f.name, "")
+            if f.name == "udn_settings":  # a column of later files: absent reads as none
+                kw[f.name] = _read_udn_settings(v or "", f"{path} line {line}")
+                continue
             try:
                 if f.name in _FLOAT:
                     kw[f.name] = float(v)

@@ -430,3 +430,26 @@ def test_a_trade_in_one_session_says_no_sessions(tmp_path, capsys):
     capsys.readouterr()
     md = (tmp_path / "out" / "trade.md").read_text()
     assert "session" not in md and "Produced by `lenslesscam trade" in md
+
+
+def test_a_udn_row_records_the_settings_it_ran_and_reads_them_back(tmp_path):
+    """A UDN row recorded only its width and precision: a plan made from it could not tell
+    the scales, skips, learning rate or early stop it measured (it ran its own default)."""
+    cfg = Config("udn", checkpoints=(2,), channels=4, scales=2)
+    rows = list(run_trade(_case(), [Config("fista", 1e-4, (5,)), cfg], seed=3))
+    fista, udn = rows
+    assert fista.udn_settings is None
+    net, run = udn.udn_settings["network"], udn.udn_settings["config"]
+    assert net["scales"] == 2 and net["channels"] == 4 and net["variant"] == "2d"
+    assert run["holdout"] == 0.0 and run["seed"] == 3 and run["precision"] == "float32"
+    assert "max_iter" not in run and "time_limit_s" not in run  # the row's count, the budget
+    path = write_trade_csv(tmp_path / "trade.csv", rows, [_case()])
+    assert [r.udn_settings for r in read_trade(path).rows] == [None, udn.udn_settings]
+    # a cell that is not the settings object: one line naming the file, line and column
+    text = path.read_text()
+    cell = text.splitlines()[-1].split(',"', 1)[1].rsplit('"', 1)[0]
+    path.write_text(text.replace(cell, "[1, 2]"))
+    with pytest.raises(ValueError) as err:
+        read_trade(path)
+    assert "\n" not in str(err.value) and f"{path} line" in str(err.value)
+    assert "column udn_settings is '[1, 2]', not a JSON object" in str(err.value)

@@ -184,7 +184,8 @@ def plan_inputs(tmp_path):
 
 def test_plan_chooses_among_settings_its_run_reproduces(plan_inputs, tmp_path, capsys):
     """`plan --trade --budget 1s` chose 'fista tau=0.0001 float64', but a plan has no
-    precision: recon auto ran it in float32. The bf16 UDN is no plan's either."""
+    precision: recon auto ran it in float32. A UDN row that does not record the network it
+    ran (a trade.csv of an older release) is no plan's either."""
     trade = tmp_path / "trade.csv"
     code, stdout, err = run_cli(capsys, "plan", *plan_inputs, "--trade", trade, "--budget", "1s",
                                 "--json", "--no-probe")
@@ -193,8 +194,10 @@ def test_plan_chooses_among_settings_its_run_reproduces(plan_inputs, tmp_path, c
     assert plan["method"] == "fista-tv" and plan["tau"] == pytest.approx(3e-4)
     assert plan["iterations"] == 200
     why = plan["reasons"]["method"]
-    assert "the best of 2 measured float32 settings within 1 s was fista tau=0.0003" in why
-    assert "udn ch32 bf16 (36.00 dB) was better but computes in bf16" in why
+    assert ("the best of 2 measured settings a float32 plan reproduces within 1 s was fista "
+            "tau=0.0003") in why
+    assert ("udn ch32 bf16 (36.00 dB) was better but its trade.csv row does not record the "
+            "network settings it ran") in why
     # recon auto --float64 computes in float64: the float64 setting is its to take
     code, stdout, err = run_cli(capsys, "recon", "auto", *plan_inputs, "--trade", trade,
                                 "--budget", "1s", "--float64", "--quiet",
@@ -204,12 +207,14 @@ def test_plan_chooses_among_settings_its_run_reproduces(plan_inputs, tmp_path, c
 
     _, meta = read_reconstruction(tmp_path / "r.tif")
     assert meta["plan"]["tau"] == pytest.approx(1e-4)
-    assert "measured float64 settings" in meta["plan"]["reasons"]["method"]
+    assert "settings a float64 plan reproduces" in meta["plan"]["reasons"]["method"]
     # a budget only another precision fits: refused, saying why
     code, _, err = run_cli(capsys, "plan", *plan_inputs, "--trade", trade, "--budget", "0.07s",
                            "--no-probe")
     assert code == 2
-    assert "no measured setting fits the budget of 0.07 s in float32 (its bf16, float64" in err
+    assert ("no measured setting fits the budget of 0.07 s in float32 (its float64 settings are "
+            "not candidates: the plan runs in float32); udn ch32 bf16 fits but its trade.csv "
+            "row does not record the network settings it ran") in err
 
 
 def test_plan_trade_names_a_folder_in_one_line(plan_inputs, tmp_path, capsys):
@@ -227,18 +232,28 @@ def test_plan_trade_names_a_folder_in_one_line(plan_inputs, tmp_path, capsys):
 
 def test_a_float32_udn_setting_stays_a_candidate_under_float64(tmp_path):
     """With recon auto --float64 only float64 rows were candidates, though a plan's UDN runs
-    its network in float32 whatever the flag says (its float32 rows are reproduced)."""
+    its network in the precision its row measured whatever the flag says (the plan carries
+    the row's settings, a bf16 one's precision among them)."""
 
     from app.commands.plan import plan_from_trade
+    from recon.trade import udn_settings, write_trade_csv
 
+    net32 = udn_settings(Config("udn", channels=32))
     rows = [TradeRow("c", "fista tau=0.0001 float64", "fista", 1e-4, "float64", 1, 0, 200,
                      0.9, 4.0, 35.0, 0.01),
-            TradeRow("c", "udn ch32", "udn", 0.0, "float32", 1, 32, 100, 0.5, 4.0, 40.0, 0.01)]
-    path = tmp_path / "trade.csv"
-    _write_rows(path, rows)
+            TradeRow("c", "udn ch32", "udn", 0.0, "float32", 1, 32, 100, 0.5, 4.0, 40.0, 0.01,
+                     udn_settings=net32)]
+    path = write_trade_csv(tmp_path / "trade.csv", rows, [])
     from recon.plan import Plan
 
     base = Plan(model="2d", k=1, sensor=(48, 64), field=(48, 64), region=(0, 0, 48, 64),
                 downsample=1, method="fista-tv", iterations=300, budget_s=1.0)
-    assert plan_from_trade(base, path, None, precision="float64").method == "udn"
-    assert plan_from_trade(base, path, None, precision="float32").method == "udn"
+    for precision in ("float64", "float32"):
+        plan = plan_from_trade(base, path, None, precision=precision)
+        assert plan.method == "udn" and plan.udn == net32
+    net16 = udn_settings(Config("udn", channels=32, precision="bf16"))
+    rows.append(TradeRow("c", "udn ch32 bf16", "udn", 0.0, "bf16", 1, 32, 100, 0.4, 4.0, 41.0,
+                         0.01, udn_settings=net16))
+    path = write_trade_csv(tmp_path / "trade.csv", rows, [])
+    plan = plan_from_trade(base, path, None)
+    assert plan.udn["config"]["precision"] == "bf16" and plan.udn == net16

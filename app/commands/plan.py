@@ -333,20 +333,48 @@ def check_trade_option(args: argparse.Namespace) -> None:
         raise ValueError(f"--trade {path} is a folder, not a trade.csv{hint}")
 
 
+def _udn_row_problem(row: Any, plan: Any) -> str | None:
+    """Why a UDN row of a trade cannot run as measured in ``plan`` (None: it can).
+
+    The row must record the settings it ran (``udn_settings``, :func:`recon.trade.udn_settings`)
+    and each must be one this release runs (:func:`recon.plan.planner.udn_configs`): a plan
+    never runs another network than the one measured.
+    """
+    if row.udn_settings is None:
+        return ("its trade.csv row does not record the network settings it ran (a trade.csv "
+                "written before they were recorded: run lenslesscam trade again)")
+    try:
+        from recon.plan.planner import udn_configs
+
+        net, _ = udn_configs(row.udn_settings)
+    except ImportError:
+        return "recon.udn cannot be imported here"
+    except ValueError as exc:
+        return f"its {exc}"
+    if net.variant == "2d" and plan.k > 1:
+        return (f"its network reconstructs one image (variant 2d) and the plan has K = "
+                f"{plan.k}")
+    return None
+
+
 def plan_from_trade(plan: Any, trade_csv: str, inputs: dict[str, Any] | None = None,
                     who: str = "plan", precision: str = "float32") -> Any:
-    """Take method, tau and iterations from the best trade setting within the plan's budget.
+    """Take method, tau, iterations and a UDN's settings from the best trade setting.
 
-    With the plan's ``inputs`` (:func:`load_inputs`), a trade measured on other data is
-    warned about on stderr (:func:`trade_data_warning`); the plan still uses it.
+    The best setting within the plan's budget. With the plan's ``inputs``
+    (:func:`load_inputs`), a trade measured on other data is warned about on stderr
+    (:func:`trade_data_warning`); the plan still uses it.
 
-    Only settings the plan's run reproduces are candidates: full resolution, and the
-    ``precision`` it will compute in (a plan records no precision: ``recon auto`` runs it in
-    float32, in float64 with ``--float64``; a plan's UDN runs the network in float32, never
-    bf16). A better setting of another precision is named in the reason.
+    Only settings the plan's run reproduces are candidates: full resolution; FISTA-TV and
+    ADMM-TV in the ``precision`` it will compute in (a plan records no solver precision:
+    ``recon auto`` runs it in float32, in float64 with ``--float64``); a UDN whose row records
+    the network and run settings it measured (the plan carries them in ``udn``, its precision
+    among them, and runs them). A better setting that is not a candidate is named in the
+    reason, with why.
     """
     import dataclasses
 
+    from recon.plan.planner import udn_text
     from recon.trade import best_for_budgets, read_trade
 
     if plan.budget_s is None:
@@ -355,35 +383,51 @@ def plan_from_trade(plan: Any, trade_csv: str, inputs: dict[str, Any] | None = N
     if inputs is not None and (warning := trade_data_warning(trade, inputs, who)):
         print(warning, file=sys.stderr)
     full = [r for r in trade.rows if r.downsample == 1]
-    # a plan's UDN runs its network in float32 whatever recon auto's --float64 says
-    rows = [r for r in full
-            if r.precision == ("float32" if r.method == "udn" else precision)]
+
+    def problem(r: Any) -> str | None:
+        if r.method == "udn":
+            return _udn_row_problem(r, plan)
+        if r.precision != precision:
+            how = ("; recon auto --float64 chooses among the float64 ones"
+                   if r.precision == "float64" else "")
+            return (f"computes in {r.precision}, which the plan does not record, so its run "
+                    f"could not reproduce it{how}")
+        return None
+
+    why_not = {id(r): problem(r) for r in full}
+    rows = [r for r in full if why_not[id(r)] is None]
     key = "psnr" if full and all(r.psnr is not None for r in full) else "heldout_psnr"
     best = best_for_budgets(rows, [plan.budget_s], key)[plan.budget_s]
     if best is None:
-        other = sorted({r.precision for r in full} - {precision})
+        other = sorted({r.precision for r in full if r.method != "udn"} - {precision})
         also = (f" in {precision} (its {', '.join(other)} settings are not candidates: the "
-                f"plan runs in {precision})" if other else "")
+                f"plan runs in {precision})" if other else f" in {precision}")
+        udn_out = best_for_budgets([r for r in full if r.method == "udn"
+                                    and why_not[id(r)] is not None], [plan.budget_s],
+                                   key)[plan.budget_s]
+        if udn_out is not None:
+            also += f"; {udn_out.setting} fits but {why_not[id(udn_out)]}"
         raise ValueError(f"{trade_csv}: no measured setting fits the budget of "
                          f"{plan.budget_s:g} s{also}")
     method = "udn" if best.method == "udn" else "fista-tv"
-    new = plan.override(method=method, iterations=best.iterations,
-                        **({"tau": best.tau} if method == "fista-tv" else {}))
+    carried: dict[str, Any] = ({"udn": best.udn_settings} if method == "udn" else
+                               {"tau": best.tau})
+    new = plan.override(method=method, iterations=best.iterations, **carried)
     quality = getattr(best, key)
     unit = "PSNR" if key == "psnr" else "held-out"
-    why = (f"from the trade ({trade_csv}): the best of {len(rows)} measured {precision} "
-           f"settings within {plan.budget_s:g} s was {best.setting} at {best.iterations} "
-           f"iterations ({best.wall_s:.2f} s, {quality:.2f} dB {unit})")
+    why = (f"from the trade ({trade_csv}): the best of {len(rows)} measured settings a "
+           f"{precision} plan reproduces within {plan.budget_s:g} s was {best.setting} at "
+           f"{best.iterations} iterations ({best.wall_s:.2f} s, {quality:.2f} dB {unit})")
     if best.method == "admm":
         why += "; run as FISTA-TV, which minimises the same objective"
+    if method == "udn":
+        why += f"; the plan runs the network it measured: {udn_text(best.udn_settings)}"
     top = best_for_budgets(full, [plan.budget_s], key)[plan.budget_s]
-    if top is not None and top.precision != precision and getattr(top, key) > quality:
-        how = ("; recon auto --float64 chooses among the float64 ones"
-               if top.precision == "float64" else "")
-        why += (f"; {top.setting} ({getattr(top, key):.2f} dB) was better but computes in "
-                f"{top.precision}, which the plan does not record, so its run could not "
-                f"reproduce it{how}")
+    if top is not None and why_not[id(top)] is not None and getattr(top, key) > quality:
+        why += f"; {top.setting} ({getattr(top, key):.2f} dB) was better but {why_not[id(top)]}"
     reasons = {**new.reasons, "method": why, "tau": why, "iterations": why}
+    if method == "udn":
+        reasons["udn"] = why
     # chosen from the trade's measurements, not set by the user
     return dataclasses.replace(new, reasons=reasons, overridden=plan.overridden)
 

@@ -60,10 +60,15 @@ __all__ = [
     "make_plan",
     "planned_model",
     "region_energy_warning",
+    "udn_configs",
+    "udn_text",
 ]
 
 PLAN_FORMAT = "lenslesscam.plan"
-PLAN_VERSION = 1
+#: the newest plan format this release reads. A plan is written as version 1 unless it carries
+#: UDN settings (``udn``, version 2): a release that reads only version 1 refuses such a plan
+#: rather than run its default network in place of the one the plan names
+PLAN_VERSION = 2
 #: TV weight of the reconstruction (the ``recon fista`` default), for a measurement of max 1.
 DEFAULT_TAU = 1e-3
 #: the smallest measurement (rows and columns) make_plan analyses
@@ -186,6 +191,11 @@ class Plan:
         evidence: the numbers behind the reasons.
         overridden: fields the user set.
         plan_s: seconds the analysis took.
+        udn: the UDN's settings, as a trade row measured them (:func:`recon.trade.udn_settings`):
+            ``{"network": NetworkConfig fields, "config": UDNConfig fields}`` (the config
+            without ``max_iter`` and ``time_limit_s``: ``iterations`` and ``budget_s`` are
+            those). None: the UDN's defaults. Checked against :mod:`recon.udn` when the plan
+            runs (:func:`udn_configs`); a field it does not know is an error, not dropped.
 
     """
 
@@ -211,6 +221,7 @@ class Plan:
     evidence: dict[str, Any] = dataclasses.field(default_factory=dict)
     overridden: tuple[str, ...] = ()
     plan_s: float = 0.0
+    udn: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         self.validate()
@@ -260,6 +271,11 @@ class Plan:
         h, w = self.sensor
         if h // self.downsample < 2 or w // self.downsample < 2:
             raise ValueError(f"downsampling {h}x{w} by {self.downsample} leaves too few pixels")
+        if self.udn is not None and not (
+                isinstance(self.udn, Mapping) and set(self.udn) <= {"network", "config"}
+                and all(isinstance(v, Mapping) for v in self.udn.values())):
+            raise ValueError(f"plan.udn must be an object with a 'network' and a 'config' "
+                             f"object (recon.udn settings), got {self.udn!r:.80}")
 
     # -- derived ---------------------------------------------------------------------------
     @property
@@ -406,8 +422,9 @@ class Plan:
 
     # -- serialisation ---------------------------------------------------------------------
     def to_json(self) -> dict[str, Any]:
-        """A JSON-ready dict with ``format`` and ``format_version``."""
-        d: dict[str, Any] = {"format": PLAN_FORMAT, "format_version": PLAN_VERSION}
+        """A JSON-ready dict with ``format`` and ``format_version`` (2 with UDN settings)."""
+        d: dict[str, Any] = {"format": PLAN_FORMAT,
+                             "format_version": 1 if self.udn is None else 2}
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             d[f.name] = list(v) if isinstance(v, tuple) else v
@@ -467,7 +484,10 @@ class Plan:
                      self.reasons.get("downsample", "")))
         est = f", about {self.estimated_s:.3g} s" if self.estimated_s is not None else ""
         it = f"{self.iterations} iterations" if self.iterations else "until the budget"
-        rows.append(("method", f"{self.method}, {it}{est}", self.reasons.get("method", "")))
+        net = ""
+        if self.method == "udn":
+            net = f"; network {udn_text(self.udn)}"
+        rows.append(("method", f"{self.method}, {it}{est}{net}", self.reasons.get("method", "")))
         rows.append(("tau", f"{self.tau:g}", self.reasons.get("tau", "")))
         size = (f"{h}x{w} measurement" if window is None else
                 f"{window[0]}x{window[1]} measurement in a {h}x{w} padded PSF grid")
@@ -1047,13 +1067,63 @@ def execute(
                       mask_hash)
 
 
+def udn_configs(udn: Mapping[str, Any] | None, *, max_iter: int = 3000,
+                time_limit_s: float | None = None) -> tuple[Any, Any]:
+    """The :class:`recon.udn.NetworkConfig` and :class:`recon.udn.UDNConfig` of a plan's ``udn``.
+
+    None: the defaults. A field :mod:`recon.udn` does not know (a trade of another release), a
+    value it refuses, or a ``max_iter`` / ``time_limit_s`` among the settings (the plan's
+    ``iterations`` and ``budget_s`` set those) raises ValueError in one line naming it: the
+    run never substitutes a default for a setting it was given.
+    """
+    import dataclasses as dc
+
+    from recon.udn import NetworkConfig, UDNConfig
+
+    udn = udn or {}
+    parts: dict[str, dict[str, Any]] = {}
+    for part, cls in (("network", NetworkConfig), ("config", UDNConfig)):
+        given = dict(udn.get(part) or {})
+        known = {f.name for f in dc.fields(cls)}
+        if part == "config":
+            known -= {"max_iter", "time_limit_s"}
+        unknown = sorted(set(given) - known)
+        if unknown:
+            raise ValueError(f"UDN {part} setting{'s' if len(unknown) > 1 else ''} "
+                             f"{', '.join(unknown)} {'are' if len(unknown) > 1 else 'is'} not "
+                             f"one this lenslesscam can run (it knows {', '.join(sorted(known))})")
+        parts[part] = given
+    try:
+        net = NetworkConfig(**parts["network"])
+        cfg = UDNConfig(**parts["config"], max_iter=max_iter, time_limit_s=time_limit_s)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"UDN settings {dict(udn)!r:.200}: {exc}") from None
+    return net, cfg
+
+
+def udn_text(udn: Mapping[str, Any] | None) -> str:
+    """A UDN's settings in words, for the plan's description (``default`` for None)."""
+    if not udn:
+        return "default (recon.udn)"
+    net = dict(udn.get("network") or {})
+    cfg = dict(udn.get("config") or {})
+    words = [f"{k} {net[k]}" for k in ("variant", "scales", "channels", "skip_channels")
+             if k in net]
+    words += [f"{k} {cfg[k]}" for k in ("lr", "precision", "holdout", "seed") if k in cfg]
+    return ", ".join(words)
+
+
 def _execute_udn(plan: Plan, model: ForwardModel, b: F32, t0: float,
                  callback: Callable[[Any], None] | None,
                  cancel: Callable[[], bool] | None) -> PlanResult:
-    from recon.udn import UDNConfig, UDNRunner
+    from recon.udn import UDNRunner
 
-    cfg = UDNConfig(max_iter=plan.iterations or 10**7, time_limit_s=plan.budget_s)
-    res = UDNRunner(model, b, config=cfg).run(callback, cancel)
+    try:
+        net, cfg = udn_configs(plan.udn, max_iter=plan.iterations or 10**7,
+                               time_limit_s=plan.budget_s)
+    except ValueError as exc:
+        raise ValueError(f"plan field 'udn': {exc}") from None
+    res = UDNRunner(model, b, network=net, config=cfg).run(callback, cancel)
     return PlanResult(np.asarray(res.best, dtype=np.float32), plan, plan.grid_region,
                       res.iterations, res.reason.value, time.perf_counter() - t0,
-                      None, {"method": "udn", **cfg.to_dict()})
+                      None, {"method": "udn", **cfg.to_dict(), "network": net.to_dict()})

@@ -106,3 +106,89 @@ def test_plan_on_an_old_or_newer_trade_csv(tmp_path, capsys):
     assert err == (f"lenslesscam plan: error: {tmp_path / 'new.csv'}: trade.csv format version "
                    f"{FORMAT_VERSION + 1} is newer than this lenslesscam reads "
                    f"({FORMAT_VERSION}); update lenslesscam to read it")
+
+
+def _udn_trade(folder, settings_of=None):
+    """psf.npy, meas.npy and a trade.csv of one small UDN setting measured on them."""
+    from recon.trade import Case, Config, run_trade, write_trade_csv
+
+    psf_file, meas_file = _save_pair(folder, (24, 32), 1)
+    case = Case("meas", np.load(psf_file)[None], np.load(meas_file)[None])
+    rows = list(run_trade(case, [Config("udn", checkpoints=(3,), channels=4, scales=2)],
+                          seed=2))
+    if settings_of is not None:
+        for r in rows:
+            r.udn_settings = settings_of(r.udn_settings)
+    trade = write_trade_csv(folder / "trade.csv", rows, [case])
+    return ["--psf", str(psf_file), "--meas", str(meas_file), "--trade", str(trade)]
+
+
+def test_a_udn_setting_of_the_trade_runs_the_network_it_measured(tmp_path, capsys,
+                                                                  monkeypatch):
+    """`plan --trade` chose 'udn ch4' and the plan ran the planner's default network (32
+    channels, 5 scales, a 5 % held-out early stop): not what the trade measured."""
+    import recon.udn
+    from recon.io import read_reconstruction
+
+    args = _udn_trade(tmp_path)
+    assert main(["plan", *args, "--budget", "100s", "--no-probe", "--out",
+                 str(tmp_path / "p.json")]) == 0
+    text = capsys.readouterr().out
+    assert "udn, 3 iterations; network variant 2d, scales 2, channels 4" in text
+    saved = json.loads((tmp_path / "p.json").read_text())
+    assert saved["method"] == "udn" and saved["iterations"] == 3
+    net, run = saved["udn"]["network"], saved["udn"]["config"]
+    assert (net["scales"], net["channels"]) == (2, 4)
+    assert (run["holdout"], run["seed"], run["precision"]) == (0.0, 2, "float32")
+    # a release that reads only version 1 refuses the plan instead of running its default
+    assert saved["format_version"] == 2
+    assert "the plan runs the network it measured" in saved["reasons"]["method"]
+
+    built = []
+    real = recon.udn.UDNRunner
+
+    class Spy(real):
+        def __init__(self, *a, **kw):
+            super().__init__(*a, **kw)
+            built.append((self.network_config, self.config))
+
+    monkeypatch.setattr(recon.udn, "UDNRunner", Spy)
+    assert main(["recon", "auto", *args[:4], "--plan", str(tmp_path / "p.json"), "--quiet",
+                 "--out", str(tmp_path / "r.tif")]) == 0
+    capsys.readouterr()
+    [(network, config)] = built
+    assert (network.scales, network.channels) == (2, 4)
+    assert (config.holdout, config.seed, config.max_iter) == (0.0, 2, 3)
+    _, meta = read_reconstruction(tmp_path / "r.tif")
+    assert meta["parameters"]["network"]["channels"] == 4
+    assert meta["parameters"]["holdout"] == 0.0 and meta["plan"]["udn"] == saved["udn"]
+
+
+def test_a_udn_setting_the_plan_cannot_run_is_named_not_replaced(tmp_path, capsys):
+    """A trade row with a setting this release does not know (or none recorded) is no
+    candidate: the plan says so rather than run a network with a default in its place."""
+    from recon.plan import Plan
+
+    def unknown(s):
+        return {**s, "network": {**s["network"], "attention": True}}
+
+    args = _udn_trade(tmp_path, unknown)
+    assert main(["plan", *args, "--budget", "100s", "--no-probe"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert ("no measured setting fits the budget of 100 s in float32; udn ch4 fits but its "
+            "UDN network setting attention is not one this lenslesscam can run") in err
+    args = _udn_trade(tmp_path / "old", lambda s: None)  # a trade.csv of an older release
+    assert main(["plan", *args, "--budget", "100s", "--no-probe"]) == 2
+    assert "does not record the network settings it ran" in capsys.readouterr().err
+    # a plan edited by hand: one line at run time, naming the field
+    plan = Plan(model="2d", k=1, sensor=(24, 32), field=(24, 32), region=(0, 0, 24, 32),
+                downsample=1, method="udn", iterations=3,
+                udn={"network": {"channels": 4, "attention": True}, "config": {}})
+    (tmp_path / "p.json").write_text(json.dumps(plan.to_json()))
+    assert main(["recon", "auto", *args[:4], "--plan", str(tmp_path / "p.json"), "--quiet",
+                 "--out", str(tmp_path / "r.tif")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("lenslesscam recon: error: plan field 'udn': UDN network setting "
+                          "attention is not one this lenslesscam can run"), err
+    assert len(err.splitlines()) == 1 and not (tmp_path / "r.tif").exists()

@@ -47,6 +47,26 @@ def test_json_round_trip_keeps_every_field(static_cap):
         Plan.from_json({**d, "format_version": 99})
 
 
+def test_a_plan_with_udn_settings_keeps_them_and_is_version_2(monkeypatch):
+    """A plan's UDN settings (from a trade row) survive its JSON; such a plan is format
+    version 2, so a release that reads only version 1 (and would run its default network)
+    refuses it; a plan without them stays version 1."""
+    import recon.plan.planner as planner
+
+    udn = {"network": {"scales": 2, "channels": 4}, "config": {"lr": 0.02, "holdout": 0.0}}
+    plan = _plan(method="udn", iterations=0, udn=udn)
+    d = json.loads(json.dumps(plan.to_json()))
+    assert d["format_version"] == 2 and d["udn"] == udn
+    assert Plan.from_json(d) == plan
+    assert "network scales 2, channels 4, lr 0.02, holdout 0.0" in plan.describe()
+    assert _plan().to_json()["format_version"] == 1
+    with pytest.raises(ValueError, match=r"plan\.udn must be an object with a 'network'"):
+        _plan(udn={"network": [4]})
+    monkeypatch.setattr(planner, "PLAN_VERSION", 1)
+    with pytest.raises(ValueError, match="plan format version 2 is newer than this software"):
+        Plan.from_json(d)
+
+
 def test_describe_gives_a_reason_for_each_choice(static_cap):
     cap = static_cap
     text = make_plan(cap.psf, cap.meas, timing=cap.timing).describe()
