@@ -331,7 +331,8 @@ def test_metrics_scores_a_video_against_a_stack_of_frames(tmp_path, capsys):
                           str(tmp_path / "v.tif"), "--gain-fit")
     assert code == 0, err
     report = json.loads(out)
-    assert report["psnr"] > 40 and "ref_prepared" not in report
+    assert report["psnr"] > 40 and report["ref_prepared"] == {
+        "color": "gray", "channel_order": "rgb", "flip_rows": False, "downsample": 1}
 
 
 def test_simulate_reads_its_own_truth_and_refuses_scenes_that_are_not_light(tmp_path, capsys):
