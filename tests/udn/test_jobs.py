@@ -239,7 +239,8 @@ def test_nan_in_the_loss_fails_with_a_record(tiny_data, tmp_path, capsys):
     assert rec["finish_reason"] == "failed" and rec["error"]["type"] == "NumericalError"
     assert "not finite at iteration" in rec["error"]["message"]
     assert "optimizer.lr = 1e+30 (default 0.01); lower it" in rec["error"]["message"]
-    assert len(rec["notes"]) == 2  # the two restores before giving up
+    # the two restores before giving up (and the tiny case's note on its few held-out pixels)
+    assert len([n for n in rec["notes"] if "held-out pixels choose" not in n]) == 2
     with pytest.raises(NumericalError):
         run_job(spec, tmp_path / "run2")
 
