@@ -18,6 +18,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from recon.checks import check_filter_cube
+
 __all__ = [
     "FilterCube",
     "load_filter_cube",
@@ -94,23 +96,8 @@ def validate_filter_cube(
     if arr.shape[1:] != (h, w):
         raise ValueError(f"{what} has bands of {arr.shape[1:]}, the sensor is {h}x{w}")
     cube = np.ascontiguousarray(arr, dtype=np.float32)
-    bad = int(np.count_nonzero(~np.isfinite(cube)))
-    if bad:
-        raise ValueError(f"{what} has {bad} NaN or infinite values")
-    top = float(cube.max())
-    if not top > 0:
-        raise ValueError(f"{what} has no positive transmission (maximum {top:g})")
-    low = float(cube.min())
-    if low < -tolerance * top:
-        raise ValueError(
-            f"{what} has negative transmissions (minimum {low:.3g}, maximum {top:.3g}); "
-            "a transmission must be >= 0"
-        )
-    cube = np.maximum(cube, np.float32(0.0))
-    empty = [k for k in range(cube.shape[0]) if not np.any(cube[k] > 0)]
-    if empty:
-        raise ValueError(f"{what} bands {empty} are all zero")
-    return cube
+    # the one rule for the values, shared with recon's reader (recon.problem.read_filters)
+    return np.asarray(check_filter_cube(cube, what, tolerance=tolerance), dtype=np.float32)
 
 
 def normalise_filter_cube(cube: np.ndarray, mode: Norm = "max") -> tuple[np.ndarray, float]:

@@ -1,8 +1,10 @@
 """Checks of lensless inputs: does a PSF fit a measurement, is a measurement saturated.
 
 :func:`check_pair` (shapes of PSF and measurement), :func:`check_field` (a scene field no
-larger than the light's reach) and :func:`check_measurement` (saturated, negative, non-finite
-pixels, as a :class:`MeasurementCheck`). Pure numpy.
+larger than the light's reach), :func:`check_measurement` (saturated, negative, non-finite
+pixels, as a :class:`MeasurementCheck`), :func:`check_filter_cube` (the one rule for a
+spectral filter cube's values), :func:`check_shutter` and :func:`check_shutter_frames` (the
+rules for a video shutter function). Pure numpy.
 """
 
 from __future__ import annotations
@@ -16,9 +18,10 @@ import numpy.typing as npt
 
 from recon.inputwarnings import warn_input
 
-__all__ = ["NEGATIVE_WARN_DEPTH", "NEGATIVE_WARN_FRACTION", "MeasurementCheck",
-           "MeasurementWarning", "check_field", "check_measurement", "check_pair",
-           "field_reach", "negative_measurement"]
+__all__ = ["FILTER_NEGATIVE_TOLERANCE", "NEGATIVE_WARN_DEPTH", "NEGATIVE_WARN_FRACTION",
+           "MeasurementCheck", "MeasurementWarning", "check_field", "check_filter_cube",
+           "check_measurement", "check_pair", "check_shutter", "check_shutter_frames",
+           "field_reach", "index_ranges", "negative_measurement"]
 
 Array = npt.NDArray[Any]
 
@@ -30,6 +33,9 @@ NEGATIVE_WARN_FRACTION = 0.05
 #: for :data:`NEGATIVE_WARN_FRACTION`: read noise around a correct dark level stays within a
 #: few % of the maximum
 NEGATIVE_WARN_DEPTH = 0.05
+#: a filter transmission below ``-FILTER_NEGATIVE_TOLERANCE`` times the cube's maximum is
+#: refused (:func:`check_filter_cube`); smaller negative values (rounding) are clipped to 0
+FILTER_NEGATIVE_TOLERANCE = 1e-6
 
 
 def field_reach(sensor: tuple[int, int], psf_hw: tuple[int, int]) -> tuple[int, int]:
@@ -235,3 +241,103 @@ def negative_measurement(b: Array, mask: Array | None = None) -> str | None:
             "dark level is likely above the sensor's black level (too large a dark, subtracted "
             "here or before the file was saved); they are clipped to 0 and the reconstruction "
             "fits them as black")
+
+
+def index_ranges(idx: Any, limit: int = 8) -> str:
+    """Indices as compact ranges for a message: ``[0, 3-8, 12]`` (at most ``limit`` runs)."""
+    vals = sorted(int(i) for i in np.asarray(idx).ravel())
+    runs: list[tuple[int, int]] = []
+    for v in vals:
+        if runs and v == runs[-1][1] + 1:
+            runs[-1] = (runs[-1][0], v)
+        else:
+            runs.append((v, v))
+    text = [f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:limit]]
+    more = f", ... ({len(vals)} in all)" if len(runs) > limit else ""
+    return "[" + ", ".join(text) + more + "]"
+
+
+def check_filter_cube(cube: Array, what: str = "filter cube", *,
+                      tolerance: float = FILTER_NEGATIVE_TOLERANCE) -> Array:
+    """The one rule for a spectral filter cube's values; the cube with rounding clipped.
+
+    ``cube`` is (K, H, W) (a band per transmission map). Used by ``lenslesscam calibrate
+    filters`` (:func:`calibration.filters.validate_filter_cube`) and by the problem loader and
+    ``simulate`` (:func:`recon.problem.read_filters`), so a cube that one refuses the other
+    does too. Raises ValueError, one line naming ``what`` and the problem: NaN or infinite
+    values; no positive transmission; negative transmissions (below ``-tolerance`` times the
+    maximum: a filter cannot subtract light, and the measurement it simulates or explains is
+    negative where no sensor can be); an all-zero band (the measurement holds nothing of it:
+    its reconstruction would be the regulariser's fill alone). Negative values above
+    ``-tolerance`` times the maximum are rounding: clipped to 0 in the cube returned (same
+    dtype).
+    """
+    arr = np.asarray(cube)
+    bad = int(np.count_nonzero(~np.isfinite(arr)))
+    if bad:
+        raise ValueError(f"{what} has {bad} NaN or infinite values")
+    top = float(arr.max()) if arr.size else 0.0
+    if not top > 0:
+        raise ValueError(f"{what} is all zero or negative (maximum {top:g}): no band passes "
+                         "any light")
+    low = float(arr.min())
+    if low < -tolerance * top:
+        n_neg = int(np.count_nonzero(arr < -tolerance * top))
+        raise ValueError(
+            f"{what} has negative transmissions ({n_neg} values, {100 * n_neg / arr.size:.3g}% "
+            f"of the cube; minimum {low:.3g}, maximum {top:.3g}): a transmission must be >= 0")
+    out = np.maximum(arr, arr.dtype.type(0)) if low < 0 else arr
+    flat = out.reshape(out.shape[0], -1) if out.ndim >= 2 else out.reshape(1, -1)
+    empty = np.flatnonzero(~np.any(flat > 0, axis=1))
+    if empty.size:
+        raise ValueError(f"{what} bands {[int(k) for k in empty]} are all zero: the "
+                         "measurement holds nothing of them (leave those bands out of the "
+                         "cube)")
+    return out
+
+
+def check_shutter(m: Array, what: str = "shutter function", *,
+                  rows_warning: bool = True) -> None:
+    """The rules for a video shutter function M (K, rows) (finite and non-negative already).
+
+    Raises ValueError, one line naming the bins, when a time bin is all zero: no row
+    integrates light in it, so that frame of the video is not in the measurement and its
+    reconstruction would be the regulariser's fill alone. With ``rows_warning``, rows that
+    integrate no light in any bin (their pixels measure nothing of the scene) are named in a
+    :class:`MeasurementWarning` (kept in a loaded problem's ``metadata['warnings']``).
+    """
+    arr = np.asarray(m)
+    per_bin = np.any(arr > 0, axis=1)
+    if not per_bin.all():
+        empty = np.flatnonzero(~per_bin)
+        raise ValueError(
+            f"{what} has {empty.size} of its {arr.shape[0]} time bins all zero (bins "
+            f"{index_ranges(empty)}): no row integrates light in them, so those frames are not "
+            "in the measurement and cannot be reconstructed; use fewer bins (calibrate shutter "
+            "--bin-lines larger, or leave the empty bins out)")
+    if rows_warning:
+        per_row = np.any(arr > 0, axis=0)
+        if not per_row.all():
+            dark = np.flatnonzero(~per_row)
+            warn_input(f"{what}: {dark.size} of its {arr.shape[1]} rows integrate no light in "
+                       f"any time bin (rows {index_ranges(dark)}): their pixels measure nothing "
+                       "of the scene", MeasurementWarning, stacklevel=3)
+
+
+def check_shutter_frames(k: int, rows: int, what: str = "shutter function", *,
+                         downsample: int = 1) -> None:
+    """Refuse more time bins than rows: ValueError, one line naming K and the rows.
+
+    The measurement sees a scene pixel's K frames only through the shutter function's
+    (K, rows) matrix, whose rank is at most ``rows``: more than ``rows`` frames cannot be told
+    apart (the extra ones are fill), and they cost K convolutions per step (3000 bins on 75
+    rows ran for minutes at 1.8 GB before the first iteration). ``downsample``: the factor
+    that took the rows to ``rows`` (the message then suggests a smaller one too).
+    """
+    if int(k) > int(rows):
+        less = (f", or a smaller downsampling factor than {int(downsample)}"
+                if downsample > 1 else "")
+        raise ValueError(
+            f"{what} has K = {int(k)} time bins for {int(rows)} rows: a rolling shutter "
+            f"resolves at most as many frames as rows; use fewer, wider bins (calibrate "
+            f"shutter --bin-lines){less}")

@@ -70,7 +70,14 @@ import numpy as np
 import numpy.typing as npt
 
 from recon.calibfile import DARK_CORRECTED_KINDS, calibration_kind
-from recon.checks import MeasurementWarning, check_field, check_pair
+from recon.checks import (
+    MeasurementWarning,
+    check_field,
+    check_filter_cube,
+    check_pair,
+    check_shutter,
+    check_shutter_frames,
+)
 from recon.formats import array_hash
 from recon.inputwarnings import warn_input
 from recon.preprocess import (
@@ -362,7 +369,10 @@ def read_shutter(path: PathLike) -> tuple[F64, dict[str, Any]]:
 
     Reads the ``.npz`` that ``lenslesscam calibrate shutter`` writes (hashes checked, its
     ``timing``/``row_factor`` in the metadata) and plain arrays (``.npy``, ``.npz`` with a
-    ``shutter`` entry, TIFF).
+    ``shutter`` entry, TIFF). Refuses (ValueError, one line) non-finite or negative values, an
+    all-zero function, an all-zero time bin and more bins than rows
+    (:func:`recon.checks.check_shutter`, :func:`recon.checks.check_shutter_frames`); rows that
+    integrate no light are named in a :class:`~recon.checks.MeasurementWarning`.
     """
     p = Path(path)
     meta: dict[str, Any] = {}
@@ -379,21 +389,35 @@ def read_shutter(path: PathLike) -> tuple[F64, dict[str, Any]]:
         raise ValueError(f"shutter file {p} must be finite and non-negative")
     if not np.any(m > 0):
         raise ValueError(f"shutter file {p} is all zero: no row integrates any light")
+    check_shutter_frames(m.shape[0], m.shape[1], f"shutter file {p}")
+    check_shutter(m, f"shutter file {p}")
     return m, meta
 
 
-def read_filters(path: PathLike) -> F64:
-    """A spectral filter cube (K, H, W) (arrays, ``.mat``, the filter-cube TIFF)."""
+def read_filters(path: PathLike, sensors: Sequence[tuple[int, int]] = ()) -> F64:
+    """A spectral filter cube (K, H, W) (arrays, ``.mat``, the filter-cube TIFF).
+
+    ``sensors``: the (H, W) a band may have (the sensor at the resolutions the caller takes).
+    A cube whose first two axes are one of them and whose last two are not is in (H, W, K)
+    layout (SpectralDiffuserCam's ``.mat``) and is returned as (K, H, W), as ``lenslesscam
+    calibrate filters`` reads it; one that fits both layouts is refused. The values follow the
+    one rule of ``calibrate filters`` (:func:`recon.checks.check_filter_cube`: no NaN, no
+    negative transmission, no all-zero band; rounding below 0 clipped).
+    """
     p = Path(path)
     f = _read(p, "filter cube", ("filters", "mask", "arr_0", "data")).astype(np.float64)
     if f.ndim != 3:
         raise ValueError(f"filter cube file {p} must be a (K, H, W) array, got shape {f.shape}")
-    if not np.all(np.isfinite(f)):
-        raise ValueError(f"filter cube file {p} has NaN or infinite values")
-    if not np.any(f > 0):
-        raise ValueError(f"filter cube file {p} is all zero (or negative): no band passes any "
-                         "light")
-    return f
+    fits = {tuple(int(n) for n in s) for s in sensors}
+    khw, hwk = tuple(f.shape[1:]) in fits, tuple(f.shape[:2]) in fits
+    if khw and hwk:
+        raise ValueError(f"filter cube file {p} of shape {f.shape} fits the sensor as (K, H, W) "
+                         "and as (H, W, K): say which with lenslesscam calibrate filters --cube "
+                         "FILE --sensor HxW --layout khw|hwk --out cube.tif (it writes the "
+                         "layout recon reads)")
+    if hwk:
+        f = np.ascontiguousarray(np.moveaxis(f, -1, 0))
+    return np.asarray(check_filter_cube(f, f"filter cube file {p}"), dtype=np.float64)
 
 
 def read_truth(path: PathLike, *, color: str = "gray", channel_order: str = "rgb",
@@ -705,9 +729,17 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
             raise ValueError(f"shutter file {spec.shutter} has shape {m.shape}: the shutter "
                              f"function must be (K, {h_full}) for a measurement of {h_full} "
                              f"rows{more}")
+        # again on the reconstruction grid: K against the sensor's rows there (a padded
+        # grid's other rows see no light), and the bins (downsampling drops the last rows)
+        where = f" (downsampled {ds}x)" if ds > 1 and m.shape[1] == h_full else ""
+        check_shutter_frames(shutter.shape[0], coarse[0], f"shutter file {spec.shutter}{where}",
+                             downsample=ds)
+        check_shutter(shutter, f"shutter file {spec.shutter}{where}", rows_warning=False)
     filters: F64 | None = None
     if spec.model == "spectral":
-        f = read_filters(str(spec.filters))
+        # (H, W, K) cubes (SpectralDiffuserCam's .mat) are read as calibrate filters reads them
+        f = read_filters(str(spec.filters), sensors=[(h_full, w_full), coarse] if ds > 1
+                         else [(h_full, w_full)])
         if spec.flip_rows:
             f = np.ascontiguousarray(f[:, ::-1])
         if f.shape[1:] == (h_full, w_full):
@@ -717,8 +749,13 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
         elif ds > 1 and f.shape[1:] == coarse and not padded:
             filters = f
         else:
-            raise ValueError(f"filter cube file {spec.filters} is {f.shape}; expected "
-                             f"(K, {h_full}, {w_full}) for this measurement")
+            more = f" or {coarse[0]}x{coarse[1]} (downsampled)" if ds > 1 and not padded else ""
+            raise ValueError(f"filter cube file {spec.filters} has shape {f.shape}: its bands "
+                             f"must be the measurement's {h_full}x{w_full}{more}, as (K, H, W) "
+                             "or (H, W, K); lenslesscam calibrate filters --cube FILE --sensor "
+                             "HxW --out cube.tif checks and converts a cube")
+        if filters is not f:  # a band that only the pixels downsampling drops held
+            check_filter_cube(filters, f"filter cube file {spec.filters} (downsampled {ds}x)")
 
     # scene field, in pixels of the reconstruction grid
     if spec.field == "sensor":

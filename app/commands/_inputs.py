@@ -58,6 +58,9 @@ def problem_spec(args: Any, **changes: Any) -> Any:
     if get("psf") and get("psf_stack"):
         raise ValueError("give --psf or --psf-stack, not both (a stack makes a depth model)")
     model = get("model") or ("depth" if get("psf_stack") else "2d")
+    if get("psf_stack") and model != "depth" and "model" not in changes:
+        raise ValueError(f"--psf-stack needs --model depth (a PSF stack is a depth model; left "
+                         f"out, --model is inferred), not --model {model}")
     kw: dict[str, Any] = {
         "meas": path(get("meas")), "model": model,
         "psf": path(get("psf")) if model != "depth" else None,

@@ -79,9 +79,9 @@ def add_input_arguments(p: argparse.ArgumentParser, *, float64: bool = True) -> 
     ``float64``: offer ``--float64`` (the UDN's network runs in float32 or bf16, its
     ``--precision``).
     """
-    p.add_argument("--model", choices=["2d", "video", "spectral", "depth"], default="2d",
+    p.add_argument("--model", choices=["2d", "video", "spectral", "depth"], default=None,
                    help="forward model: 2d, video (rolling shutter), spectral (filter "
-                   "array), depth (PSF stack)")
+                   "array), depth (PSF stack) (default: depth with --psf-stack, else 2d)")
     p.add_argument("--psf", help="PSF file (2d, video, spectral)")
     p.add_argument("--psf-stack", help="depth: multi-page TIFF, (K,H,W) array or a folder")
     p.add_argument("--meas", required=True, help="measurement file")
@@ -90,13 +90,24 @@ def add_input_arguments(p: argparse.ArgumentParser, *, float64: bool = True) -> 
     p.add_argument("--filters", help="spectral: filter cube (K, H, W) (.npy/.npz/.mat/.tif)")
     p.add_argument("--downsample", type=POSITIVE_INT, default=1, help="box downsampling factor")
     p.add_argument("--dark", help="dark level: a number, 'auto' or a dark-frame file")
-    p.add_argument("--psf-dark", help="dark level of the PSF (default: same as --dark; none "
-                   "for a calibrated PSF file, which is dark-subtracted)")
+    p.add_argument("--psf-dark", help="dark level of the PSF: a number, 'auto' or a dark-frame "
+                   "file (default: the --dark level; leave it out for a calibrated PSF file, "
+                   "which is dark-subtracted already, or give 0)")
     p.add_argument("--rgb", action="store_true", help="reconstruct colour channels")
     p.add_argument("--field", default="sensor", help="scene field: sensor, full (2x) or HxW")
     if float64:
         p.add_argument("--float64", action="store_true", help="compute in float64")
     add_layout_arguments(p)
+
+
+def model_kind(args: argparse.Namespace) -> str:
+    """The model ``--model`` names, or, left out, the one the inputs imply.
+
+    As ``recon auto`` and :func:`app.commands._inputs.problem_spec` infer it: depth for
+    ``--psf-stack``, else 2d.
+    """
+    return str(getattr(args, "model", None) or ("depth" if getattr(args, "psf_stack", None)
+                                                 else "2d"))
 
 
 def load_problem(args: argparse.Namespace) -> Any:
@@ -114,7 +125,8 @@ def run_fista(args: argparse.Namespace) -> int:
     from recon.fista import Fista
     from recon.tv import TV
 
-    kind = {"2d": "image", "video": "video", "spectral": "spectral", "depth": "depth"}[args.model]
+    kind = {"2d": "image", "video": "video", "spectral": "spectral",
+            "depth": "depth"}[model_kind(args)]
 
     def make(model: Any, b: Any) -> tuple[Any, Any, int, dict[str, Any]]:
         tv = TV(isotropic=args.tv == "iso", weight_k=args.tv_k if model.k > 1 else 0.0)
@@ -132,9 +144,9 @@ def run_admm(args: argparse.Namespace) -> int:
     from recon.admm import Admm
     from recon.tv import TV
 
-    if args.model != "2d":
+    if model_kind(args) != "2d":
         raise ValueError(f"recon admm handles --model 2d (with or without --mask), not "
-                         f"{args.model}; use recon fista")
+                         f"{model_kind(args)}; use recon fista")
 
     def make(model: Any, b: Any) -> tuple[Any, Any, int, dict[str, Any]]:
         tv = TV(isotropic=args.tv == "iso")
@@ -175,7 +187,7 @@ def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
     wall = time.perf_counter() - t0
     _check_explains(solver, prob.model, b, method, prob.kind)
     meta = {
-        "method": method, "model": args.model, "parameters": solver.params,
+        "method": method, "model": prob.kind, "parameters": solver.params,
         "regularisation": tau_meta, "iterations": solver.iteration,
         "stop_reason": solver.reason.value if solver.reason else "max_iter",
         "wall_time_s": round(wall, 3), "tau_search_s": tau_search_s(tau_meta),
