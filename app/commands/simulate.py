@@ -207,7 +207,10 @@ def _model_inputs(args: argparse.Namespace, sensor: tuple[int, int]) -> dict[str
     if args.model == "spectral":
         if not args.filters:
             raise ValueError("--model spectral needs --filters (a (K, H, W) filter cube)")
-        f = read_filters(args.filters)
+        # (H, W, K) cubes (SpectralDiffuserCam's .mat) read as recon and calibrate filters do
+        ds = args.downsample
+        f = read_filters(args.filters, sensors=[sensor] if ds == 1 else
+                         [sensor, (sensor[0] * ds, sensor[1] * ds)])
         if f.ndim == 3 and args.downsample > 1 and f.shape[1:] != sensor:
             f = box_downsample(f, args.downsample)
         return {"filters": f}
