@@ -12,6 +12,13 @@ What each gives the UDN job (keys of :attr:`Suggestion.settings`):
   ``iterations`` as ``max_iter`` (when > 0) and its budget as ``time_limit_s``.
 - trade: the UDN row of the best quality (true PSNR where every UDN row has it, else the
   held-out proxy): ``channels``, ``precision``, ``downsample``, ``iterations`` as ``max_iter``.
+
+Beyond these, :attr:`Suggestion.spec` holds the whole UDN settings the row recorded
+(``udn_settings``, :func:`recon.trade.udn_settings`; a ``udn`` plan's :attr:`recon.plan.Plan.udn`)
+as sections of a UDN job spec (:func:`udn_spec_sections`), so the job runs the network and
+settings that were measured, not the defaults; a recorded setting no spec key takes is named
+in :attr:`Suggestion.not_carried`. A trade.csv from before the settings were recorded gives
+none, and its detail says so.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ __all__ = [
     "input_hashes",
     "input_hashes_of_files",
     "inputs_match",
+    "udn_spec_sections",
     "write_plan_suggestion",
     "write_trade_inputs",
 ]
@@ -87,15 +95,54 @@ def inputs_match(recorded: Any, hashes: Mapping[str, str]) -> bool:
                for k in ("measurement", "psf"))
 
 
+def udn_spec_sections(udn: Mapping[str, Any] | None
+                      ) -> tuple[dict[str, dict[str, Any]], tuple[str, ...]]:
+    """Recorded UDN settings as UDN job-spec sections, and the ones no spec key takes.
+
+    ``udn``: ``{"network": NetworkConfig fields, "config": UDNConfig fields}``
+    (:func:`recon.trade.udn_settings`, :attr:`recon.plan.Plan.udn`). A network setting goes to
+    the spec's ``network`` section, a run setting to whichever of ``optimizer``, ``stopping``
+    and ``device`` has its key (:data:`recon.udn.spec.SCHEMA`); a ``gain`` of None is the spec's
+    ``'auto'``. ``max_iter`` and ``time_limit_s`` are left out (the suggestion's own
+    ``max_iter`` / ``time_limit_s`` are the run's limits). The names (``part.key``) of settings
+    no spec key takes (a trade of another release) are returned, not dropped silently.
+    """
+    from recon.udn.spec import SCHEMA
+
+    sections: dict[str, dict[str, Any]] = {}
+    missing: list[str] = []
+    for part, where in (("network", ("network",)),
+                        ("config", ("optimizer", "stopping", "device"))):
+        given = (udn or {}).get(part)
+        for key, value in (given.items() if isinstance(given, Mapping) else ()):
+            if part == "config" and key in ("max_iter", "time_limit_s"):
+                continue
+            section = next((sec for sec in where if key in SCHEMA[sec]), None)
+            if section is None:
+                missing.append(f"{part}.{key}")
+                continue
+            if part == "config" and key == "gain" and value is None:
+                value = "auto"
+            sections.setdefault(section, {})[key] = value
+    return sections, tuple(missing)
+
+
 @dataclass(frozen=True)
 class Suggestion:
-    """UDN job settings from one plan or trade file, and where they came from."""
+    """UDN job settings from one plan or trade file, and where they came from.
+
+    ``settings``: the values the dialog's list shows (flat keys); ``spec``: UDN job-spec
+    sections with every recorded UDN setting (:func:`udn_spec_sections`; empty when none was
+    recorded); ``not_carried``: recorded settings no spec key takes.
+    """
 
     source: str  # "plan" | "trade"
     path: Path
     created: str  # ISO date-time (the file's record, else its modification time)
     settings: dict[str, Any] = field(default_factory=dict)
     detail: str = ""
+    spec: dict[str, dict[str, Any]] = field(default_factory=dict)
+    not_carried: tuple[str, ...] = ()
 
     @property
     def origin(self) -> str:
@@ -107,6 +154,9 @@ class Suggestion:
     def label(self) -> str:
         """One line for a list: kind, date, the values, the file."""
         vals = ", ".join(f"{k}={v}" for k, v in self.settings.items())
+        n = sum(len(keys) for keys in self.spec.values())
+        if n:
+            vals += f", +{n} recorded UDN settings"
         when = self.created[:16].replace("T", " ")
         name = self.path.name if self.source == "plan" else self.path.parent.name
         return f"{self.source} {when}: {vals} ({name})"
@@ -120,13 +170,31 @@ def _mtime(path: Path) -> str:
 def from_plan(plan: Any, path: Path, created: str) -> Suggestion:
     """The UDN settings a :class:`recon.plan.Plan` implies."""
     s: dict[str, Any] = {"downsample": int(plan.downsample)}
+    spec: dict[str, dict[str, Any]] = {}
+    missing: tuple[str, ...] = ()
+    detail = f"{plan.model} plan, method {plan.method}"
     if plan.method == "udn":
         if plan.iterations > 0:
             s["max_iter"] = int(plan.iterations)
         if plan.budget_s is not None:
             s["time_limit_s"] = float(plan.budget_s)
-    detail = f"{plan.model} plan, method {plan.method}"
-    return Suggestion("plan", Path(path), created, s, detail)
+        spec, missing = udn_spec_sections(plan.udn)
+        detail += _carried_text(spec, missing, plan.udn is not None,
+                                "the plan names no UDN settings (the UDN's defaults)")
+    return Suggestion("plan", Path(path), created, s, detail, spec, missing)
+
+
+def _carried_text(spec: Mapping[str, Mapping[str, Any]], missing: tuple[str, ...],
+                  recorded: bool, none: str) -> str:
+    """The detail's words on the recorded UDN settings a suggestion carries."""
+    if not recorded:
+        return f"; {none}"
+    n = sum(len(keys) for keys in spec.values())
+    text = f"; its {n} recorded UDN settings go to the job's spec"
+    if missing:
+        text += (f"; not carried (settings this release's UDN job spec does not have): "
+                 f"{', '.join(missing)}")
+    return text
 
 
 def from_trade_rows(rows: Iterable[Any], path: Path, created: str) -> Suggestion | None:
@@ -138,9 +206,15 @@ def from_trade_rows(rows: Iterable[Any], path: Path, created: str) -> Suggestion
     best = max(udn, key=lambda r: float(getattr(r, key)))
     s = {"channels": int(best.channels), "precision": str(best.precision),
          "downsample": int(best.downsample), "max_iter": int(best.iterations)}
+    recorded = getattr(best, "udn_settings", None)
+    spec, missing = udn_spec_sections(recorded)
     detail = (f"{best.setting}: {getattr(best, key):.2f} dB "
               f"{'PSNR' if key == 'psnr' else 'held-out'} in {best.wall_s:.2f} s")
-    return Suggestion("trade", Path(path), created, s, detail)
+    detail += _carried_text(spec, missing, recorded is not None,
+                            "its row records no UDN settings (a trade.csv written before they "
+                            "were recorded): only channels, precision, downsampling and "
+                            "iterations are suggested, the rest are the job's defaults")
+    return Suggestion("trade", Path(path), created, s, detail, spec, missing)
 
 
 def _read_plan_file(path: Path, hashes: Mapping[str, str]) -> Suggestion | None:

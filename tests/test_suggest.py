@@ -153,3 +153,57 @@ def test_plan_out_with_a_dark_level_does_not_warn_of_none(tmp_path: Path, capsys
     assert main(argv) == 0
     assert "no dark level" not in capsys.readouterr().err
     assert json.loads((tmp_path / "p.json").read_text())["inputs"]["measurement"]
+
+
+def _recorded(**config: object) -> dict:
+    """A UDN row's recorded settings (recon.trade.udn_settings), some changed."""
+    from recon.udn import NetworkConfig, UDNConfig
+
+    run = {k: v for k, v in UDNConfig(precision="bf16", holdout=0.0, seed=2).to_dict().items()
+           if k not in ("max_iter", "time_limit_s")}
+    run.update(config)
+    return {"network": NetworkConfig(scales=4, channels=32, skip_channels=0).to_dict(),
+            "config": run}
+
+
+def test_a_trade_row_s_recorded_udn_settings_are_carried(tmp_path: Path) -> None:
+    """The suggestion offered channels and precision only, though the row records every UDN
+    setting it ran: now all of them, as job-spec sections; one no spec key takes is named."""
+    import dataclasses
+
+    from recon.trade import write_trade_csv
+
+    h = input_hashes(*_inputs(0))
+    row = dataclasses.replace(_row(32, 250, 33.5, "bf16"), udn_settings=_recorded(future_knob=1))
+    write_trade_csv(tmp_path / "t" / "trade.csv", [row], [])
+    write_trade_inputs(tmp_path / "t", h)
+    (s,) = find_suggestions([tmp_path], h)
+    assert s.settings == {"channels": 32, "precision": "bf16", "downsample": 2, "max_iter": 250}
+    assert s.spec["network"]["skip_channels"] == 0 and s.spec["network"]["scales"] == 4
+    assert s.spec["stopping"]["holdout"] == 0.0 and s.spec["optimizer"]["seed"] == 2
+    assert s.spec["optimizer"]["gain"] == "auto" and s.spec["device"]["precision"] == "bf16"
+    assert "max_iter" not in s.spec.get("stopping", {})  # the row's iterations are max_iter
+    assert s.not_carried == ("config.future_knob",)
+    assert "not carried" in s.detail and "config.future_knob" in s.detail
+    assert "recorded UDN settings" in s.label
+
+
+def test_a_trade_row_without_recorded_settings_says_what_it_suggests(tmp_path: Path) -> None:
+    h = input_hashes(*_inputs(0))
+    _write_trade(tmp_path / "t", [_row(32, 250, 33.5, "bf16")])
+    write_trade_inputs(tmp_path / "t", h)
+    (s,) = find_suggestions([tmp_path], h)
+    assert s.spec == {} and s.not_carried == ()
+    assert "records no UDN settings" in s.detail and "job's defaults" in s.detail
+
+
+def test_a_udn_plan_carries_the_settings_it_runs(tmp_path: Path) -> None:
+    """A plan from `plan --trade` runs the trade's network (Plan.udn): so does its job."""
+    import dataclasses
+
+    h = input_hashes(*_inputs(0))
+    plan = dataclasses.replace(_plan(), udn=_recorded())
+    write_plan_suggestion(tmp_path, plan, h)
+    (s,) = find_suggestions([tmp_path], h)
+    assert s.settings == {"downsample": 3, "max_iter": 700, "time_limit_s": 900.0}
+    assert s.spec["network"]["channels"] == 32 and s.spec["stopping"]["holdout"] == 0.0

@@ -105,6 +105,9 @@ class NewJobDialog(QDialog):
         self._save_dir = save_dir
         self._planner_queue: TaskQueue | None = None
         self.suggestions_found: list[Any] = []
+        #: job-spec settings of the applied suggestion that no control shows (its recorded
+        #: UDN settings, recon.suggest.Suggestion.spec): sections() passes them to the job
+        self.suggested_sections: dict[str, dict[str, Any]] = {}
         self.setWindowTitle("New UDN job")
         self.sensor = sensor
         from recon.udn.spec import SCHEMA
@@ -308,9 +311,52 @@ class NewJobDialog(QDialog):
             self.lr.setValue(float(v["lr"]))
         if "precision" in v and self.precision.findText(str(v["precision"])) >= 0:
             self.precision.setCurrentText(str(v["precision"]))
+        hidden, changed = self._apply_spec(getattr(s, "spec", None) or {})
+        self.suggested_sections = hidden
         names = ", ".join(f"{k}={val}" for k, val in v.items())
-        self._note(f"applied {s.origin}", f"{s.path}\n{s.detail}\n{names}")
+        n_hidden = sum(len(keys) for keys in hidden.values())
+        text = f"applied {s.origin}"
+        if n_hidden:
+            text += f"; {n_hidden} more recorded UDN settings go to the job (not shown here)"
+        if changed:
+            text += f"; the dialog cannot take {', '.join(changed)}"
+        if getattr(s, "not_carried", ()):
+            text += f"; not carried: {', '.join(s.not_carried)}"
+        more = "; ".join(f"{sec}.{k}={val}" for sec, keys in hidden.items()
+                         for k, val in keys.items())
+        self._note(text, f"{s.path}\n{s.detail}\n{names}" + (f"\nto the job: {more}"
+                                                            if more else ""))
         self.update_estimate()
+
+    def _apply_spec(self, spec: dict[str, dict[str, Any]]
+                    ) -> tuple[dict[str, dict[str, Any]], list[str]]:
+        """Set the controls that show a suggestion's spec settings; return the others.
+
+        Also returns the values a control could not take (outside its range, or finer than
+        its steps): the control shows, and the job gets, what it was set to.
+        """
+        controls: dict[tuple[str, str], Any] = {
+            ("network", "scales"): self.scales, ("network", "channels"): self.channels,
+            ("optimizer", "lr"): self.lr, ("optimizer", "tv_weight"): self.tv_weight,
+            ("optimizer", "headroom"): self.headroom, ("stopping", "holdout"): self.holdout,
+            ("stopping", "patience"): self.patience}
+        hidden: dict[str, dict[str, Any]] = {}
+        changed: list[str] = []
+        for section, keys in spec.items():
+            for key, val in keys.items():
+                w = controls.get((section, key))
+                if (section, key) == ("device", "precision"):
+                    if self.precision.findText(str(val)) >= 0:
+                        self.precision.setCurrentText(str(val))
+                    else:
+                        changed.append(f"precision {val}")
+                elif w is None:
+                    hidden.setdefault(section, {})[key] = val
+                else:
+                    w.setValue(val)
+                    if abs(float(w.value()) - float(val)) > 1e-9 * max(abs(float(val)), 1e-12):
+                        changed.append(f"{key} {val} (set to {w.value():g})")
+        return hidden, changed
 
     def run_planner(self) -> None:
         """Plan this measurement off the GUI thread; the saved plan is then offered."""
@@ -355,13 +401,16 @@ class NewJobDialog(QDialog):
         super().done(r)
 
     def sections(self) -> dict[str, dict[str, Any]]:
-        """Spec sections from the controls."""
+        """Spec sections from the controls and the applied suggestion's hidden settings.
+
+        The applied suggestion's settings that no control shows: :attr:`suggested_sections`.
+        """
         stopping: dict[str, Any] = {"max_iter": int(self.max_iter.value()),
                                     "patience": int(self.patience.value()),
                                     "holdout": float(self.holdout.value())}
         if self.time_limit.value() > 0:
             stopping["time_limit_s"] = float(self.time_limit.value()) * 3600.0
-        return {
+        out: dict[str, dict[str, Any]] = {
             "network": {"scales": int(self.scales.value()),
                         "channels": int(self.channels.value())},
             "optimizer": {"lr": float(self.lr.value()),
@@ -374,6 +423,10 @@ class NewJobDialog(QDialog):
                        "preview_every": int(self.preview_every.value()),
                        "status_seconds": 1.0},
         }
+        for section, keys in self.suggested_sections.items():  # the controls' values win
+            for key, val in keys.items():
+                out.setdefault(section, {}).setdefault(key, val)
+        return out
 
     @property
     def ok_button(self) -> QPushButton:

@@ -300,8 +300,10 @@ class Plan:
 
         ``k`` for a video re-bins the shutter (``bin_factor = ceil(base_bins / k)``, so the K
         that results may differ slightly); ``model='2d'`` sets k = 1 (from a PSF stack, the
-        strongest plane); ``region='whole'`` (or ``None``) is the whole field; a new ``field``
-        resets the region to it. Changing the model's size drops the cost estimate.
+        strongest plane); from a PSF stack, ``planes`` without a model choose it (one plane 2d,
+        more depth) and ``model='depth'`` alone takes the depth analysis' best range of planes
+        (:meth:`_stack_planes`); ``region='whole'`` (or ``None``) is the whole field; a new
+        ``field`` resets the region to it. Changing the model's size drops the cost estimate.
         """
         fixed = {"reasons", "evidence", "overridden", "plan_s", "sensor", "channels",
                  "base_bins"}
@@ -365,15 +367,11 @@ class Plan:
         if merged.get("region") is None or new.get("region", 0) is None:
             f = merged["field"]
             merged["region"] = (0, 0, int(f[0]), int(f[1]))
+        planes_why = self._stack_planes(changes, new, merged)
         model = merged["model"]
         if model == "2d":
             merged["k"] = 1
             merged["bin_factor"] = None
-            if merged["planes"] is not None and merged["planes"][1] - merged["planes"][0] > 1:
-                energy = self.evidence.get("depth", {}).get("energy_per_plane")
-                lo, hi = merged["planes"]
-                best = lo + int(np.argmax(energy[lo:hi])) if energy else (lo + hi) // 2
-                merged["planes"] = (best, best + 1)
         elif model == "video":
             if self.base_bins is None:
                 raise ValueError("a video plan needs a shutter function; this plan was made "
@@ -389,10 +387,16 @@ class Plan:
             if "k" in changes and "planes" not in changes:
                 raise ValueError("a depth plan's K follows its planes: set planes=[first, last]")
             merged["k"] = merged["planes"][1] - merged["planes"][0]
+            if "k" in changes and int(changes["k"]) != merged["k"]:
+                raise ValueError(f"plan field 'k' {changes['k']!r} does not match planes "
+                                 f"{list(merged['planes'])!r} ({merged['k']} planes): a depth "
+                                 "plan's K follows its planes")
         reasons = dict(self.reasons)
         for key in changes:
             old = getattr(self, key)
             reasons[key] = f"set by the user (the plan had {old!r})"
+        if planes_why is not None:
+            reasons.update(planes_why)
         if {"region", "field"} & set(changes):
             warning = _region_energy_text(self.evidence, tuple(merged["field"]),
                                           tuple(merged["region"]))
@@ -402,7 +406,9 @@ class Plan:
             # K frames are whole bins of the finest shutter function
             reasons["k"] = (f"set by the user: {changes['k']!r} requested (the plan had "
                             f"{self.k!r}); {self.base_bins} shutter bins in groups of "
-                            f"{merged['bin_factor']} make {merged['k']} frames")
+                            f"{merged['bin_factor']} make {merged['k']} frames"
+                            + _last_group_text(merged["k"], merged["bin_factor"],
+                                               self.base_bins or 0))
         size_keys = {"model", "k", "bin_factor", "planes", "region", "field", "downsample"}
         if size_keys & set(changes) and "seconds_per_iter" not in changes:
             merged["seconds_per_iter"] = None
@@ -419,6 +425,83 @@ class Plan:
         merged["reasons"] = reasons
         merged["overridden"] = tuple(dict.fromkeys([*self.overridden, *changes]))
         return Plan(**merged)
+
+    def _stack_planes(self, changes: Mapping[str, Any], new: Mapping[str, Any],
+                      merged: dict[str, Any]) -> dict[str, str] | None:
+        """Bring ``merged``'s model and planes of a PSF-stack plan into agreement.
+
+        Planes set without a model choose it (one plane: 2d; more: depth); ``model='2d'`` alone
+        keeps the strongest of the plan's planes, ``model='depth'`` alone on a one-plane plan
+        takes the depth analysis' best range of more than one plane. A 2d model given more
+        than one plane, a depth model given one, or planes on a plan made without a stack are
+        refused in one line. Returns the reasons for model, k and planes (None: nothing to
+        say, the planes are not involved).
+        """
+        from_stack = self.planes is not None or "depth" in self.evidence
+        if "planes" in changes:
+            if not from_stack and new["planes"] is not None:
+                raise ValueError("plan field 'planes' applies to a plan made from a PSF stack "
+                                 "(--psf-stack); this plan was made without one")
+            if from_stack and new["planes"] is None:
+                raise ValueError("plan field 'planes' cannot be null in a plan made from a "
+                                 "PSF stack: set planes=[first, last]")
+        if not from_stack or not {"planes", "model"} & set(changes):
+            return None
+        if merged["model"] == "video":
+            return None  # refused by the video rule: no shutter function with a stack
+        lo, hi = merged["planes"]
+        dep = self.evidence.get("depth")
+        dep = dep if isinstance(dep, Mapping) else {}
+        old = _planes_text(self.planes) if self.planes is not None else "no planes"
+        had = f"the plan had a {self.model} model of {old}"
+        why: dict[str, str] = {}
+        if "planes" in changes:
+            core = f"{_planes_text((lo, hi))} set by the user"
+            if "model" not in changes:
+                merged["model"] = "2d" if hi - lo == 1 else "depth"
+                why["model"] = (f"{merged['model']}: the user set {_planes_text((lo, hi))}, "
+                                + ("one plane" if hi - lo == 1 else "more than one plane")
+                                + f" ({had})")
+                why["planes"] = f"{core} ({had})"
+            elif merged["model"] == "2d" and hi - lo > 1:
+                raise ValueError(f"a 2d plan reconstructs one PSF plane, planes "
+                                 f"{[lo, hi]!r} are {hi - lo}: set model=depth with them, "
+                                 "or one plane (planes=[p, p+1])")
+            elif merged["model"] == "depth" and hi - lo == 1:
+                raise ValueError(f"a depth plan needs more than one PSF plane, planes "
+                                 f"{[lo, hi]!r} are one: set model=2d with it, or "
+                                 "planes=[first, last] with last - first >= 2")
+        elif merged["model"] == "2d" and hi - lo > 1:
+            energy = dep.get("energy_per_plane")
+            best = lo + int(np.argmax(energy[lo:hi])) if energy else (lo + hi) // 2
+            merged["planes"] = (best, best + 1)
+            strongest = ("the strongest in the depth analysis" if energy else
+                         "the middle one (the plan records no energy per plane)")
+            core = (f"plane {best} of the plan's {_planes_text((lo, hi))}: {strongest}, for "
+                    "the 2d model the user set")
+        elif merged["model"] == "depth" and hi - lo == 1:
+            cands = [c for c in dep.get("candidates") or [] if isinstance(c, Mapping)
+                     and isinstance(c.get("heldout_mse"), int | float)
+                     and isinstance(c.get("planes"), list | tuple) and len(c["planes"]) == 2
+                     and int(c["planes"][1]) - int(c["planes"][0]) > 1]
+            if not cands:
+                raise ValueError("a depth plan needs more than one PSF plane and this plan "
+                                 "records no depth analysis to choose them: set "
+                                 "planes=[first, last] with model=depth")
+            top = min(cands, key=lambda c: float(c["heldout_mse"]))
+            merged["planes"] = (int(top["planes"][0]), int(top["planes"][1]))
+            core = (f"{_planes_text(merged['planes'])}: of the depth analysis' ranges of more "
+                    "than one plane, the one that predicts held-out pixels best (held-out MSE "
+                    f"{top['heldout_mse']:.3g}), for the depth model the user set")
+        else:
+            return None
+        lo, hi = merged["planes"]
+        why["k"] = (f"one image: a 2d model of PSF plane {lo}" if merged["model"] == "2d"
+                    else f"{hi - lo} planes: the depth model's {_planes_text((lo, hi))}")
+        if "model" not in why:  # the model was set: its row names the planes and why
+            why["planes"] = f"{core} ({had})"
+            why["model"] = f"set by the user ({had}); {core}"
+        return why
 
     # -- serialisation ---------------------------------------------------------------------
     def to_json(self) -> dict[str, Any]:
@@ -472,7 +555,7 @@ class Plan:
         k_txt = {"2d": "1", "video": f"{self.k} frames", "depth": f"{self.k} planes"}
         model_txt = self.model
         if self.planes is not None:
-            model_txt += f" (PSF planes {self.planes[0]}..{self.planes[1] - 1})"
+            model_txt += f" (PSF {_planes_text(self.planes)})"
         rows.append(("model", model_txt, self.reasons.get("model", "")))
         rows.append(("K", k_txt[self.model], self.reasons.get("k", "")))
         reg = self.region_obj
@@ -499,6 +582,31 @@ class Plan:
             if why:
                 lines.append(f"  {'':<11}why: {why}")
         return "\n".join(lines)
+
+
+def _last_group_text(k: int, factor: int, base_bins: int) -> str:
+    """`` (the last of n)`` when the last of ``k`` groups of ``factor`` bins holds only n.
+
+    Empty when ``base_bins`` bins fill every group.
+    """
+    last = int(base_bins) - (int(k) - 1) * int(factor)
+    return "" if last == factor else f" (the last of {last})"
+
+
+def _frames_text(k: int, factor: int, base_bins: int) -> str:
+    """``base_bins`` shutter bins grouped ``factor`` at a time into ``k`` frames, in words.
+
+    ``5 frames of 2 shutter bins (the last of 1)``, ``3 frames of 24 shutter bins each``.
+    """
+    bins = "1 shutter bin" if factor == 1 else f"{factor} shutter bins"
+    last = _last_group_text(k, factor, base_bins)
+    return f"{k} frame{'s' if k != 1 else ''} of {bins}{last or ' each'}"
+
+
+def _planes_text(planes: tuple[int, int]) -> str:
+    """``[first, last)`` of a PSF stack in words: ``plane 7`` or ``planes 0..6``."""
+    lo, hi = int(planes[0]), int(planes[1])
+    return f"plane {lo}" if hi - lo == 1 else f"planes {lo}..{hi - 1}"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -890,7 +998,8 @@ def make_plan(
                 f"(z = {c0.z:.1f}; held-out MSE {tab})")
             reasons["k"] = (
                 f"the smallest K whose held-out error is within 5% (or 2 standard errors) of "
-                f"the best K={best.k}; {ts.k} frames of {ts.factor} shutter bins each ({note})")
+                f"the best K={best.k}; {_frames_text(ts.k, ts.factor, int(base.shape[0]))} "
+                f"({note})")
         else:
             gap = c0.heldout_mse / best.heldout_mse - 1.0
             reasons["model"] = (

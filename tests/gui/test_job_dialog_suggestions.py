@@ -13,7 +13,7 @@ import pytest
 
 from recon.plan import Plan
 from recon.suggest import input_hashes, write_plan_suggestion, write_trade_inputs
-from recon.trade import TradeRow
+from recon.trade import TradeRow, write_trade_csv
 
 
 @dataclass
@@ -210,3 +210,58 @@ def test_a_job_that_could_not_run_is_not_queued(panel: Any, tmp_path: Path) -> N
     assert queued() == []
     dlg.downsample.setValue(2)
     assert ok.isEnabled() and ok.toolTip() == ""
+
+
+def _udn_settings(**config: Any) -> dict[str, Any]:
+    """A trade row's recorded UDN settings (recon.trade.udn_settings) with some changed."""
+    from recon.udn import NetworkConfig, UDNConfig
+
+    run = {k: v for k, v in UDNConfig(precision="bf16", holdout=0.0, seed=3, lr=0.005,
+                                      reg_noise=0.03).to_dict().items()
+           if k not in ("max_iter", "time_limit_s")}
+    run.update(config)
+    net = NetworkConfig(scales=4, channels=24, skip_channels=2, input_channels=16).to_dict()
+    return {"network": net, "config": run}
+
+
+def test_a_trade_row_s_whole_udn_settings_reach_the_job(panel: Any, tmp_path: Path) -> None:
+    """A trade row records every UDN setting it ran (udn_settings); the suggestion offered only
+    channels and precision, so the job ran the default network (skip channels, input
+    channels, early stop with held-out pixels) instead of the one measured."""
+    from recon.udn.spec import load_spec
+
+    m = panel.state["m"]
+    folder = panel.suggestion_dirs[0] / "trade-2"
+    folder.mkdir(parents=True)
+    row = TradeRow("current frame", "udn ch24", "udn", 0.0, "bf16", 3, 24, 300, 5.0, None,
+                   34.0, 0.1, udn_settings=_udn_settings(lr=0.5))
+    write_trade_csv(folder / "trade.csv", [row], [])  # as lenslesscam trade writes it
+    write_trade_inputs(folder, _hashes(m))
+    dlg = panel.new_job_dialog()
+    assert "recorded UDN settings" in dlg.suggestion_box.itemText(0)
+    dlg.apply_selected_suggestion()
+    # the settings the dialog shows are set; lr 0.5 is past its control's range: said
+    assert (dlg.scales.value(), dlg.channels.value(), dlg.precision.currentText(),
+            dlg.holdout.value()) == (4, 24, "bf16", 0.0)
+    assert "cannot take lr 0.5 (set to 0.1)" in dlg.suggestion_note.text()
+    assert "go to the job" in dlg.suggestion_note.text()
+    hint = dlg.sizeHint()
+    assert hint.width() <= 1366 and hint.height() <= 768 - 80
+    secs = dlg.sections()
+    assert secs["network"]["skip_channels"] == 2 and secs["network"]["input_channels"] == 16
+    assert secs["optimizer"]["reg_noise"] == pytest.approx(0.03)
+    assert secs["optimizer"]["seed"] == 3 and secs["optimizer"]["gain"] == "auto"
+    assert secs["stopping"]["holdout"] == 0.0
+    job = panel.create_job(m, "t", int(dlg.downsample.value()), secs)
+    assert job is not None
+    spec = load_spec(job / "job.toml")
+    assert (spec["network"]["skip_channels"], spec["network"]["input_channels"],
+            spec["optimizer"]["seed"], spec["stopping"]["holdout"],
+            spec["device"]["precision"]) == (2, 16, 3, 0.0, "bf16")
+    # another suggestion replaces them: a plan without UDN settings leaves the defaults
+    write_plan_suggestion(panel.suggestion_dirs[0], _plan(downsample=4), _hashes(m))
+    dlg.close()
+    dlg = panel.new_job_dialog()
+    i = next(i for i, s in enumerate(dlg.suggestions_found) if s.source == "plan")
+    dlg.apply_suggestion(dlg.suggestions_found[i])
+    assert "skip_channels" not in dlg.sections()["network"]

@@ -145,3 +145,19 @@ def test_a_measurement_too_small_to_plan_says_so(tmp_path, capsys):
         assert "a 1x32 measurement is too small to plan" in err and "recon fista" in err, err
         assert len(err.strip().splitlines()) == 1
     assert not (tmp_path / "a.tif").exists()
+
+
+def test_psf_dark_help_names_only_values_it_accepts():
+    """The help said "none for a calibrated PSF file": "none" is not a value --psf-dark takes
+    (a number, 'auto' or a dark-frame file); a calibrated PSF file wants it left out, or 0."""
+    parser = argparse.ArgumentParser()
+    p = parser.add_subparsers().add_parser("plan")
+    from app.commands.plan import add_plan_inputs
+
+    add_plan_inputs(p)
+    (action,) = [a for a in p._actions if "--psf-dark" in a.option_strings]
+    assert action.help == (
+        "dark level of the PSF: a number, 'auto' or a dark-frame file (default: the --dark "
+        "level; leave it out for a calibrated PSF file, which is dark-subtracted already, "
+        "or give 0)")
+    assert "none" not in action.help

@@ -237,3 +237,30 @@ def test_a_whole_float_format_version_is_that_version():
         Plan.from_json(d)
     assert [whole_version(v) for v in (1, 2.0, 1.5, True, "1", None)] == [1, 2, None, None,
                                                                           None, None]
+
+
+def test_frames_with_a_short_last_one_are_said_so(monkeypatch):
+    """9 shutter bins grouped 2 at a time were "5 frames of 2 shutter bins each": the last
+    frame has 1. The planner's reason and an override's both say it now."""
+    import recon.plan.planner as planner
+    from recon.plan.analysis import CVCandidate, TimeScale
+
+    def five_of_two(psf, b, base, region, factor, **kw):
+        return TimeScale(5, 2, True, (CVCandidate("2d", 1, 2.0, 1.0, 9.0),
+                                      CVCandidate("video K=5", 5, 1.0, 0.0, 0.0)),
+                         int(base.shape[0]))
+
+    monkeypatch.setattr(planner, "time_scale", five_of_two)
+    psf = synthetic_psf((36, 40), seed=1)
+    meas = np.abs(np.random.default_rng(0).normal(size=(36, 40))) + 0.1
+    shutter = np.zeros((9, 36))
+    for i in range(9):
+        shutter[i, 4 * i:4 * i + 4] = 1.0
+    plan = make_plan(psf, meas, shutter=shutter, probe=False)
+    assert (plan.model, plan.k, plan.bin_factor, plan.base_bins) == ("video", 5, 2, 9)
+    assert "5 frames of 2 shutter bins (the last of 1)" in plan.reasons["k"]
+    assert "each" not in plan.reasons["k"]
+    # 11 bins, 5 frames asked: groups of 3 make 4 frames, the last of 2
+    four = _plan(base_bins=11).override(model="video", k=5)
+    assert four.k == 4
+    assert "11 shutter bins in groups of 3 make 4 frames (the last of 2)" in four.reasons["k"]
