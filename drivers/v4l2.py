@@ -15,9 +15,22 @@ normal, the report says what it did).
 Files: a printf-style image sequence (``frames/%04d.png``, read by ``CAP_IMAGES``, 16-bit PNG
 stays 16-bit) or a video file (``CAP_FFMPEG``; a lossless codec such as FFV1 in ``.mkv`` or
 ``.avi`` with ``CAP_PROP_CONVERT_RGB`` 0 gives the stored 16-bit grey frames back exactly).
-A file source loops by default and is paced at ``frame_rate_hz`` when one is given. It has
+A path that exists as a file is a video file, even with a ``%`` in its name; otherwise a path
+with ``%`` must be a pattern with exactly one ``%d`` or ``%0Nd``. A single image file is
+refused (give the pattern of its sequence). A sequence is the run of files from index 0 (or
+1, as OpenCV reads them) up to the last file on disk: a missing or unreadable file before
+the last one is an error that names it (OpenCV would stop there, and the loop would replay
+the frames before the gap). A file source loops at its real end by default (for live
+preview; ``loop=False`` raises there) and is paced at ``frame_rate_hz`` when one is given. It has
 no exposure, gain, ROI, binning, shutter or trigger: those raise
 :class:`~drivers.camera.FeatureNotAvailable`.
+
+Every frame must have the size and the dtype (uint8 or uint16) of the first one: a frame
+that differs raises :class:`FrameSourceError` naming the file (or the frame), instead of
+arriving as a crop or with another frame's pixel format. Colour frames (3 or 4 channels) are
+reduced to grey: 3 equal channels exactly (one is kept), others by OpenCV's luma weights
+(``cv2.COLOR_BGR2GRAY``: 0.299 R + 0.587 G + 0.114 B); the frame's ``extra["colour"]`` says
+which, and the first such frame after opening logs a warning (the camera model is mono).
 """
 
 from __future__ import annotations
@@ -45,12 +58,30 @@ from drivers.camera import (
     Frame,
 )
 
-__all__ = ["SettingResult", "V4L2Camera", "V4L2DeviceInfo", "list_v4l2_devices"]
+__all__ = [
+    "FrameSourceError",
+    "SettingResult",
+    "V4L2Camera",
+    "V4L2DeviceInfo",
+    "list_v4l2_devices",
+]
 
 _log = logging.getLogger(__name__)
 
 _FOURCCS = ("Y16 ", "GREY", "YUYV", "MJPG")
 _FOURCC_ALIASES = {"Y16": "Y16 ", "Y16 ": "Y16 ", "GREY": "GREY", "YUYV": "YUYV", "MJPG": "MJPG"}
+_MAX_INDEX = 2**31 - 1  # OpenCV takes a device index as a C int
+_SEQ_CONVERSION = re.compile(r"%(\d*)d")
+_COLOUR_LUMA = "BGR to grey by OpenCV's luma weights (0.299 R + 0.587 G + 0.114 B); colour lost"
+_COLOUR_EQUAL = "3 equal colour channels: one kept (exact)"
+
+
+class FrameSourceError(CameraError, ValueError):
+    """The frames of a source are not one consistent mono stream.
+
+    An unreadable file, or a frame whose size or dtype differs from the first frame's. Also a
+    :class:`ValueError`: the data, not the device, is at fault.
+    """
 
 
 @dataclass(frozen=True)
@@ -115,9 +146,42 @@ def _is_file_source(source: int | str | os.PathLike[str]) -> bool:
     if isinstance(source, int):
         return False
     s = str(source)
-    if re.fullmatch(r"/dev/video\d+", s) or s.isdigit():
+    if re.fullmatch(r"/dev/video\d+", s, re.ASCII) or re.fullmatch(r"\d+", s, re.ASCII):
         return False
     return True
+
+
+def _check_pattern(pattern: str) -> re.Match[str]:
+    """The one ``%d`` / ``%0Nd`` of a sequence pattern; ValueError for anything else."""
+    convs = list(_SEQ_CONVERSION.finditer(pattern))
+    if len(convs) != 1 or pattern.count("%") != 1:
+        raise ValueError(
+            f"{pattern}: no such file, and not an image-sequence pattern (one %d or %0Nd, "
+            "like frames/%04d.png, and no other '%')"
+        )
+    return convs[0]
+
+
+def _sequence_indices(pattern: str, conv: re.Match[str]) -> list[int]:
+    """Sorted indices of the files on disk that ``pattern % index`` names exactly."""
+    prefix, suffix = pattern[: conv.start()], pattern[conv.end() :]
+    rx = re.compile(re.escape(prefix) + r"( *\d+)" + re.escape(suffix), re.ASCII)
+    out = set()
+    for path in glob.glob(glob.escape(prefix) + "*" + glob.escape(suffix)):
+        m = rx.fullmatch(path)
+        if m and pattern % int(m.group(1)) == path:
+            out.add(int(m.group(1)))
+    return sorted(out)
+
+
+def _pattern_suggestion(path: str) -> str:
+    """``frames/0007.png`` -> ``frames/%04d.png`` (the last run of digits in the name)."""
+    head, name = os.path.split(path)
+    runs = list(re.finditer(r"\d+", name, re.ASCII))
+    if not runs:
+        return os.path.join(head, "%04d" + os.path.splitext(name)[1])
+    r = runs[-1]
+    return os.path.join(head, f"{name[: r.start()]}%0{len(r.group())}d{name[r.end() :]}")
 
 
 class V4L2Camera(CameraBase):
@@ -149,7 +213,10 @@ class V4L2Camera(CameraBase):
             cam_id = str(source)
         else:
             s = str(source)
-            self._source = int(s[len("/dev/video") :]) if s.startswith("/dev/video") else int(s)
+            index = int(s[len("/dev/video") :]) if s.startswith("/dev/video") else int(s)
+            if not 0 <= index <= _MAX_INDEX:
+                raise ValueError(f"v4l2 device index {index} is out of range (0 to {_MAX_INDEX})")
+            self._source = index
             cam_id = f"/dev/video{self._source}"
         super().__init__(cam_id)
         if fourcc is not None and fourcc.upper() not in _FOURCC_ALIASES:
@@ -171,6 +238,8 @@ class V4L2Camera(CameraBase):
         self._shape: tuple[int, int] = (0, 0)
         self._dtype: np.dtype[Any] = np.dtype(np.uint8)
         self._broken = False
+        self._seq_first: int | None = None  # index of a sequence's first file; None: not one
+        self._colour_said = False
 
     def describe(self) -> str:
         """Description for messages."""
@@ -185,17 +254,28 @@ class V4L2Camera(CameraBase):
         # OpenCV's own warnings go straight to stderr; this driver reports failures itself
         with contextlib.suppress(AttributeError):
             cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        self._seq_first = None
+        self._colour_said = False
+        n_seq = 0
         if self._is_file:
             src = str(self._source)
-            if "%" in src:
-                first = src % 0 if os.path.exists(src % 0) else src % 1
-                if not os.path.exists(first):
-                    raise FileNotFoundError(f"no image sequence at {src} (tried {first})")
+            if os.path.isdir(src):
+                raise FileNotFoundError(
+                    f"{src} is a folder: give an image-sequence pattern like "
+                    f"{os.path.join(src, '%04d.png')} or a video file"
+                )
+            if os.path.exists(src):  # a video file, '%' in its name or not
+                if os.path.isfile(src) and cv2.haveImageReader(src):
+                    raise ValueError(
+                        f"{src} is a single image, not a sequence or a video: give the pattern "
+                        f"of its sequence, like {_pattern_suggestion(src)}"
+                    )
+                api = cv2.CAP_FFMPEG
+            elif "%" in src:
+                self._seq_first, n_seq = self._find_sequence(src)
                 api = cv2.CAP_IMAGES
             else:
-                if not os.path.exists(src):
-                    raise FileNotFoundError(f"no video file at {src}")
-                api = cv2.CAP_FFMPEG
+                raise FileNotFoundError(f"no video file at {src}")
             cap = cv2.VideoCapture(src, api)
         else:
             cap = cv2.VideoCapture(int(self._source), cv2.CAP_V4L2)
@@ -206,21 +286,73 @@ class V4L2Camera(CameraBase):
         self._settings = []
         self._broken = False
         try:
+            if self._seq_first is not None:
+                self._check_sequence_count(n_seq)
             self._configure()
             self._probe()
         except BaseException:
             self._close()
             raise
 
+    @staticmethod
+    def _find_sequence(pattern: str) -> tuple[int, int]:
+        """First index and length of the sequence on disk; an error for a gap in it."""
+        conv = _check_pattern(pattern)
+        indices = _sequence_indices(pattern, conv)
+        if not indices:
+            raise FileNotFoundError(f"no image sequence at {pattern} (no file matches it)")
+        present = set(indices)
+        if 0 not in present and 1 not in present:
+            raise FileNotFoundError(
+                f"{pattern}: the sequence starts at {pattern % indices[0]}, but OpenCV reads "
+                f"a sequence from index 0 or 1 (no {pattern % 0} or {pattern % 1}): renumber it"
+            )
+        first = 0 if 0 in present else 1
+        n = 0
+        while first + n in present:
+            n += 1
+        if indices[-1] >= first + n:
+            raise FileNotFoundError(
+                f"{pattern}: {pattern % (first + n)} is missing, but the sequence goes on to "
+                f"{pattern % indices[-1]}: the frames after the gap would never be read "
+                f"(fill the gap or renumber the files)"
+            )
+        return first, n
+
+    def _check_sequence_count(self, n_on_disk: int) -> None:
+        """OpenCV stops a sequence at a file it cannot read: name that file."""
+        import cv2
+
+        assert self._seq_first is not None
+        n_cv = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        if n_cv < n_on_disk:
+            raise FrameSourceError(
+                f"cannot read {self._seq_path(max(n_cv, 0))}: not an image OpenCV can decode "
+                f"(the sequence {self._source} goes on to {self._seq_path(n_on_disk - 1)})"
+            )
+        self._n_file_frames = n_on_disk
+
+    def _seq_path(self, pos: int) -> str:
+        assert self._seq_first is not None
+        return str(self._source) % (self._seq_first + pos)
+
+    def _frame_name(self, pos: int) -> str:
+        """The file (sequence) or frame (video) at ``pos``, for messages."""
+        if self._seq_first is not None:
+            return self._seq_path(pos)
+        return f"frame {pos} of {self.describe()}"
+
     def _configure(self) -> None:
         import cv2
 
         if self._is_file:
+            self._file_pos = 0
+            if self._seq_first is not None:
+                return  # its length was found on disk
             if self._cap.getBackendName() == "FFMPEG":
                 self._checked_set("convert_rgb", cv2.CAP_PROP_CONVERT_RGB, 0)
             n = self._cap.get(cv2.CAP_PROP_FRAME_COUNT)
             self._n_file_frames = int(n) if n and n > 0 else 0
-            self._file_pos = 0
             return
         if self._fourcc is not None:
             code = cv2.VideoWriter.fourcc(*self._fourcc)
@@ -252,8 +384,18 @@ class V4L2Camera(CameraBase):
 
         ok, img = self._cap.read()
         if not ok or img is None:
+            if self._seq_first is not None:
+                raise FrameSourceError(
+                    f"cannot read {self._seq_path(0)}: not an image OpenCV can decode"
+                )
             raise CameraError(f"{self.describe()}: opened but no frame could be read")
-        arr = self._to_mono(img)
+        arr, _ = self._to_mono(img)
+        if arr.dtype not in (np.uint8, np.uint16):
+            where = self._frame_name(0) if self._is_file else self.describe()
+            raise FrameSourceError(
+                f"{where}: {arr.dtype} pixels; this camera reads 8- or 16-bit unsigned grey "
+                "(Mono8 or Mono16)"
+            )
         self._shape = (int(arr.shape[0]), int(arr.shape[1]))
         self._dtype = arr.dtype
         if self._is_file:
@@ -391,7 +533,8 @@ class V4L2Camera(CameraBase):
 
     # -- frames --------------------------------------------------------------------------------
 
-    def _to_mono(self, img: np.ndarray) -> np.ndarray:
+    def _to_mono(self, img: np.ndarray) -> tuple[np.ndarray, str | None]:
+        """Grey pixels, and how colour was reduced to grey (None: the frame was grey)."""
         import cv2
 
         if img.ndim == 2:
@@ -400,18 +543,26 @@ class V4L2Camera(CameraBase):
                 if decoded is None:
                     raise CameraError(f"{self.describe()}: cannot decode a compressed frame")
                 return self._to_mono(decoded)
-            return img
+            return img, None
         if img.ndim == 3 and self._fourcc == "YUYV" and img.shape[2] == 2:
-            return np.ascontiguousarray(img[:, :, 0])  # luma of YUYV
+            return np.ascontiguousarray(img[:, :, 0]), None  # luma of YUYV
         if img.ndim == 3 and img.shape[2] in (3, 4):
+            b, g, r = img[:, :, 0], img[:, :, 1], img[:, :, 2]
+            alpha = "; alpha channel dropped" if img.shape[2] == 4 else ""
+            if np.array_equal(b, g) and np.array_equal(b, r):
+                return np.ascontiguousarray(b), _COLOUR_EQUAL + alpha
             code = cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
-            return np.asarray(cv2.cvtColor(img, code))
+            return np.asarray(cv2.cvtColor(img, code)), _COLOUR_LUMA + alpha
         if img.ndim == 3 and img.shape[2] == 1:
-            return img[:, :, 0]
+            return img[:, :, 0], None
         raise CameraError(f"{self.describe()}: unexpected frame shape {img.shape}")
 
-    def _read_one(self) -> np.ndarray:
-        """One frame (files loop at the end); raises CameraError at a real end or failure."""
+    def _read_one(self) -> tuple[np.ndarray, str | None]:
+        """One frame and its colour note (files loop at the end).
+
+        Raises CameraError at a real end or failure, FrameSourceError for a sequence file
+        that cannot be read and for a frame of another size or dtype than the first.
+        """
         import cv2
 
         if self._is_file and self._n_file_frames and self._file_pos >= self._n_file_frames:
@@ -420,14 +571,38 @@ class V4L2Camera(CameraBase):
             self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
             self._file_pos = 0
         ok, img = self._cap.read()
+        if (not ok or img is None) and self._seq_first is not None:
+            # before the end found on disk (checked above): this file, not the end of data
+            self._cap.set(cv2.CAP_PROP_POS_FRAMES, self._file_pos)  # stay on it
+            raise FrameSourceError(
+                f"cannot read {self._seq_path(self._file_pos)}: not an image OpenCV can decode"
+            )
         if (not ok or img is None) and self._is_file and self._loop and self._file_pos > 0:
+            # a video whose frame count was missing or an estimate: its real end
             self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
             self._file_pos = 0
             ok, img = self._cap.read()
         if not ok or img is None:
             raise CameraError(f"{self.describe()}: no frame (device gone or end of data)")
+        pos = self._file_pos
         self._file_pos += 1
-        return self._to_mono(img)
+        arr, colour = self._to_mono(img)
+        where = self._frame_name(pos) if self._is_file else self.describe()
+        if arr.dtype != self._dtype:
+            raise FrameSourceError(
+                f"{where}: {arr.dtype} pixels, but the source was opened as {self._dtype} "
+                f"({self._pixel_format()}): one source, one pixel format"
+            )
+        if arr.shape != self._shape:
+            raise FrameSourceError(
+                f"{where}: {arr.shape[0]}x{arr.shape[1]} pixels, but the source was opened "
+                f"at {self._shape[0]}x{self._shape[1]} (rows x columns): one source, one size"
+            )
+        if colour is not None and not self._colour_said:
+            self._colour_said = True
+            _log.warning("%s: colour frames are reduced to grey: %s (each frame records it "
+                         "in extra['colour'])", self.describe(), colour)
+        return arr, colour
 
     def _grab_frame(self, timeout_s: float, *, discard_buffered: bool = False) -> Frame:
         """Read one frame in a helper thread so a stuck device cannot block past the timeout.
@@ -455,12 +630,16 @@ class V4L2Camera(CameraBase):
             raise CameraTimeout(f"{self.describe()}: no frame within {timeout_s:.3g} s")
         if "exc" in box:
             raise box["exc"]
-        pixels = box["img"]
+        pixels, colour = box["img"]
         frame_id = self._frame_id
         self._frame_id += 1
         extra: dict[str, Any] = {"source": str(self._source)}
         if self._is_file:
             extra["file_frame_index"] = self._file_pos - 1
+            if self._seq_first is not None:
+                extra["file"] = self._seq_path(self._file_pos - 1)
+        if colour is not None:
+            extra["colour"] = colour
         return self._make_frame(pixels, frame_id, extra=extra)
 
     def _snap(self, timeout_s: float) -> Frame:

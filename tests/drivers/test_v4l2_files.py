@@ -1,0 +1,255 @@
+"""File sources of the V4L2/OpenCV backend that are not one clean stream.
+
+Gaps and unreadable files in a sequence, frames of another dtype or size, colour files,
+camera specs that are not a device, a sequence or a video, and a single image.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import app.cli
+from drivers.camera import CameraError
+from drivers.registry import open_camera
+from drivers.v4l2 import FrameSourceError, V4L2Camera
+
+pytestmark = pytest.mark.timeout(60)
+
+SHAPE = (48, 64)
+
+
+def _frame(i: int, dtype: type = np.uint16, shape: tuple[int, ...] = SHAPE) -> np.ndarray:
+    rng = np.random.default_rng(100 + i)
+    a: np.ndarray = rng.integers(0, np.iinfo(dtype).max, shape, endpoint=True).astype(dtype)
+    a.flat[0] = i  # frame index in a corner pixel
+    return a
+
+
+def _write(path: Path, a: np.ndarray) -> None:
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert cv2.imwrite(str(path), a)
+
+
+@pytest.fixture
+def seq(tmp_path: Path) -> Callable[..., str]:
+    """Write a sequence ``name/%04d.png`` of frames 0..n-1 (with changes); return its pattern."""
+
+    def make(name: str, n: int, *, skip: tuple[int, ...] = (),
+             frames: dict[int, np.ndarray] | None = None) -> str:
+        d = tmp_path / name
+        for i in range(n):
+            if i in skip:
+                continue
+            _write(d / f"{i:04d}.png", (frames or {}).get(i, _frame(i)))
+        return str(d / "%04d.png")
+
+    return make
+
+
+# -- 1. gaps and unreadable files -----------------------------------------------------------
+
+
+def test_a_missing_file_in_a_sequence_is_named_not_looped_over(seq: Callable[..., str]) -> None:
+    pattern = seq("gap", 6, skip=(2,))
+    missing = pattern % 2
+    cam = V4L2Camera(pattern)
+    with pytest.raises(FileNotFoundError, match=f"{missing} is missing.*goes on to .*0005.png"):
+        cam.open()  # not frames 0, 1, 0, 1, ...
+    assert not cam.is_open
+
+
+def test_a_file_opencv_cannot_read_is_named(seq: Callable[..., str]) -> None:
+    pattern = seq("junk", 3)
+    Path(pattern % 1).write_text("not an image")
+    with pytest.raises(FrameSourceError, match=r"cannot read .*junk/0001\.png"):
+        V4L2Camera(pattern).open()  # not frame 0 forever
+
+
+def test_a_truncated_file_is_named_at_every_read(seq: Callable[..., str]) -> None:
+    pattern = seq("trunc", 3)
+    whole = Path(pattern % 1).read_bytes()
+    Path(pattern % 1).write_bytes(whole[: len(whole) // 3])  # a PNG header, then nothing
+    with V4L2Camera(pattern) as cam:
+        assert cam.snap().pixels.flat[0] == 0
+        for _ in range(2):  # not a rewind to frame 0
+            with pytest.raises(FrameSourceError, match=r"cannot read .*trunc/0001\.png"):
+                cam.snap()
+
+
+def test_acquisition_from_a_broken_sequence_raises_instead_of_looping(
+    seq: Callable[..., str],
+) -> None:
+    pattern = seq("trunc_acq", 4)
+    Path(pattern % 2).write_bytes(Path(pattern % 2).read_bytes()[:100])
+    with V4L2Camera(pattern) as cam:
+        cam.start_acquisition(n_frames=8)
+        got = [int(cam.pop_frame(timeout_s=5.0).pixels.flat[0]) for _ in range(2)]
+        with pytest.raises(FrameSourceError, match=r"trunc_acq/0002\.png"):
+            cam.pop_frame(timeout_s=5.0)
+        cam.stop()
+    assert got == [0, 1]
+
+
+def test_a_sequence_that_starts_past_1_says_so(seq: Callable[..., str], tmp_path: Path) -> None:
+    pattern = seq("late", 4, skip=(0, 1))
+    with pytest.raises(FileNotFoundError, match=r"starts at .*late/0002\.png.*index 0 or 1"):
+        V4L2Camera(pattern).open()
+
+
+def test_a_complete_sequence_still_loops_and_names_its_files(seq: Callable[..., str]) -> None:
+    pattern = seq("whole", 3)
+    with V4L2Camera(pattern) as cam:
+        frames = [cam.snap() for _ in range(4)]
+    assert [int(f.pixels.flat[0]) for f in frames] == [0, 1, 2, 0]
+    assert [f.extra["file"] for f in frames] == [pattern % i for i in (0, 1, 2, 0)]
+    with V4L2Camera(pattern, loop=False) as cam:
+        for _ in range(3):
+            cam.snap()
+        with pytest.raises(CameraError, match="end of file after 3 frames"):
+            cam.snap()
+
+
+# -- 2. one pixel format per source ---------------------------------------------------------
+
+
+@pytest.mark.parametrize(("first", "rest", "label"), [
+    (np.uint8, np.uint16, "Mono8"), (np.uint16, np.uint8, "Mono16"),
+])
+def test_a_frame_of_another_dtype_is_refused_naming_its_file(
+    seq: Callable[..., str], first: type, rest: type, label: str
+) -> None:
+    pattern = seq("mix", 4, frames={0: _frame(0, first), **{i: _frame(i, rest) for i in (1, 2, 3)}})
+    with V4L2Camera(pattern) as cam:
+        f0 = cam.snap()
+        assert f0.pixels.dtype == first and f0.pixel_format == label
+        for i in (1, 2, 3):  # never a uint16 frame labelled Mono8 (or the reverse)
+            with pytest.raises(FrameSourceError, match=rf"mix/000{i}\.png: {np.dtype(rest)}"):
+                cam.snap()
+
+
+def test_frames_that_are_not_8_or_16_bit_unsigned_are_refused(tmp_path: Path) -> None:
+    import tifffile
+
+    d = tmp_path / "float"
+    d.mkdir()
+    for i in range(2):
+        tifffile.imwrite(d / f"{i:04d}.tif", _frame(i).astype(np.float32))
+    with pytest.raises(FrameSourceError, match=r"float/0000\.tif: float32 pixels.*8- or 16-bit"):
+        V4L2Camera(str(d / "%04d.tif")).open()  # was labelled Mono8
+
+
+# -- 3. one size per source -----------------------------------------------------------------
+
+
+def test_a_frame_of_another_size_is_refused_naming_its_file_and_sizes(
+    seq: Callable[..., str],
+) -> None:
+    pattern = seq("odd", 5, frames={2: _frame(2, shape=(32, 40))})
+    with V4L2Camera(pattern) as cam:
+        assert [int(cam.snap().pixels.flat[0]) for _ in range(2)] == [0, 1]
+        with pytest.raises(FrameSourceError, match=r"odd/0002\.png: 32x40 .* 48x64"):
+            cam.snap()  # not a 32x40 "ROI" of a 48x64 sensor
+        f3 = cam.snap()
+    assert f3.pixels.flat[0] == 3 and f3.shape == SHAPE
+
+
+# -- 4. colour files ------------------------------------------------------------------------
+
+
+def test_colour_frames_are_reduced_to_grey_and_say_so(
+    seq: Callable[..., str], caplog: pytest.LogCaptureFixture
+) -> None:
+    import cv2
+
+    colour = {i: _frame(i, shape=(*SHAPE, 3)) for i in range(3)}
+    pattern = seq("c16", 3, frames=colour)
+    with caplog.at_level(logging.WARNING, logger="drivers.v4l2"), V4L2Camera(pattern) as cam:
+        frames = [cam.snap() for _ in range(3)]
+    for i, f in enumerate(frames):
+        np.testing.assert_array_equal(f.pixels, cv2.cvtColor(colour[i], cv2.COLOR_BGR2GRAY))
+        assert "luma weights" in f.extra["colour"] and "colour lost" in f.extra["colour"]
+        assert f.metadata()["extra"]["colour"] == f.extra["colour"]  # saved with the frame
+    said = [r for r in caplog.records if "grey" in r.getMessage()]
+    assert len(said) == 1 and "c16" in said[0].getMessage()  # once per open
+
+
+def test_grey_stored_as_colour_is_kept_exactly(seq: Callable[..., str]) -> None:
+    grey = {i: _frame(i) for i in range(2)}
+    pattern = seq("g3", 2, frames={i: np.dstack([g, g, g]) for i, g in grey.items()})
+    with V4L2Camera(pattern) as cam:
+        frames = [cam.snap() for _ in range(2)]
+    for i, f in enumerate(frames):
+        np.testing.assert_array_equal(f.pixels, grey[i])
+        assert "equal" in f.extra["colour"] and "exact" in f.extra["colour"]
+
+
+def test_grey_frames_carry_no_colour_note(seq: Callable[..., str]) -> None:
+    with V4L2Camera(seq("grey", 2)) as cam:
+        assert "colour" not in cam.snap().extra
+
+
+# -- 5. camera specs ------------------------------------------------------------------------
+
+
+def test_a_huge_device_index_is_a_value_error() -> None:
+    for spec in ("v4l2:99999999999999999999", "v4l2:/dev/video99999999999999999999"):
+        with pytest.raises(ValueError, match="index 99999999999999999999 is out of range"):
+            open_camera(spec)
+
+
+@pytest.mark.parametrize("pattern", ["%04d%04d.png", "%04s.png", "rec_50%.mkv", "%%04d.png"])
+def test_a_bad_pattern_is_a_value_error(tmp_path: Path, pattern: str) -> None:
+    with pytest.raises(ValueError, match=r"not an image-sequence pattern .*one %d or %0Nd"):
+        V4L2Camera(str(tmp_path / pattern)).open()
+
+
+@pytest.mark.parametrize("name", ["rec_50%.mkv", "rec_%04d.mkv"])
+def test_a_video_file_with_percent_in_its_name_opens_as_a_file(
+    ffv1_video: str, recorded_frames: np.ndarray, tmp_path: Path, name: str
+) -> None:
+    path = tmp_path / name
+    shutil.copy(ffv1_video, path)
+    with V4L2Camera(str(path)) as cam:
+        f = cam.snap()
+    np.testing.assert_array_equal(f.pixels, recorded_frames[0])
+
+
+def test_cli_snap_spec_errors_are_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,
+    seq: Callable[..., str],
+) -> None:
+    monkeypatch.setattr(app.cli, "COMMAND_MODULES", ("app.commands.devices",))
+    pattern = seq("m16", 2)
+    specs = {
+        "v4l2:99999999999999999999": "out of range",
+        f"v4l2:{pattern.replace('%04d', '%04d%04d')}": "not an image-sequence pattern",
+        f"v4l2:{pattern % 0}": "single image",
+    }
+    for i, (spec, text) in enumerate(specs.items()):
+        rc = app.cli.main(["snap", "--camera", spec, "--out", str(tmp_path / f"{i}.tif")])
+        err = capsys.readouterr().err
+        assert rc == 2 and text in err and len(err.strip().splitlines()) == 1, err
+        assert "Traceback" not in err
+
+
+# -- 6. a single image ----------------------------------------------------------------------
+
+
+def test_a_single_image_is_refused_with_the_pattern_to_give(seq: Callable[..., str]) -> None:
+    pattern = seq("one", 3)
+    with pytest.raises(ValueError, match=r"one/0001\.png is a single image.*one/%04d\.png"):
+        V4L2Camera(pattern % 1).open()  # was: opens as Mono8, then every snap fails
+
+
+def test_a_folder_is_refused_with_a_pattern(seq: Callable[..., str]) -> None:
+    folder = str(Path(seq("dir", 2)).parent)
+    with pytest.raises(FileNotFoundError, match=r"is a folder.*%04d\.png"):
+        V4L2Camera(folder).open()
