@@ -6,12 +6,18 @@ Producer discovery (:func:`find_producers`), in this order, duplicates dropped:
 2. the folders in ``GENICAM_GENTL64_PATH`` (the GenTL standard variable),
 3. the folders or files in ``LENSLESSCAM_GENTL_PATH`` (this project's configured paths),
 4. the installed ``genicam`` package (which ships ``viky.cti``),
-5. ``$XDG_CACHE_HOME/lenslesscam/gentl`` (or ``~/.cache/...``) and its sub-folders (where the
-   tests keep ``TLSimu.cti``).
+5. ``$XDG_CACHE_HOME/lenslesscam/gentl`` (or ``~/.cache/...``) and its sub-folders (a
+   per-user folder for producers; its cameras count as demo cameras, :func:`is_demo_producer`,
+   because earlier test suites downloaded ``TLSimu.cti`` there).
 
-A GenTL producer is a shared library: a ``.cti`` file that is not a readable ELF, PE or
-Mach-O file (:func:`producer_problem`) is skipped with a one-line reason, or refused when it
-was given explicitly.
+The tests do not find ``TLSimu.cti`` by this search: ``python .ci/fetch_tlsimu.py`` installs
+it into ``<repo>/.gl/genicam-1.5.0/`` (a folder not searched here), and the tests get that
+path from the ``tlsimu_cti`` fixture of ``tests/drivers/conftest.py``.
+
+A GenTL producer is a shared library of this platform that exports the GenTL functions: a
+``.cti`` file that is not one (:func:`producer_problem`, which reads an ELF file's symbol
+table without loading it) is skipped with a one-line reason, or refused when it was given
+explicitly. Loading such a file through harvesters would crash the process.
 
 Device index N (``genicam:N``) counts the devices of all producers in that order.
 
@@ -21,6 +27,12 @@ AcquisitionFrameRate, TriggerMode/TriggerSoftware; a missing node raises
 :class:`~drivers.camera.FeatureNotAvailable` naming it. SFNC has no line time or readout
 order: declare them from the datasheet (``line_time_us=``, ``readout_pattern=``) to get
 frames with a :class:`~drivers.timing.SensorTiming`.
+
+Settings are all or nothing: a ROI is checked against the size nodes (minimum plus a multiple
+of the increment) before anything is written, and the previous ROI is written back if the
+device refuses a write anyway. A PixelFormat is read back after it is set; a device that
+keeps it but sends frames in another format (TLSimu: Mono16 set, Mono8 sent) is logged in
+one line, and ``pixel_format``/``bit_depth`` then report the format the frames come in.
 
 Buffers are copied before they are re-queued, and every fetch has a timeout. With a software
 trigger the acquisition stays armed between snaps (starting and stopping a GenTL stream can
@@ -34,6 +46,8 @@ import logging
 import math
 import os
 import signal
+import struct
+import sys
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,6 +69,7 @@ from drivers.timing import ReadoutPattern, SensorTiming, ShutterMode
 
 __all__ = [
     "DEMO_PRODUCERS",
+    "GENTL_REQUIRED_FUNCTIONS",
     "GenICamCamera",
     "GenICamDeviceInfo",
     "find_producers",
@@ -80,7 +95,7 @@ _SFNC_FROM_SHUTTER = {ShutterMode.GLOBAL: "Global", ShutterMode.ROLLING: "Rollin
 
 
 def gentl_cache_dir() -> Path:
-    """Folder where this project keeps downloaded GenTL producers."""
+    """Per-user folder searched for GenTL producers (``$XDG_CACHE_HOME/lenslesscam/gentl``)."""
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "lenslesscam" / "gentl"
 
@@ -97,36 +112,229 @@ def _cti_in(path: Path, depth: int = 1) -> Iterator[Path]:
 
 
 #: First bytes of a shared library: ELF (Linux), PE (Windows), Mach-O (32/64-bit either
-#: byte order, and universal binaries).
+#: byte order, and universal binaries), with the format's name.
 _LIBRARY_MAGIC = (
-    b"\x7fELF",
-    b"MZ",
-    b"\xfe\xed\xfa\xce",
-    b"\xce\xfa\xed\xfe",
-    b"\xfe\xed\xfa\xcf",
-    b"\xcf\xfa\xed\xfe",
-    b"\xca\xfe\xba\xbe",
+    (b"\x7fELF", "ELF"),
+    (b"MZ", "PE"),
+    (b"\xfe\xed\xfa\xce", "Mach-O"),
+    (b"\xce\xfa\xed\xfe", "Mach-O"),
+    (b"\xfe\xed\xfa\xcf", "Mach-O"),
+    (b"\xcf\xfa\xed\xfe", "Mach-O"),
+    (b"\xca\xfe\xba\xbe", "Mach-O"),
+)
+_FORMAT_SYSTEMS = {"ELF": "Linux", "PE": "Windows", "Mach-O": "macOS"}
+
+#: Functions every GenTL producer exports (mandatory since GenTL 1.0): discovery, the device
+#: and its port, buffers and acquisition. A library lacking them is not a producer, and the
+#: GenTL consumer in ``genicam`` calls them without checking (a process crash, no message).
+GENTL_REQUIRED_FUNCTIONS = (
+    "GCInitLib", "GCCloseLib", "GCGetInfo", "GCReadPort", "GCWritePort",
+    "TLOpen", "TLClose", "TLUpdateInterfaceList", "TLGetNumInterfaces", "TLGetInterfaceID",
+    "TLOpenInterface", "IFClose", "IFUpdateDeviceList", "IFGetNumDevices", "IFGetDeviceID",
+    "IFOpenDevice", "DevClose", "DevGetPort", "DevOpenDataStream", "DSAnnounceBuffer",
+    "DSQueueBuffer", "DSStartAcquisition", "DSStopAcquisition", "DSClose",
 )
 
 _warned_skips: set[tuple[Path, str]] = set()
+_problem_cache: dict[tuple[str, int, int], str | None] = {}
+
+
+def _native_format() -> str:
+    if os.name == "nt":
+        return "PE"
+    return "Mach-O" if sys.platform == "darwin" else "ELF"
 
 
 def producer_problem(path: str | os.PathLike[str]) -> str | None:
-    """Why ``path`` cannot be a GenTL producer (``None`` when it looks like one).
+    """Why ``path`` cannot be a GenTL producer here (``None`` when it is one).
 
-    A producer is a shared library; this checks that the file can be read and starts like
-    an ELF, PE or Mach-O file (it does not load it).
+    A producer is a shared library of this platform's format that exports the GenTL
+    functions (:data:`GENTL_REQUIRED_FUNCTIONS`; a library without them crashes the process
+    when ``genicam`` loads it). An ELF file is checked by reading its header (type, word
+    size and machine against this Python's) and its dynamic symbol table, without loading
+    it; another native library (or an ELF file without section headers) is loaded in a
+    short child process instead. The answer is cached per file (path, size, mtime).
     """
     try:
+        st = os.stat(path)
+        key = (os.path.realpath(path), st.st_size, st.st_mtime_ns)
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    if key not in _problem_cache:
+        _problem_cache[key] = _producer_problem(Path(path))
+    return _problem_cache[key]
+
+
+def _producer_problem(path: Path) -> str | None:
+    try:
         with open(path, "rb") as f:
-            head = f.read(4)
+            head = f.read(64)
     except OSError as exc:
         return f"cannot be read ({exc.strerror or exc})"
     if not head:
         return "is an empty file, not a shared library"
-    if not head.startswith(_LIBRARY_MAGIC):
-        return f"is not a shared library (ELF, PE or Mach-O; it starts with {head!r})"
-    return None
+    fmt = next((name for magic, name in _LIBRARY_MAGIC if head.startswith(magic)), None)
+    if fmt is None:
+        return f"is not a shared library (ELF, PE or Mach-O; it starts with {head[:4]!r})"
+    native = _native_format()
+    if fmt != native:
+        return f"is a library for {_FORMAT_SYSTEMS[fmt]} ({fmt}), not for this platform ({native})"
+    if fmt == "ELF":
+        try:
+            exported = _elf_exports(path, GENTL_REQUIRED_FUNCTIONS)
+        except _ElfProblem as exc:
+            return str(exc)
+        except (OSError, struct.error, IndexError, ValueError) as exc:
+            return f"is a damaged ELF file ({exc})"
+        if exported is not None:
+            return _missing_functions(set(GENTL_REQUIRED_FUNCTIONS) - exported)
+    return _exports_by_loading(path, GENTL_REQUIRED_FUNCTIONS)
+
+
+def _missing_functions(missing: Iterable[str]) -> str | None:
+    gone = [n for n in GENTL_REQUIRED_FUNCTIONS if n in set(missing)]
+    if not gone:
+        return None
+    if len(gone) == len(GENTL_REQUIRED_FUNCTIONS):
+        return ("is a shared library but not a GenTL producer (it exports none of the GenTL "
+                "functions GCInitLib, TLOpen, ...)")
+    shown = ", ".join(gone[:4]) + (f" and {len(gone) - 4} more" if len(gone) > 4 else "")
+    return f"is not a complete GenTL producer (it does not export {shown})"
+
+
+class _ElfProblem(Exception):
+    """An ELF file that cannot be this process's shared library (message: the reason)."""
+
+
+_ELF_TYPES = {1: "a relocatable object (.o)", 2: "an executable", 4: "a core dump"}
+_own_elf: tuple[int, int, int] | bool | None = False  # (class, data, machine); False: unread
+
+
+def _elf_ident(head: bytes) -> tuple[int, int, int, int]:
+    """(class, data, type, machine) of an ELF header."""
+    ei_class, ei_data = head[4], head[5]
+    if ei_class not in (1, 2) or ei_data not in (1, 2):
+        raise _ElfProblem(f"is a damaged ELF file (class {ei_class}, data {ei_data})")
+    e_type, e_machine = struct.unpack_from("<HH" if ei_data == 1 else ">HH", head, 16)
+    return ei_class, ei_data, e_type, e_machine
+
+
+def _own_elf_ident() -> tuple[int, int, int] | None:
+    """Word size, byte order and machine of this Python (None when it is not ELF)."""
+    global _own_elf
+    if _own_elf is False:
+        try:
+            with open(sys.executable, "rb") as f:
+                head = f.read(20)
+            c, d, _, m = _elf_ident(head) if head.startswith(b"\x7fELF") else (0, 0, 0, 0)
+            _own_elf = (c, d, m) if c else None
+        except (OSError, _ElfProblem, struct.error):
+            _own_elf = None
+    return _own_elf if isinstance(_own_elf, tuple) else None
+
+
+def _elf_exports(path: Path, wanted: Iterable[str]) -> set[str] | None:
+    """Which of ``wanted`` the ELF shared library at ``path`` exports (its dynamic symbols).
+
+    ``None`` when the file has no section headers (stripped of them; the caller loads it in
+    a child process instead). Raises :class:`_ElfProblem` for a file this process cannot load.
+    """
+    names = {n.encode() for n in wanted}
+    with open(path, "rb") as f:
+        head = f.read(64)
+        ei_class, ei_data, e_type, e_machine = _elf_ident(head)
+        if e_type != 3:  # ET_DYN
+            what = _ELF_TYPES.get(e_type, f"an ELF file of type {e_type}")
+            raise _ElfProblem(f"is {what}, not a shared library")
+        own = _own_elf_ident()
+        if own is not None and own != (ei_class, ei_data, e_machine):
+            bits = {1: "32", 2: "64"}
+            raise _ElfProblem(
+                f"is a {bits[ei_class]}-bit library for ELF machine {e_machine}; this Python "
+                f"is {bits[own[0]]}-bit for machine {own[2]}"
+            )
+        end = "<" if ei_data == 1 else ">"
+        if ei_class == 2:
+            shoff, = struct.unpack_from(end + "Q", head, 0x28)
+            shentsize, shnum = struct.unpack_from(end + "HH", head, 0x3A)
+            sh_fmt, sym_fmt = end + "IIQQQQIIQQ", end + "IBBHQQ"
+        else:
+            shoff, = struct.unpack_from(end + "I", head, 0x20)
+            shentsize, shnum = struct.unpack_from(end + "HH", head, 0x2E)
+            sh_fmt, sym_fmt = end + "IIIIIIIIII", end + "IIIBBH"
+        if shoff == 0 or shnum == 0:
+            return None
+        f.seek(shoff)
+        table = f.read(shentsize * shnum)
+        if len(table) < shentsize * shnum or shentsize < struct.calcsize(sh_fmt):
+            raise _ElfProblem("is a truncated or damaged ELF file (section headers)")
+        sections = [struct.unpack_from(sh_fmt, table, i * shentsize) for i in range(shnum)]
+
+        # a section header: (name, type, flags, addr, offset, size, link, info, align, entsize)
+        def read(sec: tuple[int, ...]) -> bytes:
+            off, size = sec[4], sec[5]
+            f.seek(off)
+            data = f.read(size)
+            if len(data) < size:
+                raise _ElfProblem("is a truncated ELF file")
+            return data
+
+        found: set[str] = set()
+        sym_size = struct.calcsize(sym_fmt)
+        for sec in sections:
+            if sec[1] != 11:  # SHT_DYNSYM
+                continue
+            symbols, strings = read(sec), read(sections[sec[6]])
+            for sym in struct.iter_unpack(sym_fmt, symbols[: len(symbols) // sym_size * sym_size]):
+                if ei_class == 2:
+                    st_name, st_info, st_other, st_shndx = sym[0], sym[1], sym[2], sym[3]
+                else:
+                    st_name, st_info, st_other, st_shndx = sym[0], sym[3], sym[4], sym[5]
+                if st_shndx == 0 or (st_info >> 4) == 0 or (st_other & 3) in (1, 2):
+                    continue  # undefined, local, or hidden: not exported
+                stop = strings.find(b"\0", st_name)
+                name = strings[st_name:stop if stop >= 0 else None]
+                if name in names:
+                    found.add(name.decode())
+        return found
+
+
+_LOAD_CHECK = """\
+import ctypes, json, os, sys
+try:
+    lib = ctypes.CDLL(sys.argv[1])
+except OSError as exc:
+    out = {"error": str(exc)}
+else:
+    out = {"missing": [n for n in sys.argv[2:] if not hasattr(lib, n)]}
+sys.stdout.write(json.dumps(out))
+sys.stdout.flush()
+os._exit(0)  # no library destructors: only the answer counts
+"""
+
+
+def _exports_by_loading(path: Path, wanted: Sequence[str], timeout_s: float = 20.0) -> str | None:
+    """Check the exports by loading the library in a child process (it may crash there)."""
+    import json
+    import subprocess
+
+    cmd = [sys.executable, "-I", "-c", _LOAD_CHECK, str(path), *wanted]
+    try:
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, check=False)
+    except subprocess.TimeoutExpired:
+        return f"did not finish loading within {timeout_s:g} s (checked in a child process)"
+    except OSError as exc:
+        return f"could not be checked ({exc.strerror or exc})"
+    if run.returncode < 0:
+        return f"crashes the process that loads it (signal {-run.returncode})"
+    try:
+        out = json.loads(run.stdout)
+    except ValueError:
+        last = (run.stderr.strip().splitlines() or ["no output"])[-1]
+        return f"could not be checked (loading it failed: {last})"
+    if "error" in out:
+        return f"cannot be loaded ({out['error']})"
+    return _missing_functions(out["missing"])
 
 
 def find_producers(
@@ -140,10 +348,10 @@ def find_producers(
     """GenTL producer files (``*.cti``) found in the places listed in the module docstring.
 
     A path in ``extra`` is the user's explicit choice: one that does not exist, that is
-    neither a ``.cti`` file nor a folder holding one, or that is not a shared library
+    neither a ``.cti`` file nor a folder holding one, or that is not a GenTL producer
     (:func:`producer_problem`; for a folder: none of its ``.cti`` files is) raises
     ``FileNotFoundError`` naming it (the places searched by default are skipped quietly
-    when empty). Any other ``.cti`` file that is not a shared library is skipped: its
+    when empty). Any other ``.cti`` file that is not a GenTL producer is skipped: its
     one-line reason goes to ``skipped`` when given, else to the log (once per file).
     """
     candidates: list[Path] = [Path(p) for p in extra]
@@ -201,7 +409,11 @@ DEMO_PRODUCERS = frozenset({"viky.cti", "TLSimu.cti"})
 
 
 def is_demo_producer(path: str | os.PathLike[str]) -> bool:
-    """A demo producer (:data:`DEMO_PRODUCERS`) or one in this project's cache (the tests')."""
+    """A demo producer (:data:`DEMO_PRODUCERS`) or one in :func:`gentl_cache_dir`.
+
+    (Earlier test suites downloaded ``TLSimu.cti`` into that folder; the tests now take it
+    from ``<repo>/.gl/``, see the module docstring.)
+    """
     p = Path(path)
     if p.name in DEMO_PRODUCERS:
         return True
@@ -245,6 +457,15 @@ def _keep_sigint() -> Iterator[None]:
 
 
 def _harvester(producers: Sequence[Path]) -> Any:
+    """A harvester with ``producers`` loaded.
+
+    One that is not a GenTL producer (:func:`producer_problem`) is refused before it is
+    loaded: loading it would crash the process.
+    """
+    for p in producers:
+        why = producer_problem(p)
+        if why is not None:
+            raise CameraError(f"GenTL producer {p} {why}")
     from harvesters.core import Harvester
 
     with _keep_sigint():
@@ -358,6 +579,8 @@ class GenICamCamera(CameraBase):
         self._id_base: int | None = None
         self._model = ""
         self._display = ""
+        #: (PixelFormat set, format the frames came in) once a frame showed they differ
+        self._format_mismatch: tuple[str, str] | None = None
 
     def describe(self) -> str:
         """Device description for messages."""
@@ -367,6 +590,7 @@ class GenICamCamera(CameraBase):
     # -- lifetime ------------------------------------------------------------------------------
 
     def _open(self) -> None:
+        self._format_mismatch = None
         if not self._producers:
             raise CameraError(
                 "no GenTL producer found (set GENICAM_GENTL64_PATH or LENSLESSCAM_GENTL_PATH)"
@@ -510,6 +734,7 @@ class GenICamCamera(CameraBase):
                     feats.add(feat)
             w = self._node("Width")
             hgt = self._node("Height")
+            bin_ = self.binning
             size = self._sensor_shape()
             if size is not None:
                 sh, sw = size
@@ -548,8 +773,10 @@ class GenICamCamera(CameraBase):
                 gain_range=self._range("Gain"),
                 frame_rate_range_hz=self._range("AcquisitionFrameRate"),
                 binning_factors=self._binnings(),
-                roi_min_size=(int(w.min) if w is not None else 1, int(hgt.min) if hgt else 1),
-                roi_step=(self._inc(w), self._inc(hgt)),
+                # the size nodes count binned pixels; a Roi counts unbinned ones
+                roi_min_size=(int(w.min) * bin_ if w is not None else bin_,
+                              int(hgt.min) * bin_ if hgt is not None else bin_),
+                roi_step=(self._inc(w) * bin_, self._inc(hgt) * bin_),
             )
 
     def _sensor_shape(self) -> tuple[int, int] | None:
@@ -679,8 +906,15 @@ class GenICamCamera(CameraBase):
             return Roi(x * b, y * b, w * b, h * b)
 
     def _do_set_roi(self, value: Roi) -> None:
+        """Check the whole ROI against the size nodes, then write it; all or nothing.
+
+        A value off the nodes' grid (minimum + a multiple of the increment, in binned
+        pixels) is refused before anything is written; a write the device refuses anyway
+        restores the previous ROI.
+        """
         self._require_idle("change the ROI")
         with self._lock:
+            self._disarm()  # size nodes are not writable while the acquisition is armed
             self._require(Feature.ROI, "Width", write=True)
             self._require(Feature.ROI, "Height", write=True)
             b = self.binning
@@ -688,34 +922,102 @@ class GenICamCamera(CameraBase):
                 raise self._unavailable(Feature.ROI, "no writable 'OffsetX': ROI x must be 0")
             if value.y and not self._has("OffsetY"):
                 raise self._unavailable(Feature.ROI, "no writable 'OffsetY': ROI y must be 0")
-            self._disarm()
-            for off in ("OffsetX", "OffsetY"):
-                if self._has(off):
-                    self._set(Feature.ROI, off, 0)
-            self._set(Feature.ROI, "Width", value.width // b)
-            self._set(Feature.ROI, "Height", value.height // b)
-            if value.x:
-                self._set(Feature.ROI, "OffsetX", value.x // b)
-            if value.y:
-                self._set(Feature.ROI, "OffsetY", value.y // b)
+            target = self._roi_node_values(value, b)
+            previous = {
+                n: int(node.value)
+                for n in ("Width", "Height", "OffsetX", "OffsetY")
+                if (node := self._node(n)) is not None and self._readable(node)
+            }
+            try:
+                self._write_roi_nodes(target)
+            except Exception as exc:
+                try:
+                    self._write_roi_nodes(previous)
+                except Exception as again:
+                    raise CameraError(
+                        f"{exc}; restoring the previous ROI failed too ({again}); "
+                        f"the ROI is now {self._optional(lambda: self.roi)}"
+                    ) from exc
+                raise
+
+    def _roi_node_values(self, value: Roi, binning: int) -> dict[str, int]:
+        """Node values (binned pixels) for ``value``; ValueError naming the first bad one."""
+        dev = self.describe()
+        parts = (("x", "OffsetX", value.x), ("y", "OffsetY", value.y),
+                 ("width", "Width", value.width), ("height", "Height", value.height))
+        out: dict[str, int] = {}
+        for label, name, v in parts:
+            if v % binning:
+                raise ValueError(
+                    f"{dev}: ROI {label} {v} is not a multiple of the binning {binning}; "
+                    "nothing was changed"
+                )
+            n = v // binning
+            node = self._node(name)
+            if node is None:  # only an offset of 0 gets here (checked above)
+                continue
+            try:
+                lo, inc = int(node.min), self._inc(node)
+            except Exception:  # no usable min/inc: the write itself decides
+                out[name] = n
+                continue
+            if n < lo:
+                raise ValueError(
+                    f"{dev}: ROI {label} {v} is below the minimum {lo * binning} ({name}); "
+                    "nothing was changed"
+                )
+            if (n - lo) % inc:
+                below = lo + (n - lo) // inc * inc
+                raise ValueError(
+                    f"{dev}: ROI {label} {v} rejected: {name} takes {lo * binning} plus a "
+                    f"multiple of {inc * binning} (e.g. {below * binning} or "
+                    f"{(below + inc) * binning}); nothing was changed"
+                )
+            out[name] = n
+        return out
+
+    def _write_roi_nodes(self, values: dict[str, int]) -> None:
+        """Offsets to 0 first (so a larger size fits), then the size, then the offsets."""
+        for off in ("OffsetX", "OffsetY"):
+            if self._has(off):
+                self._set(Feature.ROI, off, 0)
+        for name in ("Width", "Height"):
+            if name in values:
+                self._set(Feature.ROI, name, values[name])
+        for off in ("OffsetX", "OffsetY"):
+            if values.get(off):
+                self._set(Feature.ROI, off, values[off])
 
     def _get_pixel_format(self) -> str:
-        """SFNC PixelFormat."""
-        return str(self._get(Feature.PIXEL_FORMAT, "PixelFormat"))
+        """SFNC PixelFormat, or the format the frames come in once one showed it differs.
+
+        A device may accept a PixelFormat and keep sending another one (TLSimu takes Mono16
+        and sends Mono8): after such a frame this reports what the device really delivers.
+        """
+        value = str(self._get(Feature.PIXEL_FORMAT, "PixelFormat"))
+        seen = self._format_mismatch
+        return seen[1] if seen is not None and seen[0] == value else value
 
     def _do_set_pixel_format(self, value: str) -> None:
         self._require_idle("change the pixel format")
         if value not in _MONO_FORMATS:
             raise ValueError(f"pixel format {value!r} not supported; use one of {_MONO_FORMATS}")
         with self._lock:
+            self._disarm()  # PixelFormat is not writable while the acquisition is armed
             node = self._require(Feature.PIXEL_FORMAT, "PixelFormat", write=True)
             if value not in self._enum_values(node):
                 raise ValueError(
                     f"{self.describe()}: pixel format {value!r} not offered "
                     f"(device offers {self._enum_values(node)})"
                 )
-            self._disarm()
+            self._format_mismatch = None  # the next frame shows whether the device follows
             self._set(Feature.PIXEL_FORMAT, "PixelFormat", value)
+            now = str(self._get(Feature.PIXEL_FORMAT, "PixelFormat"))
+            if now != value:
+                raise CameraError(
+                    f"{self.describe()}: PixelFormat = {value!r} was accepted but the device "
+                    f"reads back {now!r}; it stays at {now}"
+                )
 
     @property
     def bit_depth(self) -> int:
@@ -859,9 +1161,31 @@ class GenICamCamera(CameraBase):
         except TimeoutException:
             raise CameraTimeout(f"{self.describe()}: no frame within {timeout_s:.3g} s") from None
         frame_id = self._frame_id_of(device_id)
-        if fmt != self._optional(lambda: self.pixel_format):
-            extra["requested_pixel_format"] = self._optional(lambda: self.pixel_format)
+        self._check_delivered_format(fmt, extra)
         return self._make_frame(pixels, frame_id, pixel_format=fmt, extra=extra)
+
+    def _check_delivered_format(self, fmt: str, extra: dict[str, Any]) -> None:
+        """Note a frame whose format is not the PixelFormat set (a warning, once per setting).
+
+        The frame says what it is (``pixel_format``, its dtype); ``extra`` keeps the format
+        that was asked for, and :attr:`pixel_format` and :attr:`bit_depth` report the
+        delivered one from then on.
+        """
+        try:
+            requested = str(self._get(Feature.PIXEL_FORMAT, "PixelFormat"))
+        except FeatureNotAvailable:
+            return
+        if fmt == requested:
+            self._format_mismatch = None
+            return
+        extra["requested_pixel_format"] = requested
+        if self._format_mismatch != (requested, fmt):
+            self._format_mismatch = (requested, fmt)
+            _log.warning(
+                "%s: PixelFormat is %s but the device delivers %s frames (it ignores the "
+                "setting); frames, pixel_format and bit_depth say %s",
+                self.describe(), requested, fmt, fmt,
+            )
 
     def _frame_id_of(self, device_id: int) -> int:
         """Frame id: the device's id shifted so ids keep increasing across acquisitions.

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import logging
+import shutil
 import signal
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -32,25 +35,30 @@ def test_find_producers_searches_env_config_cache_and_package(
     assert find_producers([tlsimu_cti, tlsimu_cti], include_package=False) == [tlsimu_cti]
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="ELF platform")
 def test_producer_problem_accepts_only_shared_libraries(
     tlsimu_cti: Path, viky_cti: Path, tmp_path: Path,
 ) -> None:
     from drivers.genicam import producer_problem
 
     assert producer_problem(tlsimu_cti) is None and producer_problem(viky_cti) is None
-    for name, head in (("pe.cti", b"MZ\x90\x00"), ("macho.cti", b"\xcf\xfa\xed\xfe")):
-        (tmp_path / name).write_bytes(head + bytes(60))
-        assert producer_problem(tmp_path / name) is None
+    for name, head, kind in (("pe.cti", b"MZ\x90\x00", "Windows (PE)"),
+                             ("macho.cti", b"\xcf\xfa\xed\xfe", "macOS (Mach-O)")):
+        (tmp_path / name).write_bytes(head + bytes(60))  # libraries, but not for Linux
+        assert producer_problem(tmp_path / name) == (
+            f"is a library for {kind}, not for this platform (ELF)")
     (tmp_path / "empty.cti").write_bytes(b"")
     (tmp_path / "text.cti").write_text("#!/bin/sh\n")
     assert "empty" in (producer_problem(tmp_path / "empty.cti") or "")
     assert "not a shared library" in (producer_problem(tmp_path / "text.cti") or "")
     assert "cannot be read" in (producer_problem(tmp_path / "missing.cti") or "")
+    shutil.copy(viky_cti, tmp_path / "viky.cti")  # the one usable producer in the folder
     skipped: list[str] = []
     found = find_producers([tmp_path, tlsimu_cti], use_environment=False,
                            include_cache=False, include_package=False, skipped=skipped)
-    assert [p.name for p in found] == ["macho.cti", "pe.cti", "TLSimu.cti"]
-    assert len(skipped) == 2 and "empty.cti" in skipped[0] and "text.cti" in skipped[1]
+    assert [p.name for p in found] == ["viky.cti", "TLSimu.cti"]
+    assert [line.split(" skipped: ")[0].rsplit("/", 1)[1] for line in skipped] == [
+        "empty.cti", "macho.cti", "pe.cti", "text.cti"]
 
 
 def test_list_devices_of_both_producers(viky_cti: Path, tlsimu_cti: Path) -> None:
@@ -102,15 +110,28 @@ def test_fetch_timeout_becomes_camera_timeout(tlsimu_cti: Path) -> None:
         assert cam.snap().shape == (32, 32)  # recovers
 
 
-def test_frames_report_the_format_actually_delivered(tlsimu_cti: Path) -> None:
+def test_frames_report_the_format_actually_delivered(
+    tlsimu_cti: Path, caplog: pytest.LogCaptureFixture,
+) -> None:
     with GenICamCamera(0, producer=tlsimu_cti) as cam:
         cam.roi = Roi(0, 0, 32, 32)
         cam.trigger_mode = TriggerMode.SOFTWARE
         cam.pixel_format = "Mono16"  # TLSimu accepts the setting but keeps sending Mono8
-        frame = cam.snap()
+        assert cam.pixel_format == "Mono16"  # what the device reads back, until a frame shows
+        with caplog.at_level(logging.WARNING, logger="drivers.genicam"):
+            frame = cam.snap()
+            cam.snap()  # said once, not per frame
         caps = cam.capabilities()
+        # the camera is not taken as delivering 16 bits any more
+        assert cam.pixel_format == "Mono8" and cam.bit_depth == 8
+        lines = [r.getMessage() for r in caplog.records if "PixelFormat" in r.getMessage()]
+        assert len(lines) == 1 and "\n" not in lines[0]
+        assert "PixelFormat is Mono16 but the device delivers Mono8 frames" in lines[0]
+        cam.pixel_format = "Mono8"  # the device follows this one: nothing to say
+        assert cam.snap().extra.get("requested_pixel_format") is None
+        assert len([r for r in caplog.records if "PixelFormat" in r.getMessage()]) == 1
     assert frame.pixel_format == "Mono8" and frame.pixels.dtype == np.uint8
-    assert frame.extra["requested_pixel_format"] == "Mono16"
+    assert frame.bit_depth == 8 and frame.extra["requested_pixel_format"] == "Mono16"
     # a ROI, and the whole sensor it is on (TLSimu's Width/Height maxima: 4096)
     assert frame.shape == (32, 32) and frame.sensor == (caps.sensor_height, caps.sensor_width)
     assert frame.sensor == (4096, 4096)
