@@ -15,6 +15,12 @@ line-based text protocol of ``docs/serial-protocol.md``:
 - the cached state (``is_on``, ``intensity``, strobe) changes only after an ``OK``; after a
   failed setter ``in_sync`` is False until :meth:`SerialPointSource.status` or
   :meth:`SerialPointSource.reconnect` reads the device again.
+- a port given by path is opened exclusively (pyserial ``exclusive=True``, an advisory
+  ``flock`` on POSIX): a second process opening the same source would read the first one's
+  replies and corrupt its exchanges, so it is refused with :class:`LightSourceBusy`
+  ("port X is in use by another process");
+- strobe times go out with 0.1 us resolution (:data:`TIME_RESOLUTION_US`): a pulse shorter
+  than that would be sent as 0 and is refused before anything is sent.
 
 Public methods validate and clip (``intensity`` to [0, 1]); private ``_do_...`` methods talk
 to the hardware.
@@ -22,6 +28,7 @@ to the hardware.
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
 import numbers
@@ -35,8 +42,10 @@ from typing import Any, Protocol, Self, runtime_checkable
 from drivers.lightstate import LightMode
 
 __all__ = [
+    "TIME_RESOLUTION_US",
     "DeviceError",
     "LightSource",
+    "LightSourceBusy",
     "LightSourceDisconnected",
     "LightSourceError",
     "LightSourceProtocolError",
@@ -48,6 +57,8 @@ __all__ = [
 _log = logging.getLogger(__name__)
 
 MAX_TIME_US = 10_000_000.0
+#: strobe delays and durations are sent with one decimal (``STROBE 120.0 30.0``)
+TIME_RESOLUTION_US = 0.1
 
 
 def _port_errors() -> tuple[type[BaseException], ...]:
@@ -81,6 +92,10 @@ class LightSourceProtocolError(LightSourceError):
 
 class LightSourceDisconnected(LightSourceError):
     """The port vanished (or was never opened); call ``reconnect()``."""
+
+
+class LightSourceBusy(LightSourceDisconnected):
+    """The port is held (exclusively) by another process: another driver, the app, a tool."""
 
 
 class DeviceError(LightSourceError):
@@ -177,6 +192,21 @@ class LightSource(Protocol):
         ...
 
 
+def _open_failure(exc: BaseException) -> str:
+    """Why a port did not open, said once.
+
+    pyserial wraps the system's error in its own message that names the port again
+    ("[Errno 2] could not open port X: [Errno 2] No such file or directory: 'X'"); the
+    system's reason is what the user needs.
+    """
+    inner = exc.__cause__ or exc.__context__
+    if isinstance(inner, OSError) and inner.strerror:
+        return inner.strerror
+    if inner is not None and type(inner).__name__ == "error" and len(inner.args) == 2:
+        return f"not a serial port ({inner.args[1]})"  # termios.error: a file, /dev/null
+    return str(exc)
+
+
 _STATE_RE = re.compile(
     r"mode=(\w+) int=([-\d.]+) delay_us=([-\d.]+) duration_us=([-\d.]+) counter=(\d+)"
 )
@@ -249,14 +279,22 @@ class SerialPointSource:
 
         try:
             if self._url is not None:
+                # exclusive: a second opener would take the first one's replies (POSIX flock;
+                # pyserial's URL handlers such as loop:// accept and ignore it)
                 self._port = serial.serial_for_url(
-                    self._url, baudrate=self.baudrate, timeout=self.timeout_s
+                    self._url, baudrate=self.baudrate, timeout=self.timeout_s, exclusive=True
                 )
             elif not self._port.is_open:
                 self._port.open()
         except (*_port_errors(), ValueError) as exc:
             self._port = None if self._url is not None else self._port
-            raise LightSourceDisconnected(f"cannot open {self.describe()}: {exc}") from exc
+            if getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK) \
+                    and "lock" in str(exc).lower():  # pyserial's flock(LOCK_EX | LOCK_NB)
+                where = self._url or getattr(self._port, "port", None) or "port object"
+                raise LightSourceBusy(f"port {where} is in use by another process (close the "
+                                      "other connection to the point source first)") from exc
+            raise LightSourceDisconnected(
+                f"cannot open {self.describe()}: {_open_failure(exc)}") from exc
 
     def _drop_port(self) -> None:
         self._connected = False
@@ -473,6 +511,9 @@ class SerialPointSource:
             raise ValueError(f"strobe delay_us {delay_us} outside [0, {MAX_TIME_US:g}]")
         if not 0 < duration_us <= MAX_TIME_US:
             raise ValueError(f"strobe duration_us {duration_us} outside (0, {MAX_TIME_US:g}]")
+        if round(duration_us, 1) < TIME_RESOLUTION_US:  # it would go out as 0.0
+            raise ValueError(f"strobe duration_us {duration_us:g} is shorter than the source's "
+                             f"{TIME_RESOLUTION_US:g} us resolution (it would be sent as 0)")
         self._do_strobe(float(delay_us), float(duration_us))
 
     def identify(self) -> str:

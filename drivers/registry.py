@@ -3,17 +3,34 @@
 Specs: ``sim``; ``genicam`` or ``genicam:N`` (N counts the devices of all discovered GenTL
 producers, see :func:`drivers.genicam.find_producers`); ``v4l2``, ``v4l2:N``,
 ``v4l2:/dev/videoN`` or ``v4l2:PATH`` (an image sequence pattern or a video file).
+:func:`parse_camera_spec` is the one reading of a spec (surrounding spaces stripped, the name
+case-folded): every command and :func:`open_camera` go through it, so ``"sim "`` is the
+simulated camera everywhere. :func:`camera_source_match` tells whether a path is a file a
+file camera reads (its video, or a frame of its image sequence), so that no command writes
+its output over its own input.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import re
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import Any, NamedTuple
 
 from drivers.camera import CameraBase
 
-__all__ = ["CameraInfo", "SerialPortInfo", "list_cameras", "list_serial_ports", "open_camera"]
+__all__ = [
+    "CameraInfo",
+    "CameraSpec",
+    "SerialPortInfo",
+    "camera_source_match",
+    "list_cameras",
+    "list_serial_ports",
+    "open_camera",
+    "parse_camera_spec",
+]
 
 _log = logging.getLogger(__name__)
 
@@ -37,29 +54,112 @@ class SerialPortInfo:
     hwid: str
 
 
-def _make_camera(spec: str, **kwargs: Any) -> CameraBase:
-    name, _, arg = spec.strip().partition(":")
-    name = name.lower()
+class CameraSpec(NamedTuple):
+    """A camera spec as read: ``name`` (``sim``, ``genicam``, ``v4l2``) and its argument."""
+
+    name: str
+    arg: str
+
+    def __str__(self) -> str:
+        return f"{self.name}:{self.arg}" if self.arg else self.name
+
+    @property
+    def source_file(self) -> str | None:
+        """The file (or printf-style sequence pattern) a ``v4l2:PATH`` camera reads, else None."""
+        if self.name != "v4l2" or not self.arg:
+            return None
+        if self.arg.isdigit() or re.fullmatch(r"/dev/video\d+", self.arg):
+            return None
+        return self.arg
+
+
+def parse_camera_spec(spec: str) -> CameraSpec:
+    """Read a camera spec: surrounding spaces stripped, the name case-folded, checked.
+
+    Raises :class:`ValueError` with one line for an unknown name or a bad argument.
+    """
+    name, _, arg = str(spec).strip().partition(":")
+    name = name.strip().lower()
     if name == "sim":
         if arg:
             raise ValueError(f"camera spec 'sim' takes no argument, got {spec!r}")
+    elif name == "genicam":
+        if arg and not arg.isdigit():
+            raise ValueError(f"genicam spec must be 'genicam' or 'genicam:N', got {spec!r}")
+    elif name != "v4l2":
+        raise ValueError(f"unknown camera spec {spec!r}: use 'sim', 'genicam[:N]' or "
+                         "'v4l2[:N|:/dev/videoN|:PATH]'")
+    return CameraSpec(name, arg)
+
+
+def _sequence_regex(pattern_name: str) -> re.Pattern[str] | None:
+    """The file names a printf-style sequence pattern (``%04d.png``) stands for, or None."""
+    parts: list[str] = []
+    pos = 0
+    found = False
+    for m in re.finditer(r"%(%|0?(\d*)d)", pattern_name):
+        parts.append(re.escape(pattern_name[pos:m.start()]))
+        if m.group(1) == "%":
+            parts.append("%")
+        else:
+            found = True
+            width = m.group(2)
+            parts.append(rf"\d{{{int(width)},}}" if width else r"\d+")
+        pos = m.end()
+    parts.append(re.escape(pattern_name[pos:]))
+    return re.compile("".join(parts)) if found else None
+
+
+def camera_source_match(spec: str | CameraSpec, path: str | os.PathLike[str]) -> Path | None:
+    """The file camera ``spec`` reads that an output ``path`` must not be, or None.
+
+    A ``v4l2:VIDEO`` camera reads that one file (returned: the output check compares it with
+    ``path``, links included); a ``v4l2:DIR/%04d.png`` camera reads every file of its sequence:
+    the frame ``path`` is (or links to), or ``path`` itself when it would be one (a name of the
+    sequence in its folder), else None. Devices and the simulated camera read no file (None).
+    """
+    cs = spec if isinstance(spec, CameraSpec) else parse_camera_spec(spec)
+    source = cs.source_file
+    if source is None:
+        return None
+    out = Path(path)
+    # a file that exists is a video even with a % in its name (as drivers.v4l2 reads it)
+    is_pattern = "%" in source and not os.path.isfile(source)
+    regex = _sequence_regex(Path(source).name) if is_pattern else None
+    if regex is None:
+        return Path(source)  # the one file: the output check compares the paths
+    folder = Path(source).parent
+    try:
+        if out.resolve().parent == folder.resolve() and regex.fullmatch(out.resolve().name):
+            return out
+        if not out.exists():
+            return None
+        same = os.stat(out)
+        with os.scandir(folder) as entries:
+            for entry in entries:
+                if regex.fullmatch(entry.name):
+                    st = entry.stat()
+                    if (st.st_dev, st.st_ino) == (same.st_dev, same.st_ino):
+                        return Path(entry.path)
+    except OSError:  # an unreadable folder: the camera cannot read it either
+        return None
+    return None
+
+
+def _make_camera(spec: str, **kwargs: Any) -> CameraBase:
+    name, arg = parse_camera_spec(spec)
+    if name == "sim":
         from drivers.simcam import SimulatedCamera
 
         return SimulatedCamera(**kwargs)
     if name == "genicam":
         from drivers.genicam import GenICamCamera
 
-        if arg and not arg.isdigit():
-            raise ValueError(f"genicam spec must be 'genicam' or 'genicam:N', got {spec!r}")
         return GenICamCamera(int(arg or 0), **kwargs)
-    if name == "v4l2":
-        from drivers.v4l2 import V4L2Camera
+    from drivers.v4l2 import V4L2Camera
 
-        source: int | str = int(arg) if arg.isdigit() else (arg or 0)
-        return V4L2Camera(source, **kwargs)
-    raise ValueError(
-        f"unknown camera spec {spec!r}: use 'sim', 'genicam[:N]' or 'v4l2[:N|:/dev/videoN|:PATH]'"
-    )
+    source: int | str = int(arg) if arg.isdigit() else (arg or 0)
+    return V4L2Camera(source, **kwargs)
 
 
 def open_camera(spec: str, **kwargs: Any) -> CameraBase:

@@ -58,8 +58,10 @@ __all__ = [
     "PSF_STACK_FORMAT",
     "REQUIRED_KEYS",
     "SHUTTER_FORMAT",
+    "SUFFIXES",
     "Calibration",
     "calibration_kind",
+    "check_calibration_suffix",
     "load_calibration",
     "load_filter_cube_file",
     "load_pixel_mask",
@@ -210,12 +212,34 @@ def _float_array(a: Any, ndim: int, what: str) -> F32:
     return out
 
 
+#: the file suffixes each kind is saved under (the first is the one to suggest)
+SUFFIXES: dict[str, tuple[str, ...]] = {
+    "psf": (".tif", ".tiff"),
+    "psf-stack": (".tif", ".tiff"),
+    "filter-cube": (".tif", ".tiff"),
+    "shutter": (".npz",),
+    "pixel-maps": (".npz",),
+}
+
+
+def check_calibration_suffix(path: PathLike, kind: str) -> Path:
+    """Refuse a name a ``kind`` calibration is not saved under (the writers' own rule).
+
+    Callable before any capture, so that ``calibrate darks --out darks.tif`` stops at once
+    instead of after the frames. Raises :class:`ValueError` with one line; returns the path.
+    """
+    target = Path(path)
+    suffixes = SUFFIXES[kind]
+    if target.suffix.lower() not in suffixes:
+        raise ValueError(f"{target}: a {kind} calibration is saved as "
+                         f"{' or '.join(suffixes)}")
+    return target
+
+
 def _save_tiff(path: PathLike, kind: str, data: F32, metadata: Mapping[str, Any]) -> Path:
     import tifffile
 
-    target = Path(path)
-    if target.suffix.lower() not in (".tif", ".tiff"):
-        raise ValueError(f"{target}: a {kind} calibration is saved as .tif or .tiff")
+    target = check_calibration_suffix(path, kind)
     meta = _header(kind, metadata, {"data": data})
     description = json.dumps(meta, ensure_ascii=True)
 
@@ -230,9 +254,7 @@ def _save_tiff(path: PathLike, kind: str, data: F32, metadata: Mapping[str, Any]
 def _save_npz(
     path: PathLike, kind: str, arrays: Mapping[str, Array], metadata: Mapping[str, Any]
 ) -> Path:
-    target = Path(path)
-    if target.suffix.lower() != ".npz":
-        raise ValueError(f"{target}: a {kind} calibration is saved as .npz")
+    target = check_calibration_suffix(path, kind)
     meta = _header(kind, metadata, arrays)
     payload = {name: np.ascontiguousarray(a) for name, a in arrays.items()}
     payload["metadata"] = np.array(json.dumps(meta, ensure_ascii=True))

@@ -542,12 +542,12 @@ def test_a_preview_that_fails_leaves_no_part_of_a_new_result(tmp_path, monkeypat
 def test_a_sensor_size_of_zero_is_refused_in_words(tmp_path, capsys):
     assert main(["calibrate", "darks", "--camera", "sim", "--sim-size", "0x0", "--frames", "1",
                  "--no-prompt", "--out", str(tmp_path / "d.npz")]) == 2
-    assert "--sim-size must be at least 1x1 pixels" in capsys.readouterr().err
-    # one row: the simulator needs two (it said "integers >= (1, 2), got 2x1", W x H)
+    assert "--sim-size must be at least 2x1 pixels (HxW), got '0x0'" in capsys.readouterr().err
+    # one row: the simulator needs two (it said "integers >= (1, 2), got 2x1", W x H); one
+    # limit, said the same way for every size (it said "at least 1x1", then "at least 2x1")
     assert main(["snap", "--camera", "sim", "--sim-size", "1x2", "--out",
                  str(tmp_path / "f1.tif")]) == 2
-    assert "(rows x columns) must be whole numbers of at least 2x1, got 1x2" in (
-        capsys.readouterr().err)
+    assert "--sim-size must be at least 2x1 pixels (HxW), got '1x2'" in capsys.readouterr().err
     # larger than any sensor: it was "Unable to allocate 74.5 GiB", no option named
     assert main(["snap", "--camera", "sim", "--sim-size", "100000x100000", "--out",
                  str(tmp_path / "f.tif")]) == 2

@@ -154,13 +154,14 @@ def _psf_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--pixel-maps", help="pixel-maps file whose bad pixels are repaired too")
 
 
-def _hw(value: str, what: str) -> tuple[int, int]:
+def _hw(value: str, what: str, least: tuple[int, int] = (1, 1)) -> tuple[int, int]:
     m = re.fullmatch(r"\s*(\d+)\s*[xX,]\s*(\d+)\s*", value)
     if not m:
         raise ValueError(f"{what} must be HxW (for example 64x80), got {value!r}")
     h, w = int(m.group(1)), int(m.group(2))
-    if h < 1 or w < 1:
-        raise ValueError(f"{what} must be at least 1x1 pixels, got {value!r}")
+    if h < least[0] or w < least[1]:
+        raise ValueError(f"{what} must be at least {least[0]}x{least[1]} pixels (HxW), got "
+                         f"{value!r}")
     if max(h, w) > MAX_SIDE:  # larger than any sensor: a typo, and an allocation of many GiB
         raise ValueError(f"{what} must be at most {MAX_SIDE} pixels a side, got {value!r}")
     return h, w
@@ -171,6 +172,8 @@ def _hw(value: str, what: str) -> tuple[int, int]:
 MAX_SIDE = 16384
 #: the largest frame the simulated camera renders within a frame timeout on one core
 SIM_MAX_PIXELS = 4096 * 4096
+#: the smallest simulated sensor (HxW): drivers.simcam.SimulatedCamera needs 2 rows
+SIM_MIN_HW = (2, 1)
 
 
 @contextlib.contextmanager
@@ -199,8 +202,8 @@ def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
     """Open the camera and the source (spawning the simulated firmware for ``sim``)."""
     import tempfile
 
-    from drivers.lightsource import SerialPointSource
-    from drivers.registry import open_camera
+    from drivers.lightsource import LightSourceBusy, SerialPointSource
+    from drivers.registry import open_camera, parse_camera_spec
 
     with contextlib.ExitStack() as stack:
         # SIGTERM / SIGHUP (kill, timeout, a closed terminal) stop the command as Ctrl-C does,
@@ -220,7 +223,7 @@ def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
             port = sim.port
         else:
             port = src_spec
-        if args.camera.strip().lower() == "sim":
+        if parse_camera_spec(args.camera).name == "sim":
             camera = open_camera("sim", **sim_camera_kwargs(args, state_path))
         else:
             camera = open_camera(args.camera)
@@ -233,8 +236,14 @@ def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
             source = SerialPointSource(port)
             try:
                 source.open()
+            except LightSourceBusy as exc:  # "port X is in use by another process"
+                raise ValueError(str(exc)) from exc
             except Exception as exc:
-                raise ValueError(f"cannot open the point source on {port}: {exc}") from exc
+                # the driver's messages name the source already: say it once
+                reason = str(exc)
+                for said in (f"cannot open {source.describe()}: ", f"{source.describe()}: "):
+                    reason = reason.removeprefix(said)
+                raise ValueError(f"cannot open the point source on {port}: {reason}") from exc
             stack.callback(source.close)
         yield camera, source
 
@@ -248,7 +257,7 @@ def sim_camera_kwargs(args: argparse.Namespace, state_path: Path | None) -> dict
 
         psf = load_psf(args.sim_psf)[0]
         if args.sim_size:
-            h, w = _hw(args.sim_size, "--sim-size")
+            h, w = _hw(args.sim_size, "--sim-size", SIM_MIN_HW)
             f = psf.shape[0] // h
             if f < 1 or psf.shape[0] != f * h or psf.shape[1] != f * w:
                 raise ValueError(
@@ -258,7 +267,7 @@ def sim_camera_kwargs(args: argparse.Namespace, state_path: Path | None) -> dict
             psf = normalise(box_downsample(psf, f), "sum")
         h, w = (int(psf.shape[0]), int(psf.shape[1]))
     else:
-        h, w = _hw(args.sim_size or "64x80", "--sim-size")
+        h, w = _hw(args.sim_size or "64x80", "--sim-size", SIM_MIN_HW)
     if h * w > SIM_MAX_PIXELS:  # a 16384x16384 frame timed out, then a traceback (or a hang)
         raise ValueError(f"the simulated camera is {h}x{w}: it renders at most "
                          f"{SIM_MAX_PIXELS / 1e6:.1f} M pixels a frame in time (4096x4096); "
@@ -314,6 +323,25 @@ def _psf_settings(args: argparse.Namespace) -> Any:
     )
 
 
+def _check_outputs(args: argparse.Namespace, kind: str) -> None:
+    """Check, before any capture, what can be checked of the output.
+
+    The camera spec (read once), the output's suffix for ``kind`` (the calibration file
+    writers' own rule) and the output rule of every command (the camera's files are inputs).
+    """
+    from app.commands.devices import check_camera_command_outputs
+    from drivers.registry import parse_camera_spec
+    from recon.calibfile import check_calibration_suffix
+
+    if hasattr(args, "camera"):
+        args.camera = str(parse_camera_spec(args.camera))  # read once ("sim " is sim)
+    check_calibration_suffix(args.out, kind)
+    if hasattr(args, "camera"):
+        check_camera_command_outputs(args, [args.out])
+    else:
+        check_command_outputs(args, [args.out])
+
+
 def _bad_pixels(args: argparse.Namespace) -> Any:
     if not args.pixel_maps:
         return None
@@ -324,7 +352,7 @@ def _bad_pixels(args: argparse.Namespace) -> Any:
 
 def run_psf(args: argparse.Namespace) -> int:
     """Capture and save a PSF calibration."""
-    check_command_outputs(args, [args.out])
+    _check_outputs(args, "psf")
     from calibration.psf import capture_psf
     from calibration.workflow import Workflow
 
@@ -352,7 +380,7 @@ def _warn(lines: Any, where: str = "") -> None:
 
 def run_depth(args: argparse.Namespace) -> int:
     """Capture and save a depth PSF stack."""
-    check_command_outputs(args, [args.out])
+    _check_outputs(args, "psf-stack")
     from calibration.psf import capture_depth_stack
     from calibration.workflow import Workflow
 
@@ -394,7 +422,7 @@ def run_depth(args: argparse.Namespace) -> int:
 
 def run_darks(args: argparse.Namespace) -> int:
     """Capture darks (and flats) and save the pixel maps."""
-    check_command_outputs(args, [args.out])
+    _check_outputs(args, "pixel-maps")
     from calibration.darks import calibrate_pixel_maps
     from calibration.workflow import Workflow
 
@@ -445,12 +473,14 @@ def run_darks(args: argparse.Namespace) -> int:
 
 def run_shutter(args: argparse.Namespace) -> int:
     """Shutter function from the camera's timing, or measured by strobing the source."""
-    check_command_outputs(args, [args.out])
+    _check_outputs(args, "shutter")
     from calibration.shutter import ShutterSettings, measure_shutter, shutter_for_frame
     from calibration.workflow import Workflow
 
     if args.bin_lines < 1 or args.downsample < 1:
         raise ValueError("--bin-lines and --downsample must be >= 1")
+    pulse_us = _strobe_time(args.pulse, "--pulse") if args.pulse else None
+    step_us = _strobe_time(args.step, "--step") if args.step else None
     with _devices(args) as (camera, source):
         if source is None:
             frame = camera.snap(args.timeout)
@@ -462,8 +492,8 @@ def run_shutter(args: argparse.Namespace) -> int:
             print(f"timing {sf.timing.to_dict()}")
             return 0
         settings = ShutterSettings(
-            pulse_us=parse_duration_us(args.pulse) if args.pulse else None,
-            step_us=parse_duration_us(args.step) if args.step else None,
+            pulse_us=pulse_us,
+            step_us=step_us,
             span_us=parse_duration_us(args.span) if args.span else None,
             frames_per_delay=args.frames_per_delay,
             intensity=args.intensity,
@@ -488,9 +518,29 @@ def run_shutter(args: argparse.Namespace) -> int:
     return 0
 
 
+def _strobe_time(text: str, option: str) -> float:
+    """A strobe time at the point source's resolution (0.1 us: the driver sends one decimal).
+
+    Shorter is refused (it would go out as 0 and the firmware's refusal would blame the
+    hardware); a finer value is rounded to what is sent, with a warning saying so.
+    """
+    from drivers.lightsource import TIME_RESOLUTION_US
+
+    value = parse_duration_us(text)
+    sent = round(value / TIME_RESOLUTION_US) * TIME_RESOLUTION_US
+    if sent < TIME_RESOLUTION_US:
+        raise ValueError(f"{option} {text}: the point source times its pulses in steps of "
+                         f"{TIME_RESOLUTION_US:g} us; use {TIME_RESOLUTION_US:g}us or more")
+    sent = round(sent, 1)
+    if abs(sent - value) > 1e-9:
+        _warn([f"{option} {text} is rounded to {sent:g} us, the point source's "
+               f"{TIME_RESOLUTION_US:g} us resolution"])
+    return sent
+
+
 def run_filters(args: argparse.Namespace) -> int:
     """Validate, normalise and save a filter cube."""
-    check_command_outputs(args, [args.out])
+    _check_outputs(args, "filter-cube")
     from calibration.filters import load_filter_cube
 
     if args.sensor:

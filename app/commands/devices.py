@@ -8,8 +8,10 @@
 
 ``snap`` writes a TIFF (atomically) whose ImageDescription is the frame's metadata as JSON
 (``Frame.metadata()`` plus provenance), so the frame can be interpreted later (exposure,
-ROI, sensor timing for the shutter function). Durations take a unit: ``10ms``, ``500us``,
-``0.01s`` (a bare number is microseconds).
+ROI, sensor timing for the shutter function), and prints which camera the spec opened (its
+description: ``genicam:N`` is a position in a list). A file camera's video or sequence frames
+are inputs of the command: ``--out`` may not be one of them, even with ``--overwrite``.
+Durations take a unit: ``10ms``, ``500us``, ``0.01s`` (a bare number is microseconds).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +30,7 @@ from app.commands._options import (
     check_command_outputs,
 )
 
-__all__ = ["parse_duration_us", "register"]
+__all__ = ["check_camera_command_outputs", "parse_duration_us", "register"]
 
 _UNITS_US = {"us": 1.0, "µs": 1.0, "ms": 1000.0, "s": 1_000_000.0}
 
@@ -120,14 +123,39 @@ def _devices(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_camera_command_outputs(args: argparse.Namespace, outputs: list[str]) -> None:
+    """:func:`check_command_outputs`, with the files ``--camera`` reads as inputs too.
+
+    A file camera (``v4l2:VIDEO``, ``v4l2:DIR/%04d.tif``) reads its video or every frame of its
+    sequence: an output that is one of them is refused as any input is ("it is the input
+    --camera ... of this command"), whatever ``--overwrite`` says. Before this ``snap --camera
+    v4l2:vid.mkv --out vid.mkv --overwrite`` replaced the recording with one TIFF frame.
+    """
+    from drivers.registry import camera_source_match, parse_camera_spec
+    from recon.atomic import check_outputs
+
+    spec = parse_camera_spec(args.camera)
+    for out in outputs:
+        source = camera_source_match(spec, out)
+        if source is not None:  # the same output check (and message) as for every input
+            check_outputs([out], {f"--camera {spec}": source}, overwrite=True)
+    check_command_outputs(args, outputs)
+
+
 def _snap(args: argparse.Namespace) -> int:
     from app.cli import CliError
     from drivers.camera import CameraError
-    from drivers.registry import open_camera
+    from drivers.registry import open_camera, parse_camera_spec
 
+    try:  # read once: "sim " is the simulated camera here as in open_camera
+        spec = parse_camera_spec(args.camera)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    args.camera = str(spec)
     if Path(args.out).suffix.lower() not in (".tif", ".tiff"):
         raise CliError(f"--out {args.out}: a frame is saved as TIFF with its metadata; name "
                        "it .tif")
+    light_gone = False
     if args.light_state:
         from drivers.lightstate import check_light_state_file
 
@@ -135,13 +163,12 @@ def _snap(args: argparse.Namespace) -> int:
             raise CliError(f"--light-state {args.light_state}: no such file (the simulated "
                            "source's state file)")
         try:  # a light-state file as the simulated firmware writes it, not any file
-            check_light_state_file(args.light_state)
+            light_gone = not check_light_state_file(args.light_state).available
         except ValueError as exc:
             raise CliError(f"--light-state {exc}") from None
-    check_command_outputs(args, [args.out])  # before the camera is opened
+    check_camera_command_outputs(args, [args.out])  # before the camera is opened
     kwargs: dict[str, Any] = {}
-    name = args.camera.partition(":")[0].lower()
-    if name == "sim":
+    if spec.name == "sim":
         # calibrate's simulated camera (same PSF, size and seed: a PSF calibrated on it fits
         # this frame), looking at the demo scene: a lensless frame through its PSF
         from app.commands.calibrate import sim_camera_kwargs
@@ -152,9 +179,13 @@ def _snap(args: argparse.Namespace) -> int:
                       exposure_us=10_000.0)
         if args.light_state:
             kwargs["light_state"] = args.light_state
+            if light_gone:
+                print(f"lenslesscam: warning: --light-state {args.light_state}: the simulated "
+                      "source that wrote it is no longer running; its light reads as off",
+                      file=sys.stderr)
     elif args.light_state:
         raise CliError("--light-state applies to the simulated camera only")
-    if name == "genicam" and args.producer:
+    if spec.name == "genicam" and args.producer:
         from drivers.genicam import find_producers
 
         kwargs["producers"] = find_producers(args.producer)
@@ -165,6 +196,7 @@ def _snap(args: argparse.Namespace) -> int:
             if args.gain is not None:
                 cam.gain = args.gain
             frame = cam.snap(timeout_s=args.timeout)
+            described = _describe_camera(cam)
     except CameraError as exc:
         raise CliError(str(exc)) from exc
     path = _save_frame(args.out, frame)
@@ -173,7 +205,20 @@ def _snap(args: argparse.Namespace) -> int:
         f"saved {path}: {frame.shape[0]}x{frame.shape[1]} (HxW) {frame.pixels.dtype} "
         f"{frame.pixel_format}, exposure {exposure}, frame {frame.frame_id} ({frame.backend})"
     )
+    print(f"camera: {described}")  # which device genicam:N or v4l2:N turned out to be
     return 0
+
+
+def _describe_camera(cam: Any) -> str:
+    """The open camera's description line, with its model when the description lacks it."""
+    from drivers.camera import CameraError
+
+    text = str(cam.describe())
+    try:
+        model = str(cam.capabilities().model)
+    except CameraError:
+        return text
+    return text if not model or model in text else f"{text}, model {model}"
 
 
 def _save_frame(out: str, frame: Any) -> str:

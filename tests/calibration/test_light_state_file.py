@@ -54,3 +54,88 @@ def test_snap_refuses_a_file_that_is_not_a_light_state(tmp_path, capsys):
     assert main(["snap", "--camera", "sim", "--light-state", str(state), "--out", str(out)]) == 0
     assert out.exists()
     capsys.readouterr()
+
+
+# --------------------------------------------------------------------------------------------
+# a state file whose writer is gone reads as dark
+
+
+def _gone_pid() -> int:
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()  # exited and reaped: its pid exists no more
+    return proc.pid
+
+
+def test_a_state_whose_writer_is_gone_reads_dark(tmp_path):
+    """The firmware's pid was recorded but never checked: a simulator killed with the light on
+    lit the simulated camera for ever."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from drivers.lightstate import read_light_state, writer_running
+
+    lit = LightState(mode=LightMode.ON, intensity=1.0)
+    path = tmp_path / "state.json"
+    write_light_state(path, lit)
+    record = json.loads(path.read_text())
+    assert record["pid"] == os.getpid() and isinstance(record["host"], str)
+    assert read_light_state(path).lit  # written by this running process
+
+    def with_record(**changes):
+        path.write_text(json.dumps({**record, **changes}))
+        return read_light_state(path)
+
+    gone = with_record(pid=_gone_pid())
+    assert not gone.lit and not gone.available
+    assert with_record(pid=_gone_pid(), host="another-host").lit  # not checkable from here
+    assert with_record(pid=None).lit  # no writer recorded: as before
+    # a zombie (killed, not reaped yet) is gone too
+    zombie = subprocess.Popen([sys.executable, "-c", "pass"])
+    try:
+        deadline = time.monotonic() + 10.0
+        while writer_running({"pid": zombie.pid}) and time.monotonic() < deadline:
+            time.sleep(0.05)  # until it has exited (and, not waited for, is a zombie)
+        assert not with_record(pid=zombie.pid).lit
+    finally:
+        zombie.wait()
+    # a pid used again by another process: the recorded start time differs
+    from drivers.lightstate import _start_time
+
+    parent = os.getppid()
+    started = _start_time(parent)
+    if started is not None:  # Linux /proc
+        assert with_record(pid=parent, pid_start=started).lit
+        assert not with_record(pid=parent, pid_start=started + 1).lit
+
+
+def test_the_camera_goes_dark_when_the_firmware_is_killed(tmp_path, capsys, firmware, source):
+    """kill -9 of the simulator, then snap --light-state: the frame was still lit."""
+    from drivers.lightstate import LightStateFile
+
+    source.set_intensity(1.0)
+    source.on()
+    watched = LightStateFile(firmware.state_path)
+    assert watched.light_state().lit
+    lit_out, dark_out = tmp_path / "lit.tif", tmp_path / "dark.tif"
+    argv = ["snap", "--camera", "sim", "--light-state", str(firmware.state_path),
+            "--sim-flux", "5e6", "--exposure", "1ms"]
+    assert main([*argv, "--out", str(lit_out)]) == 0
+    assert capsys.readouterr().err == ""
+    source.close()
+    firmware.kill()  # SIGKILL: no chance to write 'off'
+    assert json.loads(firmware.state_path.read_text())["mode"] == "on"  # left behind
+    state = watched.light_state()  # the file did not change: its writer is checked anyway
+    assert not state.lit and not state.available
+    assert main([*argv, "--out", str(dark_out)]) == 0
+    err = capsys.readouterr().err.strip()
+    assert err == (f"lenslesscam: warning: --light-state {firmware.state_path}: the simulated "
+                   "source that wrote it is no longer running; its light reads as off")
+    import tifffile
+
+    lit, dark = tifffile.imread(lit_out), tifffile.imread(dark_out)
+    assert lit.max() > 2 * dark.max()

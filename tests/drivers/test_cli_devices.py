@@ -177,3 +177,109 @@ def test_snap_refuses_a_non_tiff_name_and_a_missing_light_state(
                          "--out", str(tmp_path / "x.tif")]) == 2
     assert "no such file" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+# --------------------------------------------------------------------------------------------
+# the camera's own files are inputs; one reading of the spec; which camera it was
+
+
+def _tiff_sequence(folder: Path, n: int = 3) -> list[Path]:
+    folder.mkdir()
+    files = []
+    for i in range(n):
+        f = folder / f"{i:04d}.tif"
+        tifffile.imwrite(f, np.full((8, 10), 100 * (i + 1), dtype=np.uint16))
+        files.append(f)
+    return files
+
+
+def test_snap_never_writes_over_a_frame_of_the_camera_sequence(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--camera 'v4l2:tseq/%04d.tif' --out tseq/0000.tif --overwrite replaced the first frame
+    of the recording with a snapshot of it; --sim-psf X --out X was already refused."""
+    files = _tiff_sequence(tmp_path / "tseq")
+    before = [f.read_bytes() for f in files]
+    pattern = str(tmp_path / "tseq" / "%04d.tif")
+    (tmp_path / "link.tif").symlink_to(files[1])
+    (tmp_path / "hard.tif").hardlink_to(files[2])
+    for out in (files[0], files[2], tmp_path / "tseq" / "0007.tif", tmp_path / "link.tif",
+                tmp_path / "hard.tif"):
+        argv = ["snap", "--camera", f"v4l2:{pattern}", "--out", str(out), "--overwrite"]
+        assert app.cli.main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.strip().splitlines() == [
+            f"lenslesscam snap: error: refusing to write {out}: it is the input --camera "
+            f"v4l2:{pattern} of this command (choose another output name)"], err
+    assert [f.read_bytes() for f in files] == before
+    assert not (tmp_path / "tseq" / "0007.tif").exists()
+    # another name is written, and the camera read the sequence
+    out = tmp_path / "snap.tif"
+    assert app.cli.main(["snap", "--camera", f"v4l2:{pattern}", "--out", str(out)]) == 0
+    assert _read_tiff(out)[0].max() == 100
+    capsys.readouterr()
+
+
+def test_snap_never_writes_over_the_camera_video(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], ffv1_video: str) -> None:
+    """A recorded video (here FFV1 in a file named .tif, the only name snap writes) became one
+    TIFF frame with --out VIDEO --overwrite."""
+    import shutil
+
+    video = tmp_path / "recording.tif"
+    shutil.copyfile(ffv1_video, video)
+    before = video.read_bytes()
+    argv = ["snap", "--camera", f" v4l2:{video} ", "--out", str(video), "--overwrite"]
+    assert app.cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"refusing to write {video}: it is the input --camera v4l2:{video}" in err
+    assert video.read_bytes() == before
+
+
+def test_check_camera_command_outputs_takes_the_camera_files_as_inputs(tmp_path: Path) -> None:
+    from app.commands.devices import check_camera_command_outputs
+
+    video = tmp_path / "vid.mkv"
+    video.write_bytes(b"not really a video")
+    args = argparse.Namespace(camera=f"v4l2:{video}", overwrite=True)
+    with pytest.raises(FileExistsError, match="it is the input --camera v4l2:"):
+        check_camera_command_outputs(args, [str(video)])
+    check_camera_command_outputs(args, [str(tmp_path / "other.tif")])
+    for camera in ("sim", "v4l2:0", "v4l2:/dev/video3", "genicam:1"):  # no file read
+        check_camera_command_outputs(argparse.Namespace(camera=camera, overwrite=True),
+                                     [str(video)])
+
+
+def test_a_camera_spec_with_spaces_is_the_same_camera(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """'sim ' opened a default SimulatedCamera (no scene, --sim-* ignored): _snap compared the
+    spec unstripped while open_camera stripped it."""
+    for spec in ("sim ", " sim", " SIM "):
+        out = tmp_path / f"{spec.replace(' ', '_')}.tif"
+        argv = ["snap", "--camera", spec, "--sim-size", "32x40", "--out", str(out)]
+        assert app.cli.main(argv) == 0, spec
+        capsys.readouterr()
+        pixels, _meta = _read_tiff(out)
+        assert pixels.shape == (32, 40), spec  # --sim-size was taken
+        assert pixels.max() > 200, spec  # the demo scene, not a dark default camera
+
+
+def test_sim_size_has_one_limit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--sim-size 1x1 passed the 'at least 1x1' check, then the camera said 'at least 2x1'."""
+    for size in ("1x1", "0x5", "1x80"):
+        assert app.cli.main(["snap", "--sim-size", size, "--out", str(tmp_path / "f.tif")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err == (f"lenslesscam snap: error: --sim-size must be at least 2x1 pixels "
+                       f"(HxW), got '{size}'")
+    assert app.cli.main(["snap", "--sim-size", "2x1", "--out", str(tmp_path / "f.tif")]) == 0
+    capsys.readouterr()
+
+
+def test_snap_says_which_camera_it_was(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                       tlsimu_cti: Path) -> None:
+    """genicam:N is a position in a list: the output named no device."""
+    out = tmp_path / "g.tif"
+    argv = ["snap", "--camera", "genicam:0", "--producer", str(tlsimu_cti), "--out", str(out)]
+    assert app.cli.main(argv) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[-1].startswith("camera: genicam camera 0")
+    assert "TLSimu" in lines[-1]

@@ -257,3 +257,69 @@ def test_the_firmware_watches_the_parent_it_starts_with():
     gone = subprocess.Popen([sys.executable, "-c", "pass"])
     gone.wait()
     assert _parent_to_watch(gone.pid) == 0
+
+
+# --------------------------------------------------------------------------------------------
+# one process per port; strobe times at the resolution sent; open errors said once
+
+
+def test_a_second_opener_of_the_port_is_refused_and_the_first_keeps_working(
+        sim_source: object) -> None:
+    """Two processes on one point source took each other's replies (partial replies, 'port
+    vanished'): the port is opened exclusively and a second opener is refused in one line."""
+    import subprocess
+    import sys
+
+    from drivers.lightsource import LightSourceBusy
+
+    port = sim_source.port  # type: ignore[attr-defined]
+    first = SerialPointSource(port, timeout_s=2.0)
+    first.open()
+    try:
+        second = SerialPointSource(port, timeout_s=2.0)  # another opener, this process
+        with pytest.raises(LightSourceBusy) as info:
+            second.open()
+        assert str(info.value) == (f"port {port} is in use by another process (close the "
+                                   "other connection to the point source first)")
+        assert not second.is_open
+        # and another process
+        code = ("import sys\nfrom drivers.lightsource import SerialPointSource, LightSourceBusy\n"
+                f"try:\n    SerialPointSource({port!r}, timeout_s=2.0).open()\n"
+                "except LightSourceBusy as e:\n    print(e); sys.exit(3)\n")
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              timeout=30)
+        assert proc.returncode == 3, proc.stderr
+        assert f"port {port} is in use by another process" in proc.stdout
+        first.on()  # undisturbed
+        assert first.status().is_on
+    finally:
+        first.close()
+    second.open()  # free again once the first closed it
+    try:
+        assert second.status().is_on
+    finally:
+        second.close()
+
+
+def test_a_strobe_shorter_than_the_resolution_sent_is_refused_before_sending(
+        light: LightSource) -> None:
+    """0.04 us went out as 'STROBE 0.0 0.0', and the firmware's refusal blamed the hardware."""
+    from drivers.lightsource import TIME_RESOLUTION_US
+
+    counter = light.status().counter
+    for short in (0.04, 0.049):
+        with pytest.raises(ValueError, match=r"shorter than the source's 0\.1 us resolution"):
+            light.strobe(0.0, short)
+    assert light.status().counter == counter  # nothing was sent
+    assert light.errors() == []
+    light.strobe(0.0, TIME_RESOLUTION_US)
+    assert light.status().strobe_duration_us == pytest.approx(0.1)
+
+
+def test_a_port_that_does_not_open_is_said_once(tmp_path: object) -> None:
+    """'cannot open point source on X: [Errno 2] could not open port X: [Errno 2] No such
+    file or directory: 'X''."""
+    missing = f"{tmp_path}/no-such-tty"
+    with pytest.raises(LightSourceDisconnected) as info:
+        SerialPointSource(missing).open()
+    assert str(info.value) == f"cannot open point source on {missing}: No such file or directory"
