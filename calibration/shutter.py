@@ -424,6 +424,17 @@ def _frame_rows(roi: Roi, binning: int, n_rows: int) -> list[np.ndarray]:
     return [roi.y + r * binning + np.arange(binning) for r in range(n_rows)]
 
 
+def _on_source_grid(t_us: float) -> float:
+    """``t_us`` on the point source's time grid (the strobe times it sends), one step at least.
+
+    A default pulse or delay step (from the camera's line time) off that grid went out rounded
+    while the analysis used the exact value.
+    """
+    from drivers.lightsource import TIME_RESOLUTION_US
+
+    return max(round(t_us / TIME_RESOLUTION_US), 1) * TIME_RESOLUTION_US
+
+
 def measure_shutter(
     camera: Camera,
     source: LightSource,
@@ -472,14 +483,15 @@ def measure_shutter(
         pulse = s.pulse_us
         if pulse is None:
             assert model is not None
-            pulse = min(model.line_time_us, model.exposure_us / 2.0)
+            # on the source's time grid: the analysis must use the pulse that is sent
+            pulse = _on_source_grid(min(model.line_time_us, model.exposure_us / 2.0))
         span = s.span_us
         if span is None:
             assert model is not None
             span = 1.25 * (model.trigger_delay_us + model.frame_time_us) + pulse
         step = s.step_us
         if step is None:  # half the pulse, coarser where the span needs more than max_delays
-            step = max(pulse / 2.0, span / max(1, s.max_delays - 1))
+            step = _on_source_grid(max(pulse / 2.0, span / max(1, s.max_delays - 1)))
         if not (pulse > 0 and step > 0 and span > 0):
             raise ValueError(f"pulse, step and span must be > 0 (got {pulse}, {step}, {span})")
         if model is not None and pulse > model.exposure_us / 2.0:

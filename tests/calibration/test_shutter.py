@@ -184,3 +184,17 @@ def test_a_scan_that_cannot_find_edges_is_refused_in_words(make_camera, source, 
     with pytest.raises(CalibrationError, match=message):
         list(Workflow(measure_shutter(cam, source, settings, out=tmp_path / "s.npz"), "s"))
     assert not (tmp_path / "s.npz").exists()
+
+
+def test_default_pulse_and_step_are_on_the_sources_time_grid(make_camera, source, tmp_path):
+    """A line time of 12.37 us made a 12.37 us default pulse and 6.185 us steps; the source
+    sent 12.4 us and delays rounded to 0.1 us while the analysis used the exact values."""
+    cam = make_camera(line_time_us=12.37, trigger_delay_us=30.0, exposure_us=160.0)
+    settings = ShutterSettings(intensity=1.0, n_darks=2, settle_frames=0)
+    wf = Workflow(measure_shutter(cam, source, settings, bin_lines=1, out=tmp_path / "s.npz"),
+                  "shutter")
+    list(wf)
+    m = wf.result.measurement
+    assert m.pulse_us == pytest.approx(12.4)  # what the source sends
+    # every delay is a multiple of 0.1 us, as the source sends it
+    assert np.allclose(m.delays_us, np.round(m.delays_us, 1), atol=1e-9)
