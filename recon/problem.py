@@ -52,9 +52,14 @@ Rules (the same for every command):
   the padded grid (``prob.sensor`` is the real sensor, ``metadata['window']`` its place).
 - **Field** (the scene): ``sensor`` (the real sensor's size), ``full`` (twice it) or an
   explicit (H, W) in pixels of the reconstruction grid (after downsampling).
-- **Truth**: (H, W), (H, W, 3), (C, H, W) or (C, K, H, W) on the scene field at sensor or
-  reconstruction resolution; colour, channel order, row flip and downsampling as above (it is
-  never normalised: score it with a gain fit).
+- **Truth**: (H, W), (H, W, 3), (C, H, W) or (C, K, H, W) (a gray scene of K frames, bands
+  or planes also takes a (K, H, W) stack) on the scene field, or one larger and cut to it, at
+  sensor or reconstruction resolution; colour, channel order, row flip and downsampling as
+  above (it is never normalised: score it with a gain fit). One preparation,
+  :func:`recon.truth.prepare_truth_like`, which ``lenslesscam metrics`` takes too; a truth of
+  a smaller field than the scene's is refused here (a run scores whole arrays; ``metrics``
+  scores its window), and so is a size that is one field on the grid and the other at sensor
+  resolution.
 """
 
 from __future__ import annotations
@@ -452,42 +457,73 @@ def read_truth(path: PathLike, *, color: str = "gray", channel_order: str = "rgb
     return np.ascontiguousarray(t, dtype=np.float32)
 
 
-def load_truth(spec: ProblemSpec, scene_shape: Sequence[int]) -> F32:
+def load_truth(spec: ProblemSpec, scene_shape: Sequence[int], *,
+               sensor: tuple[int, int] | None = None) -> F32:
     """The truth of ``spec`` on the reconstruction grid of a scene (C, K, H, W).
 
-    Colour, channel order and row flip as the spec says; a truth at sensor resolution is
-    box-downsampled by ``spec.downsample``.
+    Prepared as :func:`prepare_truth` prepares it, with the spec's colour, channel order, row
+    flip and downsampling, the scene's field (its H, W) and the sensor's field on the grid
+    (``sensor``; by default from ``spec.field``: the scene's for ``sensor``, half of it for
+    ``full``, the measurement file's size over the downsampling for an explicit field).
     """
     if spec.truth is None:
         raise ValueError("problem: no truth file given")
+    if sensor is None:
+        sensor = _sensor_on_grid(spec, scene_shape)
     return prepare_truth(spec.truth, scene_shape, color=spec.color,
                          channel_order=spec.channel_order, flip_rows=spec.flip_rows,
-                         downsample=spec.downsample)
+                         downsample=spec.downsample, sensor=sensor,
+                         kind=RECONSTRUCTION_KIND[spec.model])
+
+
+def _sensor_on_grid(spec: ProblemSpec, scene_shape: Sequence[int]) -> tuple[int, int] | None:
+    """The sensor's field on the reconstruction grid of a scene of ``spec`` (None: unknown)."""
+    h, w = int(scene_shape[-2]), int(scene_shape[-1])
+    if spec.field == "sensor":
+        return h, w
+    if spec.field == "full":
+        return h // 2, w // 2
+    from recon.readers import _MEAS_KEYS
+
+    try:  # an explicit field: the measurement's size (its file only read, nothing checked)
+        a = np.asarray(load_image(Path(spec.meas), prefer=_MEAS_KEYS))
+        hw = a.shape if a.ndim == 2 else to_channel_first(a).shape[-2:]
+    except (OSError, ValueError):
+        return None
+    ds = int(spec.downsample)
+    return int(hw[0]) // ds, int(hw[1]) // ds
 
 
 def prepare_truth(path: PathLike, scene_shape: Sequence[int], *, color: str = "gray",
                   channel_order: str = "rgb", flip_rows: bool = False,
-                  downsample: int = 1, key: str | None = None) -> F32:
+                  downsample: int = 1, key: str | None = None,
+                  sensor: tuple[int, int] | None = None, kind: str | None = None) -> F32:
     """A truth file read and prepared as a measurement with these settings is (C, K, H, W).
 
-    :func:`load_truth` for a problem; ``lenslesscam metrics`` with the settings a
-    reconstruction's metadata records.
+    :func:`recon.truth.prepare_truth_like`, the one preparation (``lenslesscam metrics``
+    takes it too): colour, channel order, row flip; a ``(K, H, W)`` stack for a gray scene of
+    K frames, bands or planes; a truth of the scene's field or of the ``sensor``'s (on the
+    grid, or at sensor resolution: box-downsampled), one larger than the scene's cut to it.
+    Refused in one line: a truth of a smaller field than the scene's (what a run scores, in
+    its run record, ``jobs combine`` and a batch, is the whole array: ``lenslesscam metrics``
+    scores such a truth on its window), and a size that could be either field.
     """
-    t = read_truth(path, color=color, channel_order=channel_order, key=key)
-    if flip_rows:
-        t = np.ascontiguousarray(t[:, :, ::-1])
+    from recon.truth import prepare_truth_like
+
     scene = tuple(int(n) for n in scene_shape)
-    ds = int(downsample)
-    if t.shape[0] != scene[0] or t.shape[1] != scene[1]:
-        raise ValueError(f"truth file {path} has shape {t.shape}; the scene is "
-                         f"{scene} (C, K, H, W)")
-    if t.shape[2:] == scene[2:]:
-        return t
-    if ds > 1 and (t.shape[2] // ds, t.shape[3] // ds) == scene[2:]:
-        return np.asarray(box_downsample(t, ds), dtype=np.float32)
-    more = f" or {scene[2] * ds}x{scene[3] * ds} (sensor resolution)" if ds > 1 else ""
-    raise ValueError(f"truth file {path} is {t.shape[2]}x{t.shape[3]}; the scene field "
-                     f"is {scene[2]}x{scene[3]}{more}")
+    layout = {"color": color, "channel_order": channel_order, "flip_rows": bool(flip_rows),
+              "downsample": int(downsample)}
+    t, prepared = prepare_truth_like(path, scene, layout, kind=kind, field=(scene[2], scene[3]),
+                                     sensor=sensor, key=key, dtype=np.float32)
+    if "scored_window" in prepared:
+        th, tw = prepared["field"]["truth"]
+        raise ValueError(f"truth file {path} covers {th}x{tw} on the reconstruction grid, part "
+                         f"of the scene field {scene[2]}x{scene[3]}: a run's scores (run "
+                         "record, jobs combine, batch) compare whole arrays and the scene "
+                         "around the truth is unknown; give a truth of the scene field, or "
+                         "score the result with lenslesscam metrics (it scores the truth's "
+                         "window)")
+    return t
 
 
 # --------------------------------------------------------------------------------------------
@@ -773,7 +809,8 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
                         mask=mask, shutter=shutter, filters=filters, field=fld, dtype=dt,
                         device=device)
 
-    truth = None if spec.truth is None else load_truth(spec, tuple(model.scene_shape))
+    truth = (None if spec.truth is None else
+             load_truth(spec, tuple(model.scene_shape), sensor=coarse))
 
     inputs: dict[str, dict[str, Any]] = {
         "psf": _describe(psf_label, psf_d), "measurement": _describe(spec.meas, meas_d)}

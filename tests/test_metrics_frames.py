@@ -272,6 +272,7 @@ def test_a_truth_that_cannot_be_prepared_is_refused_saying_why(tmp_path, capsys)
                   iters="5")
     line = _refused(capsys, "--ref", tmp_path / "truth.npy", "--est", full)
     assert "cannot tell which" in line and "12x16 for the sensor's field" in line
+    assert "48x64 for the scene field" in line  # the 2x field's one unambiguous size
     np.save(tmp_path / "grid.npy", _blocks(truth, 2))
     report = _score(capsys, tmp_path / "grid.npy", full)
     assert report["ref_prepared"]["field"]["offset"] == [6, 8]
