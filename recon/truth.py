@@ -39,7 +39,8 @@ import numpy.typing as npt
 
 from recon.preprocess import bin_time, box_downsample
 
-__all__ = ["TRUTH_KEYS", "prepare_truth_like", "result_fields", "truth_layout"]
+__all__ = ["TRUTH_KEYS", "prepare_truth_like", "result_fields", "truth_for_result",
+           "truth_layout"]
 
 Array = npt.NDArray[Any]
 PathLike = str | os.PathLike[str]
@@ -300,3 +301,26 @@ def prepare_truth_like(path: PathLike, est_shape: Sequence[int], layout: Mapping
                          f"{tuple(t.shape)}, the reconstruction {tuple(est_shape)} (C, K, H, W) "
                          f"(field {field[0]}x{field[1]} at downsample {ds}, {where})")
     return np.ascontiguousarray(t, dtype=dtype), prepared
+
+
+def truth_for_result(path: PathLike, est: Array, meta: Mapping[str, Any] | None, *,
+                     key: str | None = None) -> tuple[Array, Array, dict[str, Any]] | None:
+    """A truth file and a reconstruction (C, K, H, W) with its metadata, ready to compare.
+
+    The truth prepared like the result (:func:`prepare_truth_like` with the result's
+    :func:`truth_layout`, :func:`result_fields` and kind), and both cut to the truth's window
+    where it covers part of the result's field; with what was done. None when the metadata
+    does not say how the measurement was read (the caller compares the files as stored).
+    ``lenslesscam metrics`` and batch scores use it alike.
+    """
+    layout = truth_layout(meta)
+    if layout is None:
+        return None
+    field, sensor = result_fields(meta)
+    ref, prepared = prepare_truth_like(path, tuple(est.shape), layout,
+                                       kind=(meta or {}).get("kind"), field=field,
+                                       sensor=sensor, key=key, dtype=est.dtype)
+    if "scored_window" in prepared:  # the truth covers part of the result's field
+        r0, r1, c0, c1 = prepared["scored_window"]
+        ref, est = ref[..., r0:r1, c0:c1], est[..., r0:r1, c0:c1]
+    return ref, est, prepared

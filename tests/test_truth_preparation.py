@@ -142,6 +142,25 @@ def test_a_batch_items_score_of_a_flipped_video_is_metrics_score(tmp_path, capsy
     assert scored == pytest.approx(_psnr_vs(_blocks(truth, 2), out), abs=1e-4)
 
 
+def test_a_batch_scores_a_recon_auto_result_on_its_plans_grid(tmp_path, capsys):
+    """A batch scored a ``recon auto`` item with the problem loader's truth, which knows
+    nothing of the plan: a plan that downsampled or cut to a region was refused or compared
+    other pixels. It scores as ``metrics`` does, from the result's metadata."""
+    from app.batch.manifest import Item
+    from app.batch.task import _metrics as batch_metrics
+
+    _image(tmp_path)
+    argv = ("--psf", str(tmp_path / "psf.npy"), "--meas", str(tmp_path / "meas.npy"),
+            "--tau", "1e-3", "--set", "downsample=2", "--quiet")
+    out = tmp_path / "auto.tif"
+    code, _, err = _run(capsys, "recon", "auto", *argv, "--out", out)
+    assert code == 0, err
+    report = _metrics(capsys, tmp_path / "truth.npy", out)
+    assert report["ref_prepared"]["plan"]["downsample"] == 2
+    item = Item(id="a", method="auto", argv=argv, source="test", truth=str(tmp_path / "truth.npy"))
+    assert batch_metrics(item, out)["psnr"] == pytest.approx(report["psnr"], abs=1e-4)
+
+
 def _image(folder: Path) -> None:
     """A 2D measurement of a 24x32 sensor and its truth (the sensor's field), saved."""
     import torch

@@ -79,19 +79,26 @@ def _attempt(marker: Path) -> int:
 def _metrics(item: Item, output: Path) -> dict[str, Any]:
     """PSNR / SSIM / MS-SSIM of a fista/auto/... result against the item's truth.
 
-    After a least-squares gain fit (as ``lenslesscam metrics --gain-fit``); the truth is read
-    by the one loader (:func:`recon.problem.load_truth`: colour, downsampling as the item's
-    problem).
+    After a least-squares gain fit, the truth prepared as ``lenslesscam metrics --gain-fit``
+    prepares it (:func:`recon.truth.truth_for_result`: from the result's metadata, so a
+    ``recon auto`` result's plan (downsampling, region, merged shutter bins, planes) too);
+    a result without that metadata through the problem loader (:func:`recon.problem.load_truth`).
     """
-    from app.commands._inputs import problem_spec
     from recon.io import read_reconstruction
     from recon.metrics import metrics_report
-    from recon.problem import load_truth
+    from recon.truth import truth_for_result
 
-    args = parse_recon_args(item.method, [*item.argv, "--out", str(output)])
-    est, _ = read_reconstruction(output)
-    # the ProblemSpec the command builds from these options, with the item's truth
-    ref = load_truth(problem_spec(args, truth=item.truth), est.shape)
+    est, meta = read_reconstruction(output)
+    got = truth_for_result(item.truth, est, meta)
+    if got is None:
+        from app.commands._inputs import problem_spec
+        from recon.problem import load_truth
+
+        args = parse_recon_args(item.method, [*item.argv, "--out", str(output)])
+        # the ProblemSpec the command builds from these options, with the item's truth
+        ref = load_truth(problem_spec(args, truth=item.truth), est.shape)
+    else:
+        ref, est, _ = got
     return _numbers(metrics_report(ref, est, gain_fit=True))
 
 

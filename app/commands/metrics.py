@@ -161,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from recon.metrics import metrics_report, spectral_cosine_distance
-    from recon.truth import prepare_truth_like, result_fields, truth_layout
+    from recon.truth import truth_for_result, truth_layout
 
     est, est_kind, est_meta = _load(args.est, args.key)
     ref, ref_kind, ref_meta = _load(args.ref, args.key)
@@ -171,12 +171,9 @@ def run(args: argparse.Namespace) -> int:
     # read, scored against a plain file (not a reconstruction): the one preparation of a
     # truth, the problem loader's (recon.truth)
     if layout is not None and not args.ref_as_is and ref_meta is None:
-        field, sensor = result_fields(est_meta)
-        ref, prepared = prepare_truth_like(args.ref, tuple(est.shape), layout, kind=est_kind,
-                                           field=field, sensor=sensor, key=args.key)
-        if "scored_window" in prepared:  # the truth covers part of the result's field
-            r0, r1, c0, c1 = prepared["scored_window"]
-            ref, est = ref[..., r0:r1, c0:c1], est[..., r0:r1, c0:c1]
+        got = truth_for_result(args.ref, est, est_meta, key=args.key)
+        assert got is not None  # the layout is known
+        ref, est, prepared = got
     # two reconstructions: equal shapes do not make equal pixels (a 150x200 result of the
     # sensor field at downsample 1 and one of the 2x field at downsample 2 cover other scenes)
     ref_geo, est_geo = _geometry(ref_meta), _geometry(est_meta)
