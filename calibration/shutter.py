@@ -424,15 +424,18 @@ def _frame_rows(roi: Roi, binning: int, n_rows: int) -> list[np.ndarray]:
     return [roi.y + r * binning + np.arange(binning) for r in range(n_rows)]
 
 
-def _on_source_grid(t_us: float) -> float:
+def _on_source_grid(t_us: float, *, up: bool) -> float:
     """``t_us`` on the point source's time grid (the strobe times it sends), one step at least.
 
-    A default pulse or delay step (from the camera's line time) off that grid went out rounded
-    while the analysis used the exact value.
+    Down for the pulse (it must stay within half the exposure), up for the delay step (the
+    scan must stay within ``max_delays``). A default pulse or step (from the camera's line
+    time) off that grid went out rounded while the analysis used the exact value.
     """
     from drivers.lightsource import TIME_RESOLUTION_US
 
-    return max(round(t_us / TIME_RESOLUTION_US), 1) * TIME_RESOLUTION_US
+    n = t_us / TIME_RESOLUTION_US
+    steps = math.ceil(n - 1e-9) if up else math.floor(n + 1e-9)
+    return max(steps, 1) * TIME_RESOLUTION_US
 
 
 def measure_shutter(
@@ -484,14 +487,14 @@ def measure_shutter(
         if pulse is None:
             assert model is not None
             # on the source's time grid: the analysis must use the pulse that is sent
-            pulse = _on_source_grid(min(model.line_time_us, model.exposure_us / 2.0))
+            pulse = _on_source_grid(min(model.line_time_us, model.exposure_us / 2.0), up=False)
         span = s.span_us
         if span is None:
             assert model is not None
             span = 1.25 * (model.trigger_delay_us + model.frame_time_us) + pulse
         step = s.step_us
         if step is None:  # half the pulse, coarser where the span needs more than max_delays
-            step = _on_source_grid(max(pulse / 2.0, span / max(1, s.max_delays - 1)))
+            step = _on_source_grid(max(pulse / 2.0, span / max(1, s.max_delays - 1)), up=True)
         if not (pulse > 0 and step > 0 and span > 0):
             raise ValueError(f"pulse, step and span must be > 0 (got {pulse}, {step}, {span})")
         if model is not None and pulse > model.exposure_us / 2.0:

@@ -195,6 +195,29 @@ def test_default_pulse_and_step_are_on_the_sources_time_grid(make_camera, source
                   "shutter")
     list(wf)
     m = wf.result.measurement
-    assert m.pulse_us == pytest.approx(12.4)  # what the source sends
+    assert m.pulse_us == pytest.approx(12.3)  # what the source sends (down: within the line)
     # every delay is a multiple of 0.1 us, as the source sends it
     assert np.allclose(m.delays_us, np.round(m.delays_us, 1), atol=1e-9)
+
+
+def test_the_grid_keeps_the_pulse_within_half_the_exposure_and_the_scan_within_its_limit(
+        make_camera, source, tmp_path):
+    """Rounding to the nearest 0.1 us made a 6.185 us default pulse 6.2 us, over half a
+    12.37 us exposure (refused), and a span-limited step shorter, one delay over max_delays
+    (refused): the pulse goes down to the grid, the step up."""
+    cam = make_camera(line_time_us=12.37, trigger_delay_us=30.0, exposure_us=12.37)
+    settings = ShutterSettings(intensity=1.0, n_darks=2, settle_frames=0)
+    wf = Workflow(measure_shutter(cam, source, settings, bin_lines=1, out=tmp_path / "a.npz"),
+                  "shutter")
+    list(wf)
+    assert wf.result.measurement.pulse_us == pytest.approx(6.1)
+    cam = make_camera(line_time_us=12.5, trigger_delay_us=30.0, exposure_us=160.0)
+    span = 730.25
+    limit = 111  # span / (limit - 1) = 6.639 us: 6.6 would need 112 delays
+    settings = ShutterSettings(intensity=1.0, n_darks=2, settle_frames=0, span_us=span,
+                               max_delays=limit, pulse_us=10.0)
+    wf = Workflow(measure_shutter(cam, source, settings, bin_lines=1, out=tmp_path / "b.npz"),
+                  "shutter")
+    list(wf)
+    d = wf.result.measurement.delays_us
+    assert d.size <= limit and np.diff(d)[0] == pytest.approx(6.7)
