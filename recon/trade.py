@@ -288,20 +288,23 @@ def _udn_configs(cfg: Config, seed: int, max_iter: int) -> tuple[Any, Any]:
     return net, conf
 
 
-#: UDNConfig fields a trade row does not record: its ``iterations`` is the count, and a wall
-#: limit is the caller's (a plan's budget)
-UDN_RUN_LIMITS = ("max_iter", "time_limit_s")
+#: UDNConfig fields a trade row does not record: its ``iterations`` is the count and a wall
+#: limit is the caller's (a plan's budget); the seed is each job's own; how a run stops (the
+#: trade hides its own held-out pixels and runs without an early stop: a job made from the row
+#: keeps its held-out stop); and the machine's (compile, channels-last, snapshots)
+UDN_NOT_RECORDED = ("max_iter", "time_limit_s", "seed", "holdout", "patience", "min_iter",
+                    "min_delta", "compile", "channels_last", "snapshot_every")
 
 
 def udn_settings(cfg: Config, seed: int = 0) -> dict[str, Any]:
     """What a UDN setting of the grid runs: ``{"network": ..., "config": ...}`` (JSON-ready).
 
     Every field of :class:`recon.udn.NetworkConfig` and of :class:`recon.udn.UDNConfig`
-    except :data:`UDN_RUN_LIMITS`; a trade row records it (``udn_settings``) so that a plan
+    except :data:`UDN_NOT_RECORDED`; a trade row records it (``udn_settings``) so that a plan
     made from the row runs the network the row measured.
     """
     net, conf = _udn_configs(cfg, seed, max(cfg.checkpoints))
-    run = {k: v for k, v in conf.to_dict().items() if k not in UDN_RUN_LIMITS}
+    run = {k: v for k, v in conf.to_dict().items() if k not in UDN_NOT_RECORDED}
     return {"network": net.to_dict(), "config": run}
 
 

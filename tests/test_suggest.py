@@ -157,10 +157,11 @@ def test_plan_out_with_a_dark_level_does_not_warn_of_none(tmp_path: Path, capsys
 
 def _recorded(**config: object) -> dict:
     """A UDN row's recorded settings (recon.trade.udn_settings), some changed."""
+    from recon.trade import UDN_NOT_RECORDED
     from recon.udn import NetworkConfig, UDNConfig
 
-    run = {k: v for k, v in UDNConfig(precision="bf16", holdout=0.0, seed=2).to_dict().items()
-           if k not in ("max_iter", "time_limit_s")}
+    run = {k: v for k, v in UDNConfig(precision="bf16").to_dict().items()
+           if k not in UDN_NOT_RECORDED}
     run.update(config)
     return {"network": NetworkConfig(scales=4, channels=32, skip_channels=0).to_dict(),
             "config": run}
@@ -180,7 +181,8 @@ def test_a_trade_row_s_recorded_udn_settings_are_carried(tmp_path: Path) -> None
     (s,) = find_suggestions([tmp_path], h)
     assert s.settings == {"channels": 32, "precision": "bf16", "downsample": 2, "max_iter": 250}
     assert s.spec["network"]["skip_channels"] == 0 and s.spec["network"]["scales"] == 4
-    assert s.spec["stopping"]["holdout"] == 0.0 and s.spec["optimizer"]["seed"] == 2
+    # the trade's own stop and seed are not the row's settings: the job keeps its own
+    assert "holdout" not in s.spec.get("stopping", {}) and "seed" not in s.spec["optimizer"]
     assert s.spec["optimizer"]["gain"] == "auto" and s.spec["device"]["precision"] == "bf16"
     assert "max_iter" not in s.spec.get("stopping", {})  # the row's iterations are max_iter
     assert s.not_carried == ("config.future_knob",)
@@ -206,4 +208,4 @@ def test_a_udn_plan_carries_the_settings_it_runs(tmp_path: Path) -> None:
     write_plan_suggestion(tmp_path, plan, h)
     (s,) = find_suggestions([tmp_path], h)
     assert s.settings == {"downsample": 3, "max_iter": 700, "time_limit_s": 900.0}
-    assert s.spec["network"]["channels"] == 32 and s.spec["stopping"]["holdout"] == 0.0
+    assert s.spec["network"]["channels"] == 32 and "holdout" not in s.spec.get("stopping", {})

@@ -441,8 +441,12 @@ def test_a_udn_row_records_the_settings_it_ran_and_reads_them_back(tmp_path):
     assert fista.udn_settings is None
     net, run = udn.udn_settings["network"], udn.udn_settings["config"]
     assert net["scales"] == 2 and net["channels"] == 4 and net["variant"] == "2d"
-    assert run["holdout"] == 0.0 and run["seed"] == 3 and run["precision"] == "float32"
-    assert "max_iter" not in run and "time_limit_s" not in run  # the row's count, the budget
+    assert run["lr"] == 0.01 and run["ema"] == 0.9 and run["precision"] == "float32"
+    # not the row's: its count, the budget, the seed, the trade's own stop (no held-out
+    # pixels of the network's: a job made from the row keeps its early stop), the machine's
+    for key in ("max_iter", "time_limit_s", "seed", "holdout", "patience", "min_iter",
+                "min_delta", "compile", "channels_last", "snapshot_every"):
+        assert key not in run, key
     path = write_trade_csv(tmp_path / "trade.csv", rows, [_case()])
     assert [r.udn_settings for r in read_trade(path).rows] == [None, udn.udn_settings]
     # a cell that is not the settings object: one line naming the file, line and column
