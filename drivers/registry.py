@@ -92,24 +92,6 @@ def parse_camera_spec(spec: str) -> CameraSpec:
     return CameraSpec(name, arg)
 
 
-def _sequence_regex(pattern_name: str) -> re.Pattern[str] | None:
-    """The file names a printf-style sequence pattern (``%04d.png``) stands for, or None."""
-    parts: list[str] = []
-    pos = 0
-    found = False
-    for m in re.finditer(r"%(%|0?(\d*)d)", pattern_name):
-        parts.append(re.escape(pattern_name[pos:m.start()]))
-        if m.group(1) == "%":
-            parts.append("%")
-        else:
-            found = True
-            width = m.group(2)
-            parts.append(rf"\d{{{int(width)},}}" if width else r"\d+")
-        pos = m.end()
-    parts.append(re.escape(pattern_name[pos:]))
-    return re.compile("".join(parts)) if found else None
-
-
 def camera_source_match(spec: str | CameraSpec, path: str | os.PathLike[str]) -> Path | None:
     """The file camera ``spec`` reads that an output ``path`` must not be, or None.
 
@@ -124,20 +106,22 @@ def camera_source_match(spec: str | CameraSpec, path: str | os.PathLike[str]) ->
         return None
     out = Path(path)
     # a file that exists is a video even with a % in its name (as drivers.v4l2 reads it)
-    is_pattern = "%" in source and not os.path.isfile(source)
-    regex = _sequence_regex(Path(source).name) if is_pattern else None
-    if regex is None:
+    if "%" not in source or os.path.isfile(source):
         return Path(source)  # the one file: the output check compares the paths
+    from drivers.v4l2 import sequence_name_of  # the camera's own rule of a sequence's names
+
+    pattern = Path(source).name
     folder = Path(source).parent
     try:
-        if out.resolve().parent == folder.resolve() and regex.fullmatch(out.resolve().name):
+        if out.resolve().parent == folder.resolve() and sequence_name_of(pattern,
+                                                                          out.resolve().name):
             return out
         if not out.exists():
             return None
         same = os.stat(out)
         with os.scandir(folder) as entries:
             for entry in entries:
-                if regex.fullmatch(entry.name):
+                if sequence_name_of(pattern, entry.name):
                     st = entry.stat()
                     if (st.st_dev, st.st_ino) == (same.st_dev, same.st_ino):
                         return Path(entry.path)

@@ -174,6 +174,23 @@ def _sequence_indices(pattern: str, conv: re.Match[str]) -> list[int]:
     return sorted(out)
 
 
+def sequence_name_of(pattern_name: str, name: str) -> bool:
+    """Whether the file ``name`` is a frame of the sequence ``pattern_name`` (both file names).
+
+    The rule the camera reads a sequence by (one ``%d`` or ``%0Nd``, ``pattern % index`` is
+    the name exactly): the output checks of ``snap`` and ``calibrate`` use it too, so what
+    the camera reads and what they protect are the same files. False for a name that is not
+    a pattern.
+    """
+    try:
+        conv = _check_pattern(pattern_name)
+    except ValueError:
+        return False
+    prefix, suffix = pattern_name[: conv.start()], pattern_name[conv.end() :]
+    m = re.fullmatch(re.escape(prefix) + r"( *\d+)" + re.escape(suffix), name, re.ASCII)
+    return bool(m) and pattern_name % int(m.group(1)) == name
+
+
 def _pattern_suggestion(path: str) -> str:
     """``frames/0007.png`` -> ``frames/%04d.png`` (the last run of digits in the name)."""
     head, name = os.path.split(path)

@@ -253,3 +253,18 @@ def test_a_folder_is_refused_with_a_pattern(seq: Callable[..., str]) -> None:
     folder = str(Path(seq("dir", 2)).parent)
     with pytest.raises(FileNotFoundError, match=r"is a folder.*%04d\.png"):
         V4L2Camera(folder).open()
+
+
+def test_the_output_check_protects_the_files_the_camera_reads(tmp_path):
+    """The registry's own pattern rule missed a space-padded %4d frame ("   7.png"), which
+    the camera reads: one rule now (drivers.v4l2.sequence_name_of)."""
+    from drivers.registry import camera_source_match
+    from drivers.v4l2 import sequence_name_of
+
+    assert sequence_name_of("%4d.png", "   7.png") and sequence_name_of("%04d.png", "0007.png")
+    assert not sequence_name_of("%04d.png", "7.png") and not sequence_name_of("x.png", "x.png")
+    (tmp_path / "   7.png").write_bytes(b"")
+    spec = f"v4l2:{tmp_path}/%4d.png"
+    assert camera_source_match(spec, tmp_path / "   7.png") == tmp_path / "   7.png"
+    assert camera_source_match(spec, tmp_path / "  12.png") is not None  # a frame to come
+    assert camera_source_match(spec, tmp_path / "other.png") is None
