@@ -71,17 +71,13 @@ def input_hashes_of_files(meas_path: str | os.PathLike[str],
     the reader the app loads PSFs with; so ``plan --out`` and ``trade`` of a snapshot are
     offered in the app's job dialog for that snapshot.
     """
-    import warnings
-
-    from recon.checks import MeasurementWarning
-    from recon.psfcheck import PsfWarning
+    from recon.inputwarnings import collect_input_warnings
     from recon.readers import load_measurement, load_psf_any
 
     # read again only to be hashed: what the files hold was said (or not) by the command's
-    # own read with the user's settings ("no dark level" was printed here despite --dark)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", MeasurementWarning)
-        warnings.simplefilter("ignore", PsfWarning)
+    # own read with the user's settings ("no dark level" was printed here despite --dark);
+    # kept quiet in this thread only (a catch of warnings is process-wide)
+    with collect_input_warnings(emit=False):
         meas = load_measurement(meas_path, normalise=None)[0]
         psf = load_psf_any(psf_path)
     return input_hashes(meas, psf)
