@@ -74,13 +74,17 @@ AUTO_MAX_ITER = 500
 MIN_RELIABLE_HELDOUT = 100
 
 
-def few_heldout_note(n: int, what: str) -> str | None:
-    """One line when ``n`` held-out pixels are too few to choose ``what`` on; else None."""
+def few_heldout_note(n: int, what: str,
+                     against: str = "more than the taus' differences") -> str | None:
+    """One line when ``n`` held-out pixels are too few to choose ``what`` on; else None.
+
+    ``against``: what that uncertainty is compared with, in words.
+    """
     if n >= MIN_RELIABLE_HELDOUT:
         return None
     return (f"only {n} held-out pixels choose {what} (fewer than {MIN_RELIABLE_HELDOUT}: their "
-            f"error is known to about {100 * math.sqrt(2 / max(n, 1)):.0f} % of itself, more "
-            "than the taus' differences): the choice is uncertain")
+            f"error is known to about {100 * math.sqrt(2 / max(n, 1)):.0f} % of itself, "
+            f"{against}): the choice is uncertain")
 
 
 @dataclass(frozen=True)

@@ -389,7 +389,8 @@ class UDNRunner(Stepwise[UDNStep]):
         if self.n_heldout:
             from recon.autotau import few_heldout_note
 
-            few = few_heldout_note(self.n_heldout, "the stopping iteration")
+            few = few_heldout_note(self.n_heldout, "the stopping iteration",
+                                   "more than it changes over many iterations")
             if few is not None:  # kept in the run record's notes
                 self.notes.append(f"{few}; raise holdout ({cfg.holdout:g}) or set the "
                                   "iteration count (max_iter) yourself")
