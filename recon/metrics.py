@@ -21,7 +21,13 @@ Conventions, stated once:
   at 0 (as TensorFlow does) so the fractional powers stay defined. An image smaller than
   176 px (what 5 scales of the 11 px window need) is scored with fewer scales, the first n
   weights renormalised to sum 1 (:func:`ms_ssim_scales`); reports say how many were used
-  (``ms_ssim_scales``), since scores with different scale counts are not comparable.
+  (``ms_ssim_scales``), since scores with different scale counts are not comparable;
+- a report (:func:`metrics_report`) refuses a constant reference (all zero included): there is
+  nothing to score against, and after a gain fit an all-zero one scored every estimate as
+  perfect. It says so instead of fitting a gain to an all-zero estimate (undefined: every gain
+  scores the same; ``gain`` None, ``gain_note``), and it notes (``scale_note``) an unfitted
+  estimate whose peak magnitude is more than :data:`SCALE_NOTE_FACTOR` times off the
+  reference's (a 0..255 image against a 0..1 truth scores -40 dB for its units alone).
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ import numpy.typing as npt
 
 __all__ = [
     "MS_SSIM_WEIGHTS",
+    "SCALE_NOTE_FACTOR",
     "SSIM_K1",
     "SSIM_K2",
     "SSIM_SIGMA",
@@ -59,6 +66,10 @@ SSIM_SIGMA = 1.5
 SSIM_K1 = 0.01
 SSIM_K2 = 0.03
 MS_SSIM_WEIGHTS: tuple[float, ...] = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)
+#: an unfitted estimate whose peak magnitude is more than this factor above or below the
+#: reference's gets a ``scale_note`` in :func:`metrics_report` (a reconstruction is often about
+#: twice as bright as its truth; a 0..255 image against a 0..1 truth is 255 times)
+SCALE_NOTE_FACTOR = 10.0
 
 
 def _check(ref: Array, est: Array, *, min_ndim: int = 1) -> tuple[F64, F64]:
@@ -259,7 +270,8 @@ def gain_fit(ref: Array, est: Array) -> tuple[Array, float]:
 
     The scale of a reconstruction is often arbitrary (a unit-sum PSF and a max-1 measurement
     make the recovered scene about twice as bright as the truth), so scores are taken after
-    this fit when stated. An all-zero ``est`` gives ``g = 1``. The scaled estimate keeps
+    this fit when stated. An all-zero ``est`` gives ``g = 1`` (no gain is defined there;
+    :func:`metrics_report` reports none). The scaled estimate keeps
     ``est``'s float dtype (float64 for integer input).
     """
     r, e = _check(ref, est)
@@ -332,12 +344,30 @@ def metrics_report(
     without a fit), ``gain_fit`` (whether ``est``
     was scaled by the least-squares gain before scoring), ``data_range`` and
     ``data_range_source``, ``shape``. ``psnr`` is ``inf`` for identical arrays.
+
+    A constant ``ref`` (all zero included) is refused (ValueError): nothing to score against.
+    With ``gain_fit`` and an all-zero ``est`` no gain is fitted (none is defined; every gain
+    scores the same): ``gain`` None, ``gain_fit`` False and ``gain_note`` say so. Without
+    ``gain_fit``, peak magnitudes more than :data:`SCALE_NOTE_FACTOR` apart add ``scale_note``.
     """
     r, e = _check(ref, est, min_ndim=2)
-    g = 1.0
-    if gain_fit:
-        e_scaled, g = _gain(r, e)
-        e = e_scaled
+    lo, hi = float(r.min()), float(r.max())
+    if lo == hi:
+        raise ValueError(f"ref is constant (every value is {lo:g}): nothing to score against")
+    g: float | None = 1.0
+    fitted = False
+    notes: dict[str, str] = {}
+    if gain_fit and not np.any(e):
+        g = None
+        notes["gain_note"] = ("no gain fitted: est is all zero, so no least-squares gain is "
+                              "defined (every gain scores the same); scored as it is")
+    elif gain_fit:
+        e, g = _gain(r, e)
+        fitted = True
+    else:
+        note = _scale_note(r, e)
+        if note:
+            notes["scale_note"] = note
     L = _data_range(r, data_range)
     report: dict[str, Any] = {
         "mse": mse(r, e),
@@ -369,10 +399,29 @@ def metrics_report(
     report.update(
         {
             "gain": g,
-            "gain_fit": bool(gain_fit),
+            "gain_fit": fitted,
             "data_range": L,
             "data_range_source": "given" if data_range is not None else "ref.max() - ref.min()",
             "shape": list(r.shape),
+            **notes,
         }
     )
     return report
+
+
+def _scale_note(r: F64, e: F64) -> str | None:
+    """A note when the peak magnitudes of ``r`` and ``e`` are far apart (None: they are not).
+
+    More than :data:`SCALE_NOTE_FACTOR` apart, compared as logarithms (no overflow at 1e300);
+    an all-zero ``e`` has no scale to compare.
+    """
+    pr, pe = float(np.max(np.abs(r))), float(np.max(np.abs(e)))
+    if pr == 0.0 or pe == 0.0:
+        return None
+    apart = abs(math.log10(pe) - math.log10(pr))
+    if apart <= math.log10(SCALE_NOTE_FACTOR):
+        return None
+    factor = f"{10.0 ** apart:.3g}" if apart < 300 else f"1e{apart:.0f}"
+    return (f"est's values reach {pe:.4g} and ref's {pr:.4g} ({factor} times "
+            f"{'larger' if pe > pr else 'smaller'}): the scores compare different scales; "
+            "a gain fit (--gain-fit) scores est after the least-squares gain")

@@ -21,7 +21,10 @@ def register(subparsers: Any) -> None:
             "reconstruction TIFF, or --spectral) also spectral_cosine_distance (mean 1 - cos "
             "of the spectral angle) and spectral_angle_deg. Files: a lenslesscam "
             "reconstruction TIFF (C, K, H, W), any TIFF, PNG, NPY, NPZ or MAT image. "
-            "data_range defaults to ref.max() - ref.min()."
+            "data_range defaults to ref.max() - ref.min(). A constant GT (all zero included) "
+            "is refused: nothing to score against. Without --gain-fit, EST and GT whose "
+            "largest magnitudes are more than 10 times apart (a 0..255 image against a 0..1 "
+            "truth) get scale_note, also on stderr."
         ),
     )
     p.add_argument("--ref", required=True, type=Path, metavar="GT", help="reference file")
@@ -29,7 +32,8 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--gain-fit",
         action="store_true",
-        help="scale EST by the least-squares gain <ref,est>/<est,est> before scoring",
+        help="scale EST by the least-squares gain <ref,est>/<est,est> before scoring (an "
+        "all-zero EST has none: gain null, gain_fit false and gain_note, also on stderr)",
     )
     p.add_argument(
         "--data-range",
@@ -157,6 +161,7 @@ def _jsonable(v: Any) -> Any:
 def run(args: argparse.Namespace) -> int:
     """Load both files, compute :func:`recon.metrics.metrics_report`, print it as JSON."""
     import json
+    import sys
 
     import numpy as np
 
@@ -188,7 +193,13 @@ def run(args: argparse.Namespace) -> int:
             f"shapes differ: ref {args.ref} is {tuple(ref.shape)} (C, K, H, W), est {args.est} "
             f"is {tuple(est.shape)}"
         )
-    report = metrics_report(ref, est, gain_fit=args.gain_fit, data_range=args.data_range)
+    try:
+        report = metrics_report(ref, est, gain_fit=args.gain_fit, data_range=args.data_range)
+    except ValueError as exc:  # a constant ref, NaN values: say which files
+        raise ValueError(f"{exc} (ref {args.ref}, est {args.est})") from None
+    for key in ("scale_note", "gain_note"):  # also in the JSON
+        if key in report:
+            print(f"lenslesscam metrics: note: {report[key]}", file=sys.stderr)
     report = {"ref": str(args.ref), "est": str(args.est), **report}
     if prepared is not None:
         report["ref_prepared"] = prepared

@@ -227,7 +227,9 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
             truth = None  # the truth moved or changed: the ensemble is still written
         if truth is not None and truth.size == x.size:
             rep = metrics_report(truth.reshape(x.shape), x, gain_fit=True)
-            scores = {k: float(v) for k, v in rep.items() if k in ("psnr", "ssim", "gain", "mse")}
+            # None where a score is undefined (SSIM of a tiny image, the gain of a zero one)
+            scores = {k: None if v is None else float(v) for k, v in rep.items()
+                      if k in ("psnr", "ssim", "gain", "mse")}
     from recon.io import save_reconstruction
 
     metadata = {
