@@ -143,6 +143,9 @@ def test_settings_persist_between_sessions(make_window: Any, qtbot: Any) -> None
     w.device_panel.scene_combo.setCurrentIndex(w.device_panel.scene_combo.findData("im740"))
     w.camera_controls.exposure.setValue(8.0)
     qtbot.waitUntil(lambda: abs(w.bench.camera.exposure_us - 8000.0) < 20, timeout=5_000)
+    # the settings keep what the camera reports, which reaches the window after the camera
+    # has it (the worker's answer is queued to the GUI thread): under load it came later
+    qtbot.waitUntil(lambda: abs((w.settings.exposure_us or 0) - 8000.0) < 20, timeout=5_000)
     w.close()
     assert settings_path().exists()
     s = load_settings()
