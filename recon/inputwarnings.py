@@ -51,8 +51,11 @@ def warn_input(message: str, category: type[Warning], stacklevel: int = 1) -> No
         return
     g = frame.f_globals
     registry = open_[-1].registry if open_ else g.setdefault("__warningregistry__", {})
+    # module_globals lets the warning show its source line; code without a file (python -c,
+    # an interactive session) has a loader that cannot give it (ImportError in linecache)
     warnings.warn_explicit(message, category, frame.f_code.co_filename, frame.f_lineno,
-                           module=g.get("__name__"), registry=registry, module_globals=g)
+                           module=g.get("__name__"), registry=registry,
+                           module_globals=g if g.get("__file__") else None)
 
 
 @contextmanager

@@ -78,3 +78,21 @@ def test_a_quiet_collection_keeps_without_emitting() -> None:
     with collect_input_warnings() as outer, collect_input_warnings(emit=False) as quiet:
         check_measurement(SATURATED, 1.0, warn=True)  # pytest's "error" filter: not reached
     assert quiet == outer and "saturated" in quiet[0]
+
+
+def test_a_warning_from_code_without_a_file_is_shown(tmp_path):
+    """``python -W always -c ...`` ended in "ImportError: '__main__' is not a built-in
+    module": the warning asked the -c code's loader for its source line."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("from recon.inputwarnings import warn_input\n"
+            "from recon.checks import MeasurementWarning\n"
+            "warn_input('the message', MeasurementWarning)\n")
+    r = subprocess.run([sys.executable, "-W", "always", "-c", code], capture_output=True,
+                       text=True, timeout=120, cwd=tmp_path,
+                       env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])})
+    assert r.returncode == 0, r.stderr
+    assert "MeasurementWarning: the message" in r.stderr
