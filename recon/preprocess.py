@@ -33,6 +33,7 @@ __all__ = [
     "downsample_masked",
     "downsample_rows",
     "normalise",
+    "normalise_factor",
     "subtract_dark",
     "to_channel_first",
     "to_gray",
@@ -92,15 +93,25 @@ def subtract_dark(a: Array, dark: float | Array | Literal["auto"]) -> Array:
         level = auto_dark_level(arr)
         return np.asarray(arr - level.astype(arr.dtype))
     d = np.asarray(dark)
+    top = float(np.finfo(arr.dtype).max)  # beyond it the cast overflows to inf (numpy warns)
     if d.ndim == 0:
         if not (math.isfinite(float(d)) and float(d) >= 0):
             raise ValueError(f"dark level must be a finite number >= 0 (the sensor's black "
                              f"offset), got {float(d)}")
+        if float(d) > top:
+            raise ValueError(f"dark level {float(d):g} is beyond the range of the {arr.dtype} "
+                             f"image it is subtracted from (up to {top:.3g}): it would leave "
+                             "every pixel at -inf; give the sensor's black level in the file's "
+                             "units")
         return np.asarray(arr - arr.dtype.type(float(d)))
     if d.shape != arr.shape[arr.ndim - d.ndim :] or d.ndim > arr.ndim:
         raise ValueError(f"dark frame shape {d.shape} does not match image shape {arr.shape}")
     if not np.all(np.isfinite(d)):
         raise ValueError("dark frame contains NaN or infinite values")
+    big = float(np.max(np.abs(d))) if d.size and d.dtype.kind == "f" else 0.0
+    if big > top:
+        raise ValueError(f"dark frame has values up to {big:.3g}, beyond the range of the "
+                         f"{arr.dtype} image it is subtracted from (up to {top:.3g}); rescale it")
     return np.asarray(arr - d.astype(arr.dtype))
 
 
@@ -208,8 +219,22 @@ def bin_time(shutter: Array, factor: int) -> npt.NDArray[np.float64]:
 def normalise(a: Array, mode: NormMode = "max") -> Array:
     """Scale ``a`` so its maximum (``'max'``), total (``'sum'``) or L2 norm (``'l2'``) is 1.
 
-    One factor for the whole array, so the relative weights of channels and planes are kept.
-    Raises ValueError when that quantity is zero, negative or not finite.
+    One factor for the whole array, so the relative weights of channels and planes are kept:
+    ``a`` divided by :func:`normalise_factor` ``(a, mode)``. Raises ValueError when that
+    quantity is zero, negative or not finite.
+    """
+    arr = _as_float(a)
+    s = normalise_factor(arr, mode)
+    if s > float(np.finfo(arr.dtype).max):  # the factor itself overflows the array's type
+        return np.asarray(arr.astype(np.float64) / s).astype(arr.dtype)
+    return np.asarray(arr / arr.dtype.type(s))
+
+
+def normalise_factor(a: Array, mode: NormMode = "max") -> float:
+    """The factor :func:`normalise` divides ``a`` by: its maximum, total or L2 norm.
+
+    A Python float (in the units of ``a``), so a caller can record it and undo the scaling.
+    Raises ValueError when it is zero, negative or not finite.
     """
     arr = _as_float(a)
     if mode == "max":
@@ -222,9 +247,7 @@ def normalise(a: Array, mode: NormMode = "max") -> Array:
         raise ValueError(f"normalise mode must be 'max', 'sum' or 'l2', got {mode!r}")
     if not math.isfinite(s) or s <= 0:
         raise ValueError(f"cannot normalise by {mode}: it is {s} (must be positive)")
-    if s > float(np.finfo(arr.dtype).max):  # the factor itself overflows the array's type
-        return np.asarray(arr.astype(np.float64) / s).astype(arr.dtype)
-    return np.asarray(arr / arr.dtype.type(s))
+    return s
 
 
 def to_channel_first(a: Array, layout: Literal["auto", "hwc", "chw"] = "auto") -> Array:

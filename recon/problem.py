@@ -14,7 +14,9 @@ API::
                     # dark-frame files by their file hash alone)
     prob.hashes     # name -> file hash
     prob.metadata   # the preprocessing (mask_hash, psf_grid, ...), for a result's metadata;
-                    # metadata['warnings']: the input warnings (measurement, PSF) as text
+                    # metadata['warnings']: the input warnings (measurement, PSF) as text;
+                    # metadata['meas_scale']: what the measurement was divided by (its
+                    # normalisation, in the file's units after dark subtraction; 1.0: none)
     prob.sensor     # the real sensor on the reconstruction grid (rows, cols)
     ProblemSpec.from_data_section(d) / spec.to_data_section()   # the [data] table of a job
     load_truth(spec, scene_shape)   # only the truth, prepared as load_problem prepares it
@@ -90,6 +92,7 @@ from recon.preprocess import (
     downsample_masked,
     downsample_rows,
     normalise,
+    normalise_factor,
     to_channel_first,
     to_gray,
 )
@@ -727,7 +730,11 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
         raise ValueError(f"measurement file {spec.meas} is all zero{where} (after dark "
                          "subtraction and downsampling)")
     mn = _norm(spec.meas_normalise)
+    # the factor divided out (file units after dark subtraction, on the reconstruction grid):
+    # a result times it is the scene in the measurement's units (for a unit-sum PSF)
+    meas_scale = 1.0
     if mn is not None:
+        meas_scale = normalise_factor(meas_d, mn)
         meas_d = normalise(meas_d, mn).astype(np.float32)
 
     # PSF downsampling and normalisation
@@ -813,7 +820,8 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
              load_truth(spec, tuple(model.scene_shape), sensor=coarse))
 
     inputs: dict[str, dict[str, Any]] = {
-        "psf": _describe(psf_label, psf_d), "measurement": _describe(spec.meas, meas_d)}
+        "psf": _describe(psf_label, psf_d),
+        "measurement": {**_describe(spec.meas, meas_d), "meas_scale": meas_scale}}
     if spec.mask is not None:
         inputs["mask"] = _describe(spec.mask, mask)
     if shutter is not None:
@@ -839,6 +847,9 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
         "measured_fraction": None if mask is None else float(mask.mean()),
         "mask_hash": None if mask is None else array_hash(mask),
         "psf_normalise": pn, "meas_normalise": spec.meas_normalise,
+        # what the measurement was divided by (meas_normalise; 1.0 for none), in the file's
+        # units after dark subtraction, so a result's absolute scale can be recovered
+        "meas_scale": meas_scale,
     }
     if spec.model != "depth" and color == "rgb" and psf.shape[0] == 1:
         meta["psf_channels"] = "one gray PSF shared by R, G and B"

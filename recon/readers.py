@@ -267,6 +267,8 @@ def _validate_raw(a: Array, p: Path, what: str) -> None:
         )
     if a.size == 0:
         raise ValueError(f"{what} file {p} is empty (shape {a.shape})")
+    if dt.kind == "f":
+        _check_subnormal(a, p, what)
     if dt.kind == "f" and dt.itemsize > 4:  # read into float32: its range must hold the values
         top = float(np.max(np.abs(a)))
         f32 = np.finfo(np.float32)
@@ -277,6 +279,24 @@ def _validate_raw(a: Array, p: Path, what: str) -> None:
             raise ValueError(f"{what} file {p} has values no larger than {top:.3g}, below the "
                              f"float32 range (from {float(f32.smallest_normal):.3g}) it is read "
                              "into; rescale it")
+
+
+def _check_subnormal(a: Array, p: Path, what: str) -> None:
+    """Refuse float data whose largest magnitude is below its dtype's smallest normal number.
+
+    Such values are subnormal: they keep fewer significant bits the smaller they are (a
+    float32 image scaled by 1e-44 holds 7 distinct values and reconstructs as noise), so the
+    image is lost to rounding, or all but; it is a file written in the wrong units.
+    """
+    fi = np.finfo(a.dtype)
+    top = float(np.max(np.abs(a)))
+    if not 0.0 < top < float(fi.smallest_normal):
+        return
+    bits = max(1, int(np.floor(np.log2(top / float(fi.smallest_subnormal)))) + 1)
+    raise ValueError(f"{what} file {p} has values no larger than {top:.3g}, below the smallest "
+                     f"normal {a.dtype} number ({float(fi.smallest_normal):.3g}): subnormal "
+                     f"numbers that keep at most {bits} significant bits ({fi.nmant + 1} in "
+                     f"a normal {a.dtype}); save the data in its own units (or rescale it)")
 
 
 def _to_chw(a: Array, p: Path, what: str) -> Array:
@@ -465,6 +485,8 @@ def _prepare(
         from recon.psfcheck import check_psf
 
         check_psf(raw, warn=True, name=f"PSF file {p}")
+        if dark is None:
+            _check_psf_black_level(raw, p, what)
     elif what == "measurement":
         _check_saturation(raw, p)
         if dark is None:
@@ -474,31 +496,67 @@ def _prepare(
     arr = _as_float(chw).astype(np.float32, copy=False)
     d = _dark_for(dark, key, arr, channels, what, p, order)
     if d is not None:
-        arr = subtract_dark(arr, d).astype(np.float32, copy=False)
-    if what == "measurement":
-        _check_negative(arr, p, dark, measured)
+        arr = _subtract_dark(arr, d, p, what)
+    _check_negative(arr, p, dark, measured, what)
     out = clip_nonneg(box_downsample(arr, downsample)).astype(np.float32, copy=False)
     return out, p
 
 
-def _check_negative(arr: Array, p: Path, dark: DarkSpec, measured: Array | None) -> None:
-    """Warn of a measurement mostly below 0 after its dark level, before the clip at 0.
+def _subtract_dark(arr: Array, d: Any, p: Path, what: str) -> F32:
+    """:func:`subtract_dark` into float32, its errors naming the file."""
+    try:
+        return subtract_dark(arr, d).astype(np.float32, copy=False)
+    except ValueError as exc:
+        raise ValueError(f"{what} file {p}: {exc}") from None
 
-    The rule is :func:`recon.checks.negative_measurement` (a fraction of the measured pixels
-    and a depth relative to the maximum: read noise around a correct dark stays silent).
-    ``measured``: the mask (H, W) of the file's pixels, when known; else every pixel counts.
+
+def _check_psf_black_level(raw: Array, p: Path, what: str, stacklevel: int = 4) -> None:
+    """Warn of a raw (integer) PSF, read with no dark level, whose floor holds much light.
+
+    The rule is :data:`recon.psfcheck.FLOOR_WARN_SHARE`: a caustic's darkest pixels hold
+    almost none of its light, so a floor (its 0.1th percentile) that would hold 5 % or more
+    of it is a black level (or ambient light), which the reconstruction takes for light.
     """
-    from recon.checks import MeasurementWarning, negative_measurement
+    from recon.psfcheck import FLOOR_WARN_SHARE, PsfWarning, psf_floor
+
+    if raw.dtype.kind not in "ui" or raw.size == 0:
+        return
+    floor, share = psf_floor(raw)
+    if share < FLOOR_WARN_SHARE:
+        return
+    warn_input(
+        f"{what} file {p}: raw {raw.dtype} data read with no dark level, and its darkest pixels "
+        f"are at {floor:g} counts, a floor that holds {100 * share:.0f} % of its light (a "
+        "caustic's darkest pixels hold almost none): a sensor's black level would be taken for "
+        "light; give the dark level: --dark N (the PSF's too) or --psf-dark N; 0 if the camera "
+        "removes it", PsfWarning, stacklevel=stacklevel)
+
+
+def _check_negative(arr: Array, p: Path, dark: DarkSpec, measured: Array | None,
+                    what: str = "measurement", stacklevel: int = 4) -> None:
+    """Warn of a measurement or PSF mostly below 0 after its dark level, before the clip at 0.
+
+    The rule is :func:`recon.checks.negative_after_dark`, one entry for both: more than 5 %
+    of the (measured) pixels negative, and deep enough to matter (a measurement: below -5 % of
+    its maximum; a PSF, whose peaks hide that: together 5 % of its light); read noise around a
+    correct dark stays silent. ``measured``: the mask (H, W) of the file's pixels, when
+    known; else every pixel counts. ``what``: ``'measurement'`` (a
+    :class:`MeasurementWarning`), ``'PSF'`` or ``'PSF stack'`` (a :class:`PsfWarning`).
+    """
+    from recon.checks import MeasurementWarning, negative_after_dark
+    from recon.psfcheck import PsfWarning
 
     mask = None
     if measured is not None and np.shape(measured) == arr.shape[-2:]:
         mask = measured
-    msg = negative_measurement(arr, mask)
+    is_meas = what == "measurement"
+    msg = negative_after_dark(arr, mask, kind="measurement" if is_meas else "PSF")
     if msg is None:
         return
     how = (f"with dark {_describe_dark(dark)}" if dark is not None else
            "read with no dark level (negative in the file)")
-    warn_input(f"measurement file {p} {how}: {msg}", MeasurementWarning, stacklevel=4)
+    warn_input(f"{what} file {p} {how}: {msg}", MeasurementWarning if is_meas else PsfWarning,
+               stacklevel=stacklevel)
 
 
 def load_psf(
@@ -528,9 +586,15 @@ def load_psf(
         shared_gray: with ``channels='rgb'``, a grayscale file gives its one plane
             (``C = 1``, a PSF the colour channels share) instead of an error.
 
+    Warns (:class:`recon.psfcheck.PsfWarning`): a constant or clipped PSF; a raw (integer)
+    PSF read with no dark level whose floor holds much of its light (a black level:
+    :data:`recon.psfcheck.FLOOR_WARN_SHARE`); a PSF mostly below 0 after its dark level,
+    before the clip (:func:`recon.checks.negative_after_dark`).
+
     Raises:
-        FileNotFoundError, ValueError: missing file, unreadable file, NaN/inf values, bad
-            dtype or shape; :class:`EmptyPsfError` for an all-zero PSF.
+        FileNotFoundError, ValueError: missing file, unreadable file, NaN/inf values, values
+            all subnormal, bad dtype or shape, a dark level beyond the data's float range;
+            :class:`EmptyPsfError` for an all-zero PSF.
 
     """
     arr, p = _prepare(
@@ -654,9 +718,14 @@ def load_psf_stack(
                 f"PSF plane {q} has shape {pl.shape}, but the first plane ({names[0]}) has {shape0}"
             )
     stack = np.stack([_as_float(pl).astype(np.float32, copy=False) for pl in planes])
+    # the stack's checks name its file, or its first and last plane files
+    label = names[0] if len(set(names)) == 1 else Path(f"{names[0]} ... {names[-1]}")
+    if dark is None and all(pl.dtype.kind in "ui" for pl in planes):
+        _check_psf_black_level(np.stack(planes), label, "PSF stack", stacklevel=3)
     d = _dark_for(dark, key, stack, None, "PSF stack", names[0])
     if d is not None:
-        stack = subtract_dark(stack, d).astype(np.float32, copy=False)
+        stack = _subtract_dark(stack, d, label, "PSF stack")
+    _check_negative(stack, label, dark, None, "PSF stack", stacklevel=3)
     stack = clip_nonneg(box_downsample(stack, downsample))
     for k in range(stack.shape[0]):
         if not np.any(stack[k] > 0):

@@ -365,14 +365,20 @@ def test_a_calibrated_psf_file_does_not_take_the_measurement_dark(tmp_path):
     assert prob.metadata["psf_dark_corrected_file"] is True
     assert float(load(psf_file="stack.tif").psf.sum()) == pytest.approx(2 * float(psf.sum()),
                                                                            rel=1e-5)
-    # a plain image still takes --dark, and an explicit PSF dark is still applied
-    plain = load(psf_file="plain.tif")
+    # a plain image still takes --dark, and an explicit PSF dark is still applied; here that
+    # second dark leaves most of it well below 0, which is said (recon.checks.negative_after_dark)
+    from recon.psfcheck import PsfWarning
+
+    with pytest.warns(PsfWarning, match=r"plain\.tif with dark 100\.0: \d+% of its pixels are "
+                      r"negative.*--psf-dark N"):
+        plain = load(psf_file="plain.tif")
     assert plain.metadata["psf_dark_corrected_file"] is False
     np.testing.assert_allclose(plain.psf[0], np.maximum(psf - 100, 0), rtol=1e-6, atol=1e-4)
     # (and said: a second dark off a calibrated PSF was silent)
     from recon.checks import MeasurementWarning
 
-    with pytest.warns(MeasurementWarning, match="calibrated PSF, dark-subtracted already"):
+    with pytest.warns(MeasurementWarning, match="calibrated PSF, dark-subtracted already"), \
+            pytest.warns(PsfWarning, match=r"psf\.tif with dark 100\.0: \d+% of its pixels"):
         twice = load(psf_file="psf.tif", psf_dark=100.0)
     np.testing.assert_allclose(twice.psf[0], np.maximum(psf - 100, 0), rtol=1e-6, atol=1e-4)
     assert any("second dark level" in w for w in twice.metadata["warnings"])

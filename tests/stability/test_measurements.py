@@ -155,7 +155,9 @@ def test_float16_range_values_are_normalised_on_load(tmp_path):
     np.save(tmp_path / "meas.npy", counts)
     shape = psf2d(24, 24)
     np.save(tmp_path / "psf32.npy", (shape * 1e-8 / shape.max()).astype(np.float32))
-    np.save(tmp_path / "psf16.npy", (shape * 1e-5 / shape.max()).astype(np.float16))  # subnormal
+    # max 1e-4: just above float16's smallest normal (6.1e-5), its dim pixels subnormal
+    np.save(tmp_path / "psf16.npy", (shape * 1e-4 / shape.max()).astype(np.float16))
+    np.save(tmp_path / "psf16_sub.npy", (shape * 1e-5 / shape.max()).astype(np.float16))
     np.save(tmp_path / "psf16_lost.npy", (shape * 1e-8 / shape.max()).astype(np.float16))
     meas = load_measurement(tmp_path / "meas.npy")
     assert meas.dtype == np.float32 and np.isfinite(meas).all() and meas.max() == 1.0
@@ -165,6 +167,10 @@ def test_float16_range_values_are_normalised_on_load(tmp_path):
         assert float(psf.sum()) == pytest.approx(1.0, rel=1e-5)
         res = Fista(build_model("2d", psf).op, torch.as_tensor(meas), tau=1e-3, max_iter=50).run()
         sane(res.x)
+    # every value subnormal (max below float16's smallest normal): refused, with the bits kept
+    with pytest.raises(ValueError, match=r"psf16_sub\.npy has values no larger than 1e-05, "
+                       r"below the smallest normal float16 number .*at most 8 significant"):
+        load_psf(tmp_path / "psf16_sub.npy")
     # values below float16's smallest subnormal (6e-8) were lost when the file was written
     with pytest.raises(ValueError, match="is all zero"):
         load_psf(tmp_path / "psf16_lost.npy")
