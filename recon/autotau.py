@@ -87,6 +87,22 @@ def few_heldout_note(n: int, what: str,
             f"{against}): the choice is uncertain")
 
 
+#: the fewest measured pixels a held-out choice (of tau, or of the iteration count) runs on
+MIN_MEASURED = 20
+
+
+def too_few_measured(n: int, *, tau_given: bool, iterations_given: bool = False) -> str:
+    """The one-line refusal of a held-out choice on ``n`` < ``MIN_MEASURED`` measured pixels.
+
+    It names what was being chosen (tau, or with a given tau only the iteration count) and
+    advises giving only what was not given.
+    """
+    what = "the iteration count" if tau_given else "tau"
+    give = ("--iters" if tau_given else "--tau" if iterations_given else "--tau and --iters")
+    return (f"only {n} measured pixels: choosing {what} from held-out pixels needs at least "
+            f"{MIN_MEASURED} (give {give})")
+
+
 @dataclass(frozen=True)
 class AutoTau:
     """The automatic choice: tau, the iteration count, and what it cost.
@@ -236,9 +252,8 @@ def choose_tau(
     b = b.to(dtype=model.op.dtype, device=model.op.device)
     measured = _measured_pixels(model, b)
     idx = np.flatnonzero(measured)
-    if idx.size < 20:
-        raise ValueError(f"only {idx.size} measured pixels: choosing tau from held-out pixels "
-                         "needs at least 20 (give --tau)")
+    if idx.size < MIN_MEASURED:
+        raise ValueError(too_few_measured(idx.size, tau_given=fixed_tau is not None))
     if block is not None and block < 1:
         raise ValueError(f"block must be >= 1 pixel, got {block}")
     n_hold = max(round(holdout * idx.size), min(min_holdout, idx.size // 4), 5)
@@ -385,6 +400,10 @@ def resolve(
         return 0.0, max_iter, {"tau": 0.0, "tau_rule": "given", "iterations": max_iter,
                                "iterations_rule": "limit (tau 0)"}
     limit = iterations or max_iter
+    measured = int(_measured_pixels(model, b).sum())
+    if measured < MIN_MEASURED:  # said here, where it is known which of the two was given
+        raise ValueError(too_few_measured(measured, tau_given=tau is not None,
+                                          iterations_given=iterations is not None))
     choice = choose_tau(model, b, tv=tv, max_iter=limit, min_iter=min(100, limit),
                         patience=max(min(100, limit), 10), check_every=min(10, limit),
                         seed=seed, fixed_tau=tau, precondition=precondition)

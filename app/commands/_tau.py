@@ -61,7 +61,9 @@ def resolve_tau(args: argparse.Namespace, model: Any, b: Any, tv: Any = None,
         if tau is not None:
             return tau, AUTO_MAX_ITER, {"tau": tau, "tau_rule": "given",
                                         "iterations": AUTO_MAX_ITER, "iterations_rule": "limit"}
-        tau, _, meta = resolve(model, b, None, None, tv=tv,
+        # the limit passed as given: the same search (its limit is AUTO_MAX_ITER either way),
+        # and a refusal that asks for --tau alone, the one setting this solver takes from it
+        tau, _, meta = resolve(model, b, None, AUTO_MAX_ITER, tv=tv,
                                log=lambda s: print(s, file=sys.stderr))
         meta.update(iterations=AUTO_MAX_ITER, iterations_rule="limit")
         return tau, AUTO_MAX_ITER, meta

@@ -255,6 +255,7 @@ def auto_tau_plan(plan: Any, inputs: dict[str, Any]) -> Any:
     import torch
 
     from recon.autotau import AUTO_MAX_ITER, choose_tau
+    from recon.plan.cost import MIN_ITERS
     from recon.plan.planner import plan_tv, prepare
 
     t0 = time.perf_counter()
@@ -263,26 +264,48 @@ def auto_tau_plan(plan: Any, inputs: dict[str, Any]) -> Any:
     model, b_d = prep.model, prep.b
     per_frame = plan.k if plan.model == "video" else 1
     tv = plan_tv(plan, 1.0)[1]
-    limit = plan.iterations if plan.budget_s is not None else AUTO_MAX_ITER
+    limit = max(plan.iterations if plan.budget_s is not None else AUTO_MAX_ITER, 1)
+    # held-out errors after a handful of iterations rank nothing (at 1 iteration the search
+    # took the top of its range): below MIN_ITERS the taus are searched at MIN_ITERS, and the
+    # run keeps the budget's count
+    search_iter = max(limit, MIN_ITERS)
+    lo_rel, hi_rel = 1e-7 / per_frame, 1e-2 / per_frame
     choice = choose_tau(model, torch.as_tensor(b_d, dtype=torch.float32), tv=tv,
-                        max_iter=max(limit, 1), min_iter=min(100, max(limit, 1)),
-                        tau_range=(1e-7 / per_frame, 1e-2 / per_frame))
-    tau = choice.tau * per_frame * plan.downsample
+                        max_iter=search_iter, min_iter=min(100, search_iter),
+                        tau_range=(lo_rel, hi_rel))
+    unit = per_frame * plan.downsample  # the solver's tau -> the plan's (per full-res pixel)
+    tau = choice.tau * unit
     iterations = min(choice.iterations, limit)
     search_s = time.perf_counter() - t0  # the search and its preparation
     spent = (f"{search_s:.1f} s, not counted in plan_s" + (
         f" nor in the {plan.budget_s:g} s budget, which covers the reconstruction only"
         if plan.budget_s is not None else ""))
+    scale = float(choice.settings.get("scale", 1.0))
+    lo, hi = lo_rel * scale * unit, hi_rel * scale * unit
+    edge = (" (the top of the range: a larger tau was not tried)" if tau >= hi * (1 - 1e-9)
+            else " (the bottom of the range)" if tau <= lo * (1 + 1e-9) else "")
+    searched = (f"{search_iter} iterations per tau" + (
+        f", not the budget's {limit}, which are too few to rank taus" if search_iter > limit
+        else ""))
     why = (f"chosen from held-out measured pixels ({choice.heldout_pixels} pixels, "
-           f"{len(choice.curve)} values of tau tried; recon.autotau); the search took {spent}")
+           f"{len(choice.curve)} values of tau tried from {lo:.3g} to {hi:.3g} per "
+           f"full-resolution pixel{edge}, {searched}; recon.autotau); the search took {spent}")
     new = plan.override(tau=tau, iterations=iterations)
-    chosen = (f"within that limit {iterations} iterations" if plan.budget_s is not None else
-              f"then {iterations} iterations (at most {limit})")
+    its = f"{iterations} iteration{'s' if iterations != 1 else ''}"
+    verb = "were" if iterations != 1 else "was"
+    if plan.budget_s is not None and choice.iterations > limit:
+        chosen = (f"the budget's {its} {verb} kept (the held-out pixels chose "
+                  f"{choice.iterations}); tau was {why}")
+    elif plan.budget_s is not None:
+        chosen = f"within that limit {its} {verb} {why}"
+    else:
+        chosen = f"then {its} (at most {limit}) {verb} {why}"
     reasons = {**new.reasons, "tau": why, "iterations": why,
-               "method": f"{new.reasons.get('method', '')}; {chosen} were {why}"}
+               "method": f"{new.reasons.get('method', '')}; {chosen}"}
     evidence = {**new.evidence, "tau_search": {
         "seconds": round(search_s, 3), "values_tried": len(choice.curve),
-        "heldout_pixels": choice.heldout_pixels, "max_iter": max(limit, 1)}}
+        "heldout_pixels": choice.heldout_pixels, "max_iter": search_iter,
+        "tau_range": [lo, hi]}}
     # chosen by the planner, not set by the user
     return dataclasses.replace(new, reasons=reasons, evidence=evidence,
                                overridden=plan.overridden)
@@ -510,6 +533,62 @@ def _window(inputs: dict[str, Any]) -> tuple[int, int] | None:
     return (int(prob.sensor[0]), int(prob.sensor[1]))
 
 
+def warn_small_budget(plan: Any) -> None:
+    """One line on stderr when a FISTA-TV plan's budget affords too few iterations to be useful.
+
+    Fewer than ``recon.plan.cost.MIN_ITERS`` iterations under a budget (the planner already
+    went to its coarsest grid): the line names the budget a useful result needs at the
+    plan's measured cost per iteration.
+    """
+    from recon.plan.cost import MIN_ITERS, SETUP_ITERS
+    from recon.plan.planner import min_useful_budget_s
+
+    if (plan.method != "fista-tv" or plan.budget_s is None or plan.iterations >= MIN_ITERS
+            or not plan.seconds_per_iter):
+        return
+    n = plan.iterations
+    setup = plan.budget_s <= SETUP_ITERS * plan.seconds_per_iter
+    verdict = ("too few to reconstruct anything useful (the budget does not even cover the "
+               "set-up)" if setup else "too few to converge")
+    print(f"lenslesscam recon auto: warning: under the budget of {plan.budget_s:g} s the plan "
+          f"runs {n} iteration{'s' if n != 1 else ''} of FISTA-TV (on the {plan.downsample}x "
+          f"downsampled grid), {verdict}; give --budget "
+          f"{min_useful_budget_s(plan.seconds_per_iter):.2g}s or more ({MIN_ITERS} iterations "
+          "and their set-up at this grid)", file=sys.stderr)
+
+
+def check_auto_result(res: Any, inputs: dict[str, Any], dtype: Any) -> None:
+    """The result check of every reconstruction command (:func:`app.commands.recon.check_explains`).
+
+    On a FISTA-TV plan's result, with the model and measurement the run solved (prepared
+    again, as :func:`recon.plan.execute` prepares them) and the plan's tau. A UDN plan's
+    result is not checked here (its run can be hours long: it is never refused).
+    """
+    import torch
+
+    from app.commands.recon import check_explains
+    from recon.plan.planner import plan_tv, prepare
+
+    plan = res.plan
+    if plan.method != "fista-tv":
+        return
+    prep = prepare(plan, inputs["psf"], inputs["meas"], shutter=inputs["shutter"],
+                   timing=inputs["timing"], psf_stack=inputs["stack"], mask=inputs["mask"],
+                   dtype=dtype)
+    tau, tv = plan_tv(plan, plan.tau / plan.downsample)
+    b = torch.as_tensor(prep.b, dtype=dtype)
+    x = torch.as_tensor(res.x, dtype=dtype)
+    budget = "" if plan.budget_s is None else f"a larger --budget (than {plan.budget_s:g} s), "
+    check_explains(
+        x, prep.model, b, method="recon auto (fista-tv)", iterations=res.iterations,
+        reason=res.stop_reason, tau=tau, tv=tv, who="lenslesscam recon",
+        refuse_hint="an extreme plan setting (--set tau=..., --set iterations=...) can hold "
+        "the solver at 0",
+        flat_hint=f"it needs {budget}more iterations (--set iterations=N), or a plan setting "
+        "(--set tau=...) holds the solver back",
+        objective_hint=f"it needs {budget}more iterations (--set iterations=N)")
+
+
 def run_auto(args: argparse.Namespace) -> int:
     """Plan (or load a plan), run it and save the reconstruction with the plan in its metadata."""
     import torch
@@ -554,6 +633,7 @@ def run_auto(args: argparse.Namespace) -> int:
     check_command_outputs(args, reconstruction_paths(args.out, kind))  # the plan's previews
     if not args.quiet:
         print(plan.describe(_window(inputs)), file=sys.stderr)
+    warn_small_budget(plan)
     bar = ProgressBar(max(plan.iterations, 1), f"recon auto ({plan.model}, K={plan.k})")
 
     def on_step(step: Any) -> None:
@@ -563,6 +643,7 @@ def run_auto(args: argparse.Namespace) -> int:
                   timing=inputs["timing"], psf_stack=inputs["stack"], mask=inputs["mask"],
                   dtype=torch.float64 if args.float64 else torch.float32, callback=on_step)
     bar.close()
+    check_auto_result(res, inputs, torch.float64 if args.float64 else torch.float32)
     meta = res.metadata()
     meta["inputs"] = {"psf": args.psf or args.psf_stack, "meas": args.meas,
                       "shutter": args.shutter, "timing": args.timing, "mask": args.mask}

@@ -42,7 +42,7 @@ from recon.plan.analysis import (
     time_scale,
     video_tv,
 )
-from recon.plan.cost import MIN_ITERS, iteration_cost, method_for_budget
+from recon.plan.cost import MIN_ITERS, SETUP_ITERS, iteration_cost, method_for_budget
 from recon.plan.roi import Region, build_region_model, embed_region
 from recon.preprocess import box_downsample, downsample_mask, downsample_masked
 from recon.tv import TV
@@ -566,7 +566,8 @@ class Plan:
         rows.append(("downsample", f"{self.downsample} -> grid {g.height}x{g.width}",
                      self.reasons.get("downsample", "")))
         est = f", about {self.estimated_s:.3g} s" if self.estimated_s is not None else ""
-        it = f"{self.iterations} iterations" if self.iterations else "until the budget"
+        it = (f"{self.iterations} iteration{'s' if self.iterations != 1 else ''}"
+              if self.iterations else "until the budget")
         net = ""
         if self.method == "udn":
             net = f"; network {udn_text(self.udn)}"
@@ -1017,6 +1018,7 @@ def make_plan(
     cost = None
     if probe:
         say("cost: timing a few iterations of the planned model")
+        first = plan.downsample
         for _ in range(8):
             pm = planned_model(plan, psf, shutter=base, psf_stack=stack, mask=mask)
             cost = iteration_cost(pm, use_cache=use_cache)
@@ -1024,12 +1026,18 @@ def make_plan(
             bigger = plan.downsample * 2
             if (choice.affordable or h // bigger < 16 or w // bigger < 16):
                 break
-            old = plan.downsample
             plan = dataclasses.replace(plan, downsample=bigger)
-            reasons["downsample"] += (f"; raised from {old} to {bigger} so the budget allows "
-                                      f"at least {MIN_ITERS} iterations")
+        if plan.downsample != first:
+            # one clause that says what the raise achieved (it may not have been enough)
+            reasons["downsample"] += (
+                f"; raised from {first} to {plan.downsample} so the budget allows at least "
+                f"{MIN_ITERS} iterations" if choice.affordable else
+                f"; raised from {first} to {plan.downsample} for the budget, the coarsest grid "
+                "the planner goes to (a coarser one would have a side under 16 px), where it "
+                f"still allows fewer than {MIN_ITERS} iterations")
     choice = method_for_budget(cost, budget_s)
-    reasons["method"] = choice.reason + (
+    reasons["method"] = (choice.reason if choice.affordable or cost is None or budget_s is None
+                         else _too_small_budget_text(budget_s, cost, choice.iterations)) + (
         "; rule and cost probe of recon.plan.cost (measured here at plan time)"
         if cost is not None else "")
     reasons["tau"] = ("the default TV weight of recon fista (measurement scaled to max 1)"
@@ -1041,6 +1049,28 @@ def make_plan(
         seconds_per_iter=None if cost is None else cost.seconds_per_iter,
         estimated_s=choice.estimated_s, reasons=reasons, evidence=evidence,
         plan_s=time.perf_counter() - t_start)
+
+
+def min_useful_budget_s(seconds_per_iter: float) -> float:
+    """The smallest budget that affords ``MIN_ITERS`` FISTA-TV iterations and their set-up."""
+    return (MIN_ITERS + SETUP_ITERS) * seconds_per_iter
+
+
+def _too_small_budget_text(budget_s: float, cost: Any, iterations: int) -> str:
+    """The method's reason when the budget affords fewer than ``MIN_ITERS`` iterations."""
+    spi = cost.seconds_per_iter
+    n = math.floor(budget_s / spi) - SETUP_ITERS
+    its = f"{iterations} iteration{'s' if iterations != 1 else ''}"
+    if n > 0:
+        room = f"allows only {n} iteration{'s' if n != 1 else ''}"
+        verdict = f"FISTA-TV runs {its}: the result will be under-converged"
+    else:
+        room = f"does not even cover the set-up (about {SETUP_ITERS} iterations' time)"
+        verdict = (f"FISTA-TV runs {its} anyway, too few to reconstruct anything useful "
+                   "(recon auto checks the result against a flat image)")
+    return (f"{budget_s:.3g} s at {spi * 1e3:.3g} ms per iteration ({cost.source}) {room}; "
+            f"{verdict}: a budget of at least {min_useful_budget_s(spi):.2g} s affords "
+            f"{MIN_ITERS} iterations and the set-up at this grid")
 
 
 # ---------------------------------------------------------------------------------------------
