@@ -17,6 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from recon.inputwarnings import warn_input
+from recon.textfmt import percent
 
 __all__ = ["FILTER_NEGATIVE_TOLERANCE", "NEGATIVE_PSF_WARN_SHARE", "NEGATIVE_WARN_DEPTH",
            "NEGATIVE_WARN_FRACTION", "MeasurementCheck", "MeasurementWarning", "check_field",
@@ -274,8 +275,10 @@ def negative_after_dark(b: Array, mask: Array | None = None, *,
         share = float(-vals[vals < 0].sum() / vals[vals > 0].sum())
         if share < NEGATIVE_PSF_WARN_SHARE:
             return None
-        return (f"{100 * negative / n:.0f}% of its pixels are negative, together "
-                f"{100 * share:.0f}% of the light of its positive ones {span}: {cause}, or "
+        light = (f"{share:.0f} times the light" if share >= 10 else
+                 f"{100 * share:.0f}% of the light")
+        return (f"{percent(negative, n, sep='')} of its pixels are negative, together "
+                f"{light} of its positive ones {span}: {cause}, or "
                 "it is noise around 0 in its dark parts; they are clipped to 0, a PSF the "
                 "camera did not have (a PSF with a dark level of its own: --psf-dark N, "
                 "psf_dark; 0 for a PSF saved dark-subtracted)")
@@ -283,8 +286,8 @@ def negative_after_dark(b: Array, mask: Array | None = None, *,
     deep = int(np.count_nonzero(vals < -NEGATIVE_WARN_DEPTH * scale))
     if deep <= NEGATIVE_WARN_FRACTION * n:
         return None
-    return (f"{100 * negative / n:.0f}% of its measured pixels are negative, "
-            f"{100 * deep / n:.0f}% below -{100 * NEGATIVE_WARN_DEPTH:g}% of its largest "
+    return (f"{percent(negative, n, sep='')} of its measured pixels are negative, "
+            f"{percent(deep, n, sep='')} below -{100 * NEGATIVE_WARN_DEPTH:g}% of its largest "
             f"value {span}: {cause}; they are clipped to 0 and the reconstruction fits them "
             "as black")
 

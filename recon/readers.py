@@ -32,6 +32,7 @@ from recon.preprocess import (
     to_channel_first,
     to_gray,
 )
+from recon.textfmt import percent
 
 __all__ = ["DarkSpec", "EmptyPsfError", "PathLike", "load_image", "load_measurement", "load_psf",
            "load_psf_any", "load_psf_stack"]
@@ -435,7 +436,7 @@ def _check_unmasked_zeros(chw: Array, p: Path) -> None:
     zero = float(np.mean(np.all(chw == 0, axis=0)))
     if zero >= UNMASKED_ZERO_WARN_FRACTION:
         warn_input(
-            f"measurement file {p}: {100 * zero:.0f} % of its pixels are 0 and no mask was "
+            f"measurement file {p}: {percent(zero)} of its pixels are 0 and no mask was "
             "given: erased or dead pixels would be fitted as black; give their mask (--mask, "
             "the spec's mask; 1 = measured)", MeasurementWarning, stacklevel=4)
 

@@ -37,3 +37,24 @@ def test_usual_shares_round_as_usual():
 def test_bad_arguments_are_refused(args, kw):
     with pytest.raises(ValueError):
         percent(*args, **kw)
+
+
+def test_the_input_warnings_never_say_all_for_not_all():
+    """"100 % of its pixels are 0" for 1849 of 1850; "100% ... negative" with one left."""
+    import warnings
+
+    import numpy as np
+
+    from recon.checks import negative_measurement
+    from recon.readers import _check_unmasked_zeros
+
+    b = np.full((1, 10, 185), -1.0, np.float32)
+    b[0, 0, 0] = 1.0
+    said = negative_measurement(b)
+    assert said is not None and said.startswith("99.95% of its measured pixels are negative")
+    z = np.zeros((1, 10, 185), np.float32)
+    z[0, 0, 0] = 1.0
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        _check_unmasked_zeros(z, "m.npy")
+    assert "99.95 % of its pixels are 0" in str(rec[0].message)
