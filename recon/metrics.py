@@ -345,15 +345,20 @@ def metrics_report(
     was scaled by the least-squares gain before scoring), ``data_range`` and
     ``data_range_source``, ``shape``. ``psnr`` is ``inf`` for identical arrays.
 
-    A constant ``ref`` (all zero included) is refused (ValueError): nothing to score against.
+    An all-zero ``ref`` is refused (ValueError): nothing to score against (a gain fit scored
+    every estimate perfect against it); so is another constant one without a ``data_range``
+    (its range, the default, is 0). A constant non-zero ``ref`` with a ``data_range`` (a
+    flat-field target) is scored.
     With ``gain_fit`` and an all-zero ``est`` no gain is fitted (none is defined; every gain
     scores the same): ``gain`` None, ``gain_fit`` False and ``gain_note`` say so. Without
     ``gain_fit``, peak magnitudes more than :data:`SCALE_NOTE_FACTOR` apart add ``scale_note``.
     """
     r, e = _check(ref, est, min_ndim=2)
     lo, hi = float(r.min()), float(r.max())
-    if lo == hi:
-        raise ValueError(f"ref is constant (every value is {lo:g}): nothing to score against")
+    if lo == hi and (lo == 0 or data_range is None):
+        how = "" if lo == 0 else " and no data range was given (its range, the default, is 0)"
+        raise ValueError(f"ref is constant (every value is {lo:g}){how}: nothing to score "
+                         "against")
     g: float | None = 1.0
     fitted = False
     notes: dict[str, str] = {}

@@ -21,8 +21,9 @@ def register(subparsers: Any) -> None:
             "reconstruction TIFF, or --spectral) also spectral_cosine_distance (mean 1 - cos "
             "of the spectral angle) and spectral_angle_deg. Files: a lenslesscam "
             "reconstruction TIFF (C, K, H, W), any TIFF, PNG, NPY, NPZ or MAT image. "
-            "data_range defaults to ref.max() - ref.min(). A constant GT (all zero included) "
-            "is refused: nothing to score against. Without --gain-fit, EST and GT whose "
+            "data_range defaults to ref.max() - ref.min(). An all-zero GT is refused: "
+            "nothing to score against; a constant one needs --data-range (a flat field). "
+            "Without --gain-fit, EST and GT whose "
             "largest magnitudes are more than 10 times apart (a 0..255 image against a 0..1 "
             "truth) get scale_note, also on stderr."
         ),
