@@ -153,6 +153,8 @@ def test_plateau_detail_tells_a_plateau_from_a_slow_decrease():
     assert plateau_detail(flat, 1e-4, "fista-tv", 3) is None  # below the tolerance
     assert plateau_detail(flat[:99], 1e-5, "fista-tv", 3) is None  # too short to tell
     assert "--prox-iters" not in (plateau_detail(flat, 1e-5, "admm-tv") or "x")
+    # a run at 20 inner iterations was told to try "for example 20"
+    assert "for example 40" in (plateau_detail(flat, 1e-5, "fista-tv", 20) or "")
 
 
 # ------------------------------------------------------------------------------------------
