@@ -685,10 +685,14 @@ class _Job:
         if problem.truth is not None:
             from recon.metrics import metrics_report
 
-            results["scores"] = {
-                which: {k: v for k, v in metrics_report(problem.truth, x, gain_fit=True).items()
-                        if k in ("psnr", "ssim", "gain", "mse")}
-                for which, x in (("final", final), ("best", best))}
+            try:
+                results["scores"] = {
+                    which: {k: v for k, v in metrics_report(problem.truth, x,
+                                                            gain_fit=True).items()
+                            if k in ("psnr", "ssim", "gain", "mse")}
+                    for which, x in (("final", final), ("best", best))}
+            except ValueError as exc:  # a truth nothing can be scored against (constant):
+                results["scores_note"] = f"not scored: {exc}"  # the run's results still count
         self.record["results"] = results
 
 

@@ -602,3 +602,16 @@ def test_measurement_warnings_are_kept_in_the_run_record(tiny_data, tmp_path):
                        output={"checkpoint_every": 4, "preview_every": 0})
     assert run_job(clean, tmp_path / "clean").finish_reason == "completed"
     assert record(tmp_path / "clean")["warnings"] == []
+
+
+def test_a_truth_that_cannot_score_leaves_a_finished_run(tiny_data, tmp_path):
+    """An all-zero truth (nothing to score against) made an overnight run end as failed,
+    exit 2, after its last iteration: its results count, the scores say why they are missing."""
+    np.save(tiny_data / "truth.npy", np.zeros_like(np.load(tiny_data / "truth.npy")))
+    out = tmp_path / "run"
+    outcome = run_job(write_spec(tiny_data, stopping={"max_iter": 5}), out)
+    assert outcome.finish_reason == "completed"
+    rec = record(out)
+    assert rec["status"] == "finished" and "scores" not in rec["results"]
+    assert rec["results"]["scores_note"].startswith("not scored: ref is constant")
+    assert (out / "best.tif").exists()
