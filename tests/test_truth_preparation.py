@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from tests.clirun import run_cli as _run
+from tests.udn.conftest import TINY_NET
 
 H, W = 24, 32
 BINS = 6
-TINY_NET = {"scales": 3, "channels": 16, "skip_channels": 4, "input_channels": 8}
 
 
 @pytest.fixture(autouse=True)
