@@ -211,3 +211,22 @@ def test_the_check_still_warns_beyond_round_off(capsys):
         check_explains(x, model, b, **kw)
         err = capsys.readouterr().err
         assert ("less well than a flat image" in err) is warned, (off, err)
+
+
+def test_the_warning_and_the_plan_agree_on_a_budget_at_the_set_up_edge(capsys):
+    """The warning took 25.5 iterations' time as "not even the set-up" while the plan's
+    reason said "too few to converge" (and the other way round): one rule now."""
+    import types
+
+    from app.commands.plan import warn_small_budget
+    from recon.plan.cost import SETUP_ITERS
+    from recon.plan.planner import budget_room
+
+    spi = 0.01
+    for k in (SETUP_ITERS - 0.5, SETUP_ITERS + 0.5, SETUP_ITERS + 1.5):
+        plan = types.SimpleNamespace(method="fista-tv", budget_s=k * spi, iterations=1,
+                                     seconds_per_iter=spi, downsample=1)
+        warn_small_budget(plan)
+        err = capsys.readouterr().err
+        setup = budget_room(k * spi, spi) <= 0
+        assert ("does not even cover the set-up" in err) == setup, (k, err)

@@ -540,14 +540,14 @@ def warn_small_budget(plan: Any) -> None:
     went to its coarsest grid): the line names the budget a useful result needs at the
     plan's measured cost per iteration.
     """
-    from recon.plan.cost import MIN_ITERS, SETUP_ITERS
-    from recon.plan.planner import min_useful_budget_s
+    from recon.plan.cost import MIN_ITERS
+    from recon.plan.planner import budget_room, min_useful_budget_s
 
     if (plan.method != "fista-tv" or plan.budget_s is None or plan.iterations >= MIN_ITERS
             or not plan.seconds_per_iter):
         return
     n = plan.iterations
-    setup = plan.budget_s <= SETUP_ITERS * plan.seconds_per_iter
+    setup = budget_room(plan.budget_s, plan.seconds_per_iter) <= 0  # as the plan's reason
     verdict = ("too few to reconstruct anything useful (the budget does not even cover the "
                "set-up)" if setup else "too few to converge")
     print(f"lenslesscam recon auto: warning: under the budget of {plan.budget_s:g} s the plan "

@@ -1056,10 +1056,18 @@ def min_useful_budget_s(seconds_per_iter: float) -> float:
     return (MIN_ITERS + SETUP_ITERS) * seconds_per_iter
 
 
+def budget_room(budget_s: float, seconds_per_iter: float) -> int:
+    """FISTA-TV iterations a budget affords after their set-up (0 or less: not even that).
+
+    The one rule of the plan's reason and ``recon auto``'s warning.
+    """
+    return math.floor(budget_s / seconds_per_iter) - SETUP_ITERS
+
+
 def _too_small_budget_text(budget_s: float, cost: Any, iterations: int) -> str:
     """The method's reason when the budget affords fewer than ``MIN_ITERS`` iterations."""
     spi = cost.seconds_per_iter
-    n = math.floor(budget_s / spi) - SETUP_ITERS
+    n = budget_room(budget_s, spi)
     its = f"{iterations} iteration{'s' if iterations != 1 else ''}"
     if n > 0:
         room = f"allows only {n} iteration{'s' if n != 1 else ''}"
