@@ -381,3 +381,12 @@ def test_the_tau_search_is_reported_beside_the_reconstructions_time(tmp_path, ca
     assert code == 0, err
     demo = json.loads(out.splitlines()[-1])
     assert demo["tau_search_s"] > 0 and demo["tau_rule"] != "given"
+
+
+def test_demo_runs_the_result_check_of_every_command(tmp_path, capsys):
+    """recon fista/admm/auto checked their result against a flat image; demo did not."""
+    code, _, err = _run(capsys, "demo", "--iters", "1", "--tau", "1e-4", "--out",
+                        str(tmp_path / "d"))
+    assert code == 0, err
+    assert ("lenslesscam demo: warning: fista-tv: the result explains the measurement less "
+            "well than a flat image") in err and "it needs more --iters" in err

@@ -57,10 +57,21 @@ def run(args: argparse.Namespace) -> int:
     return run_hand(args)
 
 
+def _check(check_explains: Any, solver: Any, model: Any, b: Any) -> None:
+    """The result check of every reconstruction command, with the demo's own options."""
+    check_explains(
+        solver.x, model, b, method="fista-tv", iterations=solver.iteration,
+        reason=solver.reason.value if solver.reason else "max_iter", tau=float(solver.tau),
+        tv=solver.tv, refuse_hint="an extreme --tau can hold the solver at 0",
+        flat_hint="it needs more --iters", objective_hint="it needs more --iters",
+        who="lenslesscam demo")
+
+
 def run_depth(args: argparse.Namespace) -> int:
     """3D: the tilted USAF target with the measured PSF stack (depth model, 3D TV)."""
     import torch
 
+    from app.commands.recon import check_explains
     from recon import samples
     from recon.fista import Fista
     from recon.io import save_reconstruction
@@ -78,6 +89,7 @@ def run_depth(args: argparse.Namespace) -> int:
                    max_iter=iters, tol=1e-7)
     res = solver.run()
     wall = time.perf_counter() - t0
+    _check(check_explains, solver, model, torch.as_tensor(meas))
     planes = samples.depth_planes()[DEPTH_PLANES]
     meta = {"method": "fista-tv", "model": "depth", "parameters": solver.params,
             "iterations": res.iterations, "stop_reason": res.reason.value,
@@ -116,6 +128,7 @@ def run_hand(args: argparse.Namespace) -> int:
     """FISTA-TV on the DiffuserCam-Tutorial hand at 1/8 scale; writes TIFF + PNG."""
     import torch
 
+    from app.commands.recon import check_explains
     from recon import samples
     from recon.fista import Fista
     from recon.io import save_reconstruction
@@ -133,6 +146,7 @@ def run_hand(args: argparse.Namespace) -> int:
     solver = Fista(model.op, b, tau=tau, tv=tv, max_iter=iters)
     res = solver.run()
     wall = time.perf_counter() - t0
+    _check(check_explains, solver, model, b)  # the result check of every command
     meta = {"method": "fista-tv", "model": "2d", "parameters": solver.params,
             "regularisation": tau_meta, "iterations": res.iterations,
             "stop_reason": res.reason.value,
