@@ -557,24 +557,21 @@ def warn_small_budget(plan: Any) -> None:
           "and their set-up at this grid)", file=sys.stderr)
 
 
-def check_auto_result(res: Any, inputs: dict[str, Any], dtype: Any) -> None:
+def check_auto_result(res: Any, dtype: Any) -> None:
     """The result check of every reconstruction command (:func:`app.commands.recon.check_explains`).
 
-    On a FISTA-TV plan's result, with the model and measurement the run solved (prepared
-    again, as :func:`recon.plan.execute` prepares them) and the plan's tau. A UDN plan's
-    result is not checked here (its run can be hours long: it is never refused).
+    On a FISTA-TV plan's result, with the model and measurement the run solved
+    (``res.prepared``) and the plan's tau. A UDN plan's result is not checked here (its run
+    can be hours long: it is never refused).
     """
     import torch
 
     from app.commands.recon import check_explains
-    from recon.plan.planner import plan_tv, prepare
+    from recon.plan.planner import plan_tv
 
-    plan = res.plan
-    if plan.method != "fista-tv":
+    plan, prep = res.plan, res.prepared
+    if plan.method != "fista-tv" or prep is None:
         return
-    prep = prepare(plan, inputs["psf"], inputs["meas"], shutter=inputs["shutter"],
-                   timing=inputs["timing"], psf_stack=inputs["stack"], mask=inputs["mask"],
-                   dtype=dtype)
     tau, tv = plan_tv(plan, plan.tau / plan.downsample)
     b = torch.as_tensor(prep.b, dtype=dtype)
     x = torch.as_tensor(res.x, dtype=dtype)
@@ -643,7 +640,7 @@ def run_auto(args: argparse.Namespace) -> int:
                   timing=inputs["timing"], psf_stack=inputs["stack"], mask=inputs["mask"],
                   dtype=torch.float64 if args.float64 else torch.float32, callback=on_step)
     bar.close()
-    check_auto_result(res, inputs, torch.float64 if args.float64 else torch.float32)
+    check_auto_result(res, torch.float64 if args.float64 else torch.float32)
     meta = res.metadata()
     meta["inputs"] = {"psf": args.psf or args.psf_stack, "meas": args.meas,
                       "shutter": args.shutter, "timing": args.timing, "mask": args.mask}

@@ -1098,6 +1098,9 @@ class PlanResult:
     residual: float | None
     params: dict[str, Any]
     mask_hash: str | None = None  # array hash of the coarse sensor mask the model used
+    #: the model and measurement the run solved (a caller's result check uses them rather
+    #: than preparing the plan again); not part of the result's metadata
+    prepared: Prepared | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def field_image(self) -> F32:
         """The reconstruction placed in the whole (downsampled) field, zero outside."""
@@ -1197,7 +1200,7 @@ def execute(
     t0 = time.perf_counter()
     if plan.method == "udn":
         res = _execute_udn(plan, model, b_d, t0, callback, cancel)
-        return dataclasses.replace(res, mask_hash=mask_hash)
+        return dataclasses.replace(res, mask_hash=mask_hash, prepared=prep)
     tau, tv = plan_tv(plan, plan.tau / plan.downsample)  # tau is per full-resolution pixel
     solver = Fista(model.op, bt, tau=tau, tv=tv, max_iter=plan.iterations, tol=1e-5)
     last: FistaStep | None = None
@@ -1211,7 +1214,7 @@ def execute(
     reason = solver.reason.value if solver.reason is not None else "cancelled"
     return PlanResult(solver.x.float().cpu().numpy(), plan, plan.grid_region, solver.iteration,
                       reason, wall, None if last is None else last.residual, solver.params,
-                      mask_hash)
+                      mask_hash, prep)
 
 
 def udn_configs(udn: Mapping[str, Any] | None, *, max_iter: int = 3000,
