@@ -51,7 +51,7 @@ import numpy as np
 import torch
 
 from recon.fista import Fista
-from recon.holdout import block_mean_se, block_side_for, heldout_blocks
+from recon.holdout import block_mean_se, block_side_for, few_heldout_note, heldout_blocks
 from recon.models import ForwardModel
 from recon.operators import Compose, Mask
 from recon.tv import TV
@@ -66,25 +66,6 @@ RULES = {"min": "heldout-blocks", "1se": "heldout-blocks-1se"}
 RULE = RULES["1se"]
 #: iteration limit of the automatic search (and of the reconstruction it chooses for)
 AUTO_MAX_ITER = 500
-
-
-#: fewer held-out pixels than this make the choice uncertain (their mean squared error is
-#: known to about sqrt(2 / n) of itself for Gaussian errors: 14 % at 100, 33 % at 18, while
-#: the held-out errors of neighbouring taus differ by a few per cent): said with the choice
-MIN_RELIABLE_HELDOUT = 100
-
-
-def few_heldout_note(n: int, what: str,
-                     against: str = "more than the taus' differences") -> str | None:
-    """One line when ``n`` held-out pixels are too few to choose ``what`` on; else None.
-
-    ``against``: what that uncertainty is compared with, in words.
-    """
-    if n >= MIN_RELIABLE_HELDOUT:
-        return None
-    return (f"only {n} held-out pixels choose {what} (fewer than {MIN_RELIABLE_HELDOUT}: their "
-            f"error is known to about {100 * math.sqrt(2 / max(n, 1)):.0f} % of itself, "
-            f"{against}): the choice is uncertain")
 
 
 #: the fewest measured pixels a held-out choice (of tau, or of the iteration count) runs on

@@ -387,7 +387,7 @@ class UDNRunner(Stepwise[UDNStep]):
         self.n_fit = int(self.fit.sum())
         self.n_heldout = int(self.heldout.sum())
         if self.n_heldout:
-            from recon.autotau import few_heldout_note
+            from recon.holdout import few_heldout_note
 
             few = few_heldout_note(self.n_heldout, "the stopping iteration",
                                    "more than it changes over many iterations")
