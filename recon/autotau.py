@@ -366,12 +366,15 @@ def resolve(
     seed: int = 0,
     log: Callable[[str], None] | None = None,
     precondition: float | str | None = "auto",
+    iterations_why: str = "as given",
 ) -> tuple[float, int, dict[str, Any]]:
     """The (tau, iterations) a command runs with, and the metadata that says how they came.
 
     ``tau`` / ``iterations`` None mean automatic; a given value is used exactly. A given tau
     with automatic iterations chooses only the iteration count at that tau (held-out pixels);
-    tau 0 with automatic iterations runs ``max_iter``.
+    tau 0 with automatic iterations runs ``max_iter``. When ``iterations`` is given and the
+    search's own count differs, ``log`` gets a second line with the count the run uses and
+    ``iterations_why`` (the search's line alone named its count, which the run did not use).
     """
     if tau is not None and iterations is not None:
         return tau, iterations, {"tau": tau, "tau_rule": "given", "iterations": iterations,
@@ -388,9 +391,11 @@ def resolve(
     choice = choose_tau(model, b, tv=tv, max_iter=limit, min_iter=min(100, limit),
                         patience=max(min(100, limit), 10), check_every=min(10, limit),
                         seed=seed, fixed_tau=tau, precondition=precondition)
+    its = iterations if iterations is not None else choice.iterations
     if log is not None:
         log(choice.describe())
-    its = iterations if iterations is not None else choice.iterations
+        if its != choice.iterations:
+            log(f"the run itself: {its} iterations ({iterations_why})")
     meta = {"tau": choice.tau, "tau_rule": "given" if tau is not None else choice.rule,
             "iterations": its,
             "iterations_rule": "given" if iterations is not None else choice.rule,

@@ -201,6 +201,32 @@ def test_cli_tau_auto_by_default_exact_when_given_and_recon_admm(tmp_path, capsy
         main(["recon", "fista", *inputs, "--tau", "often", "--out", str(tmp_path / "b.tif")])
 
 
+def test_the_tau_line_names_the_iteration_count_the_run_uses(tmp_path, capsys):
+    """The search's line names its own iteration count; when the run uses another (ADMM runs to
+    its limit, --iters given), a second line says which, so the terminal does not say 100
+    iterations of a 500-iteration run."""
+    import re
+
+    from app.cli import main
+    from recon.autotau import AUTO_MAX_ITER
+
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--psf", "sample:tutorial", "--scene", "sample:im740",
+                 "--erasure", "0.5", "--noise", "0.01", "--seed", "3", "--downsample", "4",
+                 "--out", str(sim)]) == 0
+    inputs = ["--psf", str(sim / "psf.npy"), "--meas", str(sim / "meas.npy"), "--mask",
+              str(sim / "mask.npy")]
+    capsys.readouterr()
+    assert main(["recon", "admm", *inputs, "--out", str(tmp_path / "a.tif")]) == 0
+    err = capsys.readouterr().err
+    searched = int(re.search(r"tau auto \(.*\): tau \S+, (\d+) iterations", err).group(1))
+    assert searched < AUTO_MAX_ITER  # the case this is about
+    assert f"the run itself: {AUTO_MAX_ITER} iterations (the limit" in err
+    # FISTA runs the search's count: no second line
+    assert main(["recon", "fista", *inputs, "--out", str(tmp_path / "f.tif")]) == 0
+    assert "the run itself" not in capsys.readouterr().err
+
+
 def test_preview_tau_auto_reestimates_on_a_scene_change_not_every_frame():
     import time
 

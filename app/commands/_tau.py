@@ -64,11 +64,14 @@ def resolve_tau(args: argparse.Namespace, model: Any, b: Any, tv: Any = None,
         # the limit passed as given: the same search (its limit is AUTO_MAX_ITER either way),
         # and a refusal that asks for --tau alone, the one setting this solver takes from it
         tau, _, meta = resolve(model, b, None, AUTO_MAX_ITER, tv=tv,
-                               log=lambda s: print(s, file=sys.stderr))
+                               log=lambda s: print(s, file=sys.stderr),
+                               iterations_why="the limit: the search's count is FISTA's, "
+                               "this solver stops on its own tolerance")
         meta.update(iterations=AUTO_MAX_ITER, iterations_rule="limit")
         return tau, AUTO_MAX_ITER, meta
     return resolve(model, b, tau, iters, tv=tv, log=lambda s: print(s, file=sys.stderr),
-                   precondition=getattr(args, "precondition", "auto"))
+                   precondition=getattr(args, "precondition", "auto"),
+                   iterations_why="--iters as given")
 
 
 def tau_search_s(tau_meta: dict[str, Any]) -> float | None:
