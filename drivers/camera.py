@@ -18,6 +18,13 @@ Streaming has two paths that are never mixed:
 Starting one path while the other runs raises :class:`CameraError`; so does :meth:`Camera.snap`
 while either runs. :meth:`Camera.stop` ends whichever runs (and is a no-op when none does).
 
+Errors: a :class:`FrameError` is one bad frame (a corrupt compressed frame, a failed read, an
+undecodable file, a frame of another size or pixel type); the source may still deliver the
+next. Live view skips it (counted in :attr:`StreamStats.bad`, logged) and ends only after
+:attr:`CameraBase.stream_max_bad_frames` bad frames in a row, or when no *good* frame came for
+:attr:`CameraBase.stream_timeout_s`. An acquisition ends at the first error of any kind (its
+data must be whole). Any other :class:`CameraError` ends either stream at once.
+
 Feature names (:class:`Feature`) are shared by :class:`Capabilities` and
 :class:`FeatureNotAvailable`, so a caller can ask first or try and catch.
 """
@@ -53,6 +60,7 @@ __all__ = [
     "Feature",
     "FeatureNotAvailable",
     "Frame",
+    "FrameError",
     "FrameStreamer",
     "Roi",
     "StreamMode",
@@ -122,6 +130,16 @@ class CameraError(RuntimeError):
 
 class CameraTimeout(CameraError, TimeoutError):
     """No frame arrived within the timeout."""
+
+
+class FrameError(CameraError):
+    """One bad frame: the source may still deliver the next one.
+
+    A corrupt or undecodable frame, a read or dequeue that returned no frame, a frame whose
+    size or pixel type differs from the stream's. The message names the frame's problem (and
+    its file, for recorded frames). A live stream skips such frames (see
+    :class:`FrameStreamer`); :meth:`Camera.snap` and an acquisition raise them.
+    """
 
 
 class FeatureNotAvailable(CameraError):
@@ -586,6 +604,8 @@ class StreamStats:
     ``acquired`` frames came from the device; ``delivered`` reached the consumer;
     ``dropped`` were replaced before anybody took them (newest-frame path only);
     ``pending`` wait to be taken. ``acquired == delivered + dropped + pending``.
+    ``bad`` frames raised :class:`FrameError` (skipped by the newest-frame path, not counted in
+    ``acquired``); ``last_bad`` is the last one's message (None when there was none).
     """
 
     mode: StreamMode
@@ -597,6 +617,8 @@ class StreamStats:
     max_pending: int = 0
     queue_size: int = 0
     error: str | None = None
+    bad: int = 0
+    last_bad: str | None = None
 
 
 GrabFunction = Callable[[float], "Frame | None"]
@@ -606,12 +628,29 @@ class FrameStreamer:
     """A background thread that pulls frames from ``grab`` into one of the two sinks.
 
     ``grab(poll_s)`` returns a frame, or None when none arrived within about ``poll_s``
-    (so the thread can notice a stop request). No frame for ``stall_timeout_s`` ends the
-    stream with :class:`CameraTimeout`. ``on_exit`` runs in the thread when it ends (the
-    backend stops the device there). Errors end the stream and are raised to the consumer
+    (so the thread can notice a stop request). ``on_exit`` runs in the thread when it ends
+    (the backend stops the device there). Errors end the stream and are raised to the consumer
     by :meth:`latest` / :meth:`pop` once the frames before them are taken
     (:class:`AcquisitionOverflow` is raised at once).
+
+    Which errors end it:
+
+    - No *good* frame for ``stall_timeout_s`` ends it with :class:`CameraTimeout` (bad frames
+      do not keep a dead device alive).
+    - LIVE: a :class:`FrameError` from ``grab`` skips that frame: it is counted
+      (:attr:`StreamStats.bad`, message in ``last_bad``) and logged as a warning (the first,
+      then at most one per ``bad_log_interval_s`` seconds with the count since), and the
+      stream goes on. ``max_bad_frames`` bad frames in a row (default 10; a good frame resets
+      the count) end it with a :class:`CameraError` naming the count and the last message
+      (caused by that :class:`FrameError`): one bad read among good ones is noise, a run of
+      them is a device that is gone or a source that delivers nothing usable.
+    - ACQUISITION: the first error of any kind, a :class:`FrameError` included, ends it (the
+      recorded data must have no holes).
+    - Any other exception ends either stream at once.
     """
+
+    #: Seconds between two warnings about skipped bad frames (the first is logged at once).
+    bad_log_interval_s: float = 5.0
 
     def __init__(
         self,
@@ -624,9 +663,13 @@ class FrameStreamer:
         stall_timeout_s: float = 5.0,
         poll_s: float = 0.05,
         on_exit: Callable[[], None] | None = None,
+        max_bad_frames: int = 10,
     ) -> None:
         if mode is StreamMode.IDLE:
             raise ValueError("a stream needs mode LIVE or ACQUISITION")
+        if isinstance(max_bad_frames, bool) or int(max_bad_frames) != max_bad_frames or (
+                max_bad_frames < 1):
+            raise ValueError(f"max_bad_frames must be a positive integer, got {max_bad_frames!r}")
         if n_frames is not None and (int(n_frames) != n_frames or n_frames < 1):
             raise ValueError(f"n_frames must be a positive integer or None, got {n_frames!r}")
         if int(queue_size) != queue_size or queue_size < 1:
@@ -639,6 +682,12 @@ class FrameStreamer:
         self._stall = float(stall_timeout_s)
         self._poll = float(poll_s)
         self._on_exit = on_exit
+        self._max_bad = int(max_bad_frames)
+        self._bad = 0  # FrameErrors, all of them
+        self._bad_run = 0  # FrameErrors since the last good frame
+        self._last_bad: str | None = None
+        self._bad_logged_at: float | None = None  # monotonic time of the last warning
+        self._bad_unlogged = 0  # bad frames since that warning
         self._cond = threading.Condition()
         self._frames: collections.deque[Frame] = collections.deque()
         self._stop_evt = threading.Event()
@@ -660,16 +709,20 @@ class FrameStreamer:
 
     def _run(self) -> None:
         try:
-            last = time.monotonic()
+            last_good = time.monotonic()
             while not self._stop_evt.is_set() and (self._n is None or self._acquired < self._n):
-                frame = self._grab(self._poll)
-                if frame is None:
-                    if time.monotonic() - last > self._stall:
-                        raise CameraTimeout(
-                            f"{self._device}: no frame for {self._stall:.3g} s while streaming"
-                        )
+                try:
+                    frame = self._grab(self._poll)
+                except FrameError as exc:
+                    self._bad_frame(exc, last_good)  # raises when the stream must end
                     continue
-                last = time.monotonic()
+                if frame is None:
+                    if time.monotonic() - last_good > self._stall:
+                        raise self._stalled(None)
+                    continue
+                last_good = time.monotonic()
+                with self._cond:
+                    self._bad_run = 0
                 self._put(frame)
         except BaseException as exc:  # stored and raised to the consumer
             with self._cond:
@@ -686,6 +739,41 @@ class FrameStreamer:
             with self._cond:
                 self._done = True
                 self._cond.notify_all()
+
+    def _stalled(self, cause: FrameError | None) -> CameraTimeout:
+        if not self._bad_run:
+            return CameraTimeout(
+                f"{self._device}: no frame for {self._stall:.3g} s while streaming")
+        return CameraTimeout(
+            f"{self._device}: no good frame for {self._stall:.3g} s while streaming: "
+            f"{self._bad_run} bad frame(s) in a row, the last: {cause or self._last_bad}")
+
+    def _bad_frame(self, exc: FrameError, last_good: float) -> None:
+        """Count a bad frame; raise when the stream must end (see the class docstring)."""
+        with self._cond:
+            self._bad += 1
+            self._bad_run += 1
+            self._last_bad = str(exc)
+            run = self._bad_run
+        if self.mode is not StreamMode.LIVE:
+            raise exc
+        if run >= self._max_bad:
+            raise CameraError(
+                f"{self._device}: {run} bad frames in a row, the last: {exc}") from exc
+        if time.monotonic() - last_good > self._stall:
+            raise self._stalled(exc) from exc
+        now = time.monotonic()
+        if self._bad_logged_at is None:
+            _log.warning("%s: bad frame skipped, live view goes on: %s", self._device, exc)
+        elif now - self._bad_logged_at >= self.bad_log_interval_s:
+            _log.warning("%s: %d bad frames skipped in the last %.3g s (%d in all), the last: "
+                         "%s", self._device, self._bad_unlogged + 1, now - self._bad_logged_at,
+                         self._bad, exc)
+        else:
+            self._bad_unlogged += 1
+            return
+        self._bad_logged_at = now
+        self._bad_unlogged = 0
 
     def _put(self, frame: Frame) -> None:
         with self._cond:
@@ -777,6 +865,8 @@ class FrameStreamer:
                 error=None
                 if self._error is None
                 else f"{type(self._error).__name__}: {self._error}",
+                bad=self._bad,
+                last_bad=self._last_bad,
             )
 
 
@@ -877,8 +967,10 @@ class CameraBase:
 
     backend: str = "base"
 
-    #: Seconds without a frame after which a stream ends with :class:`CameraTimeout`.
+    #: Seconds without a good frame after which a stream ends with :class:`CameraTimeout`.
     stream_timeout_s: float = 5.0
+    #: Bad frames (:class:`FrameError`) in a row after which live view ends with an error.
+    stream_max_bad_frames: int = 10
 
     def __init__(self, camera_id: str) -> None:
         self._camera_id = camera_id
@@ -1133,6 +1225,7 @@ class CameraBase:
             queue_size=queue_size,
             stall_timeout_s=self.stream_timeout_s,
             on_exit=self._stream_end_locked,
+            max_bad_frames=self.stream_max_bad_frames,
         )
         with self._lock:
             self._stream_begin()

@@ -27,10 +27,19 @@ no exposure, gain, ROI, binning, shutter or trigger: those raise
 
 Every frame must have the size and the dtype (uint8 or uint16) of the first one: a frame
 that differs raises :class:`FrameSourceError` naming the file (or the frame), instead of
-arriving as a crop or with another frame's pixel format. Colour frames (3 or 4 channels) are
-reduced to grey: 3 equal channels exactly (one is kept), others by OpenCV's luma weights
-(``cv2.COLOR_BGR2GRAY``: 0.299 R + 0.587 G + 0.114 B); the frame's ``extra["colour"]`` says
-which, and the first such frame after opening logs a warning (the camera model is mono).
+arriving as a crop or with another frame's pixel format.
+
+Bad frames: an undecodable file in a sequence, a frame of another size or dtype, a corrupt
+MJPEG frame and a device read that returns no frame raise a
+:class:`~drivers.camera.FrameError` (a :class:`FrameSourceError` for the data's own faults),
+and the source moves past that frame: :meth:`~V4L2Camera.snap` and an acquisition raise it,
+live view skips it and goes on (until too many come in a row: a device whose every read
+fails is gone). The real end of a file source with ``loop=False`` is not a frame error.
+
+Colour frames (3 or 4 channels) are reduced to grey: 3 equal channels exactly (one is kept),
+others by OpenCV's luma weights (``cv2.COLOR_BGR2GRAY``: 0.299 R + 0.587 G + 0.114 B); the
+frame's ``extra["colour"]`` says which, and the first such frame after opening logs a warning
+(the camera model is mono).
 """
 
 from __future__ import annotations
@@ -56,6 +65,7 @@ from drivers.camera import (
     Capabilities,
     Feature,
     Frame,
+    FrameError,
 )
 
 __all__ = [
@@ -76,11 +86,12 @@ _COLOUR_LUMA = "BGR to grey by OpenCV's luma weights (0.299 R + 0.587 G + 0.114 
 _COLOUR_EQUAL = "3 equal colour channels: one kept (exact)"
 
 
-class FrameSourceError(CameraError, ValueError):
+class FrameSourceError(FrameError, ValueError):
     """The frames of a source are not one consistent mono stream.
 
-    An unreadable file, or a frame whose size or dtype differs from the first frame's. Also a
-    :class:`ValueError`: the data, not the device, is at fault.
+    An unreadable file, or a frame whose size or dtype differs from the first frame's. A
+    :class:`~drivers.camera.FrameError` (live view skips that frame and goes on; the source has
+    moved past it) and a :class:`ValueError`: the data, not the device, is at fault.
     """
 
 
@@ -558,7 +569,7 @@ class V4L2Camera(CameraBase):
             if self._fourcc == "MJPG" and img.shape[0] == 1:
                 decoded = cv2.imdecode(img.reshape(-1), cv2.IMREAD_UNCHANGED)
                 if decoded is None:
-                    raise CameraError(f"{self.describe()}: cannot decode a compressed frame")
+                    raise FrameError(f"{self.describe()}: cannot decode a compressed frame")
                 return self._to_mono(decoded)
             return img, None
         if img.ndim == 3 and self._fourcc == "YUYV" and img.shape[2] == 2:
@@ -578,7 +589,9 @@ class V4L2Camera(CameraBase):
         """One frame and its colour note (files loop at the end).
 
         Raises CameraError at a real end or failure, FrameSourceError for a sequence file
-        that cannot be read and for a frame of another size or dtype than the first.
+        that cannot be read and for a frame of another size or dtype than the first, FrameError
+        for a device read that returned no frame. After a frame error the source is past that
+        frame (the next read is the next file; a sequence's loop goes on).
         """
         import cv2
 
@@ -589,10 +602,14 @@ class V4L2Camera(CameraBase):
             self._file_pos = 0
         ok, img = self._cap.read()
         if (not ok or img is None) and self._seq_first is not None:
-            # before the end found on disk (checked above): this file, not the end of data
-            self._cap.set(cv2.CAP_PROP_POS_FRAMES, self._file_pos)  # stay on it
+            # before the end found on disk (checked above): this file, not the end of data.
+            # Move past it, whatever OpenCV's position did, so the loop goes on.
+            bad = self._file_pos
+            self._file_pos += 1
+            if self._file_pos < self._n_file_frames:
+                self._cap.set(cv2.CAP_PROP_POS_FRAMES, self._file_pos)
             raise FrameSourceError(
-                f"cannot read {self._seq_path(self._file_pos)}: not an image OpenCV can decode"
+                f"cannot read {self._seq_path(bad)}: not an image OpenCV can decode"
             )
         if (not ok or img is None) and self._is_file and self._loop and self._file_pos > 0:
             # a video whose frame count was missing or an estimate: its real end
@@ -600,7 +617,10 @@ class V4L2Camera(CameraBase):
             self._file_pos = 0
             ok, img = self._cap.read()
         if not ok or img is None:
-            raise CameraError(f"{self.describe()}: no frame (device gone or end of data)")
+            if not self._is_file:  # one failed dequeue, or the device gone: the streamer's
+                raise FrameError(  # limit of bad frames in a row tells which
+                    f"{self.describe()}: the read returned no frame")
+            raise CameraError(f"{self.describe()}: no frame (end of data)")
         pos = self._file_pos
         self._file_pos += 1
         arr, colour = self._to_mono(img)
@@ -634,7 +654,7 @@ class V4L2Camera(CameraBase):
         def work() -> None:
             try:
                 if discard_buffered and not self._cap.grab():
-                    raise CameraError(f"{self.describe()}: grab failed")
+                    raise FrameError(f"{self.describe()}: grab failed")
                 box["img"] = self._read_one()
             except BaseException as exc:
                 box["exc"] = exc

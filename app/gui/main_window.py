@@ -748,12 +748,15 @@ class MainWindow(QMainWindow):
             try:
                 stats = cam.stream_stats()
                 dropped = stats.dropped
+                bad = int(getattr(stats, "bad", 0))  # frames the stream skipped as bad
+                last_bad = getattr(stats, "last_bad", None)
             except Exception:
-                dropped = -1
+                dropped, bad, last_bad = -1, 0, None
+            self.raw_panel.footer.setToolTip(f"last bad frame: {last_bad}" if bad else "")
             lat = float(np.median(self._latency_ms)) if self._latency_ms else float("nan")
             parts.append(f"camera {self._camera_rate.rate():.1f} fps")
             parts.append(f"shown {self._display_rate.rate():.1f} fps")
-            parts.append(f"dropped {dropped}")
+            parts.append(f"dropped {dropped}" + (f", bad {bad}" if bad else ""))
             parts.append(f"latency {lat:.0f} ms")
             if self.raw_panel.saturation_level is not None:
                 parts.append(f"saturated {self.raw_panel.saturated} px")

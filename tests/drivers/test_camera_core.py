@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import subprocess
 import sys
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +22,7 @@ from drivers.camera import (
     CameraTimeout,
     FeatureNotAvailable,
     Frame,
+    FrameError,
     FrameStreamer,
     Roi,
     StreamMode,
@@ -154,3 +158,127 @@ def test_package_exports_lazily() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"  # the firmware process starts without heavy imports
+
+
+# -- bad frames: live view skips them, an acquisition stops at the first --------------------
+
+
+def _scripted_grab(script: list[str], *, then: str = "good") -> Callable[[float], Frame | None]:
+    """A grab that follows ``script`` ('good', 'bad', 'fail'), then repeats ``then``."""
+    ids = iter(range(10**6))
+    steps = iter(script)
+
+    def grab(poll_s: float) -> Frame | None:
+        step = next(steps, then)
+        if step == "bad":
+            raise FrameError("frame 7: corrupt MJPEG data")
+        if step == "fail":
+            raise CameraError("device unplugged")
+        threading.Event().wait(0.002)
+        return _frame(np.zeros((2, 2), np.uint16), frame_id=next(ids))
+
+    return grab
+
+
+def _drain_live(s: FrameStreamer, until: Callable[[], bool], timeout_s: float = 10.0) -> list[int]:
+    ids: list[int] = []
+    deadline = time.monotonic() + timeout_s
+    while not until() and time.monotonic() < deadline:
+        f = s.latest(0.05)
+        if f is not None:
+            ids.append(f.frame_id)
+    return ids
+
+
+def test_live_view_skips_a_bad_frame_counts_it_and_says_so(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    s = FrameStreamer(_scripted_grab(["good"] * 3 + ["bad"]), mode=StreamMode.LIVE,
+                      device="cam d")
+    with caplog.at_level(logging.WARNING, logger="drivers.camera"):
+        s.start()
+        try:
+            _drain_live(s, lambda: s.stats().acquired >= 20)
+            st = s.stats()
+            assert s.running and st.error is None  # the stream went on
+        finally:
+            s.stop()
+    assert st.bad == 1 and st.last_bad == "frame 7: corrupt MJPEG data"
+    assert st.acquired == st.delivered + st.dropped + st.pending  # bad ones are not acquired
+    said = [r.getMessage() for r in caplog.records if "bad frame" in r.getMessage()]
+    assert len(said) == 1 and "cam d" in said[0] and "corrupt MJPEG" in said[0]
+
+
+def test_bad_frame_warnings_are_rate_limited_and_count_the_ones_not_said(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    s = FrameStreamer(_scripted_grab(["good", "bad"] * 10**5), mode=StreamMode.LIVE,
+                      device="d")
+    s.bad_log_interval_s = 0.2
+    with caplog.at_level(logging.WARNING, logger="drivers.camera"):
+        s.start()
+        try:
+            _drain_live(s, lambda: False, timeout_s=0.7)
+        finally:
+            s.stop()
+    said = [r.getMessage() for r in caplog.records if "bad frame" in r.getMessage()]
+    assert s.stats().bad > 20 and 2 <= len(said) <= 5  # not one line per bad frame
+    assert "skipped in the last" in said[1] and "corrupt MJPEG" in said[1]
+
+
+def test_live_view_ends_after_max_bad_frames_in_a_row() -> None:
+    # runs of 3 bad frames between good ones never end it; a run of 4 does
+    script = ["good", "bad", "bad", "bad", "good", "bad", "bad", "bad", "good"]
+    s = FrameStreamer(_scripted_grab(script, then="bad"), mode=StreamMode.LIVE, device="d",
+                      max_bad_frames=4)
+    s.start()
+    with pytest.raises(CameraError, match="d: 4 bad frames in a row, the last: frame 7: "
+                                          "corrupt MJPEG data") as info:
+        _drain_live(s, lambda: False, timeout_s=5.0)
+    assert isinstance(info.value.__cause__, FrameError)
+    s.stop()
+    st = s.stats()
+    assert st.bad == 6 + 4 and st.acquired == 3
+
+
+def test_bad_frames_do_not_keep_a_dead_device_alive_past_the_stall_timeout() -> None:
+    def grab(poll_s: float) -> None:
+        threading.Event().wait(0.01)
+        raise FrameError("read returned no frame")
+
+    s = FrameStreamer(grab, mode=StreamMode.LIVE, device="d", stall_timeout_s=0.3,
+                      max_bad_frames=10**6)
+    t0 = time.monotonic()
+    s.start()
+    with pytest.raises(CameraTimeout, match=r"no good frame for 0\.3 s.*bad frame\(s\) in a "
+                                            r"row, the last: read returned no frame"):
+        _drain_live(s, lambda: False, timeout_s=5.0)
+    assert 0.3 <= time.monotonic() - t0 < 3.0 and s.stats().bad >= 10
+    s.stop()
+
+
+def test_live_view_ends_at_once_on_an_error_that_is_not_a_bad_frame() -> None:
+    s = FrameStreamer(_scripted_grab(["good", "fail"]), mode=StreamMode.LIVE, device="d")
+    s.start()
+    with pytest.raises(CameraError, match="device unplugged") as info:
+        _drain_live(s, lambda: False, timeout_s=5.0)
+    assert not isinstance(info.value, FrameError) and s.stats().bad == 0
+    s.stop()
+
+
+def test_an_acquisition_ends_at_its_first_bad_frame() -> None:
+    s = FrameStreamer(_scripted_grab(["good", "good", "bad"]), mode=StreamMode.ACQUISITION,
+                      device="d", n_frames=10, queue_size=10)
+    s.start()
+    got = [s.pop(5.0).frame_id for _ in range(2)]
+    with pytest.raises(FrameError, match="corrupt MJPEG"):
+        s.pop(5.0)
+    s.stop()
+    assert got == [0, 1] and s.stats().acquired == 2 and s.stats().bad == 1
+
+
+def test_streamer_validates_max_bad_frames() -> None:
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="max_bad_frames"):
+            FrameStreamer(_scripted_grab([]), mode=StreamMode.LIVE, device="d",
+                          max_bad_frames=bad)  # type: ignore[arg-type]

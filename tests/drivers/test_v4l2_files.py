@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -79,9 +80,10 @@ def test_a_truncated_file_is_named_at_every_read(seq: Callable[..., str]) -> Non
     Path(pattern % 1).write_bytes(whole[: len(whole) // 3])  # a PNG header, then nothing
     with V4L2Camera(pattern) as cam:
         assert cam.snap().pixels.flat[0] == 0
-        for _ in range(2):  # not a rewind to frame 0
+        for _ in range(2):  # each time the loop reaches it; never a rewind to frame 0
             with pytest.raises(FrameSourceError, match=r"cannot read .*trunc/0001\.png"):
                 cam.snap()
+            assert [int(cam.snap().pixels.flat[0]) for _ in range(2)] == [2, 0]  # past it
 
 
 def test_acquisition_from_a_broken_sequence_raises_instead_of_looping(
@@ -94,6 +96,52 @@ def test_acquisition_from_a_broken_sequence_raises_instead_of_looping(
         got = [int(cam.pop_frame(timeout_s=5.0).pixels.flat[0]) for _ in range(2)]
         with pytest.raises(FrameSourceError, match=r"trunc_acq/0002\.png"):
             cam.pop_frame(timeout_s=5.0)
+        cam.stop()
+    assert got == [0, 1]
+
+
+def _spoil_after_opening(path: str) -> None:
+    Path(path).write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 20)  # a PNG that will not decode
+
+
+def test_live_view_goes_on_past_a_file_that_cannot_be_decoded(
+    seq: Callable[..., str], caplog: pytest.LogCaptureFixture
+) -> None:
+    pattern = seq("live_bad", 5)
+    with caplog.at_level(logging.WARNING), V4L2Camera(pattern, frame_rate_hz=100) as cam:
+        _spoil_after_opening(pattern % 2)  # the check at opening passed: it fails when read
+        cam.start_live()
+        seen: list[int] = []
+        deadline = time.monotonic() + 20.0
+        while (len(seen) < 12 or cam.stream_stats().bad < 2) and time.monotonic() < deadline:
+            f = cam.latest_frame(0.5)  # raised here when the bad file ended live view
+            if f is not None:
+                seen.append(int(f.pixels.flat[0]))
+        stats = cam.stream_stats()
+        cam.stop()
+    assert stats.running and stats.error is None
+    assert stats.bad >= 2 and len(seen) >= 12  # past the bad file, round the loop, past again
+    assert "live_bad/0002.png" in (stats.last_bad or "")
+    assert 2 not in seen and {3, 4} & set(seen) and {0, 1} & set(seen)
+    said = [r.getMessage() for r in caplog.records if "bad frame" in r.getMessage()]
+    assert said and "live_bad/0002.png" in said[0]
+
+
+def test_a_snap_or_an_acquisition_over_an_undecodable_file_names_it(
+    seq: Callable[..., str],
+) -> None:
+    pattern = seq("snap_bad", 4)
+    with V4L2Camera(pattern) as cam:
+        _spoil_after_opening(pattern % 2)
+        assert [int(cam.snap().pixels.flat[0]) for _ in range(2)] == [0, 1]
+        with pytest.raises(FrameSourceError, match=r"cannot read .*snap_bad/0002\.png") as info:
+            cam.snap()
+        assert len(str(info.value).splitlines()) == 1
+        assert int(cam.snap().pixels.flat[0]) == 3
+        cam.start_acquisition(n_frames=8)  # from frame 0 again after the loop: 0, 1, then 2
+        got = [int(cam.pop_frame(timeout_s=5.0).pixels.flat[0]) for _ in range(2)]
+        with pytest.raises(FrameSourceError, match=r"snap_bad/0002\.png"):
+            cam.pop_frame(timeout_s=5.0)  # the recording stops: no hole in its data
         cam.stop()
     assert got == [0, 1]
 

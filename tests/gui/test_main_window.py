@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -108,6 +109,33 @@ def test_camera_unplug_shows_error_and_reconnects(live_window: Any, qtbot: Any) 
     n = w.frames_shown
     qtbot.waitUntil(lambda: w.frames_shown > n + 3, timeout=10_000)
     assert not w.banner.isVisible()
+
+
+def test_bad_frames_are_skipped_and_counted_in_the_footer(live_window: Any, qtbot: Any,
+                                                         monkeypatch: Any) -> None:
+    from drivers.camera import FrameError
+
+    w = live_window
+    cam = w.bench.camera
+    grab, calls = cam._stream_grab, [0]
+
+    def sometimes_bad(poll_s: float) -> Any:
+        calls[0] += 1
+        if calls[0] % 3 == 0:
+            raise FrameError("frame 9: corrupt data")
+        return grab(poll_s)
+
+    monkeypatch.setattr(cam, "_stream_grab", sometimes_bad)
+    w.set_live(True)  # restart the stream with the flaky grab
+    qtbot.waitUntil(lambda: w.camera_state == "live", timeout=5_000)
+    n = w.frames_shown
+    qtbot.waitUntil(lambda: w.frames_shown > n + 3 and cam.stream_stats().bad >= 2,
+                    timeout=10_000)
+    w._update_readouts()
+    assert w.camera_state == "live" and not w.banner.isVisible()  # not "Camera lost"
+    shown = re.search(r"dropped \d+, bad (\d+)", w.raw_panel.footer.text())
+    assert shown and int(shown.group(1)) >= 2, w.raw_panel.footer.text()
+    assert "corrupt data" in w.raw_panel.footer.toolTip()
 
 
 def test_point_source_death_is_shown_and_recovered(bench_window: Any, qtbot: Any) -> None:
