@@ -6,11 +6,12 @@ that polls the camera's newest frame without waiting (:meth:`Camera.latest_frame
 0); the preview runs on its own QThread (:class:`~app.gui.workers.PreviewWorker`) and only ever
 sees the newest frame.
 
-Device loss: an error from the live stream (the camera timing out) or from the point source
-(its port gone) is shown in the window's banner and the device panel, and a reconnect is tried
-every ``reconnect_interval_ms`` until it works or the user disconnects. The states and the
-reconnection rules live in :class:`app.devices_state.DeviceStates` (no Qt); the window does the
-device work and reports the outcomes there.
+Device loss: an error from the live stream (the camera timing out, or a run of bad frames: a
+single bad frame is skipped by the stream and counted in the footer, ``FrameError``) or from
+the point source (its port gone) is shown in the window's banner and the device panel, and a
+reconnect is tried every ``reconnect_interval_ms`` until it works or the user disconnects. The
+states and the reconnection rules live in :class:`app.devices_state.DeviceStates` (no Qt); the
+window does the device work and reports the outcomes there.
 
 Layout: the images in the centre; Controls (left), UDN jobs and the speed/accuracy trade
 (bottom, tabbed) are docks that can be closed, moved, floated or tabbed (View menu). Footers
