@@ -7,6 +7,7 @@ import json
 import math
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -151,7 +152,7 @@ def run_fista(args: argparse.Namespace) -> int:
 
 def run_admm(args: argparse.Namespace) -> int:
     """Run ADMM-TV and save the result with its metadata (tau auto: chosen as for FISTA)."""
-    from recon.admm import Admm
+    from recon.admm import Admm, slow_erasure_note
     from recon.tv import TV
 
     if model_kind(args) != "2d":
@@ -162,6 +163,9 @@ def run_admm(args: argparse.Namespace) -> int:
         tv = TV(isotropic=args.tv == "iso")
         # the held-out search runs FISTA (same objective, so the same tau); ADMM's iteration
         # count is the limit unless given
+        note = slow_erasure_note(model)
+        if note is not None:  # said before the tau search's seconds
+            warnings.warn(note, UserWarning, stacklevel=2)
         tau, iters, tau_meta = resolve_tau(args, model, b, tv, tau_only=True)
         solver = Admm(model, b, tau=tau, tv=tv, max_iter=iters, tol=args.tol, rho=args.rho)
         return solver, tau, iters, tau_meta
