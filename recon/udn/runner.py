@@ -15,7 +15,12 @@ One :meth:`UDNRunner.step` is one Adam iteration:
    is left out of the loss; their prediction error, computed on the EMA estimate, is tracked
    and the estimate with the lowest error is kept as ``best``. When it has not improved by a
    relative ``min_delta`` for ``patience`` iterations (and at least ``min_iter`` were done)
-   the run stops as ``stopped_early``.
+   the run stops as ``stopped_early``. With fewer than
+   :data:`recon.holdout.MIN_RELIABLE_HELDOUT` held-out pixels their error is too noisy to stop
+   on: the run goes on to its limit (``best`` is still their choice) and its notes say so. On
+   the simulation protocol at 99 % erasures (75x100, 4 held-out pixels, the defaults) the early
+   stop fell at iterations 571-1110 with ``best`` at 71-610, and running on to 3000 raised the
+   held-out choice from 13.81 to 14.64 dB in the mean of three scenes (docs/udn.md).
 
 Pixels that are not measured (the erasure mask is 0) carry no information and never enter the
 loss, whatever value b has there (even NaN).
@@ -41,6 +46,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
+from recon.holdout import MIN_RELIABLE_HELDOUT
 from recon.models import ForwardModel
 from recon.stepwise import NumericalError, Stepwise, StopReason
 from recon.tv import TV
@@ -392,8 +398,12 @@ class UDNRunner(Stepwise[UDNStep]):
             few = few_heldout_note(self.n_heldout, "the stopping iteration",
                                    "more than it changes over many iterations")
             if few is not None:  # kept in the run record's notes
-                self.notes.append(f"{few}; raise holdout ({cfg.holdout:g}) or set the "
-                                  "iteration count (max_iter) yourself")
+                self.notes.append(f"{few}; the run does not stop early on them (it runs to "
+                                  f"max_iter, {cfg.max_iter}, or its time limit, and keeps "
+                                  f"their best iteration); raise holdout ({cfg.holdout:g}) or "
+                                  "set the iteration count (max_iter) yourself")
+        #: the patience rule: only on enough held-out pixels (see the module docstring)
+        self.stops_early = self.n_heldout >= MIN_RELIABLE_HELDOUT
 
         with torch.random.fork_rng(devices=[]):  # seeded weights; the global RNG is untouched
             torch.manual_seed(cfg.seed)
@@ -772,7 +782,7 @@ class UDNRunner(Stepwise[UDNStep]):
         dt = time.perf_counter() - start
         self.elapsed_s += dt
         self._step_time = dt if self._step_time is None else 0.9 * self._step_time + 0.1 * dt
-        if (err is not None and it - self.best_iteration >= cfg.patience
+        if (err is not None and self.stops_early and it - self.best_iteration >= cfg.patience
                 and it >= cfg.min_iter):
             self.reason = StopReason.STOPPED_EARLY
         elif it >= cfg.max_iter:

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from recon.holdout import MIN_RELIABLE_HELDOUT
 from recon.metrics import gain_fit, psnr
 from recon.models import build_model
 from recon.stepwise import StopReason
@@ -76,7 +77,8 @@ def test_heldout_pixels_are_excluded_from_the_fit():
 
 
 def test_early_stopping_returns_the_best_estimate(monkeypatch):
-    r, _ = make_runner(holdout=0.1, patience=5, min_iter=0, max_iter=100, ema=0.5)
+    r, _ = make_runner(holdout=0.3, patience=5, min_iter=0, max_iter=100, ema=0.5)
+    assert r.n_heldout >= MIN_RELIABLE_HELDOUT and r.stops_early
     # a scripted held-out error: falls until iteration 8, then rises (overfitting)
     script = iter([1.0 / i if i <= 8 else 0.125 + 0.01 * i for i in range(1, 101)])
     monkeypatch.setattr(r, "heldout_error", lambda x: next(script))
@@ -90,6 +92,21 @@ def test_early_stopping_returns_the_best_estimate(monkeypatch):
     assert not np.array_equal(r.final_estimate(), estimates[8])
     res = r.result()
     assert res.best_iteration == 8 and res.reason is StopReason.STOPPED_EARLY
+
+
+def test_too_few_heldout_pixels_do_not_stop_the_run_early(monkeypatch):
+    """34 held-out pixels (fewer than MIN_RELIABLE_HELDOUT) know their error to about a
+    quarter of itself: the same scripted rise that stops a run with enough of them does not
+    stop this one; it runs to its limit, keeps their best iteration and says why."""
+    r, _ = make_runner(holdout=0.1, patience=5, min_iter=0, max_iter=30, ema=0.5)
+    assert r.n_heldout < MIN_RELIABLE_HELDOUT and not r.stops_early
+    script = iter([1.0 / i if i <= 8 else 0.125 + 0.01 * i for i in range(1, 101)])
+    monkeypatch.setattr(r, "heldout_error", lambda x: next(script))
+    estimates = {s.iteration: s.preview for s in r.steps(preview_every=1)}
+    assert r.reason is StopReason.MAX_ITER and r.iteration == 30
+    assert r.best_iteration == 8
+    np.testing.assert_array_equal(r.best_estimate(), estimates[8])
+    assert any("does not stop early on them" in n for n in r.notes), r.notes
 
 
 def test_divergence_restores_the_last_good_state():
