@@ -146,3 +146,42 @@ def test_combine_never_writes_over_a_members_input_nor_takes_an_unfinished_run(
     with pytest.raises(ValueError, match=r"the run has not finished \(status running\)"):
         combine_runs(runs[:2], tmp_path / "ens.tif")
     assert not (tmp_path / "ens.tif").exists()
+
+
+def test_combine_with_fista_is_half_the_runs_and_half_recon_fistas_result(three_runs, tiny_data,
+                                                                           tmp_path, capsys):
+    """--with-fista: one run is enough; the result is 0.5 x its best + 0.5 x what `recon fista`
+    with its defaults gives on the same inputs (the same loader, tau rule and solver), recorded
+    in the metadata; inputs changed since the run are refused, nothing written."""
+    _spec, runs = three_runs
+    out = tmp_path / "wf.tif"
+    assert cli_main(["jobs", "combine", str(runs[0]), "--with-fista", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "ensemble of 1 run and FISTA-TV" in printed and "FISTA-TV  tau" in printed
+    x, meta = read_reconstruction(out)
+    assert meta["method"] == "udn-ensemble+fista-tv" and meta["fista"]["weight"] == 0.5
+    assert cli_main(["recon", "fista", "--psf", str(tiny_data / "psf.npy"), "--meas",
+                     str(tiny_data / "meas.npy"), "--mask", str(tiny_data / "mask.npy"),
+                     "--out", str(tmp_path / "f.tif")]) == 0
+    capsys.readouterr()
+    xf, fmeta = read_reconstruction(tmp_path / "f.tif")
+    assert meta["fista"]["tau"] == fmeta["parameters"]["tau"]
+    assert meta["fista"]["iterations"] == fmeta["iterations"]
+    best = read_reconstruction(runs[0] / "best.tif")[0]
+    # one computation in two processes' thread counts: float sums may differ in the last bits
+    np.testing.assert_allclose(x, 0.5 * best + 0.5 * xf.reshape(best.shape), rtol=0,
+                               atol=1e-4 * float(np.abs(best).max()))
+    assert not np.allclose(x, best, atol=1e-3 * float(np.abs(best).max()))
+    # two runs: the mean of the runs, then half and half
+    res = combine_runs(runs[:2], tmp_path / "wf2.tif", with_fista=True)
+    bests = [read_reconstruction(r / "best.tif")[0] for r in runs[:2]]
+    np.testing.assert_allclose(res.x, 0.5 * np.mean(bests, axis=0) + 0.5 * xf.reshape(best.shape),
+                               rtol=0, atol=1e-4 * float(np.abs(best).max()))
+    # without it one run is still refused; inputs changed since the run are refused
+    with pytest.raises(ValueError, match="at least two runs"):
+        combine_runs(runs[:1], tmp_path / "never.tif")
+    meas = np.load(tiny_data / "meas.npy")
+    np.save(tiny_data / "meas.npy", meas * 1.01)
+    with pytest.raises(ValueError, match=r"data.measurement changed since the run"):
+        combine_runs(runs[:1], tmp_path / "never.tif", with_fista=True)
+    assert not (tmp_path / "never.tif").exists()
