@@ -787,15 +787,22 @@ FINE_FRACTION = 1 / 64
 ERROR_METHODS = (("fista_auto", "FISTA-TV auto tau"), ("fista_oracle", "FISTA-TV oracle tau"),
                  ("udn", "UDN (held-out stop)"), ("udn_blend", "UDN+FISTA blend"),
                  ("udn_ensemble", "UDN seed ensemble"),
-                 ("ensemble_fista_mean", "UDN seed ensemble and FISTA-TV auto, averaged"))
+                 ("ensemble_fista_mean", "UDN seed ensemble and FISTA-TV auto, averaged"),
+                 ("udn_fista_mean", "UDN (seed 0) and FISTA-TV auto, averaged "
+                                    "(jobs combine --with-fista)"))
 
 #: The derived estimate of ``ensemble_fista_mean``: the plain mean of the seed ensemble and the
 #: automatic-tau FISTA-TV result, neither weighted by the truth (both fit the same measurement,
 #: so their scales agree; the seed ensemble's own rule, one weight per member, extended to one
 #: more member whose errors are of another kind).
+#: ``udn_fista_mean``: the same with the first seed's held-out choice alone, what
+#: ``lenslesscam jobs combine RUN --with-fista`` writes for one run (FISTA-TV with the automatic
+#: tau on all measured pixels, weight 0.5).
 def _derived(imgs: dict[str, Any]) -> dict[str, Any]:
     if "udn_ensemble" in imgs and "fista_auto" in imgs and "ensemble_fista_mean" not in imgs:
         imgs = {**imgs, "ensemble_fista_mean": 0.5 * (imgs["udn_ensemble"] + imgs["fista_auto"])}
+    if "udn" in imgs and "fista_auto" in imgs and "udn_fista_mean" not in imgs:
+        imgs = {**imgs, "udn_fista_mean": 0.5 * (imgs["udn"] + imgs["fista_auto"])}
     return imgs
 
 

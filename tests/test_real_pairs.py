@@ -422,3 +422,12 @@ def test_error_analysis_scores_the_mean_of_the_ensemble_and_fista_where_both_wer
     assert mean["psnr"] - ens["psnr"] == pytest.approx(10 * np.log10(2), abs=0.3)
     assert (0.5, "ensemble_fista_mean") not in rows
     assert "UDN seed ensemble and FISTA-TV auto, averaged" in rp.error_table(out)
+    # one seed (what jobs combine --with-fista writes for one run): only where it was kept
+    assert (0.9, "udn_fista_mean") not in rows
+    for name in ("a", "b", "c"):
+        imgs = images[(name, 0.9)]
+        imgs["udn"] = (imgs["truth"] + 0.05 * rng.standard_normal(imgs["truth"].shape)
+                       ).astype(np.float32)
+    rows = {(r["erasure"], r["method"]): r for r in rp.error_analysis(images)}
+    one, udn = rows[(0.9, "udn_fista_mean")], rows[(0.9, "udn")]
+    assert one["psnr"] - udn["psnr"] == pytest.approx(10 * np.log10(2), abs=0.3)
