@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -25,14 +24,17 @@ Paths = Mapping[str, "str | os.PathLike[str] | None"]
 
 
 def hxw(min_side: int) -> Callable[[str], tuple[int, int]]:
-    """A ``type=`` for a size ``HxW`` with both sides at least ``min_side``."""
+    """A ``type=`` for a size ``HxW`` with both sides at least ``min_side`` (the commands' one
+    parser, :func:`app.commands._options.parse_hw`)."""
+    from app.commands._options import parse_hw
+
     what = f"HxW with both sides >= {min_side}"
 
     def parse(text: str) -> tuple[int, int]:
-        m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
-        if not m or min(int(m.group(1)), int(m.group(2))) < min_side:
-            raise argparse.ArgumentTypeError(f"must be {what} (for example 48x64), got {text!r}")
-        return int(m.group(1)), int(m.group(2))
+        try:
+            return parse_hw(text, "the size", (min_side, min_side))
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc).removeprefix("the size ")) from None
 
     parse.__name__ = what
     return parse

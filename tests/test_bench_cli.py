@@ -260,9 +260,9 @@ BAD = [
     (["preview", "--configs", "abc"], "--configs", "DOWNSAMPLExITERATIONS"),
     (["preview", "--configs", "0x5"], "--configs", "DOWNSAMPLE 1..16"),
     (["plan", "--size", "abc"], "--size", "HxW"),
-    (["plan", "--size", "16x64"], "--size", ">= 32"),
+    (["plan", "--size", "16x64"], "--size", "at least 32x32"),
     (["plan", "--cases", "static,nope"], "--cases", "static"),
-    (["batch", "--size", "1x1"], "--size", ">= 16"),
+    (["batch", "--size", "1x1"], "--size", "at least 16x16"),
     (["batch", "--workers", "0"], "--workers", ">= 1"),
     (["batch", "--workers", "1,0"], "--workers", ">= 1"),
 ]

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 from collections.abc import Callable, Iterable
 
 __all__ = [
@@ -29,6 +30,7 @@ __all__ = [
     "check_output_folders",
     "finite_float",
     "integer",
+    "parse_hw",
     "refuse_run_folder_outputs",
 ]
 
@@ -106,6 +108,29 @@ UNIT = finite_float(0, 1)
 INPUT_OPTIONS = ("psf", "psf_stack", "meas", "mask", "shutter", "filters", "dark", "psf_dark",
                  "timing", "plan", "scene", "light_state", "cube", "like", "pixel_maps",
                  "sim_psf", "trade", "truth")
+
+
+#: the largest side of a sensor or PSF shape given as HxW: the largest sCMOS sensors are about
+#: 14000 pixels wide (more is a typo, and an allocation of many GiB)
+MAX_SIDE = 16384
+
+
+def parse_hw(value: str, what: str, least: tuple[int, int] = (1, 1)) -> tuple[int, int]:
+    """A size ``HxW`` (also ``HXW``, ``H,W``): (rows, columns).
+
+    The one parser of every command and benchmark that takes a size; ValueError in one line
+    naming ``what`` otherwise.
+    """
+    m = re.fullmatch(r"\s*(\d+)\s*[xX,]\s*(\d+)\s*", value)
+    if not m:
+        raise ValueError(f"{what} must be HxW (for example 64x80), got {value!r}")
+    h, w = int(m.group(1)), int(m.group(2))
+    if h < least[0] or w < least[1]:
+        raise ValueError(f"{what} must be at least {least[0]}x{least[1]} pixels (HxW), got "
+                         f"{value!r}")
+    if max(h, w) > MAX_SIDE:
+        raise ValueError(f"{what} must be at most {MAX_SIDE} pixels a side, got {value!r}")
+    return h, w
 
 
 def add_overwrite_option(p: argparse.ArgumentParser) -> None:

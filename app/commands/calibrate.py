@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import re
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -29,6 +28,7 @@ from app.commands._options import (
     add_overwrite_option,
     check_command_outputs,
     finite_float,
+    parse_hw,
 )
 
 
@@ -154,22 +154,6 @@ def _psf_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--pixel-maps", help="pixel-maps file whose bad pixels are repaired too")
 
 
-def _hw(value: str, what: str, least: tuple[int, int] = (1, 1)) -> tuple[int, int]:
-    m = re.fullmatch(r"\s*(\d+)\s*[xX,]\s*(\d+)\s*", value)
-    if not m:
-        raise ValueError(f"{what} must be HxW (for example 64x80), got {value!r}")
-    h, w = int(m.group(1)), int(m.group(2))
-    if h < least[0] or w < least[1]:
-        raise ValueError(f"{what} must be at least {least[0]}x{least[1]} pixels (HxW), got "
-                         f"{value!r}")
-    if max(h, w) > MAX_SIDE:  # larger than any sensor: a typo, and an allocation of many GiB
-        raise ValueError(f"{what} must be at most {MAX_SIDE} pixels a side, got {value!r}")
-    return h, w
-
-
-#: the largest side of a (simulated) sensor or PSF shape: the largest sCMOS sensors are about
-#: 14000 pixels wide
-MAX_SIDE = 16384
 #: the largest frame the simulated camera renders within a frame timeout on one core
 SIM_MAX_PIXELS = 4096 * 4096
 #: the smallest simulated sensor (HxW): drivers.simcam.SimulatedCamera needs 2 rows
@@ -257,7 +241,7 @@ def sim_camera_kwargs(args: argparse.Namespace, state_path: Path | None) -> dict
 
         psf = load_psf(args.sim_psf)[0]
         if args.sim_size:
-            h, w = _hw(args.sim_size, "--sim-size", SIM_MIN_HW)
+            h, w = parse_hw(args.sim_size, "--sim-size", SIM_MIN_HW)
             f = psf.shape[0] // h
             if f < 1 or psf.shape[0] != f * h or psf.shape[1] != f * w:
                 raise ValueError(
@@ -267,7 +251,7 @@ def sim_camera_kwargs(args: argparse.Namespace, state_path: Path | None) -> dict
             psf = normalise(box_downsample(psf, f), "sum")
         h, w = (int(psf.shape[0]), int(psf.shape[1]))
     else:
-        h, w = _hw(args.sim_size or "64x80", "--sim-size", SIM_MIN_HW)
+        h, w = parse_hw(args.sim_size or "64x80", "--sim-size", SIM_MIN_HW)
     if h * w > SIM_MAX_PIXELS:  # a 16384x16384 frame timed out, then a traceback (or a hang)
         raise ValueError(f"the simulated camera is {h}x{w}: it renders at most "
                          f"{SIM_MAX_PIXELS / 1e6:.1f} M pixels a frame in time (4096x4096); "
@@ -315,7 +299,7 @@ def _psf_settings(args: argparse.Namespace) -> Any:
         target_peak=args.target,
         intensity=args.intensity,
         centre=centre,
-        shape=_hw(args.shape, "--shape") if args.shape else None,
+        shape=parse_hw(args.shape, "--shape") if args.shape else None,
         max_offcentre=args.max_offcentre,
         min_snr=args.min_snr,
         frame_timeout_s=args.timeout,
@@ -544,7 +528,7 @@ def run_filters(args: argparse.Namespace) -> int:
     from calibration.filters import load_filter_cube
 
     if args.sensor:
-        shape = _hw(args.sensor, "--sensor")
+        shape = parse_hw(args.sensor, "--sensor")
     else:
         import numpy as np
 
