@@ -46,6 +46,7 @@ __all__ = [
     "JobView",
     "cancel_job",
     "combine_jobs",
+    "combine_refusal",
     "create_job",
     "default_sections",
     "discover_jobs",
@@ -510,28 +511,50 @@ def discover_jobs(jobs_dir: str | Path) -> list[JobView]:
     return out
 
 
-def combine_jobs(views: list[JobView], jobs_dir: str | Path) -> Any:
+def combine_refusal(views: list[JobView], with_fista: bool = False) -> str | None:
+    """Why ``views`` cannot be combined, found without reading a file (None: try it).
+
+    An average needs two finished jobs, one with FISTA-TV (``with_fista``); the rest (same
+    measurement, different seeds, inputs unchanged) is :func:`recon.udn.ensemble.combine_runs`'s
+    to check. The jobs panel enables its Combine actions with this.
+    """
+    if not views:
+        return "no job selected"
+    not_done = [v.name for v in views if "best" not in v.results]
+    if not_done:
+        return f"not finished (no best estimate yet): {', '.join(not_done)}"
+    if len(views) < 2 and not with_fista:
+        return ("an ensemble needs at least two runs (or one run averaged with FISTA-TV: "
+                "Combine > Average the seeds and FISTA-TV)")
+    return None
+
+
+def combine_jobs(views: list[JobView], jobs_dir: str | Path, with_fista: bool = False) -> Any:
     """Average the best estimates of finished jobs of one measurement (an ensemble).
 
-    Writes ``jobs_dir/ensembles/<time>-<name>.tif`` (+ preview) through
-    :func:`recon.udn.ensemble.combine_runs`, which refuses jobs of other data or the same seed;
-    returns its :class:`~recon.udn.ensemble.EnsembleResult`.
+    Writes ``jobs_dir/ensembles/<time>-<name>-xN.tif`` (+ preview; ``-xN+fista.tif`` with
+    ``with_fista``) through :func:`recon.udn.ensemble.combine_runs`, which refuses jobs of
+    other data or the same seed; returns its :class:`~recon.udn.ensemble.EnsembleResult`.
+    ``with_fista``: that average half and half with FISTA-TV (automatic tau) of the jobs' own
+    inputs; one job is then enough. It takes seconds to a minute (the tau search): the panel
+    runs it off the GUI thread.
     """
     from recon.udn.ensemble import combine_runs
 
-    not_done = [v.name for v in views if "best" not in v.results]
-    if not_done:
-        raise ValueError(f"not finished (no best estimate yet): {', '.join(not_done)}")
+    refusal = combine_refusal(views, with_fista)
+    if refusal is not None:
+        raise ValueError(refusal)
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     out_dir = Path(jobs_dir) / "ensembles"
     out_dir.mkdir(parents=True, exist_ok=True)
     name = views[0].name if views else "ensemble"
-    out = out_dir / f"{stamp}-{_slug(name)}-x{len(views)}.tif"
+    tag = "+fista" if with_fista else ""
+    out = out_dir / f"{stamp}-{_slug(name)}-x{len(views)}{tag}.tif"
     n = 1
     while out.exists():
         n += 1
-        out = out_dir / f"{stamp}-{_slug(name)}-x{len(views)}-{n}.tif"
-    return combine_runs([v.run_dir for v in views], out)
+        out = out_dir / f"{stamp}-{_slug(name)}-x{len(views)}{tag}-{n}.tif"
+    return combine_runs([v.run_dir for v in views], out, with_fista=with_fista)
 
 
 def read_loss(folder: str | Path) -> tuple[Any, ...]:

@@ -142,14 +142,15 @@ def test_jobs_from_the_gui_complete_open_and_combine(jobs_window: Any, qtbot: An
     assert dlg2.meta["final"]["method"] == "udn"
     text = dlg2.metadata.toPlainText()
     assert "[best]" in text and "[final]" in text and "method: udn" in text
-    # one finished job alone cannot be combined; the core refuses it too
-    assert not panel.combine_button.isEnabled()
+    # one finished job alone cannot be averaged (only with FISTA-TV); the core refuses it too
+    assert not panel.combine_action.isEnabled() and panel.combine_fista_action.isEnabled()
     panel.combine_selected()
     assert "cannot combine: an ensemble needs at least two runs" in panel.message.text()
 
     panel._select_folders({v.folder for v in panel.views})
-    qtbot.waitUntil(lambda: panel.combine_button.isEnabled(), timeout=5_000)
-    panel.combine_button.click()
+    qtbot.waitUntil(lambda: panel.combine_action.isEnabled(), timeout=5_000)
+    panel.combine_action.trigger()  # the button opens the menu of the two ways to combine
+    qtbot.waitUntil(lambda: "combining" not in panel.message.text(), timeout=30_000)
     msg = panel.message.text()
     assert "ensemble of 2 jobs written to" in msg, msg
     out = sorted((panel.queue.jobs_dir / "ensembles").glob("*.tif"))
@@ -283,9 +284,10 @@ def test_a_run_that_ended_still_improving_can_be_resumed_with_more_iterations(tm
     assert json.loads((job / APP_JOB_FILE).read_text())["max_iter"] == 6
 
 
-def _finished_app_job(tmp_path: Any, capsys: Any, entry: dict[str, Any]) -> Any:
+def _finished_app_job(tmp_path: Any, capsys: Any, entry: dict[str, Any],
+                      args: tuple[str, ...] = ()) -> Any:
     """An app job folder whose run finished (3 iterations of a tiny network), ``entry`` its
-    app-job.json."""
+    app-job.json; ``args``: more ``recon udn`` options (``--seed``, ``--truth``)."""
     import json
 
     import numpy as np
@@ -300,10 +302,68 @@ def _finished_app_job(tmp_path: Any, capsys: Any, entry: dict[str, Any]) -> Any:
     assert main(["recon", "udn", "--psf", str(tmp_path / "psf.npy"), "--meas",
                  str(tmp_path / "meas.npy"), "--iters", "3", "--scales", "2",
                  "--net-channels", "4", "--input-channels", "4", "--threads", "1", "--quiet",
-                 "--out", str(job / "run")]) == 0
+                 "--out", str(job / "run"), *args]) == 0
     capsys.readouterr()
     (job / APP_JOB_FILE).write_text(json.dumps({"format": "lenslesscam.app_job", **entry}))
     return job
+
+
+def test_combine_with_fista_takes_one_job_and_runs_off_the_gui_thread(tmp_path, capsys,
+                                                                      qtbot):
+    """Combine offers 'Average the seeds' (two or more finished jobs) and 'Average the seeds
+    and FISTA-TV' (one is enough), run on a worker thread: FISTA-TV's automatic tau takes
+    seconds to a minute. Before, the app had only the plain average, on the GUI thread."""
+    import numpy as np
+
+    from app.gui.jobs_panel import JobsPanel
+    from recon.io import read_reconstruction
+
+    np.save(tmp_path / "truth.npy", np.random.default_rng(1).random((24, 28)).astype(np.float32))
+    entry = {"state": "launched", "launches": [{"action": "run", "pid": 1}]}
+    a = _finished_app_job(tmp_path, capsys, {"name": "a", **entry},
+                          ("--truth", str(tmp_path / "truth.npy")))
+    b = _finished_app_job(tmp_path, capsys, {"name": "b", **entry}, ("--seed", "1"))
+    panel = JobsPanel(a.parent, lambda: None, poll_ms=60_000)
+    qtbot.addWidget(panel)
+    try:
+        panel._select_folders({a})
+        assert [v.folder for v in panel.selected_all()] == [a]
+        assert panel.combine_fista_action.isEnabled() and panel.combine_button.isEnabled()
+        assert not panel.combine_action.isEnabled()
+        assert "+0.1 to +0.6 dB" in panel.combine_fista_action.toolTip()
+        panel.combine_fista_action.trigger()
+        # the trigger returned before the result: the work is on the combine queue
+        assert "combining 1 job (FISTA-TV)" in panel.message.text(), panel.message.text()
+        panel.combine_fista_action.trigger()  # a second one meanwhile is refused, said so
+        assert "still running" in panel.message.text(), panel.message.text()
+        qtbot.waitUntil(lambda: "written to" in panel.message.text()
+                        or "cannot combine:" in panel.message.text(), timeout=60_000)
+        msg = panel.message.text()
+        assert "ensemble of 1 job and FISTA-TV (tau " in msg and "dB against the truth" in msg, msg
+        out = sorted((a.parent / "ensembles").glob("*.tif"))
+        assert [p.name.endswith("-x1+fista.tif") for p in out] == [True], out
+        assert str(out[0]) in msg
+        x, meta = read_reconstruction(out[0])
+        assert meta["method"] == "udn-ensemble+fista-tv"
+        assert meta["fista"]["weight"] == 0.5 and meta["fista"]["tau"] > 0
+        assert [m["seed"] for m in meta["members"]] == [0]
+        best_a = read_reconstruction(a / "run" / "best.tif")[0]
+        assert not np.allclose(x, best_a, atol=1e-3 * float(np.abs(best_a).max()))
+
+        panel._select_folders({a, b})
+        assert panel.combine_action.isEnabled() and panel.combine_fista_action.isEnabled()
+        panel.combine_action.trigger()
+        assert "combining 2 jobs" in panel.message.text()
+        qtbot.waitUntil(lambda: "combining" not in panel.message.text(), timeout=60_000)
+        assert "ensemble of 2 jobs written to" in panel.message.text(), panel.message.text()
+        x2, meta2 = read_reconstruction(sorted((a.parent / "ensembles").glob("*-x2.tif"))[0])
+        assert meta2["method"] == "udn-ensemble" and "fista" not in meta2
+        assert sorted(m["seed"] for m in meta2["members"]) == [0, 1]
+        best_b = read_reconstruction(b / "run" / "best.tif")[0]
+        np.testing.assert_allclose(x2, (best_a + best_b) / 2, rtol=1e-6, atol=1e-7)
+    finally:
+        panel.stop()
+    assert panel._combine_queue is None  # shut down with the panel
 
 
 def test_a_refused_resume_shows_why(tmp_path, capsys):
