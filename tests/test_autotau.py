@@ -146,19 +146,26 @@ def test_restart_modes_are_validated():
         Fista(model.op, b, restart="sometimes")
 
 
+def _simulated_inputs(tmp_path, capsys) -> list[str]:
+    """``--psf/--meas/--mask`` of a simulated im740 at 50 % erasures (37x50), made by the CLI."""
+    from app.cli import main
+
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--psf", "sample:tutorial", "--scene", "sample:im740",
+                 "--erasure", "0.5", "--noise", "0.01", "--seed", "3", "--downsample", "4",
+                 "--out", str(sim)]) == 0
+    capsys.readouterr()
+    return ["--psf", str(sim / "psf.npy"), "--meas", str(sim / "meas.npy"), "--mask",
+            str(sim / "mask.npy")]
+
+
 def test_cli_tau_auto_by_default_exact_when_given_and_recon_admm(tmp_path, capsys):
     import json
 
     from app.cli import main
     from recon.io import read_reconstruction
 
-    sim = tmp_path / "sim"
-    assert main(["simulate", "--psf", "sample:tutorial", "--scene", "sample:im740",
-                 "--erasure", "0.5", "--noise", "0.01", "--seed", "3", "--downsample", "4",
-                 "--out", str(sim)]) == 0
-    inputs = ["--psf", str(sim / "psf.npy"), "--meas", str(sim / "meas.npy"), "--mask",
-              str(sim / "mask.npy")]
-    capsys.readouterr()
+    inputs = _simulated_inputs(tmp_path, capsys)
     # no flags: tau (and iterations) chosen, printed, and stored with the rule
     assert main(["recon", "fista", *inputs, "--out", str(tmp_path / "auto.tif")]) == 0
     out = capsys.readouterr()
@@ -210,13 +217,7 @@ def test_the_tau_line_names_the_iteration_count_the_run_uses(tmp_path, capsys):
     from app.cli import main
     from recon.autotau import AUTO_MAX_ITER
 
-    sim = tmp_path / "sim"
-    assert main(["simulate", "--psf", "sample:tutorial", "--scene", "sample:im740",
-                 "--erasure", "0.5", "--noise", "0.01", "--seed", "3", "--downsample", "4",
-                 "--out", str(sim)]) == 0
-    inputs = ["--psf", str(sim / "psf.npy"), "--meas", str(sim / "meas.npy"), "--mask",
-              str(sim / "mask.npy")]
-    capsys.readouterr()
+    inputs = _simulated_inputs(tmp_path, capsys)
     assert main(["recon", "admm", *inputs, "--out", str(tmp_path / "a.tif")]) == 0
     err = capsys.readouterr().err
     searched = int(re.search(r"tau auto \(.*\): tau \S+, (\d+) iterations", err).group(1))
