@@ -61,6 +61,7 @@ from drivers.camera import (
     Feature,
     FeatureNotAvailable,
     Frame,
+    FrameError,
     Roi,
     TriggerMode,
     bit_depth_of,
@@ -1151,7 +1152,12 @@ class GenICamCamera(CameraBase):
                 w, h = int(comp.width), int(comp.height)
                 if fmt not in _MONO_FORMATS:
                     raise CameraError(f"{self.describe()}: delivered unsupported format {fmt}")
-                pixels = comp.data.reshape(h, w).copy()  # owned: the buffer goes back
+                data = comp.data
+                if data.size != h * w:  # a buffer cut short (or padded): not this frame
+                    raise FrameError(
+                        f"{self.describe()}: delivered {data.size} pixel values for a "
+                        f"{h}x{w} frame (an incomplete or damaged buffer)")
+                pixels = data.reshape(h, w).copy()  # owned: the buffer goes back
                 device_id = int(buffer.frame_id)
                 extra: dict[str, Any] = {"device_frame_id": device_id, "model": self._model}
                 try:

@@ -103,3 +103,47 @@ def test_a_pixel_format_the_device_does_not_keep_is_an_error(
                                           r"reads back 'Mono8'; it stays at Mono8"):
         cam.pixel_format = "Mono16"
     assert cam.pixel_format == "Mono8" and cam.bit_depth == 8
+
+
+def test_a_buffer_of_the_wrong_size_is_a_bad_frame_not_a_crash(
+    cam: GenICamCamera, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A buffer with fewer values than its width x height (a producer that hands over an
+    incomplete one) is a FrameError naming both, which live view skips; the next frame is
+    whole again."""
+    from drivers.camera import FrameError
+
+    real_fetch = cam._ia.fetch
+    spoiled = {"left": 1}
+
+    class _Short:
+        def __init__(self, buffer: Any) -> None:
+            self._b = buffer
+
+        def __getattr__(self, name: str) -> Any:
+            return getattr(self._b, name)
+
+        @property
+        def data(self) -> Any:
+            return self._b.data[:-7]
+
+    class _Buffer:
+        def __init__(self, cm: Any) -> None:
+            self._cm = cm
+
+        def __enter__(self) -> Any:
+            b = self._cm.__enter__()
+            if spoiled["left"]:
+                spoiled["left"] -= 1
+                comp = _Short(b.payload.components[0])
+                return type("B", (), {"payload": type("P", (), {"components": [comp]})(),
+                                      "frame_id": b.frame_id, "timestamp_ns": 0})()
+            return b
+
+        def __exit__(self, *exc: Any) -> Any:
+            return self._cm.__exit__(*exc)
+
+    monkeypatch.setattr(cam._ia, "fetch", lambda **kw: _Buffer(real_fetch(**kw)))
+    with pytest.raises(FrameError, match=r"delivered 3065 pixel values for a 48x64 frame"):
+        cam.snap(timeout_s=5.0)
+    assert cam.snap(timeout_s=5.0).pixels.shape == (48, 64)
