@@ -550,7 +550,8 @@ class PreviewEngine:
         b = self._measurement(frame, s, roi, binning, (ph, pw))
         bt = torch.from_numpy(b)[None]
         solver = self._solver
-        tau = self._auto_update(b, s) if s.tau_auto else s.tau
+        # tau and its note read together: the estimate may finish while this frame runs
+        tau, tau_note = self._auto_update(b, s) if s.tau_auto else (s.tau, "")
         key = (tau, s.prox_iters)
         if warm and solver is not None and self._solver_key == key:
             solver.set_measurement(bt)  # keep the iterate, the momentum and the TV dual
@@ -614,13 +615,17 @@ class PreviewEngine:
             note=note,
             threads=self._threads_reason,
             tau=tau,
-            tau_note=self._auto_note if s.tau_auto else "",
+            tau_note=tau_note,
         )
 
     # -- tau auto ------------------------------------------------------------------------------
 
-    def _auto_update(self, b: F32, s: PreviewSettings) -> float:
-        """The tau to use now; starts a background estimate when the scene has changed."""
+    def _auto_update(self, b: F32, s: PreviewSettings) -> tuple[float, str]:
+        """The tau to use now and its note; starts a background estimate on a scene change.
+
+        Both are read together, under the lock: a note read later could name an estimate that
+        finished after this tau was taken.
+        """
         with self._lock:
             running = self._auto_thread is not None and self._auto_thread.is_alive()
             ref = self._auto_ref
@@ -634,7 +639,7 @@ class PreviewEngine:
                     target=self._estimate, args=(b.copy(), self._build_args, gen, s.prox_iters),
                     name="preview-tau-auto", daemon=True)
                 self._auto_thread.start()
-            return self._auto_tau if self._auto_tau is not None else s.tau
+            return (self._auto_tau if self._auto_tau is not None else s.tau), self._auto_note
 
     def _estimate(self, b: F32, recipe: tuple[str, dict[str, Any]], gen: int,
                   prox_iters: int) -> None:

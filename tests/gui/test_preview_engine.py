@@ -398,3 +398,40 @@ def test_the_tau_box_shows_and_takes_small_values(qtbot) -> None:
     controls.tau_auto.toggle()
     got = controls.settings()
     assert got.tau == 1.23456e-4 and got.dark == 100.4
+
+
+def test_a_frame_reports_the_tau_it_ran_with_when_the_estimate_ends_during_it(
+        psf: np.ndarray, monkeypatch) -> None:
+    """The estimate finishes in the background while a frame iterates: that frame ran with the
+    tau it took at its start, and its note says so (it once said the new estimate's tau beside
+    the old value)."""
+    import recon.autotau
+
+    gate = threading.Event()
+    real = recon.autotau.choose_tau
+
+    def held(*args, **kwargs):
+        gate.wait(30)  # the estimate ends only when the test lets it
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(recon.autotau, "choose_tau", held)
+    eng = PreviewEngine(psf, PreviewSettings(tau=0.5, tau_auto=True, target_fps=0,
+                                             iters_per_frame=2))
+    frame = _frame(psf)
+    r = eng.process(frame)
+    assert r.tau == 0.5 and "estimating" in r.tau_note
+    solver = eng._solver
+    step = solver.step
+
+    def step_then_finish():  # the estimate ends during this frame's first step
+        out = step()
+        if not gate.is_set():
+            gate.set()
+            assert eng.wait_auto(60.0)
+        return out
+
+    monkeypatch.setattr(solver, "step", step_then_finish)
+    r = eng.process(frame)
+    assert r.tau == 0.5 and "estimating" in r.tau_note, (r.tau, r.tau_note)
+    r = eng.process(frame)  # the next frame takes the estimate, and says it
+    assert r.tau != 0.5 and "heldout-blocks" in r.tau_note
