@@ -804,8 +804,19 @@ class FrameStreamer:
             return not self._done
 
     def stop(self, timeout_s: float = 15.0) -> None:
-        """Ask the thread to stop and wait for it."""
+        """Ask the thread to stop and wait for it.
+
+        A KeyboardInterrupt (Ctrl-C) that lands just after a ``with self._cond`` of the
+        consumer acquired the lock, before its block began, leaves the consumer's thread
+        holding it for good (CPython runs the signal handler between the two; bpo-29988): the
+        stream thread then waits for the lock forever and this join timed out ("streaming
+        thread did not stop", seen in CI). No method here calls ``stop`` while it holds the
+        lock, so a lock this thread holds now is such a leak: it is released first.
+        """
         self._stop_evt.set()
+        if self._thread is not threading.current_thread():
+            while self._cond._is_owned():  # type: ignore[attr-defined]  # RLock: a leak, above
+                self._cond.release()
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(timeout_s)
             if self._thread.is_alive():

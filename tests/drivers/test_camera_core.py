@@ -125,6 +125,26 @@ def test_streamer_overflow_and_validation() -> None:
         FrameStreamer(grab, mode=StreamMode.LIVE, device="d", n_frames=0)
 
 
+def test_stop_frees_a_lock_a_ctrl_c_left_held() -> None:
+    """Ctrl-C between a consumer's lock acquisition and its ``with`` block leaves the lock held
+    by the consumer's thread (bpo-29988); the stream thread then blocked on it and ``stop``
+    failed with "streaming thread did not stop" (a flaky CI run of the calibrate Ctrl-C test).
+    ``stop`` now releases what the calling thread holds, and the thread ends."""
+    counter = iter(range(10**6))
+
+    def grab(poll_s: float) -> Frame:
+        time.sleep(0.002)
+        return _frame(np.zeros((2, 2), np.uint16), frame_id=next(counter))
+
+    s = FrameStreamer(grab, mode=StreamMode.LIVE, device="d")
+    s.start()
+    assert s.latest(5.0) is not None
+    s._cond.acquire()  # what the interrupted `with self._cond:` left behind
+    time.sleep(0.05)  # the stream thread now waits for the lock
+    s.stop(timeout_s=5.0)
+    assert not s.running and not s._cond._is_owned()
+
+
 def test_streamer_reports_a_stall() -> None:
     def grab(poll_s: float) -> None:
         threading.Event().wait(poll_s)
