@@ -302,14 +302,12 @@ def _fista_member(rec0: dict[str, Any], run0: Path,
                          "reconstruct other data; combine without --with-fista")
     model = prob.model
     b = torch.as_tensor(prob.meas, dtype=torch.float32)
-    # recon fista's defaults (app/commands/recon.py): isotropic TV, weight 0.5 along k,
-    # automatic tau and iterations, tol 1e-5, gradient restart, 3 prox iterations, the
-    # Fourier preconditioner on auto
-    tv = TV(isotropic=True, weight_k=0.5 if model.k > 1 else 0.0)
+    # recon fista's defaults: Fista's own (tol, restart, prox iterations, preconditioner), and
+    # TV with weight 0.5 along k (its --tv-k) where there is a k axis
+    tv = TV(weight_k=0.5 if model.k > 1 else 0.0)
     t0 = time.perf_counter()
-    tau, iters, tau_meta = resolve(model, b, None, None, tv=tv, precondition="auto")
-    solver = Fista(model.op, b, tau=tau, tv=tv, max_iter=iters, tol=1e-5, restart="gradient",
-                   prox_iters=3, precondition="auto")
+    tau, iters, tau_meta = resolve(model, b, None, None, tv=tv)
+    solver = Fista(model.op, b, tau=tau, tv=tv, max_iter=iters)
     for _ in solver.steps():
         pass
     xf = solver.x.detach().double().cpu().numpy()
@@ -319,5 +317,5 @@ def _fista_member(rec0: dict[str, Any], run0: Path,
     return xf.reshape(shape), {
         "weight": FISTA_WEIGHT, "tau": tau, "iterations": solver.iteration,
         "tau_rule": tau_meta.get("tau_rule"), "iterations_rule": tau_meta.get("iterations_rule"),
-        "wall_time_s": round(time.perf_counter() - t0, 3),
-        "settings": "recon fista's defaults (TV iso, tol 1e-5, prox iterations 3)"}
+        "wall_time_s": round(time.perf_counter() - t0, 3), "settings": "recon fista's defaults",
+        "parameters": solver.params}

@@ -402,8 +402,6 @@ class UDNRunner(Stepwise[UDNStep]):
                                   f"max_iter, {cfg.max_iter}, or its time limit, and keeps "
                                   f"their best iteration); raise holdout ({cfg.holdout:g}) or "
                                   "set the iteration count (max_iter) yourself")
-        #: the patience rule: only on enough held-out pixels (see the module docstring)
-        self.stops_early = self.n_heldout >= MIN_RELIABLE_HELDOUT
 
         with torch.random.fork_rng(devices=[]):  # seeded weights; the global RNG is untouched
             torch.manual_seed(cfg.seed)
@@ -795,6 +793,11 @@ class UDNRunner(Stepwise[UDNStep]):
         return UDNStep(it, loss_val, err, self.best_heldout, self.best_iteration, self.lr,
                        self.G.gain, self.elapsed_s, self._eta(), restored, pv,
                        clip_fraction=clip_frac)
+
+    @property
+    def stops_early(self) -> bool:
+        """Whether the patience rule applies: only on enough held-out pixels (module docstring)."""
+        return self.n_heldout >= MIN_RELIABLE_HELDOUT
 
     def steps(self, preview_every: int = 0) -> Iterator[UDNStep]:
         """Generator of steps until a stop criterion; stop iterating to cancel.
