@@ -16,6 +16,8 @@
 # 4. makes the table and the figure from all of them, and packs everything but the per-case
 #    images into $OUT/results.tgz.
 # EXTRA: more options for every run, e.g. EXTRA="--lever fista-input --seeds 2".
+# TABLE_EXTRA: more options for the table, e.g. TABLE_EXTRA=--error-analysis (which needs the
+# per-case images: they stay on the device, so the analysis is made there).
 # DEVICE=cpu DOWNSAMPLE=4 make a dry run of the script on a CPU.
 # Needs python3 with torch (CUDA), numpy, scipy, pillow, h5py, tifffile, opencv on the path;
 # the project is used from the source tree (PYTHONPATH), not installed.
@@ -68,7 +70,8 @@ echo "runs ended after $(elapsed) s"
 mkdir -p "$W/all-images"
 cat "$W"/rp-*.jsonl > "$W/all.jsonl" 2>/dev/null
 cp "$W"/rp-*-images/*.npz "$W/all-images/" 2>/dev/null
-$RP --table-only --results "$W/all.jsonl" --figure "$W/real-pairs-gpu.png" \
+# shellcheck disable=SC2086
+$RP --table-only ${TABLE_EXTRA:-} --results "$W/all.jsonl" --figure "$W/real-pairs-gpu.png" \
   --out "$W/real-pairs-gpu.md" > "$W/table.txt" 2>&1
 tail -n 4 "$W"/log-*.txt
 head -n 60 "$W/table.txt"
