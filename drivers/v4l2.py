@@ -29,8 +29,11 @@ Every frame must have the size and the dtype (uint8 or uint16) of the first one:
 that differs raises :class:`FrameSourceError` naming the file (or the frame), instead of
 arriving as a crop or with another frame's pixel format.
 
-Bad frames: an undecodable file in a sequence, a frame of another size or dtype, a corrupt
-MJPEG frame and a device read that returns no frame raise a
+Bad frames: an undecodable file in a sequence, a video frame that cannot be decoded (told
+from the video's end by reading one frame more: a frame there means it was not the end, and
+that frame is the next one returned; two undecodable frames in a row read as the end), a
+frame of another size or dtype, a corrupt MJPEG frame and a device read that returns no frame
+raise a
 :class:`~drivers.camera.FrameError` (a :class:`FrameSourceError` for the data's own faults),
 and the source moves past that frame: :meth:`~V4L2Camera.snap` and an acquisition raise it,
 live view skips it and goes on (until too many come in a row: a device whose every read
@@ -261,6 +264,7 @@ class V4L2Camera(CameraBase):
         self._frame_id = 0
         self._n_file_frames = 0
         self._file_pos = 0
+        self._ahead: Any = None  # a video's frame read past an undecodable one, next to return
         self._pace_hz: float | None = frame_rate_hz if self._is_file else None
         self._next_due = 0.0
         self._shape: tuple[int, int] = (0, 0)
@@ -375,6 +379,7 @@ class V4L2Camera(CameraBase):
 
         if self._is_file:
             self._file_pos = 0
+            self._ahead = None
             if self._seq_first is not None:
                 return  # its length was found on disk
             if self._cap.getBackendName() == "FFMPEG":
@@ -408,8 +413,6 @@ class V4L2Camera(CameraBase):
 
     def _probe(self) -> None:
         """Read one frame to learn shape and dtype, then rewind a file source."""
-        import cv2
-
         ok, img = self._cap.read()
         if not ok or img is None:
             if self._seq_first is not None:
@@ -427,8 +430,7 @@ class V4L2Camera(CameraBase):
         self._shape = (int(arr.shape[0]), int(arr.shape[1]))
         self._dtype = arr.dtype
         if self._is_file:
-            self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
-            self._file_pos = 0
+            self._rewind()
 
     def _close(self) -> None:
         cap, self._cap = self._cap, None
@@ -598,9 +600,11 @@ class V4L2Camera(CameraBase):
         if self._is_file and self._n_file_frames and self._file_pos >= self._n_file_frames:
             if not self._loop:
                 raise CameraError(f"{self.describe()}: end of file after {self._file_pos} frames")
-            self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
-            self._file_pos = 0
-        ok, img = self._cap.read()
+            self._rewind()
+        if self._ahead is not None:
+            ok, img, self._ahead = True, self._ahead, None
+        else:
+            ok, img = self._cap.read()
         if (not ok or img is None) and self._seq_first is not None:
             # before the end found on disk (checked above): this file, not the end of data.
             # Move past it, whatever OpenCV's position did, so the loop goes on.
@@ -611,11 +615,19 @@ class V4L2Camera(CameraBase):
             raise FrameSourceError(
                 f"cannot read {self._seq_path(bad)}: not an image OpenCV can decode"
             )
-        if (not ok or img is None) and self._is_file and self._loop and self._file_pos > 0:
-            # a video whose frame count was missing or an estimate: its real end
-            self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
-            self._file_pos = 0
-            ok, img = self._cap.read()
+        if (not ok or img is None) and self._is_file and self._file_pos > 0:
+            # A video: a frame that cannot be decoded, or the real end of one whose frame count
+            # was missing or an estimate? OpenCV's reading moves past a bad frame, so one read
+            # more tells: a frame there means this one was bad (kept for the next call).
+            ok_next, img_next = self._cap.read()
+            if ok_next and img_next is not None:
+                bad = self._file_pos
+                self._file_pos += 1
+                self._ahead = img_next
+                raise FrameSourceError(f"{self._frame_name(bad)}: cannot be decoded")
+            if self._loop:  # the real end
+                self._rewind()
+                ok, img = self._cap.read()
         if not ok or img is None:
             if not self._is_file:  # one failed dequeue, or the device gone: the streamer's
                 raise FrameError(  # limit of bad frames in a row tells which
@@ -640,6 +652,13 @@ class V4L2Camera(CameraBase):
             _log.warning("%s: colour frames are reduced to grey: %s (each frame records it "
                          "in extra['colour'])", self.describe(), colour)
         return arr, colour
+
+    def _rewind(self) -> None:
+        import cv2
+
+        self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+        self._file_pos = 0
+        self._ahead = None
 
     def _grab_frame(self, timeout_s: float, *, discard_buffered: bool = False) -> Frame:
         """Read one frame in a helper thread so a stuck device cannot block past the timeout.

@@ -316,3 +316,65 @@ def test_the_output_check_protects_the_files_the_camera_reads(tmp_path):
     assert camera_source_match(spec, tmp_path / "   7.png") == tmp_path / "   7.png"
     assert camera_source_match(spec, tmp_path / "  12.png") is not None  # a frame to come
     assert camera_source_match(spec, tmp_path / "other.png") is None
+
+
+def _mjpeg_video_with_a_bad_frame(path: Path, n: int, bad: int) -> None:
+    """An MJPEG AVI of ``n`` grey frames (frame i all 20 i) whose frame ``bad`` is zeroed."""
+    import struct
+
+    import cv2
+
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 10, (32, 24), isColor=False)
+    assert w.isOpened(), "this OpenCV cannot write MJPEG AVI"
+    for i in range(n):
+        w.write(np.full((24, 32), 20 * i, np.uint8))
+    w.release()
+    data = bytearray(path.read_bytes())
+    chunks = [i for i in range(len(data) - 4) if data[i:i + 4] == b"00dc"]
+    k = chunks[1 + bad]  # the first '00dc' is the header's stream type, then one per frame
+    size = struct.unpack("<I", data[k + 4:k + 8])[0]
+    data[k + 8:k + 8 + size] = bytes(size)  # the frame's JPEG bytes, all zero
+    path.write_bytes(bytes(data))
+
+
+def _level(frame) -> int:  # type: ignore[no-untyped-def]
+    return round(float(frame.pixels.mean()) / 20)
+
+
+def test_a_video_frame_that_cannot_be_decoded_is_named_and_the_video_goes_on(
+    tmp_path: Path,
+) -> None:
+    """A bad frame in the middle of a video was read as its end: a looping source went back
+    to frame 0 (replaying the frames before it), and an acquisition ended as if the data had."""
+    path = tmp_path / "rec.avi"
+    _mjpeg_video_with_a_bad_frame(path, 6, bad=3)
+    with V4L2Camera(str(path)) as cam:
+        got = [_level(cam.snap()) for _ in range(3)]
+        with pytest.raises(FrameSourceError, match=r"frame 3 of .*rec\.avi.*cannot be decoded"):
+            cam.snap()
+        got += [_level(cam.snap()) for _ in range(3)]  # 4, 5, then round the loop to 0
+    assert got == [0, 1, 2, 4, 5, 0]
+    with V4L2Camera(str(path), loop=False) as cam:
+        cam.start_acquisition(n_frames=6)
+        seen = [_level(cam.pop_frame(timeout_s=5.0)) for _ in range(3)]
+        with pytest.raises(FrameSourceError, match="frame 3"):
+            cam.pop_frame(timeout_s=5.0)  # the recording stops there: no hole in its data
+        cam.stop()
+    assert seen == [0, 1, 2]
+
+
+def test_live_view_goes_on_past_a_video_frame_that_cannot_be_decoded(tmp_path: Path) -> None:
+    path = tmp_path / "live.avi"
+    _mjpeg_video_with_a_bad_frame(path, 5, bad=2)
+    with V4L2Camera(str(path), frame_rate_hz=100) as cam:
+        cam.start_live()
+        seen: list[int] = []
+        deadline = time.monotonic() + 20.0
+        while (len(seen) < 10 or cam.stream_stats().bad < 2) and time.monotonic() < deadline:
+            f = cam.latest_frame(0.5)
+            if f is not None:
+                seen.append(_level(f))
+        stats = cam.stream_stats()
+        cam.stop()
+    assert stats.running and stats.error is None and stats.bad >= 2
+    assert 2 not in seen and {3, 4} <= set(seen) and {0, 1} <= set(seen)
