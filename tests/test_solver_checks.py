@@ -148,7 +148,7 @@ def test_plateau_detail_tells_a_plateau_from_a_slow_decrease():
     assert plateau_detail(list(0.5 / k**2), 1e-5, "fista-tv", 3) is None
     flat = list(3e-5 * (1 + 0.3 * np.sin(k)))
     text = plateau_detail(flat, 1e-5, "fista-tv", 3)
-    assert text is not None and "--prox-iters 3" in text and "3e-05" in text, text
+    assert text is not None and "(3 inner iterations)" in text and "3e-05" in text, text
     assert plateau_detail(flat, 0.0, "fista-tv", 3) is None  # no tolerance to reach
     assert plateau_detail(flat, 1e-4, "fista-tv", 3) is None  # below the tolerance
     assert plateau_detail(flat[:99], 1e-5, "fista-tv", 3) is None  # too short to tell

@@ -203,7 +203,9 @@ def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
     wall = time.perf_counter() - t0
     _check_explains(solver, prob.model, b, method, prob.kind)
     stop_reason = solver.reason.value if solver.reason else "max_iter"
-    detail = plateau_detail(changes, args.tol, method, getattr(args, "prox_iters", None)
+    # FISTA's inner iterations as the run ended (its rise rule may have raised them)
+    prox_iters = getattr(solver, "prox_iters", getattr(args, "prox_iters", None))
+    detail = plateau_detail(changes, args.tol, method, prox_iters
                             ) if stop_reason == "max_iter" else None
     meta = {
         "method": method, "model": prob.kind, "parameters": solver.params,
@@ -245,7 +247,7 @@ def plateau_detail(changes: list[float], tol: float, method: str,
     before = statistics.median(changes[-2 * q:-q])
     if not (math.isfinite(last) and last > tol and last > 0.8 * before):
         return None
-    why = (f"FISTA's inexact TV prox (--prox-iters {prox_iters}) sets that floor: more --iters "
+    why = (f"FISTA's inexact TV prox ({prox_iters} inner iterations) sets that floor: more --iters "
            f"will not reach --tol; more --prox-iters (for example {max(20, 2 * prox_iters)}) "
            "lower it"
            if method.startswith("fista") else "more --iters may not reach --tol")
