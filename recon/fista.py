@@ -476,7 +476,7 @@ class Fista(StepwiseSolver):
         rejected = restarted and self.restart == "monotone"
         if self._prec is None:
             self._f_plain_best = min(self._f_plain_best, f_report)
-        if self._prec is not None:
+        else:
             self._watch_preconditioned(it, f_report)
         if not rejected and rel < self.tol and it > 1 and self._prec is not None:
             self._prec_until = it  # the preconditioned phase has converged: plain steps next
@@ -545,7 +545,9 @@ class Fista(StepwiseSolver):
 
         It fires when the step d = x_new - x shows L < ||A d||^2 / ||d||^2 (<= ||A||^2), or
         the objective blows up. Steps below 1e-4 of the iterate are not tested: there the
-        rounding of A x (float32) would dominate A d.
+        rounding of A x (float32) would dominate A d. A step that passes but rises too far
+        for the inexact prox (:meth:`_prox_too_coarse`) doubles the inner iterations instead.
+        True: the step is dropped.
         """
         if self.restart == "monotone":
             return False
