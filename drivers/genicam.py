@@ -34,7 +34,10 @@ device refuses a write anyway. A PixelFormat is read back after it is set; a dev
 keeps it but sends frames in another format (TLSimu: Mono16 set, Mono8 sent) is logged in
 one line, and ``pixel_format``/``bit_depth`` then report the format the frames come in.
 
-Buffers are copied before they are re-queued, and every fetch has a timeout. With a software
+Buffers are copied before they are re-queued, and every fetch has a timeout. A buffer the
+producer marks incomplete, or one with fewer values than its size, is a
+:class:`~drivers.camera.FrameError` (live view counts and skips it, a snap or an acquisition
+raises it); harvesters' own ``fetch`` discarded incomplete ones silently. With a software
 trigger the acquisition stays armed between snaps (starting and stopping a GenTL stream can
 be slow); it is disarmed before settings that need it (size, format) and on close.
 """
@@ -530,6 +533,22 @@ def list_genicam_devices(
 # the camera
 
 
+def _incomplete_buffer_counter() -> Any:
+    """A ``harvesters.core.Callback`` counting INCOMPLETE_BUFFER events in ``count``.
+
+    harvesters calls ``emit`` in the fetching thread for each buffer it discards.
+    """
+    from harvesters.core import Callback
+
+    class IncompleteBuffers(Callback):  # type: ignore[misc]
+        count = 0
+
+        def emit(self, context: object | None = None) -> None:
+            self.count += 1
+
+    return IncompleteBuffers()
+
+
 class GenICamCamera(CameraBase):
     """A GenICam device through a GenTL producer.
 
@@ -572,6 +591,7 @@ class GenICamCamera(CameraBase):
         self._poll_s = float(poll_s)
         self._h: Any = None
         self._ia: Any = None
+        self._incomplete: Any = None  # INCOMPLETE_BUFFER events of the open acquirer
         self._nm: Any = None
         self._armed = False
         self._trigger_pending = False
@@ -619,6 +639,8 @@ class GenICamCamera(CameraBase):
             raise CameraError(f"cannot open {self.describe()}: {exc}") from exc
         self._h, self._ia = h, ia
         self._nm = ia.remote_device.node_map
+        self._incomplete = _incomplete_buffer_counter()
+        ia.add_callback(type(ia).Events.INCOMPLETE_BUFFER, self._incomplete)
         try:
             ia.num_buffers = max(self._num_buffers, ia.min_num_buffers)
             self._init_device()
@@ -1142,30 +1164,38 @@ class GenICamCamera(CameraBase):
             self._ia.stop()
 
     def _fetch(self, timeout_s: float) -> Frame:
-        """One buffer, copied before it is re-queued; CameraTimeout after ``timeout_s``."""
-        from genicam.gentl import TimeoutException
+        """One buffer, copied before it is re-queued; CameraTimeout after ``timeout_s``.
 
-        try:
-            with self._ia.fetch(timeout=timeout_s) as buffer:
-                comp = buffer.payload.components[0]
-                fmt = str(comp.data_format)
-                w, h = int(comp.width), int(comp.height)
-                if fmt not in _MONO_FORMATS:
-                    raise CameraError(f"{self.describe()}: delivered unsupported format {fmt}")
-                data = comp.data
-                if data.size != h * w:  # a buffer cut short (or padded): not this frame
-                    raise FrameError(
-                        f"{self.describe()}: delivered {data.size} pixel values for a "
-                        f"{h}x{w} frame (an incomplete or damaged buffer)")
-                pixels = data.reshape(h, w).copy()  # owned: the buffer goes back
-                device_id = int(buffer.frame_id)
-                extra: dict[str, Any] = {"device_frame_id": device_id, "model": self._model}
-                try:
-                    extra["device_timestamp_ns"] = int(buffer.timestamp_ns)
-                except Exception as exc:  # optional buffer info some producers lack
-                    _log.debug("%s: no buffer timestamp (%s)", self.describe(), exc)
-        except TimeoutException:
-            raise CameraTimeout(f"{self.describe()}: no frame within {timeout_s:.3g} s") from None
+        A buffer the producer marks incomplete (harvesters discards and re-queues it, then
+        emits INCOMPLETE_BUFFER) is a :class:`~drivers.camera.FrameError`: live view counts and
+        skips it, an acquisition ends there. harvesters' ``fetch`` would wait on for the next
+        buffer and hide the loss; ``try_fetch`` returns None, and the count tells which.
+        """
+        before = self._incomplete.count
+        fetched = self._ia.try_fetch(timeout=timeout_s)
+        if fetched is None:
+            if self._incomplete.count > before:
+                raise FrameError(f"{self.describe()}: the device delivered an incomplete buffer "
+                                 "(the frame is lost)")
+            raise CameraTimeout(f"{self.describe()}: no frame within {timeout_s:.3g} s")
+        with fetched as buffer:  # re-queued on leaving
+            comp = buffer.payload.components[0]
+            fmt = str(comp.data_format)
+            w, h = int(comp.width), int(comp.height)
+            if fmt not in _MONO_FORMATS:
+                raise CameraError(f"{self.describe()}: delivered unsupported format {fmt}")
+            data = comp.data
+            if data.size != h * w:  # a buffer cut short (or padded): not this frame
+                raise FrameError(
+                    f"{self.describe()}: delivered {data.size} pixel values for a "
+                    f"{h}x{w} frame (an incomplete or damaged buffer)")
+            pixels = data.reshape(h, w).copy()  # owned: the buffer goes back
+            device_id = int(buffer.frame_id)
+            extra: dict[str, Any] = {"device_frame_id": device_id, "model": self._model}
+            try:
+                extra["device_timestamp_ns"] = int(buffer.timestamp_ns)
+            except Exception as exc:  # optional buffer info some producers lack
+                _log.debug("%s: no buffer timestamp (%s)", self.describe(), exc)
         frame_id = self._frame_id_of(device_id)
         self._check_delivered_format(fmt, extra)
         return self._make_frame(pixels, frame_id, pixel_format=fmt, extra=extra)

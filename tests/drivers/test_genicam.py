@@ -9,11 +9,19 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
-from drivers.camera import AcquisitionFinished, CameraError, CameraTimeout, Roi, TriggerMode
+from drivers.camera import (
+    AcquisitionFinished,
+    CameraError,
+    CameraTimeout,
+    FrameError,
+    Roi,
+    TriggerMode,
+)
 from drivers.genicam import GenICamCamera, find_producers, list_genicam_devices
 
 pytestmark = pytest.mark.timeout(90)
@@ -198,3 +206,47 @@ def test_lossless_path_delivers_all_200_frames(tlsimu: GenICamCamera) -> None:
     assert np.all(np.diff(device_ids) == 1)  # the device lost nothing either
     assert stats.acquired == stats.delivered == 200 and stats.dropped == 0
     assert all(f.shape == (64, 64) for f in frames)
+
+
+@pytest.fixture
+def one_incomplete_buffer(monkeypatch: pytest.MonkeyPatch) -> dict[str, int]:
+    """The producer reports the next buffer incomplete (GenTL's BUFFER_INFO_IS_INCOMPLETE), as
+    a dropped packet would; harvesters then discards it and emits INCOMPLETE_BUFFER."""
+    from genicam import gentl
+
+    real = gentl.Buffer.is_complete
+    left = {"n": 0}
+
+    def is_complete(self: Any) -> bool:
+        if left["n"] > 0:
+            left["n"] -= 1
+            return False
+        return bool(real(self))
+
+    monkeypatch.setattr(gentl.Buffer, "is_complete", is_complete)
+    return left
+
+
+def test_an_incomplete_buffer_is_a_bad_frame_not_a_silent_gap(
+    tlsimu: GenICamCamera, one_incomplete_buffer: dict[str, int],
+) -> None:
+    """harvesters' fetch discarded an incomplete buffer and waited for the next one: a snap
+    came late, live view never counted the loss, and an acquisition got a gap."""
+    one_incomplete_buffer["n"] = 1
+    with pytest.raises(FrameError, match="incomplete buffer"):
+        tlsimu.snap()
+    assert tlsimu.snap().shape == (64, 64)  # the next buffer is whole
+    tlsimu.start_live()
+    deadline = time.monotonic() + 10.0
+    while tlsimu.stream_stats().acquired < 5 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    one_incomplete_buffer["n"] = 2
+    while tlsimu.stream_stats().bad < 2 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    acquired = tlsimu.stream_stats().acquired
+    while tlsimu.stream_stats().acquired < acquired + 5 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    stats = tlsimu.stream_stats()
+    tlsimu.stop()
+    assert stats.bad == 2 and "incomplete buffer" in (stats.last_bad or "")
+    assert stats.running and stats.error is None  # live view went on

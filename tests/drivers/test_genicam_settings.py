@@ -113,7 +113,7 @@ def test_a_buffer_of_the_wrong_size_is_a_bad_frame_not_a_crash(
     whole again."""
     from drivers.camera import FrameError
 
-    real_fetch = cam._ia.fetch
+    real_fetch = cam._ia.try_fetch
     spoiled = {"left": 1}
 
     class _Short:
@@ -143,7 +143,11 @@ def test_a_buffer_of_the_wrong_size_is_a_bad_frame_not_a_crash(
         def __exit__(self, *exc: Any) -> Any:
             return self._cm.__exit__(*exc)
 
-    monkeypatch.setattr(cam._ia, "fetch", lambda **kw: _Buffer(real_fetch(**kw)))
+    def fetch(**kw: Any) -> Any:
+        b = real_fetch(**kw)
+        return None if b is None else _Buffer(b)
+
+    monkeypatch.setattr(cam._ia, "try_fetch", fetch)
     with pytest.raises(FrameError, match=r"delivered 3065 pixel values for a 48x64 frame"):
         cam.snap(timeout_s=5.0)
     assert cam.snap(timeout_s=5.0).pixels.shape == (48, 64)
