@@ -32,10 +32,12 @@ a cached case whose automatic choice used scattered held-out pixels (before the 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -267,16 +269,36 @@ def restart_table(iters: int, tau: float = 3e-5) -> str:
     return "\n".join(lines)
 
 
+@contextlib.contextmanager
+def _rise_rule(rise: float, made: list[Any] | None = None) -> Iterator[None]:
+    """FISTA-TV with its rise rule at ``rise`` (``math.inf``: off) for the block, every solver
+    made in it appended to ``made`` (to count the times the rule fired: ``prox_raises``)."""
+    from recon import fista as fista_mod
+
+    saved, init = fista_mod.PLAIN_RISE, fista_mod.Fista.__init__
+
+    def recording_init(self: Any, *a: Any, **k: Any) -> None:
+        init(self, *a, **k)
+        if made is not None:
+            made.append(self)
+
+    fista_mod.PLAIN_RISE = rise
+    fista_mod.Fista.__init__ = recording_init  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        fista_mod.PLAIN_RISE = saved
+        fista_mod.Fista.__init__ = init  # type: ignore[method-assign]
+
+
 def prox_table(iters: int) -> str:
     """The rise rule of FISTA-TV's plain phase (recon.fista ``PLAIN_RISE``): a plain step that
     raises the objective 10 % above its lowest doubles the inner TV iterations. Per case: the
     objective and PSNR after ``iters`` iterations with the rule (the default), with the rule
-    off, and with 50 inner iterations (the rule cannot fire: 50 is above its cap)."""
-    import math
-
-    from recon import fista as fista_mod
+    off, and with 50 inner iterations (the rule cannot fire: 50 is above its cap); then
+    ``recon fista``'s default (the automatic choice and its run) with and without the rule."""
     from recon import samples
-    from recon.fista import Fista
+    from recon.fista import PLAIN_RISE, Fista
 
     psf = samples.tutorial_psf()
     lines = ["| erasures | tau | default: objective / PSNR / inner iterations at the end | "
@@ -285,45 +307,27 @@ def prox_table(iters: int) -> str:
         sim, model, b = simulate_case(psf, samples.lensed_scene("im408"), er, 0.01)
         for tau in (1e-4, 1e-3, 1e-2):
             cells = []
-            for rise, kw in ((fista_mod.PLAIN_RISE, {}), (math.inf, {}),
-                             (fista_mod.PLAIN_RISE, {"prox_iters": 50})):
-                saved, fista_mod.PLAIN_RISE = fista_mod.PLAIN_RISE, rise
-                try:
+            for rise, kw in ((PLAIN_RISE, {}), (math.inf, {}), (PLAIN_RISE, {"prox_iters": 50})):
+                with _rise_rule(rise):
                     solver = Fista(model.op, b, tau=tau, max_iter=iters, tol=0.0, **kw)
                     solver.run()
-                finally:
-                    fista_mod.PLAIN_RISE = saved
                 cells.append(f"{solver.objective:.4g} / "
                              f"{_score(sim.truth, solver.x.numpy())[0]:.2f} / "
                              f"{solver.prox_iters}")
             lines.append(f"| {er:.0%} | {tau:g} | " + " | ".join(cells) + " |")
-    # recon fista's default (the automatic choice, then the run) with and without the rule,
     # at 99 % erasures, where the rule fires most
     lines += ["", "| scene | noise | automatic tau / iterations / PSNR | rule off | "
               "times the rule fired (search and run) |", "|---|---|---|---|---|"]
-    made: list[Any] = []
-    init = Fista.__init__
-
-    def counting_init(self: Any, *a: Any, **k: Any) -> None:
-        init(self, *a, **k)
-        made.append(self)
-
     for name in samples.lensed_scene_names():
         for noise in NOISES:
             case = simulate_case(psf, samples.lensed_scene(name), 0.99, noise)
             res = []
-            for rise in (fista_mod.PLAIN_RISE, math.inf):
-                saved, fista_mod.PLAIN_RISE = fista_mod.PLAIN_RISE, rise
-                made.clear()
-                Fista.__init__ = counting_init  # type: ignore[method-assign]
-                try:
+            for rise in (PLAIN_RISE, math.inf):
+                made: list[Any] = []
+                with _rise_rule(rise, made):
                     auto = run_auto(case, iters)
-                finally:
-                    Fista.__init__ = init  # type: ignore[method-assign]
-                    fista_mod.PLAIN_RISE = saved
-                fired = sum(s.prox_raises for s in made)
                 res.append((f"{auto['tau']:.3g} / {auto['iterations']} / "
-                            f"{auto['psnr_ssim'][0]:.3f}", fired))
+                            f"{auto['psnr_ssim'][0]:.3f}", sum(s.prox_raises for s in made)))
             lines.append(f"| {name} | {noise:g} | {res[0][0]} | {res[1][0]} | {res[0][1]} |")
     return "\n".join(lines)
 

@@ -205,8 +205,7 @@ def _solve_and_save(args: argparse.Namespace, method: str, kind: str,
     wall = time.perf_counter() - t0
     _check_explains(solver, prob.model, b, method, prob.kind)
     stop_reason = solver.reason.value if solver.reason else "max_iter"
-    # FISTA's inner iterations as the run ended (its rise rule may have raised them)
-    prox_iters = getattr(solver, "prox_iters", getattr(args, "prox_iters", None))
+    prox_iters = getattr(solver, "prox_iters", None)  # FISTA's, as the run ended (may grow)
     detail = plateau_detail(changes, args.tol, method, prox_iters
                             ) if stop_reason == "max_iter" else None
     meta = {
