@@ -288,9 +288,17 @@ def _clone_to_cpu(obj: Any) -> Any:
     return copy.deepcopy(obj)
 
 
+def _at_cap_t(x: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
+    """Fraction of ``x`` (= sigmoid x gain) at or above CLIP_LEVEL x gain, on the device.
+
+    A 0-d tensor on ``x``'s device (no read-back).
+    """
+    return (x >= CLIP_LEVEL * gain.to(x.dtype)).float().mean()
+
+
 def _at_cap(x: torch.Tensor, gain: torch.Tensor) -> float:
-    """Fraction of the entries of ``x`` (= sigmoid x gain) at or above CLIP_LEVEL x gain."""
-    return float((x >= CLIP_LEVEL * gain.to(x.dtype)).float().mean())
+    """:func:`_at_cap_t` read back as a float."""
+    return float(_at_cap_t(x, gain))
 
 
 def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -388,10 +396,7 @@ class UDNRunner(Stepwise[UDNStep]):
                 raise ValueError(f"holdout {cfg.holdout} leaves no measured pixel to fit "
                                  f"({n_measured} measured)")
             heldout = self._choose_heldout(measured.cpu(), n_hold)
-        self.heldout = heldout.to(self.device)
-        self.fit = measured & ~self.heldout
-        self.n_fit = int(self.fit.sum())
-        self.n_heldout = int(self.heldout.sum())
+        self._set_heldout(heldout)
         if self.n_heldout:
             from recon.holdout import few_heldout_note
 
@@ -476,6 +481,19 @@ class UDNRunner(Stepwise[UDNStep]):
             z = z + self.config.reg_noise * n
         return self.G.to_scene(self._call_net(z))
 
+    def _set_heldout(self, heldout: torch.Tensor) -> None:
+        """Set the held-out and fitted pixels, their counts and their float weights.
+
+        The loss and the held-out error are masked sums over the weights: boolean indexing
+        would make the host wait for the device every iteration.
+        """
+        self.heldout = heldout.to(self.device)
+        self.fit = self.measured & ~self.heldout
+        self.n_fit = int(self.fit.sum())
+        self.n_heldout = int(self.heldout.sum())
+        self._fit_w = self.fit.to(torch.float32)
+        self._heldout_w = self.heldout.to(torch.float32)
+
     def _choose_heldout(self, measured: torch.Tensor, n_hold: int) -> torch.Tensor:
         """Held-out values: a seeded random subset of ``n_hold`` of the measured ones."""
         idx = torch.nonzero(measured.reshape(-1)).reshape(-1).numpy()
@@ -554,11 +572,19 @@ class UDNRunner(Stepwise[UDNStep]):
 
     def heldout_error(self, x: torch.Tensor) -> float | None:
         """Mean squared prediction error of ``x`` on the held-out pixels (None if none)."""
+        t = self.heldout_error_tensor(x)
+        return None if t is None else float(t)
+
+    def heldout_error_tensor(self, x: torch.Tensor) -> torch.Tensor | None:
+        """:meth:`heldout_error` as a 0-d tensor on the device (None if none is held out).
+
+        A masked sum, not boolean indexing, so nothing waits for the device.
+        """
         if self.n_heldout == 0:
             return None
         with torch.no_grad():
             r = self.model.apply(x) - self.b
-            return float((r * r)[self.heldout].mean())
+            return (r * r * self._heldout_w).sum() / self.n_heldout
 
     def _take_snapshot(self) -> dict[str, Any]:
         return {
@@ -569,13 +595,15 @@ class UDNRunner(Stepwise[UDNStep]):
             "loss_ref": self.loss_ref,
         }
 
-    def _restore_snapshot(self) -> None:
+    def _restore_snapshot(self, backoff: bool = True) -> None:
+        """Back to the last good state; ``backoff``: and lower the learning rate."""
         s = self._snapshot
         self.G.load_state_dict(s["G"])
         self.opt.load_state_dict(_clone_to_cpu(s["opt"]))
         self.ema = None if s["ema"] is None else s["ema"].to(self.device)
         self.loss_ref = s["loss_ref"]
-        self.lr *= self.config.lr_backoff
+        if backoff:
+            self.lr *= self.config.lr_backoff
         for group in self.opt.param_groups:
             group["lr"] = self.lr
 
@@ -707,6 +735,13 @@ class UDNRunner(Stepwise[UDNStep]):
     def step(self, preview: bool = False) -> UDNStep:
         """Do one iteration and report it (``preview``: attach the estimate as numpy).
 
+        The loss, the fraction of the output at the cap and the held-out error are read back
+        from the device together, once, at the end of the iteration (each read makes the host
+        wait for the device, which then idles while the next iteration is queued). So the
+        divergence guard looks at the loss after the optimiser's step; when it fires, the
+        restore of the last good state discards that step, its EMA update and the Adam
+        moments it wrote, as if it had never been taken.
+
         Raises :class:`~recon.stepwise.RunFinished` once the run is done.
         """
         self._check_running()
@@ -715,18 +750,34 @@ class UDNRunner(Stepwise[UDNStep]):
         it = self.iteration + 1
         self.opt.zero_grad(set_to_none=True)
         x = self._forward(noise=True)
-        clip_frac = _at_cap(x.detach(), self.G.log_gain.detach().exp())
-        self.last_clip_fraction = clip_frac
+        clip_t = _at_cap_t(x.detach(), self.G.log_gain.detach().exp())
         ax = self.model.apply(x)
         scale: torch.Tensor | None = None
         if cfg.loss == "scale_invariant":
             scale = self._scale(ax)
             ax = ax * scale
         r = ax - self.b
-        loss = (r * r)[self.fit].mean()
+        loss = (r * r * self._fit_w).sum() / self.n_fit
         if cfg.tv_weight > 0:
             loss = loss + cfg.tv_weight * self._tv_penalty(x)
-        loss_val = float(loss.detach())
+        loss.backward()  # type: ignore[no-untyped-call]
+        self.opt.step()
+        with torch.no_grad():
+            xd = x.detach() if scale is None else x.detach() * scale.detach()
+            if self.ema is None or cfg.ema == 0:
+                self.ema = xd.clone()
+            else:
+                self.ema.mul_(cfg.ema).add_(xd, alpha=1.0 - cfg.ema)
+        est = self.ema
+        err_t = self.heldout_error_tensor(est)
+        read = [loss.detach().float().reshape(()), clip_t,
+                self.G.log_gain.detach().float().amax().exp()]  # the (largest) gain
+        if err_t is not None:
+            read.append(err_t.float().reshape(()))
+        values = torch.stack(read).tolist()  # the iteration's one read-back
+        loss_val, clip_frac, gain = float(values[0]), float(values[1]), float(values[2])
+        err = float(values[3]) if err_t is not None else None
+        self.last_clip_fraction = clip_frac
         restored = False
         if not math.isfinite(loss_val) or (
                 self.loss_ref is not None and loss_val > cfg.divergence_factor * self.loss_ref):
@@ -735,6 +786,7 @@ class UDNRunner(Stepwise[UDNStep]):
                     f"jumped to {loss_val:.3g} (> {cfg.divergence_factor:g} x the recent "
                     f"{self.loss_ref:.3g})")
             if self.backoffs > cfg.max_backoffs:
+                self._restore_snapshot(backoff=False)  # the failed step is not kept either
                 raise NumericalError(
                     f"UDN: the loss {what} at iteration {it}, after {cfg.max_backoffs} restores "
                     f"of the last good state with the learning rate lowered to {self.lr:.3g}; "
@@ -745,25 +797,19 @@ class UDNRunner(Stepwise[UDNStep]):
                               f"{self.lr * cfg.lr_backoff:.3g}")
             self._restore_snapshot()
             restored = True
+            est = self.ema if self.ema is not None else x.detach()
+            err = self.heldout_error(est)
+            gain = self.G.gain
         else:
-            loss.backward()  # type: ignore[no-untyped-call]
-            self.opt.step()
             if it == 1 or it % cfg.snapshot_every == 0:
                 self._check_optimizer_state(it)
-            with torch.no_grad():
-                xd = x.detach() if scale is None else x.detach() * scale.detach()
-                if self.ema is None or cfg.ema == 0:
-                    self.ema = xd.clone()
-                else:
-                    self.ema.mul_(cfg.ema).add_(xd, alpha=1.0 - cfg.ema)
             self.loss_ref = loss_val if self.loss_ref is None else (
                 0.9 * self.loss_ref + 0.1 * loss_val)
             if (cfg.clip_adapt and it % CLIP_CHECK_EVERY == 0
                     and clip_frac > cfg.clip_tolerance
                     and self.clip_adaptations < CLIP_MAX_ADAPT):
                 self._widen_gain(clip_frac, it)
-        est = self.ema if self.ema is not None else x.detach()
-        err = self.heldout_error(est)
+                gain = self.G.gain
         self.last_heldout = err
         if not restored:
             if err is None:  # no held-out pixels: the best estimate is the final one
@@ -791,7 +837,7 @@ class UDNRunner(Stepwise[UDNStep]):
         if preview:
             pv = est.detach().float().cpu().numpy().copy()
         return UDNStep(it, loss_val, err, self.best_heldout, self.best_iteration, self.lr,
-                       self.G.gain, self.elapsed_s, self._eta(), restored, pv,
+                       gain, self.elapsed_s, self._eta(), restored, pv,
                        clip_fraction=clip_frac)
 
     @property
@@ -901,10 +947,7 @@ class UDNRunner(Stepwise[UDNStep]):
         self._step_time = state["step_time"]
         self.initial_gain = float(state["initial_gain"])
         self.clip_adaptations = int(state.get("clip_adaptations", 0))
-        self.heldout = state["heldout"].to(self.device)
-        self.fit = self.measured & ~self.heldout
-        self.n_heldout = int(self.heldout.sum())
-        self.n_fit = int(self.fit.sum())
+        self._set_heldout(state["heldout"])
         self._snapshot = state["snapshot"]
         self._noise_gen.set_state(state["noise_rng"])
         _set_rng_states(state["rng"])

@@ -81,7 +81,7 @@ def test_early_stopping_returns_the_best_estimate(monkeypatch):
     assert r.n_heldout >= MIN_RELIABLE_HELDOUT and r.stops_early
     # a scripted held-out error: falls until iteration 8, then rises (overfitting)
     script = iter([1.0 / i if i <= 8 else 0.125 + 0.01 * i for i in range(1, 101)])
-    monkeypatch.setattr(r, "heldout_error", lambda x: next(script))
+    monkeypatch.setattr(r, "heldout_error_tensor", lambda x: torch.tensor(next(script)))
     estimates = {}
     for s in r.steps(preview_every=1):
         estimates[s.iteration] = s.preview
@@ -101,7 +101,7 @@ def test_too_few_heldout_pixels_do_not_stop_the_run_early(monkeypatch):
     r, _ = make_runner(holdout=0.1, patience=5, min_iter=0, max_iter=30, ema=0.5)
     assert r.n_heldout < MIN_RELIABLE_HELDOUT and not r.stops_early
     script = iter([1.0 / i if i <= 8 else 0.125 + 0.01 * i for i in range(1, 101)])
-    monkeypatch.setattr(r, "heldout_error", lambda x: next(script))
+    monkeypatch.setattr(r, "heldout_error_tensor", lambda x: torch.tensor(next(script)))
     estimates = {s.iteration: s.preview for s in r.steps(preview_every=1)}
     assert r.reason is StopReason.MAX_ITER and r.iteration == 30
     assert r.best_iteration == 8
@@ -378,3 +378,42 @@ def test_a_stop_on_few_held_out_pixels_is_noted():
                             "iteration") and "raise holdout" in n for n in r.notes)
     r, _ = make_runner(erasure=0.0, max_iter=2, holdout=0.3)
     assert r.n_heldout >= 100 and not any("held-out pixels choose" in n for n in r.notes)
+
+
+def test_a_step_reads_back_from_the_device_once():
+    """On a GPU every scalar read (``float(t)``, ``bool(t)``) and every boolean-mask index (its
+    output size depends on the data) makes the host wait for the device, which then idles while
+    the next kernels are queued. A plain iteration (not the first, not a snapshot, no preview)
+    dispatches none of them: its loss, clip fraction, gain and held-out error come back in one
+    ``tolist`` at its end (which dispatches no op). Adam's step counters are read too, but they
+    are host tensors on every device (``capturable`` off), so those reads wait for nothing."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    waits = ("aten._local_scalar_dense", "aten.nonzero", "aten.masked_select", "aten.item")
+
+    class Record(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.found = []
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            name = str(func)
+            bool_index = name.startswith("aten.index.") and any(
+                isinstance(i, torch.Tensor) and i.dtype == torch.bool
+                for a in args if isinstance(a, list | tuple) for i in a)
+            host_counter = any(a is t for a in args for t in counters)
+            if (name.startswith(waits) and not host_counter) or bool_index:
+                self.found.append(name)
+            return func(*args, **(kwargs or {}))
+
+    r, _ = make_runner(holdout=0.2, snapshot_every=100, max_iter=50)
+    assert r.n_heldout > 0
+    for _ in range(3):
+        r.step()
+    counters = [st["step"] for st in r.opt.state.values()]
+    assert counters and all(t.device.type == "cpu" for t in counters)
+    with Record() as rec:
+        s = r.step()
+    assert rec.found == []
+    assert s.heldout is not None and math.isfinite(s.loss) and s.clip_fraction is not None
+    assert s.heldout == pytest.approx(r.heldout_error(r.ema), rel=1e-6)
