@@ -1,7 +1,11 @@
 """Time per UDN iteration (fp32 / bf16, eager / torch.compile) and peak memory.
 
 Cases: 2D 150x200 and 256x256 (one image), and 128x128 with 16 frames (video model, frames as
-output channels and, with ``--with-3d``, the 3D network). Each case is timed over ``--iters``
+output channels and, with ``--with-3d``, the 3D network); ``rgb-270x480`` is the geometry of
+the real DiffuserCam pairs at full resolution (colour, the PSF and measurement on the padded
+540x960 grid). ``--profile`` (on a GPU) adds what keeps the device idle: per iteration the
+code's reads of device values, the synchronize calls and kernel launches, and its busy time
+against the wall time. Each case is timed over ``--iters``
 iterations after ``--warmup`` (the first call of a compiled network compiles it; its time is
 reported separately). Peak memory: ``torch.cuda.max_memory_allocated`` on a GPU; on the CPU
 each case runs in a fresh subprocess and reports its peak resident set (``ru_maxrss``) above
@@ -31,6 +35,11 @@ CASES: dict[str, dict[str, Any]] = {
     "2d-256x256": {"model": "2d", "shape": (256, 256), "k": 1, "variant": "2d"},
     "video-128x128x16": {"model": "video", "shape": (128, 128), "k": 16, "variant": "frames"},
     "video3d-128x128x16": {"model": "video", "shape": (128, 128), "k": 16, "variant": "3d"},
+    # the DiffuserCam MirFlickr geometry at full resolution: colour, the scene on the sensor's
+    # 270x480 field, the PSF and the measurement on the padded 540x960 grid, the sensor in
+    # its centre (the rest masked out), as the real pairs are read
+    "rgb-270x480": {"model": "2d", "shape": (270, 480), "k": 1, "variant": "2d", "colour": 3,
+                    "grid": (540, 960)},
 }
 
 
@@ -53,6 +62,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="torch threads (0, the default: chosen by the thread policy, "
                    "recon.threads, from the free cores and the load)")
     p.add_argument("--grad-checkpoint", action="store_true", help="gradient checkpointing")
+    p.add_argument("--profile", action="store_true",
+                   help="on a GPU: run the timed iterations twice more and report per "
+                   "iteration the code's reads of device values (torch's sync debug mode), "
+                   "the synchronize calls and kernel launches (torch.profiler), and the "
+                   "device's busy time against the wall time")
     p.add_argument("--json", help="also write the rows as JSON here (not with --ratio)")
     p.add_argument("--ratio", action="store_true",
                    help="bf16 / float32 step-time ratio instead of the matrix: both runners in "
@@ -85,6 +99,12 @@ def _problem(case: dict[str, Any], device: Any) -> tuple[Any, Any]:
         for i, r in enumerate(rows):
             shutter[i, r] = 1.0
         model = build_model("video", psf, shutter=shutter, device=device)
+    elif "grid" in case:
+        gh, gw = case["grid"]
+        psf = np.stack([synthetic_psf((gh, gw), seed=1 + i) for i in range(case["colour"])])
+        mask = np.zeros((gh, gw), dtype=np.float32)
+        mask[(gh - h) // 2:(gh - h) // 2 + h, (gw - w) // 2:(gw - w) // 2 + w] = 1
+        model = build_model("2d", psf, mask=mask, field=(h, w), device=device)
     else:
         model = build_model("2d", psf, device=device)
     b = rng.random(model.meas_shape).astype(np.float32)
@@ -126,6 +146,13 @@ def run_one(name: str, precision: str, compiled: bool, args: argparse.Namespace)
         runner.step()
     _sync(device)
     per_iter = (time.perf_counter() - t1) / max(args.iters, 1)
+    prof: dict[str, Any] = {}
+    if getattr(args, "profile", False) and device.type == "cuda":
+        try:
+            prof = device_profile(runner, device, args.iters)
+            prof["busy_fraction"] = prof["device_s_per_iter"] / per_iter
+        except Exception as exc:  # a profiler that fails costs the columns, not the row
+            prof = {"profile_error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
     if device.type == "cuda":
         peak = int(torch.cuda.max_memory_allocated(device))
         peak_src = "cuda max allocated"
@@ -139,8 +166,61 @@ def run_one(name: str, precision: str, compiled: bool, args: argparse.Namespace)
         "scene": list(model.scene_shape), "variant": net.variant, "channels": net.channels,
         "scales": net.scales, "params": runner.G.parameter_count(),
         "first_step_s": first, "per_iter_s": per_iter, "peak_bytes": peak,
-        "peak_source": peak_src, "estimate_bytes": est.total_bytes,
+        "peak_source": peak_src, "estimate_bytes": est.total_bytes, **prof,
     }
+
+
+#: host-side CUDA runtime calls that wait for the device (a read-back ends in one of them)
+WAIT_CALLS = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize")
+
+
+def profile_counts(events: Any, iters: int) -> dict[str, float]:
+    """Per-iteration counts from torch.profiler events (``prof.events()``) of ``iters`` steps:
+    the synchronize calls (:data:`WAIT_CALLS`), kernel launches (``cudaLaunch*`` /
+    ``cuLaunch*``), and the device's busy seconds (the summed duration of its events: kernels,
+    copies, fills; one stream, so they do not overlap)."""
+    waits = launches = 0
+    device_us = 0.0
+    for ev in events:
+        name = str(ev.name)
+        if str(ev.device_type).endswith("CPU"):
+            if name.startswith(WAIT_CALLS):
+                waits += 1
+            elif name.startswith(("cudaLaunch", "cuLaunch")):
+                launches += 1
+        else:
+            device_us += float(ev.time_range.end - ev.time_range.start)
+    n = max(iters, 1)
+    return {"waits_per_iter": waits / n, "launches_per_iter": launches / n,
+            "device_s_per_iter": device_us / 1e6 / n}
+
+
+def device_profile(runner: Any, device: Any, iters: int) -> dict[str, float]:
+    """Profile ``iters`` more steps of ``runner`` on a CUDA device: :func:`profile_counts`,
+    and the synchronising operations torch's sync debug mode flags in ``iters`` steps more
+    (``reads_per_iter``: the reads of device values by the code, which the profiler's count of
+    synchronize calls does not tell from the library's own)."""
+    import warnings
+
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    _sync(device)
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        for _ in range(iters):
+            runner.step()
+        _sync(device)
+    out = profile_counts(prof.events(), iters)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode(1)
+        try:
+            for _ in range(iters):
+                runner.step()
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
+    out["reads_per_iter"] = sum("synchronizing" in str(w.message) for w in seen) / max(iters, 1)
+    return out
 
 
 def _load_kernels(precision: str, device: Any) -> None:
@@ -180,6 +260,8 @@ def _run_isolated(name: str, precision: str, compiled: bool,
             "--threads", str(args.threads)]
     if args.grad_checkpoint:
         argv.append("--grad-checkpoint")
+    if args.profile:
+        argv.append("--profile")
     root = Path(__file__).resolve().parents[1]
     env = dict(os.environ)
     env["PYTHONPATH"] = str(root) + os.pathsep + env.get("PYTHONPATH", "")
@@ -352,11 +434,16 @@ def run_udn_benchmark(args: argparse.Namespace) -> int:
           f"{args.scales} scales x {args.channels} channels, skip 4, "
           f"{args.iters} timed iterations after {args.warmup} warm-up"
           + (", gradient checkpointing" if args.grad_checkpoint else ""))
+    profiled = args.profile and device.type == "cuda"
     print("| case | scene (C,K,H,W) | network | precision | compile | first step (s) | "
-          "per iteration (s) | peak memory | estimate |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "per iteration (s) | peak memory | estimate |"
+          + (" reads / it. | sync calls / it. | launches / it. | device busy |"
+             if profiled else ""))
+    print("|---|---|---|---|---|---|---|---|---|" + ("---|---|---|---|" if profiled else ""))
     for r in rows:
-        print(_line(r, table=True))
+        print(_line(r, table=True, profiled=profiled))
+    if args.profile and not profiled:
+        print("(--profile: only on a CUDA device; nothing profiled here)")
     if args.json:
         from recon.atomic import atomic_write_json
 
@@ -364,7 +451,7 @@ def run_udn_benchmark(args: argparse.Namespace) -> int:
     return 0
 
 
-def _line(r: dict[str, Any], table: bool = False) -> str:
+def _line(r: dict[str, Any], table: bool = False, profiled: bool = False) -> str:
     comp = "on" if r.get("compile") else "off"
     if "error" in r:
         body = [r["case"], "-", "-", r["precision"], comp, "-", f"failed: {r['error']}", "-",
@@ -376,6 +463,14 @@ def _line(r: dict[str, Any], table: bool = False) -> str:
                 f"{r['first_step_s']:.2f}", f"{r['per_iter_s']:.3f}",
                 f"{_fmt_bytes(r['peak_bytes'])} ({r['peak_source']})",
                 _fmt_bytes(r["estimate_bytes"])]
+    if profiled:
+        if "waits_per_iter" in r:
+            body += [f"{r['reads_per_iter']:.1f}", f"{r['waits_per_iter']:.1f}",
+                     f"{r['launches_per_iter']:.0f}",
+                     f"{100 * r['busy_fraction']:.0f} % ({1e3 * r['device_s_per_iter']:.1f} "
+                     "ms)"]
+        else:
+            body += [r.get("profile_error", "-"), "-", "-", "-"]
     return ("| " + " | ".join(body) + " |") if table else "  ".join(body)
 
 

@@ -245,6 +245,35 @@ def test_udn_ratio_table_names_the_profiled_variant(capsys):
         assert "bf16" not in head
 
 
+def test_profile_counts_waits_launches_and_device_time():
+    """bench udn --profile (GPU only, so its parsing is tested on made-up events): synchronize calls
+    and launches are counted on the CPU side, device time summed on the device side, all per
+    iteration."""
+    from types import SimpleNamespace
+
+    from benchmarks.bench_udn import profile_counts
+
+    def ev(name, device, start=0, end=0):
+        return SimpleNamespace(name=name, device_type=f"DeviceType.{device}",
+                               time_range=SimpleNamespace(start=start, end=end))
+
+    events = [ev("cudaLaunchKernel", "CPU")] * 6 + [ev("cuLaunchKernelEx", "CPU")] * 2 + [
+        ev("cudaStreamSynchronize", "CPU"), ev("cudaMemcpyAsync", "CPU"),
+        ev("aten::conv2d", "CPU", 0, 900),
+        ev("void cudnn::conv_kernel", "CUDA", 10, 310), ev("Memcpy DtoH", "CUDA", 400, 500)]
+    c = profile_counts(events, iters=2)
+    assert c == {"waits_per_iter": 0.5, "launches_per_iter": 4.0,
+                 "device_s_per_iter": pytest.approx(200e-6)}
+
+
+def test_udn_profile_on_a_cpu_says_it_profiled_nothing(capsys):
+    code, out, err = _run(capsys, "bench", "udn", "--profile", "--cases", "2d-75x100",
+                          "--channels", "4", "--scales", "2", "--iters", "1", "--warmup", "0",
+                          "--precision", "float32", "--compile", "off", "--device", "cpu")
+    assert code == 0, err
+    assert "only on a CUDA device" in out and "launches / it." not in out
+
+
 def test_udn_ratio_refuses_json(capsys, tmp_path):
     code, _, err = _run(capsys, "bench", "udn", "--ratio", "--json", tmp_path / "r.json")
     assert code == 2 and "--json" in _one_line(err) and not (tmp_path / "r.json").exists()
