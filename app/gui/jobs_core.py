@@ -138,9 +138,10 @@ def estimate_job_memory(
     if h < 1 or w < 1:
         raise ValueError(f"downsampling by {downsample} leaves nothing of {sensor}")
     net = network_config(spec, k)
+    device = resolve_device_name(spec["device"]["device"])
     est = estimate_udn_memory(net, (1, k, h, w), (1, h, w),
-                              precision=spec["device"]["precision"])
-    avail, source = available_memory(resolve_device_name(spec["device"]["device"]))
+                              precision=spec["device"]["precision"], device=device)
+    avail, source = available_memory(device)
     return est, avail, source
 
 
@@ -236,7 +237,8 @@ def create_job(
         k = 1 if shutter is None else int(np.asarray(shutter).shape[0])
         try:
             est, avail, source = estimate_job_memory(meas.shape, int(downsample), secs, k)
-            memory = {"total_bytes": est.total_bytes, "available_bytes": avail,
+            memory = {"total_bytes": est.total_bytes, "peak_bytes": est.peak_bytes,
+                      "available_bytes": avail,
                       "source": source}
         except ValueError as exc:
             memory = {"error": str(exc)}

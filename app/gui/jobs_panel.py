@@ -463,15 +463,17 @@ class NewJobDialog(QDialog):
         self.refusal = None
         self.ok_button.setEnabled(True)
         self.ok_button.setToolTip("")
-        self.estimate_bytes = est.total_bytes
-        fits = avail is None or est.total_bytes <= avail
+        self.estimate_bytes = est.peak_bytes
+        fits = avail is None or est.peak_bytes <= avail
         h, w = self.sensor[0] // self.downsample.value(), self.sensor[1] // self.downsample.value()
         # one short line (the dialog fills a 768-pixel screen; a second line was cut off), the
         # details in the tooltip
         self.memory.setText(
-            f"about {_fmt_bytes(est.total_bytes)} of {_fmt_bytes(avail)} available"
+            f"about {_fmt_bytes(est.peak_bytes)} of {_fmt_bytes(avail)} available"
             + ("" if fits else " – will NOT fit: fewer channels or more downsampling"))
-        self.memory.setToolTip(f"{est.parameters:,} parameters, scene {h}x{w} (HxW); "
+        self.memory.setToolTip(f"{est.parameters:,} parameters, scene {h}x{w} (HxW); peak "
+                               f"to expect: the estimate {_fmt_bytes(est.total_bytes)} x "
+                               f"{est.peak_factor:g} (measured on {est.device_type}); "
                                f"available memory from {source}")
         self.memory.setStyleSheet("" if fits else "color: #cf222e;")
 
@@ -758,10 +760,10 @@ class JobsPanel(QWidget):
         if v is None:
             self.details.setText("")
             return
-        mem = v.memory.get("total_bytes")
+        mem = v.memory.get("peak_bytes", v.memory.get("total_bytes"))
         lines = [f"{v.folder}", f"state: {v.state}" + (f" – {v.detail}" if v.detail else "")]
         if mem is not None:
-            lines.append(f"memory estimate: {_fmt_bytes(mem)}")
+            lines.append(f"memory estimate (peak to expect): {_fmt_bytes(mem)}")
         if v.elapsed_s is not None:
             from recon.udn.jobs import format_hms
 

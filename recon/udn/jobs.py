@@ -571,7 +571,8 @@ class _Job:
         net = network_config(spec, model.k)
         cfg = udn_config(spec)
         limit = max_memory if max_memory is not None else spec["device"]["max_memory"]
-        est = estimate_udn_memory(net, model.scene_shape, model.meas_shape, precision=cfg.precision)
+        est = estimate_udn_memory(net, model.scene_shape, model.meas_shape, precision=cfg.precision,
+                                  device=device)
         self.record["memory"] = check_memory(est, net, model.scene_shape, device, limit,
                                              model.meas_shape)
         runner = UDNRunner(model, problem.meas, network=net, config=cfg)

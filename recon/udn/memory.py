@@ -19,6 +19,7 @@ activation count against the tensors autograd actually saves.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Sequence
@@ -41,6 +42,15 @@ __all__ = [
 
 _MARGIN = 1.25
 
+#: The measured peak over :func:`estimate_udn_memory`'s total, by device type: on a GPU the CUDA
+#: caching allocator's max allocated was 1.15-1.3x the estimate (one H200, the default network
+#: on a 3 x 270 x 480 colour scene, docs/udn.md "Memory"); on a CPU the process's resident peak
+#: 1.2-2x (oneDNN's reordered copies of activations, the allocator's freed blocks). The check
+#: compares the estimate times this factor with the memory available, so a run that passes it
+#: does not fail later with the device's own out-of-memory error.
+PEAK_FACTOR = {"cuda": 1.3, "cpu": 2.0}
+_OTHER_PEAK_FACTOR = 1.3  # mps and the rest: not measured; the GPU's
+
 
 class MemoryRefusal(ValueError):
     """A run would not fit in the memory available; the message says what to change."""
@@ -59,6 +69,17 @@ class MemoryEstimate:
     precision: str
     gradient_checkpointing: bool
     notes: list[str] = field(default_factory=list)
+    device_type: str = "cpu"
+
+    @property
+    def peak_factor(self) -> float:
+        """:data:`PEAK_FACTOR` of this estimate's device type."""
+        return PEAK_FACTOR.get(self.device_type, _OTHER_PEAK_FACTOR)
+
+    @property
+    def peak_bytes(self) -> int:
+        """The peak to expect on the device: ``total_bytes`` x :attr:`peak_factor`."""
+        return int(self.total_bytes * self.peak_factor)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict for the run record."""
@@ -72,6 +93,9 @@ class MemoryEstimate:
             "precision": self.precision,
             "gradient_checkpointing": self.gradient_checkpointing,
             "notes": list(self.notes),
+            "device_type": self.device_type,
+            "peak_factor": self.peak_factor,
+            "peak_bytes": self.peak_bytes,
         }
 
 
@@ -122,7 +146,7 @@ def _level_sizes(config: NetworkConfig, scene_shape: Sequence[int]) -> tuple[lis
 
 def estimate_udn_memory(config: NetworkConfig, scene_shape: Sequence[int],
                         meas_shape: Sequence[int] | None = None, *, precision: str = "float32",
-                        batch: int = 1) -> MemoryEstimate:
+                        batch: int = 1, device: torch.device | str = "cpu") -> MemoryEstimate:
     """Estimate the bytes one training step of ``config`` on ``scene_shape`` needs.
 
     Args:
@@ -132,6 +156,7 @@ def estimate_udn_memory(config: NetworkConfig, scene_shape: Sequence[int],
             scene's field).
         precision: ``float32`` or ``bf16`` (autocast).
         batch: number of inputs per step (1 for UDN; kept for what-if estimates).
+        device: where the run will be (its type sets :attr:`MemoryEstimate.peak_bytes`).
 
     """
     if precision not in ("float32", "bf16"):
@@ -169,7 +194,8 @@ def estimate_udn_memory(config: NetworkConfig, scene_shape: Sequence[int],
     notes = [f"{config.scales} scales x {config.channels} channels, variant {config.variant}, "
              f"scene {c}x{k}x{h}x{w}"]
     return MemoryEstimate(params, parameter_bytes, activation_bytes, model_bytes, total,
-                          per_scale, precision, config.gradient_checkpointing, notes)
+                          per_scale, precision, config.gradient_checkpointing, notes,
+                          torch.device(device).type)
 
 
 def available_memory(device: torch.device | str) -> tuple[int | None, str]:
@@ -203,10 +229,16 @@ def available_memory(device: torch.device | str) -> tuple[int | None, str]:
 def check_memory(estimate: MemoryEstimate, config: NetworkConfig, scene_shape: Sequence[int],
                  device: torch.device | str, max_memory: int | None = None,
                  meas_shape: Sequence[int] | None = None) -> dict[str, Any]:
-    """Raise :class:`MemoryRefusal` if ``estimate`` exceeds what ``device`` (or ``max_memory``) has.
+    """Raise :class:`MemoryRefusal` if the peak to expect exceeds what the device has.
 
-    Returns a dict for the run record (estimate, available, source).
+    The limit is ``device``'s free memory, or ``max_memory`` when that is lower. The peak is
+    ``estimate``'s :attr:`~MemoryEstimate.peak_bytes` on ``device``'s type (the estimate
+    times :data:`PEAK_FACTOR`). Returns a dict for the run record (estimate with its peak,
+    available, source).
     """
+    dev_type = torch.device(device).type
+    if estimate.device_type != dev_type:
+        estimate = dataclasses.replace(estimate, device_type=dev_type)
     avail, source = available_memory(device)
     limit = avail
     if max_memory is not None:
@@ -215,19 +247,21 @@ def check_memory(estimate: MemoryEstimate, config: NetworkConfig, scene_shape: S
             avail is None or max_memory <= avail) else source
     info = {"estimate": estimate.to_dict(), "available_bytes": avail, "limit_bytes": limit,
             "limit_source": source}
-    if limit is None or estimate.total_bytes <= limit:
+    if limit is None or estimate.peak_bytes <= limit:
         return info
     hints = []
+    dev = estimate.device_type
     if not config.gradient_checkpointing:
         with_ckpt = estimate_udn_memory(
             NetworkConfig(**{**config.to_dict(), "gradient_checkpointing": True}),
-            scene_shape, meas_shape, precision=estimate.precision)
+            scene_shape, meas_shape, precision=estimate.precision, device=dev)
         hints.append(f"enable gradient checkpointing (network.gradient_checkpointing = true: "
-                     f"about {format_bytes(with_ckpt.total_bytes)})")
+                     f"about {format_bytes(with_ckpt.peak_bytes)})")
     half = NetworkConfig(**{**config.to_dict(), "channels": max(1, config.channels // 2)})
-    half_est = estimate_udn_memory(half, scene_shape, meas_shape, precision=estimate.precision)
+    half_est = estimate_udn_memory(half, scene_shape, meas_shape, precision=estimate.precision,
+                                   device=dev)
     hints.append(f"use fewer channels (network.channels = {half.channels}: about "
-                 f"{format_bytes(half_est.total_bytes)})")
+                 f"{format_bytes(half_est.peak_bytes)})")
     h, w = int(scene_shape[-2]), int(scene_shape[-1])
     if h >= 4 and w >= 4:
         hints.append("downsample the data (data.downsample twice as large: about a quarter of "
@@ -235,7 +269,9 @@ def check_memory(estimate: MemoryEstimate, config: NetworkConfig, scene_shape: S
     if estimate.precision == "float32":
         hints.append("use device.precision = 'bf16' on a GPU (halves the activations)")
     raise MemoryRefusal(
-        f"this UDN run needs about {format_bytes(estimate.total_bytes)} (activations "
+        f"this UDN run needs about {format_bytes(estimate.peak_bytes)} at its peak on "
+        f"{dev} (the estimate, {format_bytes(estimate.total_bytes)}, x "
+        f"{estimate.peak_factor:g} measured there; activations "
         f"{format_bytes(estimate.activation_bytes)}, parameters and optimiser "
         f"{format_bytes(estimate.parameter_bytes)}, forward model "
         f"{format_bytes(estimate.model_bytes)}; {estimate.notes[0]}) but only "
