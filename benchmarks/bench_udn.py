@@ -1,5 +1,8 @@
 """Time per UDN iteration (fp32 / bf16, eager / torch.compile) and peak memory.
 
+The gain is fixed at 1 and the clipping correction is off, so what is timed is the plain
+iteration (random data at gain 1 clips, and the correction widened the gain and snapshotted the
+state every 20 iterations; the GPU rows of docs/real-pairs-gpu.md, 2026-11-27, include that).
 Cases: 2D 150x200 and 256x256 (one image), and 128x128 with 16 frames (video model, frames as
 output channels and, with ``--with-3d``, the 3D network); ``rgb-270x480`` is the geometry of
 the real DiffuserCam pairs at full resolution (colour, the PSF and measurement on the padded
@@ -58,6 +61,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    choices=["float32", "bf16"], help="network precision: float32 or bf16")
     p.add_argument("--compile", nargs="+", default=["off", "on"], choices=["off", "on"],
                    help="torch.compile the network")
+    p.add_argument("--compile-mode", default="default",
+                   choices=["default", "reduce-overhead", "max-autotune-no-cudagraphs"],
+                   help="torch.compile's mode for the compiled rows (default; reduce-overhead: "
+                   "CUDA graphs)")
     p.add_argument("--threads", type=NONNEG_INT, default=0,
                    help="torch threads (0, the default: chosen by the thread policy, "
                    "recon.threads, from the free cores and the load)")
@@ -129,7 +136,7 @@ def run_one(name: str, precision: str, compiled: bool, args: argparse.Namespace)
     net = NetworkConfig(variant=case["variant"], scales=args.scales, channels=args.channels,
                         gradient_checkpointing=args.grad_checkpoint)
     cfg = UDNConfig(precision=precision, compile=compiled, max_iter=10**9, holdout=0.05,
-                    gain=1.0)
+                    gain=1.0, compile_mode=args.compile_mode, clip_adapt=False)
     est = estimate_udn_memory(net, model.scene_shape, model.meas_shape, precision=precision)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
@@ -161,6 +168,7 @@ def run_one(name: str, precision: str, compiled: bool, args: argparse.Namespace)
         peak_src = "ru_maxrss above baseline"
     return {
         "case": name, "precision": precision, "compile": compiled,
+        "compile_mode": args.compile_mode if compiled else None,
         "compile_active": bool(runner._compiled), "notes": runner.notes,
         "device": str(device), "threads": torch.get_num_threads(),
         "scene": list(model.scene_shape), "variant": net.variant, "channels": net.channels,
@@ -257,7 +265,7 @@ def _run_isolated(name: str, precision: str, compiled: bool,
     argv = [sys.executable, "-m", "benchmarks.bench_udn", "--case-json", spec,
             "--device", args.device, "--channels", str(args.channels), "--scales",
             str(args.scales), "--iters", str(args.iters), "--warmup", str(args.warmup),
-            "--threads", str(args.threads)]
+            "--threads", str(args.threads), "--compile-mode", args.compile_mode]
     if args.grad_checkpoint:
         argv.append("--grad-checkpoint")
     if args.profile:
@@ -362,7 +370,8 @@ def run_ratio(args: argparse.Namespace) -> int:
                     "bf16": ("bf16", False), "bf16 channels-last": ("bf16", True)}
         runners = {v: UDNRunner(model, b, network=net,
                                 config=UDNConfig(precision=p, channels_last=cl, max_iter=10**9,
-                                                 holdout=0.05, gain=1.0, seed=0))
+                                                 holdout=0.05, gain=1.0, seed=0,
+                                                 clip_adapt=False))
                    for v, (p, cl) in variants.items()}
         for r in runners.values():
             for _ in range(max(1, args.warmup)):
@@ -457,6 +466,8 @@ def _line(r: dict[str, Any], table: bool = False, profiled: bool = False) -> str
         body = [r["case"], "-", "-", r["precision"], comp, "-", f"failed: {r['error']}", "-",
                 "-"]
     else:
+        if r["compile"] and r.get("compile_mode") not in (None, "default"):
+            comp = f"on ({r['compile_mode']})"
         if r["compile"] and not r["compile_active"]:
             comp = "on (fell back to eager)"
         body = [r["case"], "x".join(map(str, r["scene"])), r["variant"], r["precision"], comp,

@@ -390,3 +390,19 @@ def test_demo_runs_the_result_check_of_every_command(tmp_path, capsys):
     assert code == 0, err
     assert ("lenslesscam demo: warning: fista-tv: the result explains the measurement less "
             "well than a flat image") in err and "it needs more --iters" in err
+
+
+def test_recon_udn_compile_takes_an_optional_mode():
+    """--compile alone: torch.compile's default mode; --compile reduce-overhead: CUDA graphs
+    (half the iteration time on a GPU); no --compile: eager. Into the spec the job runs."""
+    from app.cli import build_parser
+    from app.commands.recon_udn import build_spec
+
+    parser = build_parser()
+    base = ["recon", "udn", "--psf", "p.npy", "--meas", "m.npy"]
+    for extra, compiled, mode in (([], False, "default"), (["--compile"], True, "default"),
+                                  (["--compile", "reduce-overhead"], True, "reduce-overhead")):
+        dev = build_spec(parser.parse_args([*base, *extra]))["device"]
+        assert (dev["compile"], dev["compile_mode"]) == (compiled, mode), extra
+    with pytest.raises(SystemExit):
+        parser.parse_args([*base, "--compile", "fast"])

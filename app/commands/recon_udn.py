@@ -64,7 +64,11 @@ def register_udn(methods: Any) -> None:
     d.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N, mps")
     d.add_argument("--precision", choices=["float32", "bf16"], default="float32",
                    help="network precision: float32 or bf16 (autocast)")
-    d.add_argument("--compile", action="store_true", help="torch.compile the network")
+    d.add_argument("--compile", nargs="?", const="default", default=None, metavar="MODE",
+                   choices=["default", "reduce-overhead", "max-autotune-no-cudagraphs"],
+                   help="torch.compile the network, in torch.compile's MODE (default; "
+                   "reduce-overhead records CUDA graphs: on an H200 half the full-resolution "
+                   "iteration time after a compile of about a minute)")
     d.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None,
                    help="channels-last memory format for the network (default on: 0.83-0.89x "
                    "the step time on this CPU, docs/udn.md)")
@@ -104,7 +108,9 @@ def build_spec(args: argparse.Namespace) -> dict[str, Any]:
         "stopping": {"max_iter": args.iters, "time_limit_s": args.time_limit,
                      "holdout": args.holdout, "patience": args.patience},
         "device": {"device": args.device, "precision": args.precision,
-                   "compile": args.compile, "channels_last": args.channels_last,
+                   "compile": args.compile is not None,
+                   "compile_mode": args.compile or "default",
+                   "channels_last": args.channels_last,
                    "threads": args.threads or getattr(args, "global_threads", None),
                    "max_memory": args.max_memory},
         "output": {"checkpoint_every": args.checkpoint_every,

@@ -582,7 +582,8 @@ class _Job:
             "threads_reason": threads.reason if not self.threads else (
                 f"{threads.reason} (over the spec's {spec['device']['threads']})"),
             "precision": cfg.precision, "channels_last": cfg.channels_last,
-            "compile": {"requested": cfg.compile, "active": bool(runner._compiled)},
+            "compile": {"requested": cfg.compile, "active": bool(runner._compiled),
+                        "mode": cfg.compile_mode},
             "machine": platform.machine(), "processor": platform.processor(),
         }
         if device.type == "cuda":

@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from recon.udn.network import NetworkConfig
-from recon.udn.runner import UDNConfig
+from recon.udn.runner import COMPILE_MODES, UDNConfig
 
 __all__ = [
     "SCHEMA",
@@ -166,6 +166,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "precision": Key((str,), _UDN.precision, "float32 or bf16 (autocast)",
                          ("float32", "bf16")),
         "compile": Key((bool,), _UDN.compile, "torch.compile the network (falls back)"),
+        "compile_mode": Key((str,), _UDN.compile_mode, "torch.compile's mode; reduce-overhead: "
+                            "CUDA graphs (on a GPU)", COMPILE_MODES),
         "channels_last": Key((bool,), _UDN.channels_last, "channels-last memory format"),
         "threads": Key((int,), 0, "torch CPU threads (0: recon.threads policy)", minimum=0),
         "max_memory": Key((str, int), None, "refuse runs estimated above this ('2GB')"),
@@ -395,7 +397,8 @@ def udn_config(spec: Mapping[str, Any]) -> UDNConfig:
         clip_gain_step=o["clip_gain_step"],
         max_iter=s["max_iter"], time_limit_s=s["time_limit_s"], holdout=s["holdout"],
         patience=s["patience"], min_iter=s["min_iter"], min_delta=s["min_delta"],
-        precision=d["precision"], compile=d["compile"], channels_last=d["channels_last"],
+        precision=d["precision"], compile=d["compile"], compile_mode=d["compile_mode"],
+        channels_last=d["channels_last"],
     )
 
 

@@ -212,7 +212,7 @@ def test_compile_failure_falls_back_with_a_note(monkeypatch):
 
 
 def test_compile_error_at_first_call_falls_back(monkeypatch):
-    def lazy(module):
+    def lazy(module, **options):  # torch.compile(module, mode=...)
         def call(z):
             raise RuntimeError("inductor failed")
         return call
@@ -417,3 +417,20 @@ def test_a_step_reads_back_from_the_device_once():
     assert rec.found == []
     assert s.heldout is not None and math.isfinite(s.loss) and s.clip_fraction is not None
     assert s.heldout == pytest.approx(r.heldout_error(r.ema), rel=1e-6)
+
+
+def test_compile_mode_is_checked_and_reaches_the_spec(tmp_path):
+    from recon.udn.spec import SpecError, normalise_spec, udn_config
+
+    with pytest.raises(ValueError, match="compile_mode must be one of default, reduce-overhead"):
+        UDNConfig(compile_mode="fast")
+    for name in ("m.npy", "p.npy"):
+        np.save(tmp_path / name, np.ones((8, 8), dtype=np.float32))
+    data = {"measurement": "m.npy", "psf": "p.npy"}
+    spec = normalise_spec({"data": data, "device": {"compile": True,
+                                                    "compile_mode": "reduce-overhead"}},
+                          base_dir=tmp_path)
+    assert udn_config(spec).compile_mode == "reduce-overhead"
+    assert udn_config(normalise_spec({"data": data}, base_dir=tmp_path)).compile_mode == "default"
+    with pytest.raises(SpecError, match="compile_mode"):
+        normalise_spec({"data": data, "device": {"compile_mode": "fast"}}, base_dir=tmp_path)
