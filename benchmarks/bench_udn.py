@@ -31,6 +31,7 @@ from typing import Any
 
 from app.commands._options import NONNEG_INT, POSITIVE_INT, add_overwrite_option
 from benchmarks._cli import check_outputs
+from recon.udn import COMPILE_MODES
 
 CASES: dict[str, dict[str, Any]] = {
     "2d-75x100": {"model": "2d", "shape": (75, 100), "k": 1, "variant": "2d"},
@@ -62,7 +63,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--compile", nargs="+", default=["off", "on"], choices=["off", "on"],
                    help="torch.compile the network")
     p.add_argument("--compile-mode", default="default",
-                   choices=["default", "reduce-overhead", "max-autotune-no-cudagraphs"],
+                   choices=COMPILE_MODES,
                    help="torch.compile's mode for the compiled rows (default; reduce-overhead: "
                    "CUDA graphs)")
     p.add_argument("--threads", type=NONNEG_INT, default=0,

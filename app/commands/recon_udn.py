@@ -27,6 +27,7 @@ from app.commands._options import (
     check_command_outputs,
     refuse_run_folder_outputs,
 )
+from recon.udn import COMPILE_MODES
 
 
 def register_udn(methods: Any) -> None:
@@ -65,7 +66,7 @@ def register_udn(methods: Any) -> None:
     d.add_argument("--precision", choices=["float32", "bf16"], default="float32",
                    help="network precision: float32 or bf16 (autocast)")
     d.add_argument("--compile", nargs="?", const="default", default=None, metavar="MODE",
-                   choices=["default", "reduce-overhead", "max-autotune-no-cudagraphs"],
+                   choices=COMPILE_MODES,
                    help="torch.compile the network, in torch.compile's MODE (default; "
                    "reduce-overhead records CUDA graphs: on an H200 half the full-resolution "
                    "iteration time after a compile of about a minute)")

@@ -26,6 +26,10 @@ if TYPE_CHECKING:
     from recon.udn.network import Generator, NetworkConfig
     from recon.udn.runner import UDNConfig, UDNResult, UDNRunner, UDNStep
 
+#: torch.compile modes a run takes (``UDNConfig.compile_mode``; ``reduce-overhead`` records CUDA
+#: graphs). Here, without torch, so the command line can list them without importing it.
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune-no-cudagraphs")
+
 _LAZY = {"Generator": "recon.udn.network", "NetworkConfig": "recon.udn.network",
          "UDNConfig": "recon.udn.runner", "UDNResult": "recon.udn.runner",
          "UDNRunner": "recon.udn.runner", "UDNStep": "recon.udn.runner"}
@@ -37,6 +41,7 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = [
+    "COMPILE_MODES",
     "Generator",
     "NetworkConfig",
     "UDNConfig",

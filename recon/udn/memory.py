@@ -13,7 +13,9 @@ step keeps alive:
 - the forward model's FFT buffers and the estimate's copies (EMA, best), which are small.
 
 Activations are counted at 4 bytes (float32) or 2 bytes (bf16 autocast); a 1.25 margin covers
-the transient gradient buffers of the backward pass. ``tests/udn/test_memory.py`` checks the
+the transient gradient buffers of the backward pass. The check compares the peak to expect, the
+estimate times the factor measured on the device type (:data:`PEAK_FACTOR`), with the memory
+available. ``tests/udn/test_memory.py`` checks the
 activation count against the tensors autograd actually saves.
 """
 

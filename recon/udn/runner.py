@@ -50,6 +50,7 @@ from recon.holdout import MIN_RELIABLE_HELDOUT
 from recon.models import ForwardModel
 from recon.stepwise import NumericalError, Stepwise, StopReason
 from recon.tv import TV
+from recon.udn import COMPILE_MODES
 from recon.udn.network import Generator, NetworkConfig
 
 __all__ = [
@@ -72,8 +73,6 @@ CLIP_LEVEL = 0.99
 #: Iterations between clipping checks (the fraction itself is reported at every step).
 CLIP_CHECK_EVERY = 20
 
-#: torch.compile modes ``UDNConfig.compile_mode`` takes ("reduce-overhead": CUDA graphs)
-COMPILE_MODES = ("default", "reduce-overhead", "max-autotune-no-cudagraphs")
 #: A correction also scales the output layer (its logits) by this: pixels pinned deep in the
 #: sigmoid's flat top get a gradient again and can move under the raised cap.
 CLIP_LOGIT_SCALE = 0.5
@@ -744,12 +743,12 @@ class UDNRunner(Stepwise[UDNStep]):
     def step(self, preview: bool = False) -> UDNStep:
         """Do one iteration and report it (``preview``: attach the estimate as numpy).
 
-        The loss, the fraction of the output at the cap and the held-out error are read back
-        from the device together, once, at the end of the iteration (each read makes the host
-        wait for the device, which then idles while the next iteration is queued). So the
-        divergence guard looks at the loss after the optimiser's step; when it fires, the
-        restore of the last good state discards that step, its EMA update and the Adam
-        moments it wrote, as if it had never been taken.
+        The loss, the fraction of the output at the cap, the gain and the held-out error are
+        read back from the device together, once, at the end of the iteration (each read makes
+        the host wait for the device, which then idles while the next iteration is queued). So
+        the divergence guard looks at the loss after the optimiser's step; when it fires, the
+        restore of the last good state discards that step, its EMA update and the Adam moments
+        it wrote, as if it had never been taken.
 
         Raises :class:`~recon.stepwise.RunFinished` once the run is done.
         """

@@ -41,8 +41,9 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
+from recon.udn import COMPILE_MODES
 from recon.udn.network import NetworkConfig
-from recon.udn.runner import COMPILE_MODES, UDNConfig
+from recon.udn.runner import UDNConfig
 
 __all__ = [
     "SCHEMA",
