@@ -155,7 +155,7 @@ def run_one(name: str, precision: str, compiled: bool, args: argparse.Namespace)
     _sync(device)
     per_iter = (time.perf_counter() - t1) / max(args.iters, 1)
     prof: dict[str, Any] = {}
-    if getattr(args, "profile", False) and device.type == "cuda":
+    if args.profile and device.type == "cuda":
         try:
             prof = device_profile(runner, device, args.iters)
             prof["busy_fraction"] = prof["device_s_per_iter"] / per_iter
