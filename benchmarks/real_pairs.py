@@ -891,7 +891,9 @@ def error_analysis(images: dict[tuple[str, float], dict[str, Any]]) -> list[dict
     (:func:`_derived`), where a case kept both. ``mid_factor_1db`` (oracle FISTA-TV's row
     only): the factor on its mid-band error, its fine and smooth errors kept, that would raise
     its mean PSNR by 1 dB, the issue's margin (what a method that shares the other two bands
-    would have to do in the mid band). Levels with fewer than two pairs are left out.
+    would have to do in the mid band). ``ssim`` / ``ms_ssim``: the means of :func:`scores`,
+    as in the tables, so that the averaged rows, which exist only here, have all three scores
+    (None where a case has no MS-SSIM). Levels with fewer than two pairs are left out.
     """
     import numpy as np
 
@@ -919,7 +921,7 @@ def error_analysis(images: dict[tuple[str, float], dict[str, Any]]) -> list[dict
                       for p, c in have.items()}
             blur_t = {p: _smooth(c["truth"], sigma) for p, c in have.items()}
             blur_f = {p: _smooth(f, sigma) for p, f in fitted.items()}
-            p0, p1, bands = [], [], []
+            p0, p1, bands, sc = [], [], [], []
             for p, c in have.items():
                 t, f = c["truth"], fitted[p]
                 num = sum(blur_t[q] for q in have if q != p)
@@ -928,10 +930,14 @@ def error_analysis(images: dict[tuple[str, float], dict[str, Any]]) -> list[dict
                 bands.append(_bands(t - f, fs, sigma))
                 p0.append(psnr(t, f))
                 p1.append(psnr(t, gain_fit(t, (shade * f).astype(np.float32))[0]))
+                sc.append(scores(t, c[key]))
             fine, mid, smooth = (float(v) for v in np.mean(bands, axis=0))
             row = {"erasure": e, "method": key, "label": label, "pairs": len(have),
                    "sigma": sigma, "psnr": float(np.mean(p0)), "psnr_shaded": float(np.mean(p1)),
                    "fine": fine, "mid": mid, "smooth": smooth}
+            for k in ("ssim", "ms_ssim"):  # the tables' scores, so an averaged row has all three
+                vals = [s[k] for s in sc]
+                row[k] = None if any(v is None for v in vals) else float(np.mean(vals))
             if key == "fista_oracle":
                 row["mid_factor_1db"] = _mid_factor(
                     [(c["truth"], c["truth"] - fitted[p], fs, sigma) for p, c in have.items()],
@@ -943,21 +949,23 @@ def error_analysis(images: dict[tuple[str, float], dict[str, Any]]) -> list[dict
 def error_table(rows: list[dict[str, Any]]) -> str:
     """The error analysis as Markdown, with each method's distance to oracle FISTA-TV."""
     ref = {r["erasure"]: r for r in rows if r["method"] == "fista_oracle"}
-    out = ["| erasure | method | pairs | PSNR (dB) | error x 1000: fine / mid / smooth | "
-           "PSNR, shading of the other pairs removed (dB) | gain (dB) | - oracle FISTA-TV, "
-           "before / after (dB) | mid-band factor for +1 dB |", "|---" * 9 + "|"]
+    out = ["| erasure | method | pairs | PSNR (dB) | SSIM / MS-SSIM | error x 1000: fine / mid / "
+           "smooth | PSNR, shading of the other pairs removed (dB) | gain (dB) | - oracle "
+           "FISTA-TV, before / after (dB) | mid-band factor for +1 dB |", "|---" * 10 + "|"]
     for r in rows:
         bands = f"{1e3 * r['fine']:.2f} / {1e3 * r['mid']:.2f} / {1e3 * r['smooth']:.2f}"
         if r["psnr"] is None:  # the truth's own content
-            out.append(f"| {r['erasure']:.0%} | {r['label']} | {r['pairs']} | - | {bands} | - "
-                       "| - | - | - |")
+            out.append(f"| {r['erasure']:.0%} | {r['label']} | {r['pairs']} | - | - | {bands} "
+                       "| - | - | - | - |")
             continue
         o = ref.get(r["erasure"])
         d = (f"{r['psnr'] - o['psnr']:+.2f} / {r['psnr_shaded'] - o['psnr_shaded']:+.2f}"
              if o is not None else "-")
+        structure = f"{_fmt(r.get('ssim'), 3)} / {_fmt(r.get('ms_ssim'), 3)}"
         out.append(f"| {r['erasure']:.0%} | {r['label']} | {r['pairs']} | {r['psnr']:.2f} | "
-                   f"{bands} | {r['psnr_shaded']:.2f} | {r['psnr_shaded'] - r['psnr']:+.2f} | "
-                   f"{d} | {_fmt(r.get('mid_factor_1db'))} |")
+                   f"{structure} | {bands} | {r['psnr_shaded']:.2f} | "
+                   f"{r['psnr_shaded'] - r['psnr']:+.2f} | {d} | "
+                   f"{_fmt(r.get('mid_factor_1db'))} |")
     return "\n".join(out)
 
 

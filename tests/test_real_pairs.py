@@ -420,8 +420,18 @@ def test_error_analysis_scores_the_mean_of_the_ensemble_and_fista_where_both_wer
     rows = {(r["erasure"], r["method"]): r for r in out}
     mean, ens = rows[(0.9, "ensemble_fista_mean")], rows[(0.9, "udn_ensemble")]
     assert mean["psnr"] - ens["psnr"] == pytest.approx(10 * np.log10(2), abs=0.3)
+    # SSIM and MS-SSIM of the averaged row: the tables' scores of the averaged image, higher
+    # than a member's (half the noise), and in the table beside the PSNR
+    want = [rp.scores(images[(n, 0.9)]["truth"], 0.5 * (images[(n, 0.9)]["udn_ensemble"]
+                                                        + images[(n, 0.9)]["fista_auto"]))
+            for n in ("a", "b", "c")]
+    for k in ("ssim", "ms_ssim"):
+        assert mean[k] == pytest.approx(np.mean([w[k] for w in want]), rel=1e-6)
+        assert mean[k] > ens[k] + 0.01
     assert (0.5, "ensemble_fista_mean") not in rows
-    assert "UDN seed ensemble and FISTA-TV auto, averaged" in rp.error_table(out)
+    table = rp.error_table(out)
+    assert "UDN seed ensemble and FISTA-TV auto, averaged" in table
+    assert f"| {mean['psnr']:.2f} | {mean['ssim']:.3f} / {mean['ms_ssim']:.3f} |" in table
     # one seed (what jobs combine --with-fista writes for one run): only where it was kept
     assert (0.9, "udn_fista_mean") not in rows
     for name in ("a", "b", "c"):
