@@ -76,7 +76,7 @@ def test_every_bench_that_writes_files_has_overwrite():
                for name, p in _bench_parsers().items()}
     writers = {k: v for k, v in writers.items() if v}
     assert set(writers) >= {"fista", "udn", "protocol", "preview", "plan", "udn-video",
-                            "udn-vs-fista", "real-pairs", "tau-rules", "batch"}
+                            "udn-vs-fista", "real-pairs", "tau-rules", "admm-penalty", "batch"}
     missing = [name for name in writers
                if not any("--overwrite" in a.option_strings
                           for a in _bench_parsers()[name]._actions)]
@@ -94,6 +94,7 @@ EXISTING = [
     (["real-pairs", "--table-only"], "--out"),
     (["real-pairs", "--table-only"], "--figure"),
     (["tau-rules", "--cases", "sim", "--iters", "5"], "--out"),
+    (["admm-penalty", "--cases", "sim"], "--out"),
 ]
 
 

@@ -17,6 +17,7 @@ BENCHMARKS = {
     "udn-vs-fista": "benchmarks.udn_vs_fista",
     "real-pairs": "benchmarks.real_pairs",
     "tau-rules": "benchmarks.tau_rules",
+    "admm-penalty": "benchmarks.admm_penalty",
     "batch": "benchmarks.bench_batch",
 }
 

@@ -7,7 +7,6 @@ import json
 import math
 import sys
 import time
-import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -53,7 +52,12 @@ def register(sub: Any) -> None:
         a, "stop when the relative change of v and the residuals of ADMM's splittings (M v = "
         "x, D v = u, v = w, relative to ||M v|| and ||v||) are all below this (default 1e-5)")
     a.add_argument("--rho", type=POSITIVE, default=0.01,
-                   help="ADMM penalty relative to max|H|^2 (default 0.01)")
+                   help="the TV and non-negativity penalties relative to max|H|^2 times the "
+                   "data penalty (default 0.01)")
+    a.add_argument("--penalty", type=_penalty, default="auto",
+                   help="the data penalty (the scale of all three): auto (default: from tau "
+                   "and the measured share of the sensor, recon.admm.penalty_scale) or a "
+                   "number > 0 (1: the fixed penalty before)")
     a.set_defaults(func=run_admm)
     from app.commands.plan import register_auto
     from app.commands.recon_udn import register_udn
@@ -63,6 +67,11 @@ def register(sub: Any) -> None:
 
 
 _KAPPA = finite_float(0, 1, lo_open=True)
+
+
+def _penalty(text: str) -> str | float:
+    """``--penalty``: auto or a number > 0."""
+    return "auto" if text == "auto" else POSITIVE(text)
 
 
 def _precondition(text: str) -> str | float:
@@ -154,7 +163,7 @@ def run_fista(args: argparse.Namespace) -> int:
 
 def run_admm(args: argparse.Namespace) -> int:
     """Run ADMM-TV and save the result with its metadata (tau auto: chosen as for FISTA)."""
-    from recon.admm import Admm, slow_erasure_note
+    from recon.admm import Admm
     from recon.tv import TV
 
     if model_kind(args) != "2d":
@@ -165,11 +174,9 @@ def run_admm(args: argparse.Namespace) -> int:
         tv = TV(isotropic=args.tv == "iso")
         # the held-out search runs FISTA (same objective, so the same tau); ADMM's iteration
         # count is the limit unless given
-        note = slow_erasure_note(model)
-        if note is not None:  # said before the tau search's seconds
-            warnings.warn(note, UserWarning, stacklevel=2)
         tau, iters, tau_meta = resolve_tau(args, model, b, tv, tau_only=True)
-        solver = Admm(model, b, tau=tau, tv=tv, max_iter=iters, tol=args.tol, rho=args.rho)
+        solver = Admm(model, b, tau=tau, tv=tv, max_iter=iters, tol=args.tol, rho=args.rho,
+                      penalty=args.penalty)
         return solver, tau, iters, tau_meta
 
     return _solve_and_save(args, "admm-tv", "image", make)
