@@ -13,7 +13,8 @@ dependency: install it for this benchmark only with ``pip install --no-deps lens
 column is skipped with the reason when it does not import. It has no erasure mask: its
 x-update divides by ``pad(1) + mu1``; for the masked case that divisor is set to
 ``pad(mask) + mu1`` (and the data multiplied by the mask), which is the exact masked ADMM.
-Its penalties are set to ours (mu1 = 1, mu2 = mu3 = 0.01 max|H|^2); its TV is circular on the
+Its penalties are set to ours (mu1 = s, mu2 = mu3 = 0.01 s max|H|^2, s from
+``recon.admm.penalty_scale``; with the unit-sum PSF max|H|^2 = 1); its TV is circular on the
 padded grid (ours: only differences inside the field).
 
     lenslesscam bench time-to-quality [--iters 500]   (prints the table; docs/auto-tau.md quotes it)
@@ -55,8 +56,8 @@ def _trace(step: Callable[[], None], estimate: Callable[[], Any], score: Callabl
     return out
 
 
-def _lensless(psf: Any, meas: Any, mask: Any, tau: float) -> tuple[Callable[[], None],
-                                                                  Callable[[], Any]]:
+def _lensless(psf: Any, meas: Any, mask: Any, tau: float, mu: tuple[float, float, float]
+              ) -> tuple[Callable[[], None], Callable[[], Any]]:
     import torch
     from lensless import ADMM
 
@@ -64,7 +65,7 @@ def _lensless(psf: Any, meas: Any, mask: Any, tau: float) -> tuple[Callable[[], 
     p4 = torch.as_tensor(psf, dtype=torch.float32).reshape(1, *hw, 1)
     m4 = (torch.ones(1, *hw, 1) if mask is None
           else torch.as_tensor(mask, dtype=torch.float32).reshape(1, *hw, 1))
-    rec = ADMM(p4, mu1=1.0, mu2=0.01, mu3=0.01, tau=tau)
+    rec = ADMM(p4, mu1=mu[0], mu2=mu[1], mu3=mu[2], tau=tau)
     rec.set_data(torch.as_tensor(meas, dtype=torch.float32).reshape(1, *hw, 1) * m4)
     rec.reset()
     rec._X_divmat = 1.0 / (rec._convolver._pad(m4) + rec._mu1)  # the masked x-update
@@ -124,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
         traces["ADMM-TV (ours)"] = _trace(admm.step, lambda a=admm: a.x.numpy(), score,
                                           args.iters, args.every)
         if not lensless_why:
-            step, est = _lensless(psf, sim.meas[0], sim.mask, tau)
+            step, est = _lensless(psf, sim.meas[0], sim.mask, tau,
+                                  (admm.mu1, admm.mu2, admm.mu3))
             traces["LenslessPiCam ADMM"] = _trace(step, est, score, args.iters, args.every)
         best_l = max(p for _, _, p in traces.get("LenslessPiCam ADMM", [(0, 0.0, math.nan)]))
         levels = [best_l - 1.0, best_l - 0.5, best_l - 0.1] if math.isfinite(best_l) else []
