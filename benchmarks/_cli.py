@@ -65,6 +65,17 @@ def int_list(item: Callable[[str], int]) -> Callable[[str], list[int]]:
     return parse
 
 
+def append_jsonl(path: str | os.PathLike[str] | None, row: dict[str, Any]) -> None:
+    """Append ``row`` as one JSON line to ``path`` (nothing when None): a results file that
+    keeps each finished case, so an interrupted benchmark keeps what it measured."""
+    if path is None:
+        return
+    import json
+
+    with open(path, "a", encoding="utf-8") as f:
+        f.write(json.dumps(row) + "\n")
+
+
 def read_jsonl(path: str | os.PathLike[str], option: str) -> list[dict[str, Any]]:
     """The records of a JSON-lines file (none if it does not exist).
 

@@ -21,13 +21,12 @@ three lensed scenes, noise 0 and 0.01), at the erasure levels given.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from typing import Any
 
 from app.commands._options import FRACTION, POSITIVE_INT, add_overwrite_option
-from benchmarks._cli import check_outputs, read_jsonl
+from benchmarks._cli import append_jsonl, check_outputs, read_jsonl
 
 #: iterations at which each run is scored
 MARKS = (100, 200, 500)
@@ -176,9 +175,7 @@ def run(args: argparse.Namespace) -> int:
               f"{MARKS[-1]}: FISTA {row['fista']['psnr'][-1]:.2f}, ADMM auto "
               f"{row['admm_auto']['psnr'][-1]:.2f}, fixed {row['admm_fixed']['psnr'][-1]:.2f} dB",
               file=sys.stderr, flush=True)
-        if args.results:
-            with open(args.results, "a", encoding="utf-8") as f:
-                f.write(json.dumps(row) + "\n")
+        append_jsonl(args.results, row)
     text = (f"ADMM-TV's penalty scale, automatic (recon.admm.penalty_scale) against the former "
             f"fixed 1; tau from the automatic search; the minimum from FISTA-TV at "
             f"{REFERENCE_ITERS} iterations or the lowest objective a run reached; "

@@ -22,7 +22,6 @@ colour (as ``bench real-pairs`` reads them), ``sim`` the simulation protocol (tu
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -30,7 +29,7 @@ from collections.abc import Iterator
 from typing import Any
 
 from app.commands._options import FRACTION, POSITIVE_INT, add_overwrite_option
-from benchmarks._cli import check_outputs
+from benchmarks._cli import append_jsonl, check_outputs
 
 GRID = (1e-7, 1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3)
 
@@ -209,9 +208,7 @@ def run(args: argparse.Namespace) -> int:
         rows.append(row)
         print(f"{label}: min {row['min']['psnr']:.2f}, 1se {row['1se']['psnr']:.2f}, oracle "
               f"{row['oracle']['psnr']:.2f} dB", file=sys.stderr, flush=True)
-        if args.results:
-            with open(args.results, "a", encoding="utf-8") as f:
-                f.write(json.dumps(row) + "\n")
+        append_jsonl(args.results, row)
     text = (f"Automatic tau, smallest held-out error (min) against one standard error (1se); "
             f"{args.iters} iterations, held-out blocks of "
             f"{'the default side (recon.holdout)' if args.block is None else f'{args.block} px'}"
