@@ -76,6 +76,15 @@ def append_jsonl(path: str | os.PathLike[str] | None, row: dict[str, Any]) -> No
         f.write(json.dumps(row) + "\n")
 
 
+def print_and_write(text: str, out: str | os.PathLike[str] | None) -> None:
+    """Print a benchmark's Markdown and write it atomically to ``out`` (when given)."""
+    print(text)
+    if out:
+        from recon.atomic import atomic_write_bytes
+
+        atomic_write_bytes(out, text.encode())
+
+
 def read_jsonl(path: str | os.PathLike[str], option: str) -> list[dict[str, Any]]:
     """The records of a JSON-lines file (none if it does not exist).
 

@@ -26,7 +26,7 @@ import time
 from typing import Any
 
 from app.commands._options import FRACTION, POSITIVE_INT, add_overwrite_option
-from benchmarks._cli import append_jsonl, check_outputs, read_jsonl
+from benchmarks._cli import append_jsonl, check_outputs, print_and_write, read_jsonl
 
 #: iterations at which each run is scored
 MARKS = (100, 200, 500)
@@ -148,7 +148,6 @@ def table(rows: list[dict[str, Any]]) -> str:
 def run(args: argparse.Namespace) -> int:
     """Run the cases and print the table."""
     from benchmarks.tau_rules import _cases
-    from recon.atomic import atomic_write_bytes
     from recon.threads import apply_threads
 
     if args.table_only:
@@ -158,9 +157,7 @@ def run(args: argparse.Namespace) -> int:
         rows = read_jsonl(args.results, "--results")
         text = (f"ADMM-TV's penalty scale, automatic (recon.admm.penalty_scale) against the "
                 f"former fixed 1; the cases of {args.results}\n\n" + table(rows))
-        print(text)
-        if args.out:
-            atomic_write_bytes(args.out, text.encode())
+        print_and_write(text, args.out)
         return 0
     check_outputs(args, {"--out": args.out}, appended={"--results": args.results},
                   inputs={"--data": args.data})
@@ -181,9 +178,7 @@ def run(args: argparse.Namespace) -> int:
             f"{REFERENCE_ITERS} iterations or the lowest objective a run reached; "
             f"{choice.reason}; "
             f"{time.perf_counter() - t0:.0f} s\n\n" + table(rows))
-    print(text)
-    if args.out:
-        atomic_write_bytes(args.out, text.encode())
+    print_and_write(text, args.out)
     return 0
 
 

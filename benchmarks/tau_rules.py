@@ -29,7 +29,7 @@ from collections.abc import Iterator
 from typing import Any
 
 from app.commands._options import FRACTION, POSITIVE_INT, add_overwrite_option
-from benchmarks._cli import append_jsonl, check_outputs
+from benchmarks._cli import append_jsonl, check_outputs, print_and_write
 
 GRID = (1e-7, 1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3)
 
@@ -194,7 +194,6 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run the cases and print the table."""
-    from recon.atomic import atomic_write_bytes
     from recon.threads import apply_threads
 
     check_outputs(args, {"--out": args.out}, appended={"--results": args.results},
@@ -215,9 +214,7 @@ def run(args: argparse.Namespace) -> int:
             f" (side used: {sorted({r['block'] for r in rows})} px), "
             f"oracle grid {', '.join(f'{t:g}' for t in GRID)}; "
             f"{choice.reason}; {time.perf_counter() - t0:.0f} s\n\n" + table(rows))
-    print(text)
-    if args.out:
-        atomic_write_bytes(args.out, text.encode())
+    print_and_write(text, args.out)
     return 0
 
 
