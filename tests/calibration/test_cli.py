@@ -239,17 +239,25 @@ def _start_capture(tmp_path):
     """A ``calibrate psf`` run with the simulated source, as the foreground job of a terminal
     (its own process group); returns it and its firmware's pid once it is capturing."""
     import os
+    import signal
     import subprocess
     import sys
     import time
     from pathlib import Path
 
     env = {**os.environ, "TMPDIR": str(tmp_path), "OMP_NUM_THREADS": "1"}
+
+    def foreground() -> None:
+        # a terminal's foreground job takes SIGINT; a test run started in the background of a
+        # shell (`cmd &`) ignores it, and children inherit that: the command then never saw
+        # the test's Ctrl-C (60 s timeout in CI runs started with `&`)
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+
     proc = subprocess.Popen(
         [sys.executable, "-m", "app", "calibrate", "psf", "--camera", "sim", "--source", "sim",
          "--frames", "100000", "--settle", "0", "--out", str(tmp_path / "p.tif")],
         cwd=Path(__file__).resolve().parents[2], env=env, stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE, text=True, start_new_session=True)
+        stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=foreground)
     try:
         deadline = time.monotonic() + 60
         while not list(tmp_path.glob("lenslesscam-cal-*/light-state.json")):
