@@ -80,14 +80,12 @@ def penalty_scale(tau: float, b_max: float, measured: Any = None, h_peak: float 
     """
     import numpy as np
 
+    from recon.holdout import sensor_extent
+
     f = 1.0
-    if measured is not None:
-        m = np.asarray(measured, dtype=bool)
-        m = m.reshape(-1, *m.shape[-2:])  # (C, H, W): the box of any channel's pixels
-        union = m.any(axis=0)
-        rows, cols = np.flatnonzero(union.any(axis=1)), np.flatnonzero(union.any(axis=0))
-        if rows.size:
-            f = float(m[:, rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1].mean())
+    box = None if measured is None else sensor_extent(measured)
+    if box is not None:
+        f = float(np.asarray(measured, dtype=bool)[..., box[0], box[1]].mean())
     rel = tau / (b_max * h_peak) if b_max > 0 and h_peak > 0 else 0.0
     if rel <= 0:  # no regulariser to balance: the data term's own scale (least squares)
         return 1.0

@@ -54,6 +54,7 @@ __all__ = [
     "block_side_for",
     "few_heldout_note",
     "heldout_blocks",
+    "sensor_extent",
 ]
 
 #: Side in pixels of the held-out blocks (at least; see FRAME_FRACTION).
@@ -71,16 +72,26 @@ def block_side(h: int, w: int) -> int:
     return max(1, min(side, short // MIN_BLOCKS_ACROSS))
 
 
-def block_side_for(measured: npt.NDArray[np.bool_]) -> int:
-    """:func:`block_side` of the sensor's extent, the bounding box of the measured pixels.
+def sensor_extent(measured: npt.NDArray[np.bool_]) -> tuple[slice, slice] | None:
+    """The sensor's extent: the bounding box (rows, columns) of the measured pixels.
 
+    Of an (H, W) mask, or of any channel's of a (C, H, W) one; None when nothing is measured.
     A measurement embedded in a larger padded grid counts its window, not the grid.
     """
     m = np.asarray(measured, dtype=bool)
+    m = m.reshape(-1, *m.shape[-2:]).any(axis=0)
     rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
     if rows.size == 0:
-        return block_side(*m.shape)
-    return block_side(int(rows[-1] - rows[0] + 1), int(cols[-1] - cols[0] + 1))
+        return None
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+
+
+def block_side_for(measured: npt.NDArray[np.bool_]) -> int:
+    """:func:`block_side` of the sensor's extent (:func:`sensor_extent`)."""
+    box = sensor_extent(measured)
+    if box is None:
+        return block_side(*np.shape(measured)[-2:])
+    return block_side(box[0].stop - box[0].start, box[1].stop - box[1].start)
 
 
 def block_labels(h: int, w: int, side: int) -> npt.NDArray[np.int64]:
