@@ -59,6 +59,8 @@ ERASURES = (0.0, 0.5, 0.9, 0.95, 0.99)
 TAUS = (1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
 FISTA_CHECKPOINTS = (100, 200)
 BLEND_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
+#: the UDN iterations at which the held-out error of its mix with FISTA-TV is checked
+MIX_EVERY = 10
 #: UDN variants of ``--lever`` (see make_runner)
 LEVERS = ("none", "precondition", "channel-gain", "block-holdout", "deep-decoder", "sensor-gain",
           "fista-input")
@@ -406,6 +408,12 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     curve_wall: dict[int, float] = {}
     hcurve: dict[int, float] = {}
     wmv_curve: dict[int, float] = {}
+    # the averaged recipe's own stop: the held-out error of the half-and-half mix of the
+    # network's estimate and FISTA-TV of the fitted pixels (neither saw the held-out pixels)
+    xf_t = torch.as_tensor(np.asarray(x_fit, dtype=np.float32)).to(runner.device)
+    mix_best: tuple[float, int, Any] | None = None
+    mix_hcurve: dict[int, float] = {}
+    mix_curve: dict[int, float] = {}
     for s in runner.steps():
         # the runner's estimate (its EMA; ema 0 keeps the last output); None only before a
         # first iteration that was not restored
@@ -419,8 +427,16 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
                 wmv_curve[s.iteration] = var
             if wmv_best is None or var < wmv_best[0]:
                 wmv_best = (var, s.iteration, window[-1])
+        if s.heldout is not None and (s.iteration % MIX_EVERY == 0 or runner.done):
+            merr = runner.heldout_error(0.5 * (est + xf_t))
+            if merr is not None:
+                mix_hcurve[s.iteration] = merr
+                if mix_best is None or merr < mix_best[0]:
+                    mix_best = (merr, s.iteration, est.detach().clone())
         if s.iteration % 50 == 0 or runner.done:
             curve[s.iteration] = psnr_only(truth, est.detach().cpu().numpy())
+            mix_curve[s.iteration] = psnr_only(
+                truth, 0.5 * (est.detach().cpu().numpy() + x_auto))
             curve_wall[s.iteration] = runner.elapsed_s
             if s.heldout is not None:
                 hcurve[s.iteration] = s.heldout
@@ -444,6 +460,14 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     a_best = min(BLEND_WEIGHTS, key=lambda a: herr[a])
     blend = a_best * sel + (1 - a_best) * x_auto
     row["udn_blend"] = dict(scores(truth, blend), weight=a_best)
+    if mix_best is not None:
+        x_mix = mix_best[2].cpu().numpy()
+        row["udn_mix_stop"] = dict(scores(truth, 0.5 * (x_mix + x_auto)),
+                                   iterations=mix_best[1], rule="held-out pixels of the mix")
+        row["udn_mix_heldout_curve"] = mix_hcurve
+        keep["udn_mix_stop"] = x_mix
+    row["udn_mix_curve"] = mix_curve
+    row["udn_mix_oracle_stop"] = _oracle_stop(mix_curve)
     row["udn_curve"] = curve
     row["udn_curve_wall"] = curve_wall
     row["udn_oracle_stop"] = _oracle_stop(curve)
@@ -711,7 +735,11 @@ METHODS = (("fista_auto", "FISTA-TV auto tau"), ("fista_oracle", "FISTA-TV oracl
            ("udn_wmv", "UDN (ES-WMV stop)"), ("udn_final", "UDN (final)"),
            ("udn_blend", "UDN+FISTA blend (held-out weight)"),
            ("udn_ensemble", "UDN seed ensemble (held-out stops)"),
-           ("udn_oracle_stop", "UDN, best iteration seen with the truth (bound)"))
+           ("udn_oracle_stop", "UDN, best iteration seen with the truth (bound)"),
+           ("udn_mix_stop", "UDN and FISTA-TV auto averaged, stopped by the mix's held-out "
+                            "error"),
+           ("udn_mix_oracle_stop", "UDN and FISTA-TV auto averaged, best iteration seen with "
+                                   "the truth (bound)"))
 
 
 def read_results(path: str) -> list[dict[str, Any]]:
@@ -789,7 +817,9 @@ ERROR_METHODS = (("fista_auto", "FISTA-TV auto tau"), ("fista_oracle", "FISTA-TV
                  ("udn_ensemble", "UDN seed ensemble"),
                  ("ensemble_fista_mean", "UDN seed ensemble and FISTA-TV auto, averaged"),
                  ("udn_fista_mean", "UDN (seed 0) and FISTA-TV auto, averaged "
-                                    "(jobs combine --with-fista)"))
+                                    "(jobs combine --with-fista)"),
+                 ("udn_mix_fista_mean", "UDN (seed 0, stopped by the mix's held-out error) "
+                                        "and FISTA-TV auto, averaged"))
 
 #: The derived estimate of ``ensemble_fista_mean``: the plain mean of the seed ensemble and the
 #: automatic-tau FISTA-TV result, neither weighted by the truth (both fit the same measurement,
@@ -798,11 +828,15 @@ ERROR_METHODS = (("fista_auto", "FISTA-TV auto tau"), ("fista_oracle", "FISTA-TV
 #: ``udn_fista_mean``: the same with the first seed's held-out choice alone, what
 #: ``lenslesscam jobs combine RUN --with-fista`` writes for one run (FISTA-TV with the automatic
 #: tau on all measured pixels, weight 0.5).
+#: ``udn_mix_fista_mean``: the same with the first seed stopped where the mix (its estimate and
+#: FISTA-TV of its fitted pixels, half and half) predicts its held-out pixels best.
 def _derived(imgs: dict[str, Any]) -> dict[str, Any]:
     if "udn_ensemble" in imgs and "fista_auto" in imgs and "ensemble_fista_mean" not in imgs:
         imgs = {**imgs, "ensemble_fista_mean": 0.5 * (imgs["udn_ensemble"] + imgs["fista_auto"])}
     if "udn" in imgs and "fista_auto" in imgs and "udn_fista_mean" not in imgs:
         imgs = {**imgs, "udn_fista_mean": 0.5 * (imgs["udn"] + imgs["fista_auto"])}
+    if "udn_mix_stop" in imgs and "fista_auto" in imgs and "udn_mix_fista_mean" not in imgs:
+        imgs = {**imgs, "udn_mix_fista_mean": 0.5 * (imgs["udn_mix_stop"] + imgs["fista_auto"])}
     return imgs
 
 

@@ -441,3 +441,53 @@ def test_error_analysis_scores_the_mean_of_the_ensemble_and_fista_where_both_wer
     rows = {(r["erasure"], r["method"]): r for r in rp.error_analysis(images)}
     one, udn = rows[(0.9, "udn_fista_mean")], rows[(0.9, "udn")]
     assert one["psnr"] - udn["psnr"] == pytest.approx(10 * np.log10(2), abs=0.3)
+
+
+def test_mix_stop_is_the_iteration_whose_mix_with_fitted_pixel_fista_predicts_best() -> None:
+    """The averaged recipe's own stop: the UDN iterate (checked every MIX_EVERY iterations)
+    whose half-and-half mix with FISTA-TV of the UDN's fitted pixels has the least held-out
+    error; the row scores that iterate averaged with automatic-tau FISTA-TV, and its bound is
+    the best of the mix's truth curve. Checked against the same run's previews."""
+    import argparse
+
+    from recon.models import build_model
+    from recon.udn.network import NetworkConfig
+    from recon.udn.runner import UDNConfig
+
+    parser = argparse.ArgumentParser()
+    rp.add_arguments(parser)
+    args = parser.parse_args(["--fista-iters", "30", "--udn-iters", "40", "--channels", "8",
+                              "--scales", "2"])
+    rp.fill_defaults(args)
+    pair = rp.load_pair("im65", dict(samples.dlmd_pair_paths()), 1)
+    keep: dict = {}
+    row = rp.run_case(pair, 0.9, args, keep)
+    mask = rp.sensor_mask(pair, 0.9)
+    b = (pair.meas * mask).astype(np.float32)
+    model = build_model("2d", pair.psf, mask=mask, field=pair.truth.shape[1:])
+    cfg = UDNConfig(max_iter=40, holdout=args.holdout, patience=10**9, min_iter=0,
+                    headroom=args.headroom, lr=args.lr, ema=args.ema, tv_weight=args.tv_weight,
+                    seed=0)
+    net = NetworkConfig(channels=8, scales=2, skip_channels=args.skip)
+    runner = rp.make_runner(model, b, net, cfg)
+    previews = [s.preview for s in runner.steps(preview_every=1)]
+    fit = runner.fit.cpu().numpy().astype(np.float32)
+    x_fit = rp._fitted_pixels_fista(pair, b, fit, args, 30)  # min_iter: the run's (30 < 100)
+    errs = {it: runner.heldout_error(torch.as_tensor(0.5 * (previews[it - 1] + x_fit)))
+            for it in range(rp.MIX_EVERY, 41, rp.MIX_EVERY)}
+    it = min(errs, key=errs.__getitem__)
+    assert row["udn_mix_stop"]["iterations"] == it
+    curve = {int(k): v for k, v in row["udn_mix_heldout_curve"].items()}
+    assert sorted(curve) == sorted(errs)
+    for k, v in errs.items():  # the mix's error, not the network's alone
+        assert curve[k] == pytest.approx(v, rel=1e-4)
+    np.testing.assert_allclose(keep["udn_mix_stop"], previews[it - 1], rtol=1e-5, atol=1e-6)
+    x_auto = keep["fista_auto"]
+    np.testing.assert_allclose(row["udn_mix_stop"]["psnr"],
+                               rp.psnr_only(pair.truth, 0.5 * (previews[it - 1] + x_auto)),
+                               rtol=1e-5)
+    assert row["udn_mix_oracle_stop"]["psnr"] == max(row["udn_mix_curve"].values())
+    # the averaged image of the error analysis is that iterate with FISTA-TV auto
+    derived = rp._derived({"udn_mix_stop": keep["udn_mix_stop"], "fista_auto": x_auto})
+    np.testing.assert_allclose(derived["udn_mix_fista_mean"],
+                               0.5 * (keep["udn_mix_stop"] + x_auto))
