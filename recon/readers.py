@@ -481,6 +481,7 @@ def _prepare(
     raw = _load_image(p, key=key, prefer=prefer)
     _validate_raw(raw, p, what)
     chw = _select_channels(_to_chw(raw, p, what), channels, p, what, order, shared_gray)
+    _check_planes(raw, p, what, channels)
     if what == "PSF" and np.any(raw):  # constant or clipped: a one-line PsfWarning (all zero:
         # the error below says more)
         from recon.psfcheck import check_psf
@@ -501,6 +502,33 @@ def _prepare(
     _check_negative(arr, p, dark, measured, what)
     out = clip_nonneg(box_downsample(arr, downsample)).astype(np.float32, copy=False)
     return out, p
+
+
+def _check_planes(raw: Array, p: Path, what: str, channels: Channels) -> None:
+    """Warn of planes first ``(3|4, H, W)`` read as colour where they may be frames.
+
+    A colour image file stores its channels last (H, W, 3|4); planes first is how a stack of
+    frames (a burst, a multi-page TIFF, a NumPy stack) comes. Four planes are read as R, G, B
+    and alpha, the fourth dropped; three, read as gray, are mixed with the luma weights. Both
+    are right for a colour image and silently wrong for frames, so they are said (three planes
+    read as ``rgb`` are what was asked for, and stay silent).
+    """
+    if raw.ndim != 3 or raw.shape[0] not in (3, 4) or raw.shape[2] in (3, 4):
+        return
+    n = raw.shape[0]
+    if n == 3 and channels != "gray":
+        return
+    how = ("read as R, G, B and alpha: the fourth plane is dropped" if n == 4 else
+           "read as R, G, B and mixed to one gray plane (luma weights)")
+    if n == 4 and channels == "gray":
+        how += ", the other three mixed to gray"
+    from recon.checks import MeasurementWarning
+    from recon.psfcheck import PsfWarning
+
+    warn_input(f"{what} file {p} has {n} planes first {tuple(raw.shape)}, {how}; if they are "
+               f"{n} frames (a burst or a multi-page stack), not colour channels, give one "
+               "file per frame", MeasurementWarning if what == "measurement" else PsfWarning,
+               stacklevel=4)
 
 
 def _subtract_dark(arr: Array, d: Any, p: Path, what: str) -> F32:

@@ -580,3 +580,23 @@ def test_a_named_pipe_is_refused_not_waited_on(tmp_path) -> None:
     os.mkfifo(fifo)
     with pytest.raises(ValueError, match="not a regular file"):
         rio.load_measurement(fifo)
+
+
+def test_planes_first_read_as_colour_are_said_where_they_may_be_frames(tmp_path: Path) -> None:
+    """A (4, H, W) stack was read as RGBA, its fourth frame dropped without a word, and three
+    frames read as gray were mixed with the luma weights: both are said (the warning names the
+    planes and what was done), while a colour image (H, W, 3) and three planes read as rgb,
+    what was asked for, stay silent."""
+    from recon.checks import MeasurementWarning
+
+    rng = np.random.default_rng(0)
+    frames = rng.random((4, 12, 16)).astype(np.float32) + 0.1
+    for n in (4, 3):
+        np.save(tmp_path / f"s{n}.npy", frames[:n])
+        with pytest.warns(MeasurementWarning, match=f"has {n} planes first .*{n} frames"):
+            rio.load_measurement(tmp_path / f"s{n}.npy")
+    with pytest.warns(PsfWarning, match="the fourth plane is dropped"):
+        rio.load_psf(tmp_path / "s4.npy", channels="rgb")
+    np.save(tmp_path / "hwc.npy", np.moveaxis(frames[:3], 0, -1))
+    rio.load_measurement(tmp_path / "hwc.npy")  # filterwarnings=error: silent
+    rio.load_measurement(tmp_path / "s3.npy", channels="rgb")
