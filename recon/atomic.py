@@ -12,8 +12,10 @@ file contains (format versions, provenance, hashes) is :mod:`recon.formats`.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Callable, Iterable, Iterator, Mapping
@@ -69,6 +71,9 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[A
     except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        full = _short_write(exc, target)
+        if full is not None:
+            raise full from exc
         _name_target(exc, target)
         raise
 
@@ -116,6 +121,9 @@ def atomic_folder(path: str | os.PathLike[str], *, owned: Iterable[str] = ()) ->
         if aside is not None and aside.is_dir() and not os.path.lexists(target):
             os.rename(aside, target)  # put the old folder back
         shutil.rmtree(tmp, ignore_errors=True)
+        full = _short_write(exc, target)
+        if full is not None:
+            raise full from exc
         _name_target(exc, target)
         raise
     fsync_dir(parent)
@@ -221,9 +229,28 @@ def atomic_write(path: str | os.PathLike[str], writer: Callable[[Path], None]) -
     except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+        full = _short_write(exc, target)
+        if full is not None:
+            raise full from exc
         _name_target(exc, target)
         raise
     return target
+
+
+#: NumPy's message for a write that stored fewer bytes than asked (``ndarray.tofile``), an
+#: OSError without an error number
+_SHORT_WRITE = re.compile(r"^\d+ requested and \d+ written$")
+
+
+def _short_write(exc: BaseException, target: Path) -> OSError | None:
+    """NumPy's short write as the full disk it is (ENOSPC, naming the file), else None.
+
+    A regular file takes fewer bytes than written only when its device is full (or a quota
+    is reached); NumPy says "30000 requested and 17952 written", naming neither.
+    """
+    if isinstance(exc, OSError) and exc.errno is None and _SHORT_WRITE.match(str(exc)):
+        return OSError(errno.ENOSPC, f"No space left on device ({exc})", str(target))
+    return None
 
 
 def _name_target(exc: BaseException, target: Path) -> None:

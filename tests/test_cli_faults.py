@@ -539,6 +539,37 @@ def test_a_preview_that_fails_leaves_no_part_of_a_new_result(tmp_path, monkeypat
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.png", "r.tif"]
 
 
+def test_a_short_write_is_said_as_the_full_disk_it_is(tmp_path):
+    """NumPy's short write on a full disk ("30000 requested and 17952 written", no error
+    number, no file) reached the user as it was: every atomic writer now says a full disk
+    and the file, and leaves nothing behind."""
+    import errno
+
+    from recon.atomic import atomic_folder, atomic_open, atomic_write
+
+    def short(*_a, **_k):
+        raise OSError("30000 requested and 17952 written")
+
+    def via_open(path):
+        with atomic_open(path) as fh:
+            short(fh)
+
+    def via_folder(path):
+        with atomic_folder(path):
+            short()
+
+    for name, write in (("a.tif", lambda p: atomic_write(p, short)), ("b.bin", via_open),
+                        ("c", via_folder)):
+        with pytest.raises(OSError) as info:
+            write(tmp_path / name)
+        assert info.value.errno == errno.ENOSPC, name
+        assert info.value.filename == str(tmp_path / name)
+        assert "No space left on device (30000 requested and 17952 written)" in str(info.value)
+        assert list(tmp_path.iterdir()) == [], name
+    with pytest.raises(OSError, match=r"^other$"):  # any other error passes unchanged
+        atomic_write(tmp_path / "d.tif", lambda _p: (_ for _ in ()).throw(OSError("other")))
+
+
 def test_a_sensor_size_of_zero_is_refused_in_words(tmp_path, capsys):
     assert main(["calibrate", "darks", "--camera", "sim", "--sim-size", "0x0", "--frames", "1",
                  "--no-prompt", "--out", str(tmp_path / "d.npz")]) == 2
