@@ -838,7 +838,12 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
               "filters": _file_hash(spec.filters), "truth": _file_hash(spec.truth)}
     meta: dict[str, Any] = {
         "downsample": ds, "dark": spec.dark, "psf_dark": spec.psf_dark,
-        "psf_dark_corrected_file": psf_dark_corrected, "color": spec.color,
+        "psf_dark_corrected_file": psf_dark_corrected,
+        # the dark level the PSF was read with (psf_dark is the one given: None takes the
+        # measurement's, or none for a calibrated PSF)
+        "psf_dark_applied": (spec.psf_dark if spec.psf_dark is not None else
+                             None if psf_dark_corrected else spec.dark),
+        "color": spec.color,
         "channel_order": spec.channel_order, "flip_rows": spec.flip_rows,
         "field": list(fld), "sensor": list(coarse), "grid": list(grid),
         "psf_grid": "padded" if padded else "sensor",

@@ -363,6 +363,9 @@ def test_a_calibrated_psf_file_does_not_take_the_measurement_dark(tmp_path):
     prob = load(psf_file="psf.tif")
     np.testing.assert_allclose(prob.psf[0], psf, rtol=1e-6)
     assert prob.metadata["psf_dark_corrected_file"] is True
+    # the dark level the PSF was read with, beside the one given (None: it took another's, or
+    # none): a plain PSF took the measurement's 100 and said psf_dark null
+    assert prob.metadata["psf_dark"] is None and prob.metadata["psf_dark_applied"] is None
     assert float(load(psf_file="stack.tif").psf.sum()) == pytest.approx(2 * float(psf.sum()),
                                                                            rel=1e-5)
     # a plain image still takes --dark, and an explicit PSF dark is still applied; here that
@@ -373,6 +376,7 @@ def test_a_calibrated_psf_file_does_not_take_the_measurement_dark(tmp_path):
                       r"negative.*--psf-dark N"):
         plain = load(psf_file="plain.tif")
     assert plain.metadata["psf_dark_corrected_file"] is False
+    assert plain.metadata["psf_dark"] is None and plain.metadata["psf_dark_applied"] == 100.0
     np.testing.assert_allclose(plain.psf[0], np.maximum(psf - 100, 0), rtol=1e-6, atol=1e-4)
     # (and said: a second dark off a calibrated PSF was silent)
     from recon.checks import MeasurementWarning
@@ -382,6 +386,7 @@ def test_a_calibrated_psf_file_does_not_take_the_measurement_dark(tmp_path):
         twice = load(psf_file="psf.tif", psf_dark=100.0)
     np.testing.assert_allclose(twice.psf[0], np.maximum(psf - 100, 0), rtol=1e-6, atol=1e-4)
     assert any("second dark level" in w for w in twice.metadata["warnings"])
+    assert twice.metadata["psf_dark_applied"] == 100.0
 
 
 def test_an_all_zero_shutter_or_filter_cube_is_named(tmp_path):
