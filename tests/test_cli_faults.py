@@ -644,6 +644,7 @@ def test_a_result_that_explains_nothing_is_not_written(sim, tmp_path, capsys):
     np.save(tmp_path / "stack.npy", np.stack([psf, np.roll(psf, 3, axis=1)]))
     runs = {
         "admm": ["recon", "admm", "--psf", sim / "psf.npy", "--rho", "1e30"],
+        "penalty": ["recon", "admm", "--psf", sim / "psf.npy", "--penalty", "1e30"],
         "depth": ["recon", "fista", "--model", "depth", "--psf-stack", tmp_path / "stack.npy",
                   "--tv-k", "1e30"],
     }
@@ -654,7 +655,8 @@ def test_a_result_that_explains_nothing_is_not_written(sim, tmp_path, capsys):
         assert code == 2, (name, err)
         assert "the result explains none of the measurement" in err and "nothing written" in err
         assert len(err.strip().splitlines()) == 1 and not out.exists()
-        hint = {"admm": "(--rho)", "depth": "(--tv-k, --precondition)"}[name]
+        hint = {"admm": "(--penalty, --rho)", "penalty": "(--penalty, --rho)",
+                "depth": "(--tv-k, --precondition)"}[name]
         assert f"an extreme setting {hint} can hold the solver at 0" in err, err
     # an ordinary run passes the check
     assert _run(capsys, *runs["admm"][:4], "--meas", sim / "meas.npy", "--tau", "1e-3",
@@ -670,7 +672,7 @@ def test_a_result_a_flat_image_beats_is_written_with_a_warning(sim, tmp_path, ca
     assert code == 0 and (tmp_path / "far.tif").exists(), err
     warning = [ln for ln in err.splitlines() if "warning" in ln]
     assert len(warning) == 1, err
-    assert "less well than a flat image" in warning[0] and "(--rho)" in warning[0], err
+    assert "less well than a flat image" in warning[0] and "(--penalty, --rho)" in warning[0], err
     # the default rho solves it: no warning
     code, _, err = _run(capsys, *base, "--out", tmp_path / "ok.tif")
     assert code == 0 and "flat image" not in err, err

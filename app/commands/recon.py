@@ -266,13 +266,13 @@ def plateau_detail(changes: list[float], tol: float, method: str,
 def _check_explains(solver: Any, model: Any, b: Any, method: str, kind: str = "2d") -> None:
     """:func:`check_explains` for the result of a ``recon fista`` / ``recon admm`` solver."""
     admm = method.startswith("admm")
-    extreme = ("--rho" if admm else
+    extreme = ("--penalty, --rho" if admm else
                "--precondition" if kind == "2d" else "--tv-k, --precondition")
     objective_hint = (
         "ADMM's fixed penalty enforces a large tau slowly (its splitting D v = u holds only in "
-        "the limit, and tau multiplies what is left of it): raise --rho (at tau 1e6 on the "
-        "tutorial sample rho 1 left a spread of 0.02 % of the mean, 0.01 one of 79 %) or "
-        "--iters (or lower --tol), or use recon fista" if admm else
+        "the limit, and tau multiplies what is left of it): raise --penalty or --rho (at tau 1e6 "
+        "on the tutorial sample rho 1 left a spread of 0.02 % of the mean, 0.01 one of 79 %) "
+        "or --iters (or lower --tol), or use recon fista" if admm else
         "at a large tau FISTA's inexact TV prox can keep it from settling (its inner "
         "iterations grow by themselves up to 48, or --prox-iters if larger): raise "
         f"--prox-iters or --iters, or a setting ({extreme}) holds the solver back")
