@@ -65,6 +65,11 @@ def no_work(monkeypatch):
     monkeypatch.setattr(recon.problem, "load_problem", work)
     monkeypatch.setattr(recon.trade, "run_trade", work)
     monkeypatch.setattr(simulate_cmd, "load_psf_spec", work)
+    import app.batch.driver
+    import recon.udn.jobs
+
+    monkeypatch.setattr(recon.udn.jobs, "run_job", work)
+    monkeypatch.setattr(app.batch.driver, "run_batch", work)
 
 
 def _commands(d: Path, out: Path) -> dict[str, list]:
@@ -80,10 +85,16 @@ def _commands(d: Path, out: Path) -> dict[str, list]:
         "simulate": ["simulate", "--psf", d / "psf.npy", "--scene", d / "scene.npy",
                      "--out", out / "sim"],
         "trade --out": ["trade", *inputs, "--quick", "--no-udn", "--out", out / "t"],
+        # the commands whose --out is a folder (they gave the system's "[Errno 30] Read-only
+        # file system: ..." or "[Errno 20] Not a directory: ...")
+        "jobs run": ["jobs", "run", d / "job.toml", "--out", out / "run"],
+        "recon udn": ["recon", "udn", *inputs, "--iters", "3", "--out", out / "run"],
+        "batch run": ["batch", "run", d / "manifest.csv", "--out", out / "batch"],
     }
 
 
-COMMANDS = ["recon fista", "recon admm", "recon auto", "plan --out", "simulate", "trade --out"]
+COMMANDS = ["recon fista", "recon admm", "recon auto", "plan --out", "simulate", "trade --out",
+            "jobs run", "recon udn", "batch run"]
 
 
 def _check_refused(capsys, argv: list, out: Path) -> None:
@@ -126,9 +137,10 @@ def test_output_under_a_regular_file_is_one_line_before_any_work(data, tmp_path,
     """A path through a regular file fails for root too (it was refused before this fix)."""
     f = tmp_path / "some_file.txt"
     f.write_text("not a folder")
-    code, _, err = _run(capsys, *_commands(data, f)["recon fista"])
-    assert code == 2 and len(err.strip().splitlines()) == 1
-    assert "is a file, not a folder" in err and str(f) in err
+    for command in ("recon fista", "jobs run", "recon udn", "batch run"):
+        code, _, err = _run(capsys, *_commands(data, f)[command])
+        assert code == 2 and len(err.strip().splitlines()) == 1, (command, err)
+        assert "is a file, not a folder" in err and str(f) in err, (command, err)
 
 
 def test_writable_locations_pass_and_leave_nothing_behind(tmp_path, monkeypatch):

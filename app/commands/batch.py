@@ -12,9 +12,10 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
-from app.commands._options import NONNEG_INT, POSITIVE, POSITIVE_INT
+from app.commands._options import NONNEG_INT, POSITIVE, POSITIVE_INT, check_output_folders
 
 
 def register(sub: Any) -> None:
@@ -62,6 +63,7 @@ def run_batch_cmd(args: argparse.Namespace) -> int:
                         num_cpus=args.num_cpus,
                         cpus_per_item=args.cpus_per_item, udn_cpus=args.udn_cpus,
                         max_retries=args.max_retries, progress=False if args.quiet else None)
+    check_output_folders([Path(args.out) / "batch.json"])  # a folder it cannot write: one line
     rep = run_batch(args.manifest, args.out, opts)
     c = rep.counts
     if args.json:

@@ -23,6 +23,7 @@ from app.commands._options import (
     POSITIVE_INT,
     add_overwrite_option,
     check_command_outputs,
+    check_output_folders,
     refuse_run_folder_outputs,
 )
 
@@ -127,6 +128,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     # never a new run inside another run's folder (RUN itself: 'already holds a run', below)
     refuse_run_folder_outputs([args.out], "--out")
+    check_output_folders([Path(args.out) / "run.json"])  # a folder it cannot write: one line
     mm = parse_bytes(args.max_memory) if args.max_memory else None
     total = _spec_max_iter(args.spec)
     threads = getattr(args, "global_threads", None)  # lenslesscam --threads N: this session's
@@ -143,6 +145,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
 
     mm = parse_bytes(args.max_memory) if args.max_memory else None
     total = args.max_iter or job_status(args.run_dir).max_iter
+    check_output_folders([Path(args.run_dir) / "run.lock"])  # a read-only run: one line
     threads = getattr(args, "global_threads", None)  # lenslesscam --threads N: this session's
 
     def notice(line: str) -> None:

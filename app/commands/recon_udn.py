@@ -25,6 +25,7 @@ from app.commands._options import (
     POSITIVE_INT,
     add_overwrite_option,
     check_command_outputs,
+    check_output_folders,
     refuse_run_folder_outputs,
 )
 from recon.udn import COMPILE_MODES
@@ -210,6 +211,7 @@ def run_udn(args: argparse.Namespace) -> int:
     # never a new run inside another run's folder (RUN itself: 'already holds a run')
     refuse_run_folder_outputs([args.out], "--out")
     out = Path(args.out)
+    check_output_folders([out / "run.json"])  # a folder it cannot write: one line
     return run_with_progress(
         lambda progress, cancel: run_job(out / "job.toml", out, progress=progress,
                                          cancel=cancel, spec_text=text),
