@@ -2,7 +2,8 @@
 
 Run folder layout (``RUN_DIR``)::
 
-    job.toml           the spec as given (verbatim copy)
+    job.toml           the spec as given (verbatim copy; its relative paths are relative to
+                       the record's spec_base, where a run of this copy takes them from too)
     run.json           run record: status, finish reason, error, spec (normalised, absolute
                        paths), input hashes, versions, device, memory estimate, timings,
                        progress (iteration, loss, held-out error, ETA), checkpoint, results,
@@ -964,6 +965,24 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: OnStep = No
         lock.release()
 
 
+def _spec_base(sp: Path) -> Path:
+    """The folder a spec's relative paths are relative to.
+
+    Its own folder, or for a run folder's copy (``RUN/job.toml``, verbatim) the folder of the
+    spec it was copied from (the record's ``spec_base``), so that ``jobs run RUN/job.toml
+    --seed 1`` runs the same problem.
+    """
+    folder = sp.parent
+    if sp.name == SPEC_FILE and (folder / RECORD_FILE).is_file():
+        try:
+            base = read_record(folder).get("spec_base")
+        except (OSError, ValueError):
+            base = None
+        if isinstance(base, str) and Path(base).is_absolute():
+            return Path(base)
+    return folder
+
+
 def _check_new_run_folder(rd: Path, spec_copy: str) -> None:
     """Refuse a folder that holds a run, or files that are not a run's.
 
@@ -1022,6 +1041,7 @@ def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: OnStep, cancel: Can
         "run_id": uuid.uuid4().hex,  # in every checkpoint: another run's is refused
         "spec_file": SPEC_FILE,
         "spec_source": str(sp.resolve()) if sp.exists() else str(sp),
+        "spec_base": str(_spec_base(sp).absolute()),
         "spec": None,
         "started_utc": _now(),
         "pid": os.getpid(),
@@ -1047,7 +1067,7 @@ def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: OnStep, cancel: Can
             if isinstance(opt, dict):
                 opt["seed"] = seed
             record["overrides"] = {"optimizer.seed": seed}
-        record["spec"] = normalise_spec(raw, sp.parent, source=str(sp))
+        record["spec"] = normalise_spec(raw, Path(record["spec_base"]), source=str(sp))
         job.spec = record["spec"]
         record["spec_hash"] = _spec_hash(record["spec"])
     except BaseException as exc:

@@ -615,3 +615,26 @@ def test_a_truth_that_cannot_score_leaves_a_finished_run(tiny_data, tmp_path):
     assert rec["status"] == "finished" and "scores" not in rec["results"]
     assert rec["results"]["scores_note"].startswith("not scored: ref is constant")
     assert (out / "best.tif").exists()
+
+
+def test_a_runs_own_job_toml_runs_again_with_its_relative_paths(tiny_data, tmp_path):
+    """The run folder's job.toml is the spec verbatim, relative paths and all: run again
+    (another seed for an ensemble) it looked for the data beside itself, 'data.psf: file not
+    found: run1/psf.npy'. Its relative paths are the original spec's, at any depth of reruns."""
+    spec = write_spec(tiny_data, stopping={"max_iter": 3})
+    run1, run2, run3 = (tmp_path / f"run{i}" for i in (1, 2, 3))
+    run_job(spec, run1)
+    assert record(run1)["spec_base"] == str(tiny_data.absolute())
+    run_job(run1 / "job.toml", run2, seed=1)
+    run_job(run2 / "job.toml", run3, seed=2)
+    for rd in (run2, run3):
+        rec = record(rd)
+        assert rec["spec_base"] == str(tiny_data.absolute())
+        assert rec["spec"]["data"] == record(run1)["spec"]["data"]
+        assert rec["status"] == "finished" and rec["finish_reason"] == "completed"
+    # a job.toml that is not a run's copy still reads beside itself
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "job.toml").write_text(spec.read_text())
+    with pytest.raises(FileNotFoundError, match=r"other/psf\.npy"):
+        run_job(other / "job.toml", tmp_path / "run4")
