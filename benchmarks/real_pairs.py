@@ -61,6 +61,8 @@ FISTA_CHECKPOINTS = (100, 200)
 BLEND_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: the UDN iterations at which the held-out error of its mix with FISTA-TV is checked
 MIX_EVERY = 10
+#: the UDN iterations whose estimates are averaged (iterate averaging along one run)
+SNAPSHOT_EVERY = 500
 #: UDN variants of ``--lever`` (see make_runner)
 LEVERS = ("none", "precondition", "channel-gain", "block-holdout", "deep-decoder", "sensor-gain",
           "fista-input")
@@ -414,6 +416,7 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     mix_best: tuple[float, int, Any] | None = None
     mix_hcurve: dict[int, float] = {}
     mix_curve: dict[int, float] = {}
+    snapshots: list[Any] = []  # the estimate every SNAPSHOT_EVERY iterations
     for s in runner.steps():
         # the runner's estimate (its EMA; ema 0 keeps the last output); None only before a
         # first iteration that was not restored
@@ -433,6 +436,8 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
                 mix_hcurve[s.iteration] = merr
                 if mix_best is None or merr < mix_best[0]:
                     mix_best = (merr, s.iteration, est.detach().clone())
+        if s.iteration % SNAPSHOT_EVERY == 0:
+            snapshots.append(est.detach().cpu().numpy().copy())
         if s.iteration % 50 == 0 or runner.done:
             curve[s.iteration] = psnr_only(truth, est.detach().cpu().numpy())
             mix_curve[s.iteration] = psnr_only(
@@ -466,6 +471,11 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
                                    iterations=mix_best[1], rule="held-out pixels of the mix")
         row["udn_mix_heldout_curve"] = mix_hcurve
         keep["udn_mix_stop"] = x_mix
+    if snapshots:
+        snap_mean = np.mean(np.stack(snapshots), axis=0)
+        row["udn_snapshots"] = dict(scores(truth, snap_mean), count=len(snapshots),
+                                    every=SNAPSHOT_EVERY)
+        keep["udn_snapshots"] = snap_mean
     row["udn_mix_curve"] = mix_curve
     row["udn_mix_oracle_stop"] = _oracle_stop(mix_curve)
     row["udn_curve"] = curve
@@ -736,6 +746,7 @@ METHODS = (("fista_auto", "FISTA-TV auto tau"), ("fista_oracle", "FISTA-TV oracl
            ("udn_blend", "UDN+FISTA blend (held-out weight)"),
            ("udn_ensemble", "UDN seed ensemble (held-out stops)"),
            ("udn_oracle_stop", "UDN, best iteration seen with the truth (bound)"),
+           ("udn_snapshots", "UDN, mean of its estimates every 500 iterations"),
            ("udn_mix_stop", "UDN and FISTA-TV auto averaged, stopped by the mix's held-out "
                             "error"),
            ("udn_mix_oracle_stop", "UDN and FISTA-TV auto averaged, best iteration seen with "
@@ -819,7 +830,10 @@ ERROR_METHODS = (("fista_auto", "FISTA-TV auto tau"), ("fista_oracle", "FISTA-TV
                  ("udn_fista_mean", "UDN (seed 0) and FISTA-TV auto, averaged "
                                     "(jobs combine --with-fista)"),
                  ("udn_mix_fista_mean", "UDN (seed 0, stopped by the mix's held-out error) "
-                                        "and FISTA-TV auto, averaged"))
+                                        "and FISTA-TV auto, averaged"),
+                 ("udn_snapshots", "UDN, mean of its estimates every 500 iterations"),
+                 ("udn_snapshots_fista_mean", "UDN's mean of estimates every 500 iterations and "
+                                              "FISTA-TV auto, averaged"))
 
 #: The derived estimate of ``ensemble_fista_mean``: the plain mean of the seed ensemble and the
 #: automatic-tau FISTA-TV result, neither weighted by the truth (both fit the same measurement,
@@ -837,6 +851,9 @@ def _derived(imgs: dict[str, Any]) -> dict[str, Any]:
         imgs = {**imgs, "udn_fista_mean": 0.5 * (imgs["udn"] + imgs["fista_auto"])}
     if "udn_mix_stop" in imgs and "fista_auto" in imgs and "udn_mix_fista_mean" not in imgs:
         imgs = {**imgs, "udn_mix_fista_mean": 0.5 * (imgs["udn_mix_stop"] + imgs["fista_auto"])}
+    if "udn_snapshots" in imgs and "fista_auto" in imgs and "udn_snapshots_fista_mean" not in imgs:
+        imgs = {**imgs,
+                "udn_snapshots_fista_mean": 0.5 * (imgs["udn_snapshots"] + imgs["fista_auto"])}
     return imgs
 
 

@@ -443,7 +443,8 @@ def test_error_analysis_scores_the_mean_of_the_ensemble_and_fista_where_both_wer
     assert one["psnr"] - udn["psnr"] == pytest.approx(10 * np.log10(2), abs=0.3)
 
 
-def test_mix_stop_is_the_iteration_whose_mix_with_fitted_pixel_fista_predicts_best() -> None:
+def test_mix_stop_is_the_iteration_whose_mix_with_fitted_pixel_fista_predicts_best(
+        monkeypatch) -> None:
     """The averaged recipe's own stop: the UDN iterate (checked every MIX_EVERY iterations)
     whose half-and-half mix with FISTA-TV of the UDN's fitted pixels has the least held-out
     error; the row scores that iterate averaged with automatic-tau FISTA-TV, and its bound is
@@ -461,6 +462,7 @@ def test_mix_stop_is_the_iteration_whose_mix_with_fitted_pixel_fista_predicts_be
     rp.fill_defaults(args)
     pair = rp.load_pair("im65", dict(samples.dlmd_pair_paths()), 1)
     keep: dict = {}
+    monkeypatch.setattr(rp, "SNAPSHOT_EVERY", 15)  # iterations 15 and 30 of the 40
     row = rp.run_case(pair, 0.9, args, keep)
     mask = rp.sensor_mask(pair, 0.9)
     b = (pair.meas * mask).astype(np.float32)
@@ -491,3 +493,11 @@ def test_mix_stop_is_the_iteration_whose_mix_with_fitted_pixel_fista_predicts_be
     derived = rp._derived({"udn_mix_stop": keep["udn_mix_stop"], "fista_auto": x_auto})
     np.testing.assert_allclose(derived["udn_mix_fista_mean"],
                                0.5 * (keep["udn_mix_stop"] + x_auto))
+    # iterate averaging: the mean of the estimates at every SNAPSHOT_EVERY iterations
+    snap = 0.5 * (previews[14] + previews[29])
+    np.testing.assert_allclose(keep["udn_snapshots"], snap, rtol=1e-5, atol=1e-6)
+    assert row["udn_snapshots"]["count"] == 2
+    np.testing.assert_allclose(row["udn_snapshots"]["psnr"], rp.psnr_only(pair.truth, snap),
+                               rtol=1e-5)
+    derived = rp._derived({"udn_snapshots": snap, "fista_auto": x_auto})
+    np.testing.assert_allclose(derived["udn_snapshots_fista_mean"], 0.5 * (snap + x_auto))
