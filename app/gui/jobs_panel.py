@@ -128,7 +128,9 @@ class NewJobDialog(QDialog):
         self.max_iter.setRange(1, 10_000_000)
         self.max_iter.setValue(int(default("stopping", "max_iter")))
         self.time_limit = DoubleSpinBox()
+        self.time_limit.setDecimals(3)  # 0.001 h = 3.6 s (two decimals made 0.004 h "none")
         self.time_limit.setRange(0.0, 240.0)
+        self.time_limit.setSingleStep(0.25)
         self.time_limit.setSuffix(" h")
         self.time_limit.setSpecialValueText("none")
         self.scales = SpinBox()
@@ -498,7 +500,11 @@ class ResultDialog(QDialog):
                 continue
             x, meta = read_reconstruction(path)
             img = np.asarray(x[0, 0] if x.shape[1] == 1 else x[0].mean(axis=0), dtype=np.float32)
-            panel = ImagePanel(f"{which} ({meta.get('iterations')} it)")
+            # the best estimate's own iteration (its metadata's iterations are the run's)
+            it = meta.get("best_iteration") if which == "best" else None
+            label = (f"{which} (it {it} of {meta.get('iterations')})" if it is not None else
+                     f"{which} ({meta.get('iterations')} it)")
+            panel = ImagePanel(label)
             panel.set_image(img, (0.0, float(np.percentile(img, 99.5)) or 1.0))
             panel.footer.setText(f"{path.name} · {img.shape[1]}x{img.shape[0]}")
             self.panels[which] = panel

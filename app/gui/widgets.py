@@ -11,9 +11,20 @@ these (``tests/gui`` checks it).
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 from PySide6.QtCore import Qt
-from PySide6.QtGui import QWheelEvent
-from PySide6.QtWidgets import QComboBox, QDoubleSpinBox, QLabel, QSizePolicy, QSpinBox, QWidget
+from PySide6.QtGui import QValidator, QWheelEvent
+from PySide6.QtWidgets import (
+    QAbstractSpinBox,
+    QComboBox,
+    QDoubleSpinBox,
+    QLabel,
+    QSizePolicy,
+    QSpinBox,
+    QWidget,
+)
 
 __all__ = ["ComboBox", "DoubleSpinBox", "SpinBox", "WheelOnFocus", "double_spin", "never_wider"]
 
@@ -36,20 +47,80 @@ class WheelOnFocus:
         super().wheelEvent(event)  # type: ignore[misc]
 
 
+def _number(box: QAbstractSpinBox, text: str, kind: type) -> Any:
+    """The finite number a spin box's ``text`` holds (prefix and suffix off), else None."""
+    b: Any = box
+    core = text
+    if b.suffix() and core.endswith(b.suffix()):
+        core = core[:-len(b.suffix())]
+    if b.prefix() and core.startswith(b.prefix()):
+        core = core[len(b.prefix()):]
+    try:
+        value = kind(core.strip())
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
+
+
+def _nearest_text(box: QAbstractSpinBox, text: str, kind: type) -> str:
+    """``text`` of a spin box as the nearest value in its range, prefix and suffix kept.
+
+    Unchanged when it holds no number.
+    """
+    b: Any = box
+    value = _number(box, text, kind)
+    if value is None:
+        return text
+    value = min(max(value, b.minimum()), b.maximum())
+    return f"{b.prefix()}{b.textFromValue(value)}{b.suffix()}"
+
+
 class SpinBox(WheelOnFocus, QSpinBox):
-    """A :class:`QSpinBox` that takes the wheel only when focused."""
+    """A :class:`QSpinBox` that takes the wheel only when focused.
+
+    A typed value out of range becomes the nearest bound, not the previous value (Qt's
+    default: 0.9 typed into a 0-0.5 box kept 0, the value of the "0" typed on the way).
+    """
 
     def __init__(self, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self._wheel_guard_init()
+        self.setCorrectionMode(QAbstractSpinBox.CorrectionMode.CorrectToNearestValue)
+
+    def fixup(self, text: str) -> str:
+        """A number out of range becomes the nearest bound."""
+        return _nearest_text(self, text, int)
 
 
 class DoubleSpinBox(WheelOnFocus, QDoubleSpinBox):
-    """A :class:`QDoubleSpinBox` that takes the wheel only when focused."""
+    """A :class:`QDoubleSpinBox` that takes the wheel only when focused.
+
+    A typed value out of range becomes the nearest bound (as :class:`SpinBox`).
+    """
 
     def __init__(self, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self._wheel_guard_init()
+        self.setCorrectionMode(QAbstractSpinBox.CorrectionMode.CorrectToNearestValue)
+
+    def validate(self, text: str, pos: int) -> object:
+        """Qt's validation, except that any finite number may be typed.
+
+        One above the maximum (or with more decimals than shown) is corrected to the nearest
+        valid value when the edit ends; Qt refused the keystroke, so 0.9 typed into a 0-0.5
+        box stopped at "0." and became 0.
+        """
+        result = super().validate(text, pos)
+        state = result[0] if isinstance(result, tuple) else result
+        if state != QValidator.State.Invalid:
+            return result
+        if _number(self, text, float) is None:
+            return result
+        return (QValidator.State.Intermediate, text, pos)
+
+    def fixup(self, text: str) -> str:
+        """A number out of range becomes the nearest bound (shown with the box's decimals)."""
+        return _nearest_text(self, text, float)
 
 
 class ComboBox(WheelOnFocus, QComboBox):

@@ -139,6 +139,10 @@ def test_jobs_from_the_gui_complete_open_and_combine(jobs_window: Any, qtbot: An
     dlg2 = panel.open_selected()
     assert dlg2 is not None
     assert dlg2.panels["best"].image.shape == (37, 50)
+    # the best estimate is labelled with its own iteration, not the run's (it said "10 it")
+    best_it = dlg2.meta["best"]["best_iteration"]
+    assert dlg2.panels["best"].title.text() == f"<b>best (it {best_it} of 10)</b>"
+    assert dlg2.panels["final"].title.text() == "<b>final (10 it)</b>"
     assert dlg2.meta["final"]["method"] == "udn"
     text = dlg2.metadata.toPlainText()
     assert "[best]" in text and "[final]" in text and "method: udn" in text
@@ -176,6 +180,18 @@ def test_job_dialog_defaults_come_from_the_spec(live_window: Any, tmp_path: Any)
     assert dlg.patience.value() == SCHEMA["stopping"]["patience"].default
     # the one default of its own: a live frame is the full sensor (docs/app.md says so)
     assert dlg.downsample.value() == 2 != SCHEMA["data"]["downsample"].default
+    # a typed value out of range becomes the nearest bound, not the value typed on the way
+    # there (0.9 into the 0-0.5 held-out box left 0: no held-out stop), and a time limit
+    # takes thousandths of an hour (0.004 h became "none")
+    from PySide6.QtCore import Qt
+    from PySide6.QtTest import QTest
+
+    for box, typed, want in ((dlg.holdout, "0.9", 0.5), (dlg.lr, "0.000005", 1e-5),
+                             (dlg.time_limit, "0.004", 0.004), (dlg.patience, "0", 1)):
+        box.lineEdit().selectAll()
+        QTest.keyClicks(box.lineEdit(), typed)
+        QTest.keyClick(box.lineEdit(), Qt.Key.Key_Return)
+        assert box.value() == pytest.approx(want), (typed, box.value())
     dlg.lr.setValue(0.002)
     dlg.headroom.setValue(1.5)
     dlg.holdout.setValue(0.1)
