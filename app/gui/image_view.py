@@ -187,6 +187,14 @@ class ImagePanel(QWidget):
             self._update_saturation(image)
         self.set_message("")
 
+    def clear_image(self) -> None:
+        """Show no image (the next :meth:`set_image` is taken as a first one)."""
+        self._image = None
+        self._shape = None
+        self.item.clear()
+        self.overlay.setVisible(False)
+        self.saturated = 0
+
     def _update_saturation(self, image: npt.NDArray[np.generic]) -> None:
         level = self.saturation_level
         if level is None:

@@ -782,12 +782,18 @@ class JobsPanel(QWidget):
         self.loss_curve.setData(its[ok], np.log10(loss[ok]))
         okh = np.isfinite(held) & (held > 0)
         self.held_curve.setData(its[okh], np.log10(held[okh]))
-        if v.last_preview is not None and v.last_preview != self._shown_preview:
-            img = _load_png(v.last_preview)
+        if v.last_preview is None or v.last_preview != self._shown_preview:
+            img = None if v.last_preview is None else _load_png(v.last_preview)
             if img is not None:
                 self.preview.set_image(img, (0.0, 255.0))
-                self.preview.footer.setText(v.last_preview.name)
+                self.preview.footer.setText(f"{v.name}: {v.last_preview.name}")
                 self._shown_preview = v.last_preview
+            else:  # none (yet), or not readable: not another job's (the last one shown stayed)
+                self.preview.clear_image()
+                self.preview.footer.setText(
+                    f"{v.name}: no preview yet" if v.last_preview is None else
+                    f"{v.name}: preview {v.last_preview.name} not readable")
+                self._shown_preview = None
 
     # -- actions -------------------------------------------------------------------------------
 

@@ -150,6 +150,25 @@ def test_jobs_from_the_gui_complete_open_and_combine(jobs_window: Any, qtbot: An
     assert not panel.combine_action.isEnabled() and panel.combine_fista_action.isEnabled()
     panel.combine_selected()
     assert "cannot combine: an ensemble needs at least two runs" in panel.message.text()
+    # a job without previews shows none, not the one shown before (another job's)
+    import shutil
+
+    first, other = panel.views[0], panel.views[1]
+    assert panel.preview.footer.text().startswith(f"{first.name}: iter_")
+    shutil.rmtree(other.run_dir / "previews")
+    panel.refresh()
+    panel._select_folders({other.folder})
+    qtbot.waitUntil(lambda: panel.preview.image is None, timeout=5_000)
+    assert panel.preview.footer.text().startswith(f"{other.name}: preview iter_")
+    import json
+
+    rec = json.loads((other.run_dir / "run.json").read_text())
+    rec["progress"]["last_preview"] = None  # a run that has written none
+    (other.run_dir / "run.json").write_text(json.dumps(rec))
+    panel.refresh()
+    qtbot.waitUntil(lambda: panel.preview.footer.text() == f"{other.name}: no preview yet",
+                    timeout=5_000)
+    assert panel.preview.image is None
 
     panel._select_folders({v.folder for v in panel.views})
     qtbot.waitUntil(lambda: panel.combine_action.isEnabled(), timeout=5_000)
