@@ -36,6 +36,19 @@ def _describe(source: LightSource) -> str:
     return str(d()) if callable(d) else type(source).__name__
 
 
+def _require(source: LightSource | None, stage: str) -> LightSource:
+    """The source, or a CalibrationError when none is connected.
+
+    The app's point source can be disconnected between the wizard's pages (it gave "'NoneType'
+    object has no attribute 'identify'").
+    """
+    if source is None:
+        raise CalibrationError(f"{stage}: no point source is connected",
+                               "Connect the point source (Controls, Point source) and start "
+                               "again; nothing was saved", stage=stage)
+    return source
+
+
 def source_call(source: LightSource, what: str, fn: Callable[[], T], *, stage: str) -> T:
     """Run ``fn`` (a source command described by ``what``); errors become CalibrationError."""
     try:
@@ -49,8 +62,9 @@ def source_call(source: LightSource, what: str, fn: Callable[[], T], *, stage: s
         ) from exc
 
 
-def source_on(source: LightSource, intensity: float | None = None, *, stage: str) -> None:
+def source_on(source: LightSource | None, intensity: float | None = None, *, stage: str) -> None:
     """Set the intensity (when given) and switch the continuous light on."""
+    source = _require(source, stage)
     if intensity is not None:
         value = float(intensity)
         source_call(
@@ -59,13 +73,16 @@ def source_on(source: LightSource, intensity: float | None = None, *, stage: str
     source_call(source, "switch on", source.on, stage=stage)
 
 
-def source_off(source: LightSource, *, stage: str) -> None:
+def source_off(source: LightSource | None, *, stage: str) -> None:
     """Switch the light (and any strobe) off."""
+    source = _require(source, stage)
     source_call(source, "switch off", source.off, stage=stage)
 
 
-def source_strobe(source: LightSource, delay_us: float, duration_us: float, *, stage: str) -> None:
+def source_strobe(source: LightSource | None, delay_us: float, duration_us: float, *,
+                  stage: str) -> None:
     """Arm one pulse per camera trigger."""
+    source = _require(source, stage)
     source_call(
         source,
         f"strobe at {delay_us:g} us for {duration_us:g} us",
@@ -84,13 +101,14 @@ def source_off_quietly(source: LightSource | None) -> None:
         _log.warning("could not switch the point source off: %s", exc)
 
 
-def source_alive(source: LightSource, *, stage: str) -> Callable[[], None]:
+def source_alive(source: LightSource | None, *, stage: str) -> Callable[[], None]:
     """A per-frame check for :func:`calibration.frames.acquire_frames`: the source still answers.
 
     While the light must stay on, a source that died (its firmware, cable or port) would leave
     the camera looking at a stale scene; querying its state after each frame turns that into a
     :class:`CalibrationError` within one frame time.
     """
+    source = _require(source, stage)
 
     def check() -> None:
         source_call(source, "report its state", source.status, stage=stage)
@@ -98,8 +116,9 @@ def source_alive(source: LightSource, *, stage: str) -> Callable[[], None]:
     return check
 
 
-def source_identity(source: LightSource, *, stage: str) -> str:
+def source_identity(source: LightSource | None, *, stage: str) -> str:
     """The source's identification string (also proves it answers)."""
+    source = _require(source, stage)
     return source_call(source, "identify itself", source.identify, stage=stage)
 
 

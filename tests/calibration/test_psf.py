@@ -129,6 +129,21 @@ def test_saturated_source_is_refused_and_nothing_saved(make_camera, source, tmp_
     assert source.status().mode is LightMode.OFF
 
 
+def test_no_point_source_is_said_and_nothing_saved(make_camera, tmp_path):
+    """The app's point source disconnected between the wizard's pages reached the capture as
+    None: "'NoneType' object has no attribute 'identify'"; now the one-line calibration error
+    that says to connect it."""
+    from calibration.shutter import ShutterSettings, measure_shutter
+
+    out = tmp_path / "psf.tif"
+    with pytest.raises(CalibrationError, match=r"no point source is connected.*Connect the "
+                                               r"point source") as info:
+        Workflow(capture_psf(make_camera(), None, FAST, out=out)).run()
+    assert info.value.stage and not out.exists()
+    with pytest.raises(CalibrationError, match="no point source is connected"):
+        Workflow(measure_shutter(make_camera(), None, ShutterSettings())).run()
+
+
 def test_saturated_psf_at_fixed_exposure_is_refused(make_camera, source, tmp_path):
     cam = make_camera(point_flux_e_per_ms=5e7)
     settings = PsfSettings(
