@@ -253,15 +253,30 @@ def test_levers_change_what_they_say_and_the_oracle_stop_is_the_curve_max() -> N
     assert rp._oracle_stop({}) is None
 
 
+def _rerun(pair, args, iters: int):
+    """The benchmark's UDN run of ``pair`` at 90 % (seed 0, 8 channels, 2 scales) again: its
+    runner and its estimate after every iteration."""
+    from recon.models import build_model
+    from recon.udn.network import NetworkConfig
+    from recon.udn.runner import UDNConfig
+
+    mask = rp.sensor_mask(pair, 0.9)
+    b = (pair.meas * mask).astype(np.float32)
+    model = build_model("2d", pair.psf, mask=mask, field=pair.truth.shape[1:])
+    cfg = UDNConfig(max_iter=iters, holdout=args.holdout, patience=10**9, min_iter=0,
+                    headroom=args.headroom, lr=args.lr, ema=args.ema, tv_weight=args.tv_weight,
+                    seed=0)
+    net = NetworkConfig(channels=8, scales=2, skip_channels=args.skip)
+    runner = rp.make_runner(model, b, net, cfg)
+    return runner, [s.preview for s in runner.steps(preview_every=1)]
+
+
 def test_es_wmv_stop_is_the_iteration_of_least_running_variance() -> None:
     """The ES-WMV row (the running variance now computed where the estimate lives, on a GPU
     there) is the estimate of the iteration whose window of estimates varies least: checked
     against the same run's previews with the variance computed in NumPy."""
     import argparse
 
-    from recon.models import build_model
-    from recon.udn.network import NetworkConfig
-    from recon.udn.runner import UDNConfig
 
     parser = argparse.ArgumentParser()
     rp.add_arguments(parser)
@@ -271,14 +286,7 @@ def test_es_wmv_stop_is_the_iteration_of_least_running_variance() -> None:
     pair = rp.load_pair("im65", dict(samples.dlmd_pair_paths()), 1)
     row = rp.run_case(pair, 0.9, args, {})
     # the same run again (seeded), its previews, the variance in NumPy
-    mask = rp.sensor_mask(pair, 0.9)
-    b = (pair.meas * mask).astype(np.float32)
-    model = build_model("2d", pair.psf, mask=mask, field=pair.truth.shape[1:])
-    cfg = UDNConfig(max_iter=14, holdout=args.holdout, patience=10**9, min_iter=0,
-                    headroom=args.headroom, lr=args.lr, ema=args.ema, tv_weight=args.tv_weight,
-                    seed=0)
-    net = NetworkConfig(channels=8, scales=2, skip_channels=args.skip)
-    previews = [s.preview for s in rp.make_runner(model, b, net, cfg).steps(preview_every=1)]
+    _, previews = _rerun(pair, args, 14)
     var = {i + 1: float(np.stack(previews[i - 2:i + 1]).var(axis=0).mean())
            for i in range(2, len(previews))}
     it = min(var, key=var.__getitem__)
@@ -451,9 +459,6 @@ def test_mix_stop_is_the_iteration_whose_mix_with_fitted_pixel_fista_predicts_be
     the best of the mix's truth curve. Checked against the same run's previews."""
     import argparse
 
-    from recon.models import build_model
-    from recon.udn.network import NetworkConfig
-    from recon.udn.runner import UDNConfig
 
     parser = argparse.ArgumentParser()
     rp.add_arguments(parser)
@@ -464,15 +469,8 @@ def test_mix_stop_is_the_iteration_whose_mix_with_fitted_pixel_fista_predicts_be
     keep: dict = {}
     monkeypatch.setattr(rp, "SNAPSHOT_EVERY", 15)  # iterations 15 and 30 of the 40
     row = rp.run_case(pair, 0.9, args, keep)
-    mask = rp.sensor_mask(pair, 0.9)
-    b = (pair.meas * mask).astype(np.float32)
-    model = build_model("2d", pair.psf, mask=mask, field=pair.truth.shape[1:])
-    cfg = UDNConfig(max_iter=40, holdout=args.holdout, patience=10**9, min_iter=0,
-                    headroom=args.headroom, lr=args.lr, ema=args.ema, tv_weight=args.tv_weight,
-                    seed=0)
-    net = NetworkConfig(channels=8, scales=2, skip_channels=args.skip)
-    runner = rp.make_runner(model, b, net, cfg)
-    previews = [s.preview for s in runner.steps(preview_every=1)]
+    runner, previews = _rerun(pair, args, 40)
+    b = (pair.meas * rp.sensor_mask(pair, 0.9)).astype(np.float32)
     fit = runner.fit.cpu().numpy().astype(np.float32)
     x_fit = rp._fitted_pixels_fista(pair, b, fit, args, 30)  # min_iter: the run's (30 < 100)
     errs = {it: runner.heldout_error(torch.as_tensor(0.5 * (previews[it - 1] + x_fit)))
