@@ -18,6 +18,22 @@ def blocks_scene(h: int, w: int, seed: int = 0, count: int = 5) -> np.ndarray:
     return s
 
 
+def disc_case(erasure: float, h: int = 40, w: int = 48) -> tuple[Any, Any, np.ndarray]:
+    """A bright disc on a grey field through a synthetic PSF, ``erasure`` of the pixels erased,
+    1 % noise: (the masked model, the measurement as a tensor, the truth)."""
+    import torch
+
+    from recon.models import build_model
+    from recon.simulate import simulate, synthetic_psf
+
+    y, x = np.mgrid[0:h, 0:w] / w
+    scene = (0.2 + 0.6 * ((x - 0.4) ** 2 + (y - 0.4) ** 2 < 0.05))[None, None]
+    psf = synthetic_psf((h, w), seed=3)
+    sim = simulate(build_model("2d", psf), scene.astype(np.float32), erasure=erasure,
+                   noise=0.01, seed=0)
+    return build_model("2d", psf, mask=sim.mask), torch.as_tensor(sim.meas), sim.truth
+
+
 def dataset_layout_pair(folder: Any, shape: tuple[int, int] = (24, 32), seed: int = 3) -> Any:
     """A colour pair in the DiffuserCam MirFlickr layout, written to ``folder``.
 

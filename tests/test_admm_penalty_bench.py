@@ -2,23 +2,13 @@
 
 from __future__ import annotations
 
-import numpy as np
-import torch
-
 from benchmarks.admm_penalty import MARKS, run_case, table
-from recon.models import build_model
-from recon.simulate import simulate, synthetic_psf
+from tests.scenes import disc_case
 
 
 def test_run_case_scores_both_penalties_against_the_minimum() -> None:
-    h, w = 40, 48
-    y, x = np.mgrid[0:h, 0:w] / w
-    scene = (0.2 + 0.6 * ((x - 0.4) ** 2 + (y - 0.4) ** 2 < 0.05))[None, None]
-    psf = synthetic_psf((h, w), seed=3)
-    sim = simulate(build_model("2d", psf), scene.astype(np.float32), erasure=0.9, noise=0.01,
-                   seed=0)
-    model = build_model("2d", psf, mask=sim.mask)
-    row = run_case(model, torch.as_tensor(sim.meas), sim.truth)
+    model, meas, truth = disc_case(0.9)
+    row = run_case(model, meas, truth)
     assert 0 < row["penalty"] < 1  # 90 % erased: below the former fixed scale
     for key in ("fista", "admm_auto", "admm_fixed"):
         assert len(row[key]["gap"]) == len(row[key]["psnr"]) == len(MARKS)

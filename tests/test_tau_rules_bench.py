@@ -2,23 +2,13 @@
 
 from __future__ import annotations
 
-import numpy as np
-import torch
-
 from benchmarks.tau_rules import GRID, run_case, table
-from recon.models import build_model
-from recon.simulate import simulate, synthetic_psf
+from tests.scenes import disc_case
 
 
 def test_run_case_scores_both_rules_and_the_oracle_grid() -> None:
-    h, w = 40, 48
-    y, x = np.mgrid[0:h, 0:w] / w
-    scene = (0.2 + 0.6 * ((x - 0.4) ** 2 + (y - 0.4) ** 2 < 0.05))[None, None]
-    psf = synthetic_psf((h, w), seed=3)
-    sim = simulate(build_model("2d", psf), scene.astype(np.float32), erasure=0.5, noise=0.01,
-                   seed=0)
-    model = build_model("2d", psf, mask=sim.mask)
-    row = run_case(model, torch.as_tensor(sim.meas), sim.truth, iters=40)
+    model, meas, truth = disc_case(0.5)
+    row = run_case(model, meas, truth, iters=40)
     assert row["1se"]["tau"] >= row["min"]["tau"]
     assert row["oracle"]["tau"] in GRID
     for k in ("min", "1se", "oracle"):
