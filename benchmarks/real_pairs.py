@@ -347,7 +347,7 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     net = NetworkConfig(channels=args.channels, scales=args.scales, skip_channels=args.skip)
     cfg = UDNConfig(max_iter=args.udn_iters, holdout=args.holdout, patience=10**9, min_iter=0,
                     headroom=args.headroom, lr=args.lr, ema=args.ema, tv_weight=args.tv_weight,
-                    reg_noise=args.reg_noise, seed=0)
+                    reg_noise=args.reg_noise, seed=0, average_every=SNAPSHOT_EVERY)
     runner = make_runner(model, b, net, cfg, args.lever)
     heldout = runner.heldout.cpu().numpy()
     fit_mask = (runner.fit.cpu().numpy()).astype(np.float32)
@@ -416,7 +416,6 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
     mix_best: tuple[float, int, Any] | None = None
     mix_hcurve: dict[int, float] = {}
     mix_curve: dict[int, float] = {}
-    snapshots: list[Any] = []  # the estimate every SNAPSHOT_EVERY iterations
     for s in runner.steps():
         # the runner's estimate (its EMA; ema 0 keeps the last output); None only before a
         # first iteration that was not restored
@@ -436,8 +435,6 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
                 mix_hcurve[s.iteration] = merr
                 if mix_best is None or merr < mix_best[0]:
                     mix_best = (merr, s.iteration, est.detach().clone())
-        if s.iteration % SNAPSHOT_EVERY == 0:
-            snapshots.append(est.detach().cpu().numpy().copy())
         if s.iteration % 50 == 0 or runner.done:
             curve[s.iteration] = psnr_only(truth, est.detach().cpu().numpy())
             mix_curve[s.iteration] = psnr_only(
@@ -471,9 +468,9 @@ def run_case(pair: Pair, erasure: float, args: argparse.Namespace,
                                    iterations=mix_best[1], rule="held-out pixels of the mix")
         row["udn_mix_heldout_curve"] = mix_hcurve
         keep["udn_mix_stop"] = x_mix
-    if snapshots:
-        snap_mean = np.mean(np.stack(snapshots), axis=0)
-        row["udn_snapshots"] = dict(scores(truth, snap_mean), count=len(snapshots),
+    if runner.mean_count:  # the runner's iterate average, as a job's mean.tif
+        snap_mean = runner.mean_estimate()
+        row["udn_snapshots"] = dict(scores(truth, snap_mean), count=runner.mean_count,
                                     every=SNAPSHOT_EVERY)
         keep["udn_snapshots"] = snap_mean
     row["udn_mix_curve"] = mix_curve
@@ -828,20 +825,22 @@ ERROR_METHODS = (("fista_auto", "FISTA-TV auto tau"), ("fista_oracle", "FISTA-TV
                  ("udn_ensemble", "UDN seed ensemble"),
                  ("ensemble_fista_mean", "UDN seed ensemble and FISTA-TV auto, averaged"),
                  ("udn_fista_mean", "UDN (seed 0) and FISTA-TV auto, averaged "
-                                    "(jobs combine --with-fista)"),
+                                    "(jobs combine --with-fista --estimate best)"),
                  ("udn_mix_fista_mean", "UDN (seed 0, stopped by the mix's held-out error) "
                                         "and FISTA-TV auto, averaged"),
                  ("udn_snapshots", "UDN, mean of its estimates every 500 iterations"),
                  ("udn_snapshots_fista_mean", "UDN's mean of estimates every 500 iterations and "
-                                              "FISTA-TV auto, averaged"))
+                                              "FISTA-TV auto, averaged (jobs combine "
+                                              "--with-fista)"))
 
 #: The derived estimate of ``ensemble_fista_mean``: the plain mean of the seed ensemble and the
 #: automatic-tau FISTA-TV result, neither weighted by the truth (both fit the same measurement,
 #: so their scales agree; the seed ensemble's own rule, one weight per member, extended to one
 #: more member whose errors are of another kind).
 #: ``udn_fista_mean``: the same with the first seed's held-out choice alone, what
-#: ``lenslesscam jobs combine RUN --with-fista`` writes for one run (FISTA-TV with the automatic
-#: tau on all measured pixels, weight 0.5).
+#: ``lenslesscam jobs combine RUN --with-fista --estimate best`` writes for one run (FISTA-TV
+#: with the automatic tau on all measured pixels, weight 0.5); ``udn_snapshots_fista_mean``:
+#: with the run's iterate mean instead, what ``jobs combine RUN --with-fista`` writes.
 #: ``udn_mix_fista_mean``: the same with the first seed stopped where the mix (its estimate and
 #: FISTA-TV of its fitted pixels, half and half) predicts its held-out pixels best.
 def _derived(imgs: dict[str, Any]) -> dict[str, Any]:

@@ -69,8 +69,10 @@ def register(sub: Any) -> None:
                    help="run folders (two or more; one with --with-fista)")
     e.add_argument("--out", required=True,
                    help="reconstruction TIFF to write (never inside a run folder)")
-    e.add_argument("--estimate", choices=["best", "final"], default="best",
-                   help="which estimate of each run: best (held-out choice, default) or final")
+    e.add_argument("--estimate", choices=["auto", "best", "final", "mean"], default="auto",
+                   help="which estimate of each run: best (held-out choice), final, mean (the "
+                   "run's iterate average, mean.tif) or auto (default: mean with --with-fista "
+                   "where every run wrote one, else best)")
     e.add_argument("--with-fista", action="store_true",
                    help="average the runs' mean half and half with FISTA-TV (recon fista's "
                    "defaults, automatic tau) of the runs' own inputs; one run is then enough "
@@ -207,8 +209,9 @@ def cmd_combine(args: argparse.Namespace) -> int:
     res = combine_runs(args.run_dirs, args.out, estimate=args.estimate,
                        with_fista=args.with_fista)
     for m in res.members:
-        print(f"  seed {m['seed']:>4}  {args.estimate} at iteration {m['iteration']}  "
-              f"({m['finish_reason']})  {m['run_dir']}")
+        what = (f"mean of {m.get('mean_count')} estimates to iteration {m['iteration']}"
+                if res.estimate == "mean" else f"{res.estimate} at iteration {m['iteration']}")
+        print(f"  seed {m['seed']:>4}  {what}  ({m['finish_reason']})  {m['run_dir']}")
     if res.fista is not None:
         f = res.fista
         print(f"  FISTA-TV  tau {f['tau']:.3g} ({f['tau_rule']}), {f['iterations']} iterations, "

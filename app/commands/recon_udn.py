@@ -80,6 +80,9 @@ def register_udn(methods: Any) -> None:
                    help="iterations between checkpoints (500)")
     d.add_argument("--preview-every", type=NONNEG_INT, default=100,
                    help="iterations between preview images (100; 0: none)")
+    d.add_argument("--average-every", type=NONNEG_INT, default=500,
+                   help="iterations between the estimates averaged into mean.tif (500; 0: "
+                   "none; 'jobs combine RUN --with-fista' uses it, docs/udn.md)")
     d.add_argument("--name", default="", help="a name for the run")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.add_argument("--write-spec", metavar="FILE",
@@ -116,7 +119,8 @@ def build_spec(args: argparse.Namespace) -> dict[str, Any]:
                    "threads": args.threads or getattr(args, "global_threads", None),
                    "max_memory": args.max_memory},
         "output": {"checkpoint_every": args.checkpoint_every,
-                   "preview_every": args.preview_every},
+                   "preview_every": args.preview_every,
+                   "average_every": getattr(args, "average_every", None)},
     }
     # options not given are left out (the spec's defaults apply), for every caller: recon udn
     # and batch udn items alike

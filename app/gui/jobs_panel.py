@@ -481,7 +481,7 @@ class NewJobDialog(QDialog):
 
 
 class ResultDialog(QDialog):
-    """A job's result (best and final estimates) with its metadata."""
+    """A job's result (best, mean and final estimates) with its metadata."""
 
     def __init__(self, view: JobView, parent: QWidget | None = None) -> None:
         super().__init__(parent)
@@ -494,7 +494,7 @@ class ResultDialog(QDialog):
         outer.addLayout(lay, 1)
         self.panels: dict[str, ImagePanel] = {}
         self.meta: dict[str, dict[str, Any]] = {}
-        for which in ("best", "final"):
+        for which in ("best", "mean", "final"):
             path = view.results.get(which)
             if path is None:
                 continue
@@ -504,6 +504,9 @@ class ResultDialog(QDialog):
             it = meta.get("best_iteration") if which == "best" else None
             label = (f"{which} (it {it} of {meta.get('iterations')})" if it is not None else
                      f"{which} ({meta.get('iterations')} it)")
+            if which == "mean" and meta.get("mean_count"):
+                label = (f"mean ({meta['mean_count']} estimates, every "
+                         f"{meta.get('average_every')} it)")
             panel = ImagePanel(label)
             panel.set_image(img, (0.0, float(np.percentile(img, 99.5)) or 1.0))
             panel.footer.setText(f"{path.name} · {img.shape[1]}x{img.shape[0]}")
@@ -625,6 +628,11 @@ class JobsPanel(QWidget):
         header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
         header.setSectionResizeMode(0, QHeaderView.ResizeMode.Stretch)  # the name gets the rest
         self.table.verticalHeader().setVisible(False)
+        # rows a line of text high (the progress bars' default made them 30 px: at 1366x768
+        # the panel's strip showed three jobs)
+        row_h = self.table.fontMetrics().height() + 6
+        self.table.verticalHeader().setMinimumSectionSize(row_h)
+        self.table.verticalHeader().setDefaultSectionSize(row_h)
         self.loss_plot = pg.PlotWidget()
         self.loss_plot.setLabel("left", "log10")
         self.loss_plot.setLabel("bottom", "iteration")
@@ -765,19 +773,26 @@ class JobsPanel(QWidget):
                                        or self.combine_fista_action.isEnabled())
         if v is None:
             self.details.setText("")
+            self.details.setToolTip("")
             return
         mem = v.memory.get("peak_bytes", v.memory.get("total_bytes"))
-        lines = [f"{v.folder}", f"state: {v.state}" + (f" – {v.detail}" if v.detail else "")]
+        # one line of facts (the job's state and detail, which may be long, wrap on their own):
+        # the table keeps the strip's height; the folder is the tooltip and 'Open folder'
+        facts = [f"state: {v.state}"]
         if mem is not None:
-            lines.append(f"memory estimate (peak to expect): {_fmt_bytes(mem)}")
+            facts.append(f"memory (peak to expect) {_fmt_bytes(mem)}")
         if v.elapsed_s is not None:
             from recon.udn.jobs import format_hms
 
-            lines.append(f"elapsed {format_hms(v.elapsed_s)}, ETA {format_hms(v.eta_s)}")
+            facts.append(f"elapsed {format_hms(v.elapsed_s)}, ETA {format_hms(v.eta_s)}")
+        lines = [" · ".join(facts)]
+        if v.detail:
+            lines.append(str(v.detail))
         its, loss, held, problem = read_loss(v.folder)
         if problem is not None:
             lines.append(f"loss curve not shown: {problem}")
         self.details.setText("\n".join(lines))
+        self.details.setToolTip(str(v.folder))
         ok = np.isfinite(loss) & (loss > 0)
         self.loss_curve.setData(its[ok], np.log10(loss[ok]))
         okh = np.isfinite(held) & (held > 0)

@@ -45,7 +45,7 @@ from recon.udn.state import JobState
 __all__ = ["EnsembleResult", "combine_runs"]
 
 F32 = npt.NDArray[np.float32]
-Estimate = Literal["best", "final"]
+Estimate = Literal["auto", "best", "final", "mean"]
 
 #: record keys that must agree between the members
 _SAME = ("scene_shape", "meas_shape")
@@ -58,8 +58,9 @@ class EnsembleResult:
     x: F32
     members: list[dict[str, Any]]
     paths: list[Path]
-    scores: dict[str, float] | None
+    scores: dict[str, float | None] | None
     fista: dict[str, Any] | None = None  # the FISTA-TV member (with_fista): tau, iterations...
+    estimate: str = "best"  # the members' estimate used (``auto`` resolved)
 
 
 def _member(run_dir: Path, estimate: Estimate) -> tuple[dict[str, Any], F32, dict[str, Any]]:
@@ -84,6 +85,20 @@ def _member(run_dir: Path, estimate: Estimate) -> tuple[dict[str, Any], F32, dic
         raise ValueError(f"{path} is not the {estimate} estimate this run wrote (replaced "
                          "since?); rerun or resume the run to write it again")
     return rec, x, meta
+
+
+def _has_estimate(run_dir: Path, estimate: str) -> bool:
+    """Whether the run's record names a result ``estimate``.
+
+    Runs from before the iterate average have no ``mean``; an unreadable record is left to
+    :func:`_member` to name.
+    """
+    from recon.udn.jobs import read_record
+
+    try:
+        return estimate in (read_record(run_dir).get("results") or {})
+    except (OSError, ValueError):
+        return True
 
 
 #: inputs a run records that its fit never uses (the truth only scores it)
@@ -146,8 +161,13 @@ FISTA_WEIGHT = 0.5
 
 
 def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
-                 estimate: Estimate = "best", with_fista: bool = False) -> EnsembleResult:
-    """Average the ``estimate`` (``best``: held-out choice; ``final``) of finished runs.
+                 estimate: Estimate = "auto", with_fista: bool = False) -> EnsembleResult:
+    """Average the ``estimate`` of finished runs.
+
+    ``estimate``: ``best`` (the held-out choice), ``final``, ``mean`` (the run's iterate
+    average, ``mean.tif``) or ``auto``: ``mean`` with ``with_fista`` where every run wrote one
+    (the measured recipe: docs/udn.md, "Iterate averaging"), else ``best``. The metadata's
+    ``estimate`` names the one used.
 
     Writes ``out`` (a reconstruction TIFF with previews, :func:`recon.io.save_reconstruction`)
     with the members (run folder, seed, iteration) in its metadata; scores against the truth
@@ -161,8 +181,8 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
         FileNotFoundError, FormatError: a folder without a readable run record or result.
 
     """
-    if estimate not in ("best", "final"):
-        raise ValueError(f"estimate must be 'best' or 'final', got {estimate!r}")
+    if estimate not in ("auto", "best", "final", "mean"):
+        raise ValueError(f"estimate must be 'auto', 'best', 'final' or 'mean', got {estimate!r}")
     dirs = [Path(d) for d in run_dirs]
     if not dirs:
         raise ValueError("no run to combine")
@@ -172,6 +192,8 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
     if len({d.resolve() for d in dirs}) < len(dirs):
         raise ValueError("the same run folder is named twice")
     _refuse_failed(dirs)
+    if estimate == "auto":
+        estimate = "mean" if with_fista and all(_has_estimate(d, "mean") for d in dirs) else "best"
     loaded = [_member(d, estimate) for d in dirs]
     target = Path(out).resolve()
     for d in dirs:  # a member's files are inputs of the ensemble: never written
@@ -220,6 +242,9 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
         members.append({"run_dir": str(d.resolve()), "seed": seed,
                         "iteration": meta.get("best_iteration" if estimate == "best"
                                               else "iterations"),
+                        **({"mean_count": meta.get("mean_count"),
+                            "average_every": meta.get("average_every")}
+                           if estimate == "mean" else {}),
                         "finish_reason": rec.get("finish_reason"),
                         "data_hash": meta.get("data_hash")})
     mean = np.mean([m[1] for m in loaded], axis=0, dtype=np.float64)
@@ -231,7 +256,7 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
     scores = None
     # the truth of the first member that names one (the truth is not part of the problem:
     # some members may have run without it)
-    truths = {}
+    truths: dict[Any, list[str]] = {}
     for rec, _, _ in loaded:
         t = (rec.get("inputs") or {}).get("truth")
         if isinstance(t, dict) and rec["spec"]["data"].get("truth"):
@@ -271,7 +296,7 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
     if meta0.get("preprocessing") is not None:  # how the members read their inputs
         metadata["preprocessing"] = meta0["preprocessing"]
     paths = save_reconstruction(out, x, metadata, kind=meta0.get("kind", "image"))
-    return EnsembleResult(x, members, paths, scores, fista)
+    return EnsembleResult(x, members, paths, scores, fista, estimate)
 
 
 def _fista_member(rec0: dict[str, Any], run0: Path,

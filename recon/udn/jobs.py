@@ -17,6 +17,8 @@ Run folder layout (``RUN_DIR``)::
     previews/iter_NNNNNNN.png   the estimate every ``output.preview_every`` iterations
     final.tif          the final (EMA) estimate, via recon.io.save_reconstruction (+ .png)
     best.tif           the estimate with the lowest held-out error (+ .png)
+    mean.tif           the mean of the estimates every ``output.average_every`` iterations
+                       (iterate averaging; written once there is one; + .png)
     CANCEL             present while a cancellation is requested (``jobs cancel``)
 
 Every file is written atomically, by one process at a time (:class:`RunLock`: a second
@@ -662,6 +664,9 @@ class _Job:
         self.checkpoint()
         kind = _RESULT_KIND[problem.kind]
         final, best = runner.final_estimate(), runner.best_estimate()
+        estimates = [("final", final), ("best", best)]
+        if runner.mean_count:  # none before the first average_every iterations
+            estimates.append(("mean", runner.mean_estimate()))
         base_meta = {
             "method": "udn", "model": problem.kind, "iterations": runner.iteration,
             "best_iteration": runner.best_iteration, "best_heldout": runner.best_heldout,
@@ -674,15 +679,20 @@ class _Job:
 
         results: dict[str, Any] = {}
         hashes: dict[str, str] = {}
-        for which, x in (("final", final), ("best", best)):
+        averaged = {"average_every": runner.config.average_every,
+                    "mean_count": runner.mean_count}
+        for which, x in estimates:
             paths = save_reconstruction(self.run_dir / f"{which}.tif", x,
-                                        {**base_meta, "estimate": which}, kind=kind)
+                                        {**base_meta, "estimate": which,
+                                         **(averaged if which == "mean" else {})}, kind=kind)
             results[which] = str(paths[0].relative_to(self.run_dir))
             hashes[which] = data_hash(x)
         # what the run wrote: a result file replaced later is told apart (jobs combine)
         results["data_hashes"] = hashes
         results["best_iteration"] = runner.best_iteration
         results["best_heldout"] = runner.best_heldout
+        if "mean" in results:
+            results.update(averaged)
         if reason in ("max_iter", "time_limit"):
             results["still_improving"] = runner.still_improving()
         if problem.truth is not None:
@@ -693,7 +703,7 @@ class _Job:
                     which: {k: v for k, v in metrics_report(problem.truth, x,
                                                             gain_fit=True).items()
                             if k in ("psnr", "ssim", "gain", "mse")}
-                    for which, x in (("final", final), ("best", best))}
+                    for which, x in estimates}
             except ValueError as exc:  # a truth nothing can be scored against (constant):
                 results["scores_note"] = f"not scored: {exc}"  # the run's results still count
         self.record["results"] = results

@@ -181,6 +181,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
                              minimum=0),
         "status_seconds": Key((float,), 5.0, "how often run.json / loss.csv are refreshed",
                               minimum=0.0),
+        "average_every": Key((int,), _UDN.average_every, "iterations between the estimates "
+                             "averaged into mean.tif (iterate averaging; 0: none)", minimum=0),
     },
 }
 
@@ -386,7 +388,7 @@ def network_config(spec: Mapping[str, Any], k: int) -> NetworkConfig:
 
 def udn_config(spec: Mapping[str, Any]) -> UDNConfig:
     """The :class:`UDNConfig` of a normalised spec."""
-    o, s, d = spec["optimizer"], spec["stopping"], spec["device"]
+    o, s, d, out = spec["optimizer"], spec["stopping"], spec["device"], spec["output"]
     gain = None if o["gain"] == "auto" else float(o["gain"])
     return UDNConfig(
         lr=o["lr"], reg_noise=o["reg_noise"], loss=o["loss"], tv_weight=o["tv_weight"],
@@ -399,7 +401,7 @@ def udn_config(spec: Mapping[str, Any]) -> UDNConfig:
         max_iter=s["max_iter"], time_limit_s=s["time_limit_s"], holdout=s["holdout"],
         patience=s["patience"], min_iter=s["min_iter"], min_delta=s["min_delta"],
         precision=d["precision"], compile=d["compile"], compile_mode=d["compile_mode"],
-        channels_last=d["channels_last"],
+        channels_last=d["channels_last"], average_every=out["average_every"],
     )
 
 

@@ -519,3 +519,63 @@ def test_a_jobs_folder_inside_a_run_folder_is_named_and_gets_nothing(tmp_path):
     with pytest.raises(ValueError, match="inside the UDN run folder"):
         create_job(tiny_run / "jobs", "x", np.ones((48, 64)), np.ones((48, 64)))
     assert sorted(p.relative_to(tiny_run) for p in tiny_run.rglob("*")) == before
+
+
+def test_the_result_window_shows_the_iterate_mean_with_its_count(qtbot: Any,
+                                                                  tmp_path: Any) -> None:
+    """A finished run with a mean estimate (mean.tif) opens with three panels: best, the mean
+    labelled with how many estimates it averages and how often, and final."""
+    import numpy as np
+
+    from app.gui.jobs_core import AppJobState, JobView
+    from app.gui.jobs_panel import ResultDialog
+    from recon.udn.jobs import run_job
+    from tests.udn.conftest import tiny_problem, write_spec
+
+    d = tmp_path / "data"
+    d.mkdir()
+    psf, sim = tiny_problem()
+    for name, a in (("psf", psf), ("meas", sim.meas), ("mask", sim.mask), ("truth", sim.truth)):
+        np.save(d / f"{name}.npy", a)
+    spec = write_spec(d, stopping={"max_iter": 12, "patience": 1000},
+                      output={"average_every": 4}, device={"threads": 1, "device": "cpu"})
+    rd = tmp_path / "run"
+    run_job(spec, rd)
+    rec = json.loads((rd / "run.json").read_text())
+    assert rec["results"]["mean"] == "mean.tif" and rec["results"]["mean_count"] == 3
+    view = JobView(folder=tmp_path, name="tiny", device="cpu", state=AppJobState.FINISHED,
+                   results={w: rd / f"{w}.tif" for w in ("best", "final", "mean")})
+    dlg = ResultDialog(view)
+    qtbot.addWidget(dlg)
+    assert list(dlg.panels) == ["best", "mean", "final"]
+    assert dlg.panels["mean"].title.text() == "<b>mean (3 estimates, every 4 it)</b>"
+    assert dlg.meta["mean"]["estimate"] == "mean"
+
+
+def test_the_jobs_strip_shows_five_jobs_and_one_line_of_details(qtbot: Any,
+                                                                  tmp_path: Any) -> None:
+    """In the strip the main window gives the panel at 1366x768 (220 px), five jobs and the
+    selected one's details fit: rows a line of text high, the details one line (state,
+    memory; the folder is their tooltip). They showed three rows before."""
+    import numpy as np
+
+    from app.gui.jobs_core import create_job
+    from app.gui.jobs_panel import JobsPanel
+
+    rng = np.random.default_rng(0)
+    for i in range(5):
+        create_job(tmp_path / "jobs", f"job-s{i}", rng.random((30, 40)), rng.random((30, 40)),
+                   queue=False)
+    panel = JobsPanel(tmp_path / "jobs", lambda: None, poll_ms=60_000)
+    qtbot.addWidget(panel)
+    panel.resize(1366, 220)
+    panel.show()
+    qtbot.waitUntil(lambda: panel.table.rowCount() == 5, timeout=5_000)
+    panel._select_folders({panel.views[0].folder})
+    qtbot.waitUntil(lambda: panel.details.text().startswith("state: held"), timeout=5_000)
+    assert "\n" not in panel.details.text() and "memory (peak to expect)" in panel.details.text()
+    assert panel.details.toolTip() == str(panel.views[0].folder)
+    t = panel.table
+    last = t.rowViewportPosition(4) + t.rowHeight(4)
+    assert last <= t.viewport().height(), (last, t.viewport().height())
+    panel.stop()

@@ -18,7 +18,8 @@ from tests.udn.conftest import write_spec
 @pytest.fixture
 def three_runs(tiny_data, tmp_path):
     """Runs of one spec with seeds 0, 1, 2 (the third one through the CLI)."""
-    spec = write_spec(tiny_data, stopping={"max_iter": 60, "patience": 1000})
+    spec = write_spec(tiny_data, stopping={"max_iter": 60, "patience": 1000},
+                      output={"average_every": 20})
     runs = [tmp_path / f"s{s}" for s in range(3)]
     for s in (0, 1):
         run_job(spec, runs[s], seed=s)
@@ -150,16 +151,19 @@ def test_combine_never_writes_over_a_members_input_nor_takes_an_unfinished_run(
 
 def test_combine_with_fista_is_half_the_runs_and_half_recon_fistas_result(three_runs, tiny_data,
                                                                            tmp_path, capsys):
-    """--with-fista: one run is enough; the result is 0.5 x its best + 0.5 x what `recon fista`
-    with its defaults gives on the same inputs (the same loader, tau rule and solver), recorded
-    in the metadata; inputs changed since the run are refused, nothing written."""
+    """--with-fista: one run is enough; the result is 0.5 x its iterate mean (mean.tif; its
+    best with --estimate best, or for a run without a mean) + 0.5 x what `recon fista` with its
+    defaults gives on the same inputs (the same loader, tau rule and solver), recorded in the
+    metadata; inputs changed since the run are refused, nothing written."""
     _spec, runs = three_runs
     out = tmp_path / "wf.tif"
-    assert cli_main(["jobs", "combine", str(runs[0]), "--with-fista", "--out", str(out)]) == 0
+    assert cli_main(["jobs", "combine", str(runs[0]), "--with-fista", "--estimate", "best",
+                     "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "ensemble of 1 run and FISTA-TV" in printed and "FISTA-TV  tau" in printed
     x, meta = read_reconstruction(out)
     assert meta["method"] == "udn-ensemble+fista-tv" and meta["fista"]["weight"] == 0.5
+    assert meta["estimate"] == "best"
     assert cli_main(["recon", "fista", "--psf", str(tiny_data / "psf.npy"), "--meas",
                      str(tiny_data / "meas.npy"), "--mask", str(tiny_data / "mask.npy"),
                      "--out", str(tmp_path / "f.tif")]) == 0
@@ -172,11 +176,35 @@ def test_combine_with_fista_is_half_the_runs_and_half_recon_fistas_result(three_
     np.testing.assert_allclose(x, 0.5 * best + 0.5 * xf.reshape(best.shape), rtol=0,
                                atol=1e-4 * float(np.abs(best).max()))
     assert not np.allclose(x, best, atol=1e-3 * float(np.abs(best).max()))
+    # the default: each run's iterate mean (the estimate at 20, 40, 60), then half and half
+    assert cli_main(["jobs", "combine", str(runs[0]), "--with-fista", "--out",
+                     str(tmp_path / "wfm.tif")]) == 0
+    assert "mean of 3 estimates to iteration 60" in capsys.readouterr().out
+    xm, mmeta = read_reconstruction(tmp_path / "wfm.tif")
+    mean0, m0meta = read_reconstruction(runs[0] / "mean.tif")
+    assert mmeta["estimate"] == "mean" and m0meta["mean_count"] == 3
+    assert m0meta["average_every"] == 20 and mmeta["members"][0]["mean_count"] == 3
+    np.testing.assert_allclose(xm, 0.5 * mean0 + 0.5 * xf.reshape(best.shape), rtol=0,
+                               atol=1e-4 * float(np.abs(best).max()))
+    assert not np.allclose(mean0, best, atol=1e-3 * float(np.abs(best).max()))
     # two runs: the mean of the runs, then half and half
     res = combine_runs(runs[:2], tmp_path / "wf2.tif", with_fista=True)
+    means = [read_reconstruction(r / "mean.tif")[0] for r in runs[:2]]
+    np.testing.assert_allclose(res.x, 0.5 * np.mean(means, axis=0) + 0.5 * xf.reshape(best.shape),
+                               rtol=0, atol=1e-4 * float(np.abs(best).max()))
+    assert res.estimate == "mean"
+    # a run from before the iterate average (no mean in its record): its best, by itself
+    rec_path = runs[1] / "run.json"
+    rec = json.loads(rec_path.read_text())
+    del rec["results"]["mean"]
+    rec_path.write_text(json.dumps(rec))
+    res = combine_runs(runs[:2], tmp_path / "wf3.tif", with_fista=True)
     bests = [read_reconstruction(r / "best.tif")[0] for r in runs[:2]]
+    assert res.estimate == "best"
     np.testing.assert_allclose(res.x, 0.5 * np.mean(bests, axis=0) + 0.5 * xf.reshape(best.shape),
                                rtol=0, atol=1e-4 * float(np.abs(best).max()))
+    with pytest.raises(ValueError, match="has no mean estimate"):
+        combine_runs(runs[1:2], tmp_path / "never.tif", estimate="mean", with_fista=True)
     # without it one run is still refused; inputs changed since the run are refused
     with pytest.raises(ValueError, match="at least two runs"):
         combine_runs(runs[:1], tmp_path / "never.tif")

@@ -161,6 +161,48 @@ def test_state_dict_roundtrip_continues_identically():
     assert torch.equal(a.ema, c.ema) and torch.equal(a.best, c.best)
 
 
+def test_the_mean_estimate_averages_the_estimate_every_average_every_iterations():
+    """Iterate averaging: the mean of the EMA estimate at iterations 5, 10, 15 (not 17); the
+    final estimate before the first; none with average_every 0; and it survives a checkpoint
+    (a resumed run ends with the same mean as an uninterrupted one)."""
+    a, _ = make_runner(max_iter=17, average_every=5, snapshot_every=4)
+    np.testing.assert_array_equal(a.mean_estimate(), a.final_estimate())  # nothing yet
+    seen = []
+    for s in a.steps():
+        if s.iteration % 5 == 0:
+            seen.append(a.final_estimate().astype(np.float64))
+    assert a.mean_count == 3 and len(seen) == 3
+    np.testing.assert_allclose(a.mean_estimate(), np.mean(seen, axis=0), rtol=1e-6, atol=1e-7)
+    assert not np.allclose(a.mean_estimate(), a.final_estimate(), atol=1e-4)
+    # resumed at 12 (two estimates in the sum): the same mean at the end
+    b, _ = make_runner(max_iter=17, average_every=5, snapshot_every=4)
+    for _ in range(12):
+        b.step()
+    buf = io.BytesIO()
+    torch.save(b.state_dict(), buf)
+    buf.seek(0)
+    c, _ = make_runner(max_iter=17, average_every=5, snapshot_every=4)
+    c.load_state_dict(torch.load(buf, weights_only=True))
+    c.run()
+    assert c.mean_count == 3
+    np.testing.assert_array_equal(c.mean_estimate(), a.mean_estimate())
+    # a checkpoint from before iterate averaging: resumed, its mean starts there, noted
+    old = b.state_dict()
+    del old["mean_sum"], old["mean_count"]
+    del old["identity"]["config"]["average_every"]
+    d, _ = make_runner(max_iter=17, average_every=5, snapshot_every=4)
+    d.load_state_dict(old)
+    d.run()
+    assert d.mean_count == 1 and any("without the iterate average" in n for n in d.notes)
+    # off: the final estimate, nothing summed
+    e, _ = make_runner(max_iter=6, average_every=0)
+    e.run()
+    assert e.mean_count == 0
+    np.testing.assert_array_equal(e.mean_estimate(), e.final_estimate())
+    with pytest.raises(ValueError, match="average_every must be an integer >= 0"):
+        UDNConfig(average_every=-1)
+
+
 def test_state_from_another_network_is_refused():
     a, _ = make_runner()
     state = a.state_dict()
