@@ -31,7 +31,7 @@ from PySide6.QtWidgets import (
 
 from app.gui.devices import SCENES, CameraChoice, PortChoice
 from app.gui.preview_engine import MODELS, RANGES, PreviewSettings
-from app.gui.widgets import ComboBox, DoubleSpinBox, SpinBox, double_spin
+from app.gui.widgets import ComboBox, DoubleSpinBox, ElidedLabel, SpinBox, double_spin
 
 __all__ = ["CameraControls", "DevicePanel", "PreviewControls", "set_status"]
 
@@ -72,8 +72,9 @@ class DevicePanel(QGroupBox):
                                   "and the test suite's cached simulator")
         self.camera_connect = QPushButton("Connect")
         self.camera_disconnect = QPushButton("Disconnect")
-        self.camera_status = QLabel("not connected")
-        self.camera_status.setWordWrap(True)
+        # one line each (a status that wrapped moved the buttons below it by a line when it
+        # changed): cut with '…', the whole text in the tooltip and errors in the banner
+        self.camera_status = ElidedLabel("not connected")
         self.scene_combo = ComboBox()
         for key, label in SCENES.items():
             self.scene_combo.addItem(label, key)
@@ -83,8 +84,7 @@ class DevicePanel(QGroupBox):
         self.port_combo.setToolTip("Serial port of the point source (or type a path / URL)")
         self.light_connect = QPushButton("Connect")
         self.light_disconnect = QPushButton("Disconnect")
-        self.light_status = QLabel("not connected")
-        self.light_status.setWordWrap(True)
+        self.light_status = ElidedLabel("not connected")
         self.light_on = QCheckBox("on")
         self.intensity = DoubleSpinBox()
         self.intensity.setRange(0.0, 1.0)

@@ -26,7 +26,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-__all__ = ["ComboBox", "DoubleSpinBox", "SpinBox", "WheelOnFocus", "double_spin", "never_wider"]
+__all__ = ["ComboBox", "DoubleSpinBox", "ElidedLabel", "SpinBox", "WheelOnFocus", "double_spin", "never_wider"]
 
 
 class WheelOnFocus:
@@ -149,3 +149,37 @@ def never_wider(label: QLabel) -> QLabel:
     label.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
     label.setMinimumWidth(0)
     return label
+
+
+class ElidedLabel(QLabel):
+    """A one-line label: text wider than the label ends in '…', the whole of it in the tooltip.
+
+    For status lines above other controls (a status that wrapped moved the buttons below it
+    when it changed); :meth:`text` is the whole text.
+    """
+
+    def __init__(self, text: str = "", parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self._full = ""
+        never_wider(self)
+        self.setText(text)
+
+    def text(self) -> str:  # noqa: D102 (QLabel's, the whole text)
+        return self._full
+
+    def setText(self, text: str) -> None:  # noqa: N802 (Qt's name)
+        """Show ``text``, cut to the label's width."""
+        self._full = text
+        self.setToolTip(text)
+        self._elide()
+
+    def resizeEvent(self, event: Any) -> None:  # noqa: N802 (Qt's name)
+        """Cut the text again to the new width."""
+        super().resizeEvent(event)
+        self._elide()
+
+    def _elide(self) -> None:
+        width = self.width() if self.width() > 0 else 10**6
+        shown = self.fontMetrics().elidedText(self._full, Qt.TextElideMode.ElideRight, width)
+        if shown != super().text():
+            super().setText(shown)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PySide6.QtCore import QPoint, QPointF, Qt
 from PySide6.QtGui import QWheelEvent
-from PySide6.QtWidgets import QAbstractSpinBox, QApplication, QComboBox
+from PySide6.QtWidgets import QAbstractSpinBox, QApplication, QComboBox, QLabel
 
 pytestmark = pytest.mark.gui
 
@@ -211,3 +211,35 @@ def test_garbage_is_collected_in_the_gui_thread_only(live_window: Any, qtbot: An
     kept.append([[] for _ in range(3 * gc.get_threshold()[0])])
     qtbot.waitUntil(lambda: bool(where), timeout=10_000)
     assert where == [threading.main_thread().name]
+
+
+def test_point_source_buttons_stay_put_when_the_camera_status_wraps(qtbot: Any) -> None:
+    """A camera status that wraps to a second line (reconnecting, an error) leaves the
+    point-source row where it was (it moved 14 px down and back); in a scroll area, as the
+    controls dock holds it."""
+    from PySide6.QtWidgets import QScrollArea
+
+    from app.gui.panels import DevicePanel, set_status
+
+    panel = DevicePanel()
+    scroll = QScrollArea()
+    scroll.setWidgetResizable(True)
+    scroll.setWidget(panel)
+    qtbot.addWidget(scroll)
+    scroll.resize(400, 700)
+    scroll.show()
+    set_status(panel.camera_status, "sim: SimulatedCamera - live", "ok")
+    qtbot.wait(100)
+    y0 = panel.light_connect.y()
+    long = ("Camera lost: the camera did not answer within the timeout (GenTL error -1011, "
+            "device lost) – reconnect attempt 3 failed, retrying…")
+    set_status(panel.camera_status, long, "error")
+    qtbot.wait(100)
+    assert panel.light_connect.y() == y0
+    # one line, cut with '…'; the whole text is the label's text and its tooltip
+    assert panel.camera_status.text() == long and panel.camera_status.toolTip() == long
+    shown = QLabel.text(panel.camera_status)
+    assert shown.endswith("…") and long.startswith(shown[:-1])
+    set_status(panel.camera_status, "not connected", "off")
+    qtbot.wait(100)
+    assert panel.light_connect.y() == y0 and QLabel.text(panel.camera_status) == "not connected"
