@@ -26,7 +26,8 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-__all__ = ["ComboBox", "DoubleSpinBox", "ElidedLabel", "SpinBox", "WheelOnFocus", "double_spin", "never_wider"]
+__all__ = ["ComboBox", "DoubleSpinBox", "ElidedLabel", "SpinBox", "WheelOnFocus", "double_spin",
+           "never_wider"]
 
 
 class WheelOnFocus:
@@ -164,16 +165,17 @@ class ElidedLabel(QLabel):
         never_wider(self)
         self.setText(text)
 
-    def text(self) -> str:  # noqa: D102 (QLabel's, the whole text)
+    def text(self) -> str:
+        """The whole text (what is shown may be cut)."""
         return self._full
 
-    def setText(self, text: str) -> None:  # noqa: N802 (Qt's name)
+    def setText(self, text: str) -> None:
         """Show ``text``, cut to the label's width."""
         self._full = text
         self.setToolTip(text)
         self._elide()
 
-    def resizeEvent(self, event: Any) -> None:  # noqa: N802 (Qt's name)
+    def resizeEvent(self, event: Any) -> None:
         """Cut the text again to the new width."""
         super().resizeEvent(event)
         self._elide()
