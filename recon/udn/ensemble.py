@@ -76,6 +76,13 @@ def _member(run_dir: Path, estimate: Estimate) -> tuple[dict[str, Any], F32, dic
     results = rec.get("results") or {}
     if estimate not in results:
         state = rec.get("finish_reason") or rec.get("status") or "unknown"
+        if estimate == "mean" and "best" in results:  # finished, but nothing was averaged
+            every = (rec.get("spec") or {}).get("output", {}).get("average_every")
+            why = ("a run from before the iterate average" if every is None else
+                   f"its average_every is {every}")
+            its = (rec.get("progress") or {}).get("iteration", "?")
+            raise ValueError(f"{run_dir}: the run wrote no mean estimate (it ran {its} "
+                             f"iterations, {why}); use --estimate best")
         raise ValueError(f"{run_dir}: the run has no {estimate} estimate yet ({state}); "
                          "let it finish or resume it")
     path = run_dir / results[estimate]

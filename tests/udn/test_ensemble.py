@@ -203,7 +203,8 @@ def test_combine_with_fista_is_half_the_runs_and_half_recon_fistas_result(three_
     assert res.estimate == "best"
     np.testing.assert_allclose(res.x, 0.5 * np.mean(bests, axis=0) + 0.5 * xf.reshape(best.shape),
                                rtol=0, atol=1e-4 * float(np.abs(best).max()))
-    with pytest.raises(ValueError, match="has no mean estimate"):
+    with pytest.raises(ValueError, match=r"wrote no mean estimate \(it ran 60 iterations, its "
+                       r"average_every is 20\); use --estimate best"):
         combine_runs(runs[1:2], tmp_path / "never.tif", estimate="mean", with_fista=True)
     # without it one run is still refused; inputs changed since the run are refused
     with pytest.raises(ValueError, match="at least two runs"):
