@@ -74,7 +74,7 @@ def register(sub: Any) -> None:
                    "run's iterate average, mean.tif) or auto (default: mean with --with-fista "
                    "where every run wrote one, else best)")
     e.add_argument("--with-fista", action="store_true",
-                   help="average the runs' mean half and half with FISTA-TV (recon fista's "
+                   help="average the runs' average half and half with FISTA-TV (recon fista's "
                    "defaults, automatic tau) of the runs' own inputs; one run is then enough "
                    "(on the real DiffuserCam pairs +0.1 to +0.6 dB over the runs alone, "
                    "docs/udn.md)")
@@ -209,9 +209,12 @@ def cmd_combine(args: argparse.Namespace) -> int:
     res = combine_runs(args.run_dirs, args.out, estimate=args.estimate,
                        with_fista=args.with_fista)
     for m in res.members:
-        what = (f"mean of {m.get('mean_count')} estimates to iteration {m['iteration']}"
+        what = (f"mean of {m.get('mean_count')} estimates, the last at iteration "
+                f"{m.get('mean_last_iteration') or '?'} of {m['iteration']}"
                 if res.estimate == "mean" else f"{res.estimate} at iteration {m['iteration']}")
         print(f"  seed {m['seed']:>4}  {what}  ({m['finish_reason']})  {m['run_dir']}")
+    if res.note is not None:
+        print(f"  note: {res.note}")
     if res.fista is not None:
         f = res.fista
         print(f"  FISTA-TV  tau {f['tau']:.3g} ({f['tau_rule']}), {f['iterations']} iterations, "

@@ -532,7 +532,10 @@ def combine_refusal(views: list[JobView], with_fista: bool = False) -> str | Non
 
 
 def combine_jobs(views: list[JobView], jobs_dir: str | Path, with_fista: bool = False) -> Any:
-    """Average the best estimates of finished jobs of one measurement (an ensemble).
+    """Average the estimates of finished jobs of one measurement (an ensemble).
+
+    Their best estimates; with ``with_fista`` their iterate means where every job has one
+    (:func:`recon.udn.ensemble.combine_runs`'s ``auto``).
 
     Writes ``jobs_dir/ensembles/<time>-<name>-xN.tif`` (+ preview; ``-xN+fista.tif`` with
     ``with_fista``) through :func:`recon.udn.ensemble.combine_runs`, which refuses jobs of

@@ -586,9 +586,10 @@ class JobsPanel(QWidget):
             "measurement (an ensemble of seeds).")
         self.combine_fista_action = QAction("Average the seeds and FISTA-TV", self.combine_menu)
         self.combine_fista_action.setToolTip(
-            "Average the selected jobs' best estimates (one is enough), then half and half "
-            "with FISTA-TV (automatic tau) of the same measurement: +0.1 to +0.6 dB over the "
-            "jobs alone on the real DiffuserCam pairs (docs/udn.md); seconds to a minute.")
+            "Average the selected jobs' iterate means (mean.tif; their best estimates when a "
+            "job has none), then half and half with FISTA-TV (automatic tau) of the same "
+            "measurement: above the jobs alone and oracle-tau FISTA-TV on the real "
+            "DiffuserCam pairs (docs/udn.md); seconds to a minute.")
         for a in (self.combine_action, self.combine_fista_action):
             a.setEnabled(False)
             self.combine_menu.addAction(a)
@@ -893,7 +894,7 @@ class JobsPanel(QWidget):
         return folders[0]
 
     def combine_selected(self, with_fista: bool = False) -> Any:
-        """Average the selected finished jobs' best estimates (``with_fista``: and FISTA-TV).
+        """Average the selected finished jobs (``with_fista``: their means, and FISTA-TV).
 
         Runs on a worker thread; the message says so, then where the result is (or why it
         could not be made). Returns the queued task, or None when refused at once (too few
@@ -926,13 +927,15 @@ class JobsPanel(QWidget):
         if self._combine_queue is None:  # stopped meanwhile: the window is closing
             return
         self._combining = None
-        text = f"ensemble of {n} job{'s' if n != 1 else ''}"
+        text = f"ensemble of {n} job{'s' if n != 1 else ''} ({res.estimate} estimates)"
         if res.fista is not None:
             text += f" and FISTA-TV (tau {res.fista['tau']:.3g})"
         text += f" written to {res.paths[0]}"
         psnr = (res.scores or {}).get("psnr")
         if psnr is not None:
             text += f" (PSNR {psnr:.2f} dB against the truth)"
+        if res.note is not None:
+            text += f"; {res.note}"
         self.message.setText(text)
 
     def _combine_failed(self, exc: BaseException) -> None:

@@ -61,6 +61,7 @@ class EnsembleResult:
     scores: dict[str, float | None] | None
     fista: dict[str, Any] | None = None  # the FISTA-TV member (with_fista): tau, iterations...
     estimate: str = "best"  # the members' estimate used (``auto`` resolved)
+    note: str | None = None  # why ``auto`` did not take the runs' means
 
 
 def _member(run_dir: Path, estimate: Estimate) -> tuple[dict[str, Any], F32, dict[str, Any]]:
@@ -77,12 +78,8 @@ def _member(run_dir: Path, estimate: Estimate) -> tuple[dict[str, Any], F32, dic
     if estimate not in results:
         state = rec.get("finish_reason") or rec.get("status") or "unknown"
         if estimate == "mean" and "best" in results:  # finished, but nothing was averaged
-            every = (rec.get("spec") or {}).get("output", {}).get("average_every")
-            why = ("a run from before the iterate average" if every is None else
-                   f"its average_every is {every}")
-            its = (rec.get("progress") or {}).get("iteration", "?")
-            raise ValueError(f"{run_dir}: the run wrote no mean estimate (it ran {its} "
-                             f"iterations, {why}); use --estimate best")
+            raise ValueError(f"{run_dir}: the run wrote no mean estimate ({_why_no_mean(rec)}); "
+                             "use --estimate best")
         raise ValueError(f"{run_dir}: the run has no {estimate} estimate yet ({state}); "
                          "let it finish or resume it")
     path = run_dir / results[estimate]
@@ -94,18 +91,35 @@ def _member(run_dir: Path, estimate: Estimate) -> tuple[dict[str, Any], F32, dic
     return rec, x, meta
 
 
-def _has_estimate(run_dir: Path, estimate: str) -> bool:
-    """Whether the run's record names a result ``estimate``.
+def _why_no_mean(rec: dict[str, Any]) -> str:
+    """Why a finished run has no mean estimate, and what would give it one."""
+    every = ((rec.get("spec") or {}).get("output") or {}).get("average_every")
+    its = (rec.get("progress") or {}).get("iteration", "?")
+    if every is None:
+        return "a run from before the iterate average"
+    if every == 0:
+        return "averaging was off: average_every 0"
+    return (f"it ran {its} iterations, fewer than its average_every {every}: 'lenslesscam jobs "
+            f"resume RUN --max-iter {every}' or more would average")
 
-    Runs from before the iterate average have no ``mean``; an unreadable record is left to
-    :func:`_member` to name.
+
+def _mean_problem(run_dir: Path) -> str | None:
+    """Why the run's mean estimate cannot be used (None: it can).
+
+    An unreadable record is left to :func:`_member` to name (None here).
     """
     from recon.udn.jobs import read_record
 
     try:
-        return estimate in (read_record(run_dir).get("results") or {})
+        rec = read_record(run_dir)
     except (OSError, ValueError):
-        return True
+        return None
+    results = rec.get("results") or {}
+    if "mean" not in results:
+        return _why_no_mean(rec)
+    if not (run_dir / str(results["mean"])).is_file():
+        return f"its {results['mean']} is missing"
+    return None
 
 
 #: inputs a run records that its fit never uses (the truth only scores it)
@@ -199,8 +213,16 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
     if len({d.resolve() for d in dirs}) < len(dirs):
         raise ValueError("the same run folder is named twice")
     _refuse_failed(dirs)
+    note = None
     if estimate == "auto":
-        estimate = "mean" if with_fista and all(_has_estimate(d, "mean") for d in dirs) else "best"
+        estimate = "best"
+        if with_fista:
+            problems = {d: _mean_problem(d) for d in dirs}
+            missing = [f"{d} ({p})" for d, p in problems.items() if p is not None]
+            estimate = "best" if missing else "mean"
+            if missing:  # all or none: one kind of estimate per ensemble
+                note = (f"the best estimates are averaged, not the iterate means, since "
+                        f"{len(missing)} of {len(dirs)} run(s) have none: {'; '.join(missing)}")
     loaded = [_member(d, estimate) for d in dirs]
     target = Path(out).resolve()
     for d in dirs:  # a member's files are inputs of the ensemble: never written
@@ -250,7 +272,8 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
                         "iteration": meta.get("best_iteration" if estimate == "best"
                                               else "iterations"),
                         **({"mean_count": meta.get("mean_count"),
-                            "average_every": meta.get("average_every")}
+                            "average_every": meta.get("average_every"),
+                            "mean_last_iteration": meta.get("mean_last_iteration")}
                            if estimate == "mean" else {}),
                         "finish_reason": rec.get("finish_reason"),
                         "data_hash": meta.get("data_hash")})
@@ -294,6 +317,7 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
     metadata = {
         "method": "udn-ensemble+fista-tv" if with_fista else "udn-ensemble",
         "model": meta0.get("model"), "estimate": estimate,
+        **({"estimate_note": note} if note is not None else {}),
         "members": members, "inputs": rec0.get("inputs"), "scores": scores,
         **({"fista": fista} if fista is not None else {}),
         # the truth the scores are against (the first member's inputs may lack it)
@@ -303,7 +327,7 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
     if meta0.get("preprocessing") is not None:  # how the members read their inputs
         metadata["preprocessing"] = meta0["preprocessing"]
     paths = save_reconstruction(out, x, metadata, kind=meta0.get("kind", "image"))
-    return EnsembleResult(x, members, paths, scores, fista, estimate)
+    return EnsembleResult(x, members, paths, scores, fista, estimate, note)
 
 
 def _fista_member(rec0: dict[str, Any], run0: Path,

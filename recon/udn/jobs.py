@@ -680,7 +680,8 @@ class _Job:
         results: dict[str, Any] = {}
         hashes: dict[str, str] = {}
         averaged = {"average_every": runner.config.average_every,
-                    "mean_count": runner.mean_count}
+                    "mean_count": runner.mean_count,
+                    "mean_last_iteration": runner.mean_last_iteration}
         for which, x in estimates:
             paths = save_reconstruction(self.run_dir / f"{which}.tif", x,
                                         {**base_meta, "estimate": which,

@@ -462,8 +462,11 @@ class UDNRunner(Stepwise[UDNStep]):
         self.best_iteration = 0
         self.best_heldout: float | None = None
         self.last_heldout: float | None = None
-        self.mean_sum: torch.Tensor | None = None  # sum of the estimates averaged (float64)
+        # sum of the estimates averaged, float64 on the CPU (MPS has no float64; one copy
+        # every average_every iterations costs nothing)
+        self.mean_sum: torch.Tensor | None = None
         self.mean_count = 0
+        self.mean_last_iteration = 0  # the last iteration averaged
         self.loss_ref: float | None = None
         self.backoffs = 0
         self.reason: StopReason | None = None
@@ -839,10 +842,12 @@ class UDNRunner(Stepwise[UDNStep]):
             if it % cfg.snapshot_every == 0:
                 self._snapshot = self._take_snapshot()
                 self._snapshot["iteration"] = it
-        if cfg.average_every and it % cfg.average_every == 0:  # restored steps too: the
-            xe = est.detach().double()  # estimate at that iteration, whatever its history
-            self.mean_sum = xe.clone() if self.mean_sum is None else self.mean_sum.add_(xe)
+        if cfg.average_every and it % cfg.average_every == 0:
+            # the estimate at that iteration, whatever its history (a restored step too)
+            xe = est.detach().to("cpu", torch.float64, copy=True)
+            self.mean_sum = xe if self.mean_sum is None else self.mean_sum.add_(xe)
             self.mean_count += 1
+            self.mean_last_iteration = it
         self.iteration = it
         dt = time.perf_counter() - start
         self.elapsed_s += dt
@@ -913,7 +918,7 @@ class UDNRunner(Stepwise[UDNStep]):
         """
         if self.mean_sum is None or self.mean_count == 0:
             return self.final_estimate()
-        return np.asarray((self.mean_sum / self.mean_count).float().cpu().numpy(),
+        return np.asarray((self.mean_sum / self.mean_count).float().numpy(),
                           dtype=np.float32).copy()
 
     # -- state ---------------------------------------------------------------------------------
@@ -943,6 +948,7 @@ class UDNRunner(Stepwise[UDNStep]):
             "last_heldout": self.last_heldout,
             "mean_sum": None if self.mean_sum is None else _clone_to_cpu(self.mean_sum),
             "mean_count": self.mean_count,
+            "mean_last_iteration": self.mean_last_iteration,
             "loss_ref": self.loss_ref,
             "backoffs": self.backoffs,
             "step_time": self._step_time,
@@ -979,8 +985,9 @@ class UDNRunner(Stepwise[UDNStep]):
         self.best_heldout = state["best_heldout"]
         self.last_heldout = state["last_heldout"]
         ms = state.get("mean_sum")
-        self.mean_sum = None if ms is None else ms.to(self.device)
+        self.mean_sum = None if ms is None else ms.to("cpu", torch.float64)
         self.mean_count = int(state.get("mean_count", 0))
+        self.mean_last_iteration = int(state.get("mean_last_iteration", 0))
         self.loss_ref = state["loss_ref"]
         self.backoffs = int(state["backoffs"])
         self._step_time = state["step_time"]

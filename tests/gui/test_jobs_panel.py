@@ -175,7 +175,7 @@ def test_jobs_from_the_gui_complete_open_and_combine(jobs_window: Any, qtbot: An
     panel.combine_action.trigger()  # the button opens the menu of the two ways to combine
     qtbot.waitUntil(lambda: "combining" not in panel.message.text(), timeout=30_000)
     msg = panel.message.text()
-    assert "ensemble of 2 jobs written to" in msg, msg
+    assert "ensemble of 2 jobs (best estimates) written to" in msg, msg
     out = sorted((panel.queue.jobs_dir / "ensembles").glob("*.tif"))
     assert len(out) == 1
     x, meta = read_reconstruction(out[0])
@@ -365,7 +365,7 @@ def test_combine_with_fista_takes_one_job_and_runs_off_the_gui_thread(tmp_path, 
         assert [v.folder for v in panel.selected_all()] == [a]
         assert panel.combine_fista_action.isEnabled() and panel.combine_button.isEnabled()
         assert not panel.combine_action.isEnabled()
-        assert "+0.1 to +0.6 dB" in panel.combine_fista_action.toolTip()
+        assert "iterate means (mean.tif" in panel.combine_fista_action.toolTip()
         panel.combine_fista_action.trigger()
         # the trigger returned before the result: the work is on the combine queue
         assert "combining 1 job (FISTA-TV)" in panel.message.text(), panel.message.text()
@@ -374,7 +374,10 @@ def test_combine_with_fista_takes_one_job_and_runs_off_the_gui_thread(tmp_path, 
         qtbot.waitUntil(lambda: "written to" in panel.message.text()
                         or "cannot combine:" in panel.message.text(), timeout=60_000)
         msg = panel.message.text()
-        assert "ensemble of 1 job and FISTA-TV (tau " in msg and "dB against the truth" in msg, msg
+        assert "ensemble of 1 job (best estimates) and FISTA-TV (tau " in msg, msg
+        assert "dB against the truth" in msg, msg
+        # the run was shorter than average_every: its best estimate, and the message says why
+        assert "not the iterate means" in msg and "fewer than its average_every 500" in msg
         out = sorted((a.parent / "ensembles").glob("*.tif"))
         assert [p.name.endswith("-x1+fista.tif") for p in out] == [True], out
         assert str(out[0]) in msg
@@ -390,7 +393,7 @@ def test_combine_with_fista_takes_one_job_and_runs_off_the_gui_thread(tmp_path, 
         panel.combine_action.trigger()
         assert "combining 2 jobs" in panel.message.text()
         qtbot.waitUntil(lambda: "combining" not in panel.message.text(), timeout=60_000)
-        assert "ensemble of 2 jobs written to" in panel.message.text(), panel.message.text()
+        assert "ensemble of 2 jobs (best estimates) written to" in panel.message.text(), panel.message.text()
         x2, meta2 = read_reconstruction(sorted((a.parent / "ensembles").glob("*-x2.tif"))[0])
         assert meta2["method"] == "udn-ensemble" and "fista" not in meta2
         assert sorted(m["seed"] for m in meta2["members"]) == [0, 1]

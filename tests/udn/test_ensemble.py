@@ -179,7 +179,7 @@ def test_combine_with_fista_is_half_the_runs_and_half_recon_fistas_result(three_
     # the default: each run's iterate mean (the estimate at 20, 40, 60), then half and half
     assert cli_main(["jobs", "combine", str(runs[0]), "--with-fista", "--out",
                      str(tmp_path / "wfm.tif")]) == 0
-    assert "mean of 3 estimates to iteration 60" in capsys.readouterr().out
+    assert "mean of 3 estimates, the last at iteration 60 of 60" in capsys.readouterr().out
     xm, mmeta = read_reconstruction(tmp_path / "wfm.tif")
     mean0, m0meta = read_reconstruction(runs[0] / "mean.tif")
     assert mmeta["estimate"] == "mean" and m0meta["mean_count"] == 3
@@ -193,19 +193,34 @@ def test_combine_with_fista_is_half_the_runs_and_half_recon_fistas_result(three_
     np.testing.assert_allclose(res.x, 0.5 * np.mean(means, axis=0) + 0.5 * xf.reshape(best.shape),
                                rtol=0, atol=1e-4 * float(np.abs(best).max()))
     assert res.estimate == "mean"
-    # a run from before the iterate average (no mean in its record): its best, by itself
+    # a run from before the iterate average (no mean in its record, no average_every in its
+    # spec): the best estimates of all, and a note that says why
     rec_path = runs[1] / "run.json"
     rec = json.loads(rec_path.read_text())
     del rec["results"]["mean"]
+    del rec["spec"]["output"]["average_every"]
     rec_path.write_text(json.dumps(rec))
     res = combine_runs(runs[:2], tmp_path / "wf3.tif", with_fista=True)
     bests = [read_reconstruction(r / "best.tif")[0] for r in runs[:2]]
     assert res.estimate == "best"
+    assert res.note is not None and "1 of 2 run(s) have none" in res.note
+    assert f"{runs[1]} (a run from before the iterate average)" in res.note
+    assert read_reconstruction(tmp_path / "wf3.tif")[1]["estimate_note"] == res.note
     np.testing.assert_allclose(res.x, 0.5 * np.mean(bests, axis=0) + 0.5 * xf.reshape(best.shape),
                                rtol=0, atol=1e-4 * float(np.abs(best).max()))
-    with pytest.raises(ValueError, match=r"wrote no mean estimate \(it ran 60 iterations, its "
-                       r"average_every is 20\); use --estimate best"):
+    with pytest.raises(ValueError, match=r"wrote no mean estimate \(a run from before the "
+                       r"iterate average\); use --estimate best"):
         combine_runs(runs[1:2], tmp_path / "never.tif", estimate="mean", with_fista=True)
+    # a run shorter than its average_every: says how to get one
+    rec["spec"]["output"]["average_every"] = 100
+    rec_path.write_text(json.dumps(rec))
+    with pytest.raises(ValueError, match=r"it ran 60 iterations, fewer than its average_every "
+                       r"100: 'lenslesscam jobs resume RUN --max-iter 100'"):
+        combine_runs(runs[1:2], tmp_path / "never.tif", estimate="mean", with_fista=True)
+    # a mean.tif deleted since: auto takes the best estimates, and says so
+    (runs[0] / "mean.tif").unlink()
+    res = combine_runs(runs[:1], tmp_path / "wf4.tif", with_fista=True)
+    assert res.estimate == "best" and "mean.tif is missing" in str(res.note)
     # without it one run is still refused; inputs changed since the run are refused
     with pytest.raises(ValueError, match="at least two runs"):
         combine_runs(runs[:1], tmp_path / "never.tif")
