@@ -463,6 +463,9 @@ def job_view(folder: str | Path) -> JobView | None:
             if (st.state != AppJobState.RUNNING and last is not None
                     and last.get("action") == "resume" and _pid_alive(int(last["pid"]))):
                 v.state = AppJobState.STARTING
+                _resuming(v, last.get("max_iter"))
+        elif entry.get("action") == "resume":  # a resume waits its turn in the queue
+            _resuming(v, entry.get("max_iter"))
         rec = _read_json(record) or {}
         sessions = [str(s.get("started_utc", "")) for s in rec.get("sessions") or []
                     if isinstance(s, dict)]
@@ -484,6 +487,19 @@ def job_view(folder: str | Path) -> JobView | None:
         v.state = AppJobState.FAILED_TO_START
         v.detail = _log_tail(f)
     return v
+
+
+def _resuming(v: JobView, max_iter: Any) -> None:
+    """Show a resume queued or starting as such.
+
+    The run's last detail (cancelled, reached the limit ...) is no longer news, and its bar
+    counts to the new limit.
+    """
+    v.detail = (f"resuming from iteration {v.iteration}"
+                + (f" to {int(max_iter)}" if isinstance(max_iter, int) else ""))
+    v.finish_reason = None
+    if isinstance(max_iter, int) and max_iter > 0:
+        v.max_iter = max_iter
 
 
 def _log_tail(folder: Path, n: int = 3) -> str:

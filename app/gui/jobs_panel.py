@@ -23,6 +23,7 @@ from PySide6.QtWidgets import (
     QDialog,
     QDialogButtonBox,
     QFormLayout,
+    QFrame,
     QHBoxLayout,
     QHeaderView,
     QLabel,
@@ -31,6 +32,7 @@ from PySide6.QtWidgets import (
     QPlainTextEdit,
     QProgressBar,
     QPushButton,
+    QScrollArea,
     QSplitter,
     QTableWidget,
     QTableWidgetItem,
@@ -505,14 +507,16 @@ class ResultDialog(QDialog):
             label = (f"{which} (it {it} of {meta.get('iterations')})" if it is not None else
                      f"{which} ({meta.get('iterations')} it)")
             if which == "mean" and meta.get("mean_count"):
-                label = (f"mean ({meta['mean_count']} estimates, every "
+                n = int(meta["mean_count"])
+                label = (f"mean ({n} estimate{'s' if n != 1 else ''}, every "
                          f"{meta.get('average_every')} it)")
             panel = ImagePanel(label)
+            never_wider(panel.title)  # a longer title made its panel (and image) wider
             panel.set_image(img, (0.0, float(np.percentile(img, 99.5)) or 1.0))
             panel.footer.setText(f"{path.name} · {img.shape[1]}x{img.shape[0]}")
             self.panels[which] = panel
             self.meta[which] = meta
-            lay.addWidget(panel)
+            lay.addWidget(panel, 1)  # the same width each: images side by side at one scale
         if not self.panels:
             lay.addWidget(QLabel("this job has no result yet"))
         self.metadata = QPlainTextEdit(format_metadata(self.meta))
@@ -652,7 +656,15 @@ class JobsPanel(QWidget):
         ll = QVBoxLayout(left)
         ll.setContentsMargins(0, 0, 0, 0)
         ll.addWidget(self.table, 1)
-        ll.addWidget(self.details)
+        # at most two lines of details under the table (a long detail, such as the resume
+        # command of a run that was still improving, scrolls): the table keeps its rows
+        self.details_area = QScrollArea()
+        self.details_area.setWidget(self.details)
+        self.details_area.setWidgetResizable(True)
+        self.details_area.setFrameShape(QFrame.Shape.NoFrame)
+        self.details_area.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.details_area.setMaximumHeight(2 * self.details.fontMetrics().lineSpacing() + 6)
+        ll.addWidget(self.details_area)
         split.addWidget(left)
         split.addWidget(self.loss_plot)
         split.addWidget(self.preview)
@@ -745,6 +757,13 @@ class JobsPanel(QWidget):
         model = self.table.selectionModel()
         rows = sorted(i.row() for i in model.selectedRows()) if model is not None else []
         return [self.views[r] for r in rows if 0 <= r < len(self.views)]
+
+    def _show_selected(self) -> None:
+        """Scroll the table to the selected rows (the last of them in view)."""
+        rows = sorted({i.row() for i in self.table.selectionModel().selectedRows()})
+        if rows:
+            self.table.scrollTo(self.table.model().index(rows[-1], 0))
+            self.table.scrollTo(self.table.model().index(rows[0], 0))
 
     def _select_folders(self, folders: set[Path]) -> None:
         model = self.table.selectionModel()
@@ -889,6 +908,7 @@ class JobsPanel(QWidget):
         self.message.setText(text + (f"; {error}" if error else ""))
         self.refresh()
         self._select_folders(set(folders))
+        self._show_selected()  # new jobs are listed last: bring them into view
         for folder in folders:
             self.job_created.emit(folder)
         return folders[0]

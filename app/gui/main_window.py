@@ -237,6 +237,9 @@ class MainWindow(QMainWindow):
             " border: 1px solid #ff8182; }"
         )
         self.banner.setVisible(False)
+        self.banner.setToolTip("click to dismiss")
+        self.banner.mousePressEvent = lambda _e: self.show_error("")  # type: ignore[method-assign]
+        self._banner_source = ""
         never_wider(self.banner)
         self.raw_panel = ImagePanel("Raw frame", with_roi=True, with_saturation=True,
                                     auto_levels_option=True)
@@ -457,11 +460,25 @@ class MainWindow(QMainWindow):
 
     # -- messages ------------------------------------------------------------------------------
 
-    def show_error(self, text: str) -> None:
-        """Show ``text`` in the banner (empty: hide it)."""
+    def show_error(self, text: str, source: str = "other") -> None:
+        """Show ``text`` in the banner (empty: hide it).
+
+        ``source`` (camera, light, other) says which device's success may clear it
+        (:meth:`clear_error`).
+        """
         self.last_error = text or self.last_error
         self.banner.setText(text)
         self.banner.setVisible(bool(text))
+        self._banner_source = source if text else ""
+
+    def clear_error(self, *sources: str) -> None:
+        """Hide the banner if it shows an error of one of ``sources``.
+
+        A point source that connects clears a point-source error and leaves a camera's (and a
+        camera that connects leaves a point source's: it stayed until the camera connected).
+        """
+        if self.banner.isVisible() and self._banner_source in sources:
+            self.show_error("")
 
     def _status(self, text: str) -> None:
         self.status_label.setText(text)
@@ -536,13 +553,13 @@ class MainWindow(QMainWindow):
             desc = values.get("model") or spec
             self._camera_name = f"{spec}: {desc}"
             self._set_camera_state("live", f"{self._camera_name} – live", "ok")
-            self.show_error("")
+            self.clear_error("camera", "other")
             self._configure_psf_for_camera()
 
         def failed(exc: BaseException) -> None:
             msg = f"Camera {spec}: cannot connect: {_describe(exc)}"
             self._set_camera_state("disconnected", msg, "error")
-            self.show_error(msg)
+            self.show_error(msg, "camera")
 
         self.camera_queue.submit(work, name=f"connect {spec}", on_done=done, on_error=failed)
 
@@ -588,7 +605,7 @@ class MainWindow(QMainWindow):
 
         def done(_r: Any) -> None:
             self._set_camera_state("disconnected", "not connected", "off")
-            self.show_error("")
+            self.clear_error("camera", "other")
 
         self.camera_queue.submit(bench.close_camera, name="disconnect", on_done=done,
                                  on_error=lambda e: done(None))
@@ -625,7 +642,7 @@ class MainWindow(QMainWindow):
 
         def failed(exc: BaseException) -> None:
             self._status(f"{name} = {value!r} refused: {_describe(exc)}")
-            self.show_error(f"Camera: {name} = {value!r} refused: {_describe(exc)}")
+            self.show_error(f"Camera: {name} = {value!r} refused: {_describe(exc)}", "camera")
             self.camera_queue.submit(lambda: _read_camera(cam), name="read back",
                                      on_done=lambda r: self._camera_values(*r))
 
@@ -691,7 +708,7 @@ class MainWindow(QMainWindow):
             self._set_camera_state("live" if was_live else "stopped", what, "ok")
 
         def failed(exc: BaseException) -> None:
-            self.show_error(f"Camera: {what}: {_describe(exc)}")
+            self.show_error(f"Camera: {what}: {_describe(exc)}", "camera")
             self._set_camera_state("live" if was_live else "stopped", f"{what} failed", "error")
 
         self.camera_queue.submit(work, name=what, on_done=done, on_error=failed)
@@ -787,7 +804,7 @@ class MainWindow(QMainWindow):
             return
         msg = f"Camera lost: {_describe(exc)} – reconnecting…"
         self._set_camera_state(CameraState.LOST, msg, "error")
-        self.show_error(msg)
+        self.show_error(msg, "camera")
         self.reconnect_timer.start()
 
     def _try_reconnect_camera(self) -> None:
@@ -811,7 +828,7 @@ class MainWindow(QMainWindow):
             self._camera_values(*r)
             self._set_camera_state(CameraState.LIVE, f"reconnected after {n} attempt(s) – live",
                                    "ok")
-            self.show_error("")
+            self.clear_error("camera", "other")
             self._status(f"camera reconnected after {n} attempt(s)")
 
         def failed(exc: BaseException) -> None:
@@ -819,7 +836,7 @@ class MainWindow(QMainWindow):
                 return
             msg = f"Camera lost: {_describe(exc)} – reconnect attempt {n} failed, retrying…"
             set_status(self.device_panel.camera_status, msg, "error")
-            self.show_error(msg)
+            self.show_error(msg, "camera")
             self.reconnect_timer.start()
 
         self.camera_queue.submit(work, name="reconnect camera", on_done=done, on_error=failed)
@@ -853,11 +870,12 @@ class MainWindow(QMainWindow):
             self.settings.connect_light = True
             self._set_light_state("connected", f"{ident}", "ok")
             self.device_panel.show_light_state(st.is_on, st.intensity)
+            self.clear_error("light")  # an earlier failure of the point source is over
 
         def failed(exc: BaseException) -> None:
             msg = f"Point source {port}: cannot connect: {_describe(exc)}"
             self._set_light_state("disconnected", msg, "error")
-            self.show_error(msg)
+            self.show_error(msg, "light")
 
         self.light_queue.submit(work, name="connect light", on_done=done, on_error=failed)
 
@@ -865,10 +883,12 @@ class MainWindow(QMainWindow):
         """Switch the source off and close it."""
         self.settings.connect_light = False
         self._set_light_state("disconnected", "disconnecting…", "busy")
-        self.light_queue.submit(
-            self.bench.close_light, name="disconnect light",
-            on_done=lambda _r: self._set_light_state("disconnected", "not connected", "off"),
-            on_error=lambda _e: self._set_light_state("disconnected", "not connected", "off"))
+        def done(_r: Any) -> None:
+            self._set_light_state("disconnected", "not connected", "off")
+            self.clear_error("light")  # disconnected on purpose: its error is not news
+
+        self.light_queue.submit(self.bench.close_light, name="disconnect light", on_done=done,
+                                on_error=done)
 
     def set_light_on(self, on: bool) -> None:
         """Switch the source on (at the set intensity) or off."""
@@ -906,7 +926,7 @@ class MainWindow(QMainWindow):
         self.device_panel.show_light_state(st.is_on, st.intensity)
         if self.light_state is LightState.LOST:
             self._set_light_state(LightState.CONNECTED, f"reconnected: {st.identity}", "ok")
-            self.show_error("")
+            self.clear_error("light")
 
     def _check_light(self) -> None:
         action = self.devices.light_check(self.light_queue.busy)
@@ -923,17 +943,17 @@ class MainWindow(QMainWindow):
 
     def _light_lost(self, exc: BaseException) -> None:
         if not self.light_state.watched:
-            self.show_error(f"Point source: {_describe(exc)}")
+            self.show_error(f"Point source: {_describe(exc)}", "light")
             return
         msg = f"Point source lost: {_describe(exc)} – reconnecting…"
         self._set_light_state(LightState.LOST, msg, "error")
-        self.show_error(msg)
+        self.show_error(msg, "light")
 
     def _light_still_lost(self, exc: BaseException) -> None:
         if self.light_state is LightState.LOST:
             msg = f"Point source lost: {_describe(exc)} – retrying…"
             set_status(self.device_panel.light_status, msg, "error")
-            self.show_error(msg)
+            self.show_error(msg, "light")
 
     # -- preview -------------------------------------------------------------------------------
 

@@ -14,7 +14,7 @@ import re
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from PySide6.QtCore import QSignalBlocker, Signal
+from PySide6.QtCore import QSignalBlocker, Qt, Signal
 from PySide6.QtGui import QValidator
 from PySide6.QtWidgets import (
     QCheckBox,
@@ -43,6 +43,17 @@ def set_status(label: QLabel, text: str, kind: str = "off") -> None:
     label.setText(text)
     label.setStyleSheet(f"color: {_STATUS_COLOURS.get(kind, '#000')};")
     label.setProperty("kind", kind)
+
+
+def _keep_focus_near(anchor: QWidget, disabled: list[QWidget], enabled: bool) -> None:
+    """Move the focus to ``anchor`` when a widget of ``disabled`` that has it is disabled.
+
+    Qt gives the focus of a disabled widget to the next one in the tab chain, and the
+    Controls dock's scroll area then scrolls to it: disconnecting the point source with the
+    camera disconnected scrolled the Devices box out of sight.
+    """
+    if not enabled and any(w.hasFocus() for w in disabled):
+        anchor.setFocus(Qt.FocusReason.OtherFocusReason)
 
 
 class DevicePanel(QGroupBox):
@@ -186,11 +197,15 @@ class DevicePanel(QGroupBox):
     def set_camera_connected(self, connected: bool, simulated: bool = False) -> None:
         """Enable the buttons that make sense."""
         self.camera_connect.setEnabled(True)
+        _keep_focus_near(self.camera_connect, [self.camera_disconnect, self.scene_combo],
+                         connected)
         self.camera_disconnect.setEnabled(connected)
         self.scene_combo.setEnabled(connected and simulated)
 
     def set_light_connected(self, connected: bool) -> None:
         """Enable the light controls when connected."""
+        _keep_focus_near(self.light_connect,
+                         [self.light_disconnect, self.light_on, self.intensity], connected)
         self.light_disconnect.setEnabled(connected)
         self.light_on.setEnabled(connected)
         self.intensity.setEnabled(connected)

@@ -182,6 +182,7 @@ class ElidedLabel(QLabel):
 
     def _elide(self) -> None:
         width = self.width() if self.width() > 0 else 10**6
-        shown = self.fontMetrics().elidedText(self._full, Qt.TextElideMode.ElideRight, width)
+        one_line = " ".join(self._full.split())  # an exception's text may hold newlines
+        shown = self.fontMetrics().elidedText(one_line, Qt.TextElideMode.ElideRight, width)
         if shown != super().text():
             super().setText(shown)

@@ -119,6 +119,10 @@ def _mean_problem(run_dir: Path) -> str | None:
         return _why_no_mean(rec)
     if not (run_dir / str(results["mean"])).is_file():
         return f"its {results['mean']} is missing"
+    count = results.get("mean_count")
+    if isinstance(count, int) and count < 2:  # one early iterate, not an average
+        return (f"its mean is the one estimate of iteration "
+                f"{results.get('mean_last_iteration', '?')}, not an average")
     return None
 
 
@@ -187,8 +191,8 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
 
     ``estimate``: ``best`` (the held-out choice), ``final``, ``mean`` (the run's iterate
     average, ``mean.tif``) or ``auto``: ``mean`` with ``with_fista`` where every run wrote one
-    (the measured recipe: docs/udn.md, "Iterate averaging"), else ``best``. The metadata's
-    ``estimate`` names the one used.
+    of at least two estimates (the measured recipe: docs/udn.md, "Iterate averaging"), else
+    ``best`` (with a note saying why). The metadata's ``estimate`` names the one used.
 
     Writes ``out`` (a reconstruction TIFF with previews, :func:`recon.io.save_reconstruction`)
     with the members (run folder, seed, iteration) in its metadata; scores against the truth

@@ -243,3 +243,30 @@ def test_point_source_buttons_stay_put_when_the_camera_status_wraps(qtbot: Any) 
     set_status(panel.camera_status, "not connected", "off")
     qtbot.wait(100)
     assert panel.light_connect.y() == y0 and QLabel.text(panel.camera_status) == "not connected"
+    set_status(panel.camera_status, "Camera lost:\nline two", "error")  # an exception's text
+    qtbot.wait(100)
+    assert panel.light_connect.y() == y0
+    assert QLabel.text(panel.camera_status) == "Camera lost: line two"
+
+
+def test_disconnecting_keeps_the_focus_in_the_devices_box(qtbot: Any) -> None:
+    """The point source's Disconnect, focused when it is disabled, hands the focus to its
+    Connect (Qt gave it to the next control in the tab chain, and the Controls dock scrolled
+    the Devices box out of sight)."""
+    from app.gui.panels import DevicePanel
+
+    panel = DevicePanel()
+    qtbot.addWidget(panel)
+    panel.show()
+    qtbot.waitExposed(panel)
+    panel.activateWindow()
+    panel.set_light_connected(True)
+    panel.light_disconnect.setFocus()
+    qtbot.waitUntil(panel.light_disconnect.hasFocus, timeout=2_000)
+    panel.set_light_connected(False)
+    assert panel.light_connect.hasFocus()
+    panel.set_camera_connected(True, simulated=True)
+    panel.camera_disconnect.setFocus()
+    qtbot.waitUntil(panel.camera_disconnect.hasFocus, timeout=2_000)
+    panel.set_camera_connected(False)
+    assert panel.camera_connect.hasFocus()

@@ -317,6 +317,11 @@ def test_a_run_that_ended_still_improving_can_be_resumed_with_more_iterations(tm
     assert v.resume_max_iter == 6
     queue_resume(job, max_iter=v.resume_max_iter)
     assert json.loads((job / APP_JOB_FILE).read_text())["max_iter"] == 6
+    # waiting for its turn it says so, with the new limit (it said "reached the iteration
+    # limit" at 100 %)
+    v = job_view(job)
+    assert v is not None and v.detail == "resuming from iteration 3 to 6"
+    assert v.max_iter == 6 and v.fraction == 0.5 and v.finish_reason is None
 
 
 def _finished_app_job(tmp_path: Any, capsys: Any, entry: dict[str, Any],

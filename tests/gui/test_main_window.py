@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from PySide6.QtCore import Qt
 
 pytestmark = pytest.mark.gui
 
@@ -217,6 +218,20 @@ def test_bad_serial_port_is_an_error_in_the_window(bench_window: Any, qtbot: Any
     qtbot.waitUntil(lambda: w.banner.isVisible(), timeout=10_000)
     assert "Point source /dev/does-not-exist: cannot connect" in w.banner.text()
     assert w.light_state == "disconnected" and w.camera_state == "live"
+    # a camera that connects leaves the point source's error: it is still true ...
+    shown = w.frames_shown
+    w.connect_camera("sim")
+    qtbot.waitUntil(lambda: w.camera_state == "live" and w.frames_shown > shown + 2,
+                    timeout=20_000)
+    assert w.banner.isVisible() and "/dev/does-not-exist" in w.banner.text()
+    # ... the point source connecting clears it (it stayed through that, before)
+    w.connect_light("sim")
+    qtbot.waitUntil(lambda: w.light_state == "connected", timeout=15_000)
+    assert not w.banner.isVisible()
+    # and a click dismisses the banner
+    w.show_error("Point source: something", "light")
+    qtbot.mouseClick(w.banner, Qt.MouseButton.LeftButton)
+    assert not w.banner.isVisible()
 
 
 def test_a_long_psf_file_name_wraps_inside_the_controls(live_window: Any, qtbot: Any,

@@ -217,6 +217,13 @@ def test_combine_with_fista_is_half_the_runs_and_half_recon_fistas_result(three_
     with pytest.raises(ValueError, match=r"it ran 60 iterations, fewer than its average_every "
                        r"100: 'lenslesscam jobs resume RUN --max-iter 100'"):
         combine_runs(runs[1:2], tmp_path / "never.tif", estimate="mean", with_fista=True)
+    # a mean of one estimate (a run just past average_every) is one early iterate: not used
+    rec0 = json.loads((runs[0] / "run.json").read_text())
+    rec0["results"].update(mean_count=1, mean_last_iteration=20)
+    (runs[0] / "run.json").write_text(json.dumps(rec0))
+    res = combine_runs(runs[:1], tmp_path / "wf5.tif", with_fista=True)
+    assert res.estimate == "best"
+    assert "its mean is the one estimate of iteration 20, not an average" in str(res.note)
     # a mean.tif deleted since: auto takes the best estimates, and says so
     (runs[0] / "mean.tif").unlink()
     res = combine_runs(runs[:1], tmp_path / "wf4.tif", with_fista=True)
