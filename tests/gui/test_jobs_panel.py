@@ -398,7 +398,8 @@ def test_combine_with_fista_takes_one_job_and_runs_off_the_gui_thread(tmp_path, 
         panel.combine_action.trigger()
         assert "combining 2 jobs" in panel.message.text()
         qtbot.waitUntil(lambda: "combining" not in panel.message.text(), timeout=60_000)
-        assert "ensemble of 2 jobs (best estimates) written to" in panel.message.text(), panel.message.text()
+        msg = panel.message.text()
+        assert "ensemble of 2 jobs (best estimates) written to" in msg, msg
         x2, meta2 = read_reconstruction(sorted((a.parent / "ensembles").glob("*-x2.tif"))[0])
         assert meta2["method"] == "udn-ensemble" and "fista" not in meta2
         assert sorted(m["seed"] for m in meta2["members"]) == [0, 1]
