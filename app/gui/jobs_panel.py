@@ -9,7 +9,8 @@ own processes, so closing the window leaves them running; a new window finds the
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -401,6 +402,52 @@ class NewJobDialog(QDialog):
         self.refresh_suggestions()
         self._note(f"planner failed: {exc}")
 
+    def remembered(self) -> dict[str, Any]:
+        """The dialog's settings to offer again in the next one (:meth:`restore`)."""
+        return {"downsample": int(self.downsample.value()), "seeds": int(self.seeds.value()),
+                "sections": self.sections()}
+
+    def restore(self, last: Mapping[str, Any]) -> bool:
+        """Fill the controls from :meth:`remembered` of an earlier dialog; whether it did.
+
+        Values of the wrong kind are skipped (the file it comes from may be edited); a spin
+        box takes the nearest value in its range.
+        """
+        sec = last.get("sections") if isinstance(last, Mapping) else None
+        if not isinstance(sec, Mapping):
+            return False
+
+        def get(section: str, key: str) -> Any:
+            keys = sec.get(section)
+            return keys.get(key) if isinstance(keys, Mapping) else None
+
+        spins: list[tuple[Any, Any, float]] = [
+            (self.downsample, last.get("downsample"), 1), (self.seeds, last.get("seeds"), 1),
+            (self.max_iter, get("stopping", "max_iter"), 1),
+            (self.patience, get("stopping", "patience"), 1),
+            (self.holdout, get("stopping", "holdout"), 1),
+            (self.time_limit, get("stopping", "time_limit_s") or 0.0, 1 / 3600.0),
+            (self.scales, get("network", "scales"), 1),
+            (self.channels, get("network", "channels"), 1),
+            (self.lr, get("optimizer", "lr"), 1),
+            (self.tv_weight, get("optimizer", "tv_weight"), 1),
+            (self.headroom, get("optimizer", "headroom"), 1),
+            (self.threads, get("device", "threads"), 1),
+            (self.checkpoint_every, get("output", "checkpoint_every"), 1),
+            (self.preview_every, get("output", "preview_every"), 1)]
+        for box, value, unit in spins:
+            if isinstance(value, int | float) and not isinstance(value, bool) \
+                    and math.isfinite(value):
+                v = value * unit
+                box.setValue(round(v) if isinstance(box, SpinBox) else float(v))
+        for combo, key in ((self.device, "device"), (self.precision, "precision")):
+            value = get("device", key)
+            if isinstance(value, str) and combo.findText(value) >= 0:
+                combo.setCurrentText(value)
+        self._note("the settings of the last job queued (Apply a suggestion to replace them)")
+        self.update_estimate()
+        return True
+
     def done(self, r: int) -> None:
         """Close; a running planner is waited for (it takes seconds)."""
         self._end_planner()
@@ -571,6 +618,9 @@ class JobsPanel(QWidget):
         self.suggestion_dirs: list[Path] = [self.queue.jobs_dir / "suggestions"]
         self.views: list[JobView] = []
         self.result_dialog: ResultDialog | None = None
+        #: the settings of the last job queued (NewJobDialog.remembered), offered by the next
+        #: dialog; the main window keeps them in the app's settings between sessions
+        self.last_job: dict[str, Any] = {}
 
         self.new_button = QPushButton("New job from current measurement…")
         self.cancel_button = QPushButton("Cancel")
@@ -854,12 +904,15 @@ class JobsPanel(QWidget):
                            suggestion_dirs=self.suggestion_dirs,
                            run_planner=lambda: _plan_measurement(m),
                            save_dir=self.suggestion_dirs[0])
+        if self.last_job:  # the settings of the last job queued, not the defaults again
+            dlg.restore(self.last_job)
         self.dialog = dlg
         dlg.accepted.connect(lambda: self._create_from_dialog(dlg, m))
         dlg.show()
         return dlg
 
     def _create_from_dialog(self, dlg: NewJobDialog, m: Measurement) -> None:
+        self.last_job = dlg.remembered()
         self.create_job(m, dlg.name.text() or "udn", int(dlg.downsample.value()),
                         dlg.sections(), seeds=int(dlg.seeds.value()))
 

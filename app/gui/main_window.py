@@ -385,6 +385,7 @@ class MainWindow(QMainWindow):
             self.settings.jobs_dir = str(default_jobs_dir())
         self.jobs_panel = JobsPanel(self.settings.jobs_dir, self.current_measurement, self,
                                     poll_ms=self._jobs_poll_ms, spawn=self._job_spawn)
+        self.jobs_panel.last_job = dict(self.settings.last_job)
         self.jobs_dock = self._dock("UDN jobs", "jobs-dock", self.jobs_panel)
         self.trade_panel = TradePanel(self.current_measurement, self.set_preview_tau, self)
         self.trade_dock = self._dock("Speed / accuracy trade", "trade-dock", self.trade_panel)
@@ -1172,6 +1173,7 @@ class MainWindow(QMainWindow):
         s.window_state = bytes(self.saveState().toBase64().data()).decode("ascii")
         s.preview = self.preview_controls.settings().to_dict()
         s.preview_enabled = self.preview_controls.enabled.isChecked()
+        s.last_job = dict(self.jobs_panel.last_job)
         if not s.jobs_dir:
             s.jobs_dir = str(default_jobs_dir())
         return s

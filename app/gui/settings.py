@@ -81,6 +81,8 @@ class AppSettings:
     calibration_dir: str = ""
     window_geometry: str = ""
     window_state: str = ""
+    #: the new-job dialog's settings of the last job queued (offered by the next dialog)
+    last_job: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON with format keys."""

@@ -267,3 +267,43 @@ def test_a_trade_row_s_whole_udn_settings_reach_the_job(panel: Any, tmp_path: Pa
     i = next(i for i, s in enumerate(dlg.suggestions_found) if s.source == "plan")
     dlg.apply_suggestion(dlg.suggestions_found[i])
     assert "skip_channels" not in dlg.sections()["network"]
+
+
+def test_the_next_dialog_offers_the_last_jobs_settings(panel: Any, qtbot: Any,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """The new-job dialog came back with the defaults every time (seven fields to type again
+    for a second tiny job, and a forgotten thread count put it on every core); values of
+    the wrong kind in the remembered settings (an edited settings file) are skipped."""
+    from app.gui.settings import AppSettings
+
+    queued: list[Any] = []
+    monkeypatch.setattr(panel, "create_job", lambda *a, **k: queued.append((a, k)))
+    dlg = panel.new_job_dialog()
+    assert dlg.max_iter.value() == 3000  # the spec's default, nothing remembered yet
+    dlg.downsample.setValue(4)
+    dlg.max_iter.setValue(600)
+    dlg.scales.setValue(3)
+    dlg.channels.setValue(8)
+    dlg.threads.setValue(1)
+    dlg.time_limit.setValue(0.5)
+    dlg.seeds.setValue(2)
+    dlg.device.setCurrentText("cpu")
+    dlg.accept()
+    assert len(queued) == 1 and queued[0][1]["seeds"] == 2
+    dlg2 = panel.new_job_dialog()
+    got = (dlg2.downsample.value(), dlg2.max_iter.value(), dlg2.scales.value(),
+           dlg2.channels.value(), dlg2.threads.value(), dlg2.seeds.value(),
+           dlg2.device.currentText())
+    assert got == (4, 600, 3, 8, 1, 2, "cpu")
+    assert dlg2.time_limit.value() == pytest.approx(0.5)
+    assert "last job queued" in dlg2.suggestion_note.text()
+    assert dlg2.sections() == dlg.sections()
+    dlg2.close()
+    # through the settings file's round trip, and a damaged entry
+    s = AppSettings.from_dict({**AppSettings().to_dict(), "last_job": panel.last_job})
+    assert s.last_job == panel.last_job
+    panel.last_job = {"downsample": "four", "sections": {"stopping": {"max_iter": None},
+                                                         "network": "x"}}
+    dlg3 = panel.new_job_dialog()
+    assert dlg3.downsample.value() == 2 and dlg3.max_iter.value() == 3000
+    dlg3.close()
