@@ -83,6 +83,10 @@ def register_udn(methods: Any) -> None:
     d.add_argument("--average-every", type=NONNEG_INT, default=500,
                    help="iterations between the estimates averaged into mean.tif (500; 0: "
                    "none; 'jobs combine RUN --with-fista' uses it, docs/udn.md)")
+    d.add_argument("--with-fista", action=argparse.BooleanOptionalAction, default=None,
+                   help="at the end, also write with_fista.tif: the mean (or best) estimate "
+                   "averaged half and half with FISTA-TV at recon fista's defaults, the best "
+                   "measured recipe without ground truth (default on; docs/udn.md)")
     d.add_argument("--name", default="", help="a name for the run")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.add_argument("--write-spec", metavar="FILE",
@@ -120,7 +124,8 @@ def build_spec(args: argparse.Namespace) -> dict[str, Any]:
                    "max_memory": args.max_memory},
         "output": {"checkpoint_every": args.checkpoint_every,
                    "preview_every": args.preview_every,
-                   "average_every": getattr(args, "average_every", None)},
+                   "average_every": getattr(args, "average_every", None),
+                   "with_fista": getattr(args, "with_fista", None)},
     }
     # options not given are left out (the spec's defaults apply), for every caller: recon udn
     # and batch udn items alike

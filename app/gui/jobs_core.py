@@ -476,7 +476,7 @@ def job_view(folder: str | Path) -> JobView | None:
             v.state = AppJobState.FAILED_TO_START
             v.detail = f"the resume did not start: {_log_tail(f)}"
         v.still_improving = bool((rec.get("results") or {}).get("still_improving"))
-        for which in ("final", "best", "mean"):
+        for which in ("final", "best", "mean", "with_fista"):
             r = (rec.get("results") or {}).get(which)
             if isinstance(r, str) and (f / RUN_DIR / r).is_file():
                 v.results[which] = f / RUN_DIR / r

@@ -20,6 +20,7 @@ import pyqtgraph as pg
 from PySide6.QtCore import QItemSelectionModel, Qt, QTimer, QUrl, Signal
 from PySide6.QtGui import QAction, QDesktopServices
 from PySide6.QtWidgets import (
+    QCheckBox,
     QComboBox,
     QDialog,
     QDialogButtonBox,
@@ -201,6 +202,12 @@ class NewJobDialog(QDialog):
         self.preview_every = SpinBox()
         self.preview_every.setRange(0, 1_000_000)
         self.preview_every.setValue(int(default("output", "preview_every")))
+        self.with_fista = QCheckBox("also average with FISTA-TV (with_fista.tif)")
+        self.with_fista.setChecked(bool(default("output", "with_fista")))
+        self.with_fista.setToolTip(
+            "When the run ends, average its mean estimate half and half with FISTA-TV at the "
+            "automatic tau: the best result measured without ground truth on the real "
+            "DiffuserCam pairs (docs/udn.md); seconds to a minute more.")
         self.memory = QLabel("")
         self.memory.setWordWrap(True)
         self.suggestion_box = ComboBox()
@@ -240,8 +247,14 @@ class NewJobDialog(QDialog):
         form.addRow("Device", self.device)
         form.addRow("CPU threads", self.threads)
         form.addRow("Precision", self.precision)
-        form.addRow("Checkpoint every", self.checkpoint_every)
-        form.addRow("Preview every", self.preview_every)
+        # two intervals on one row: the dialog fits a 1366x768 screen with the row below
+        outs = QHBoxLayout()
+        outs.addWidget(QLabel("checkpoint"))
+        outs.addWidget(self.checkpoint_every, 1)
+        outs.addWidget(QLabel("preview"))
+        outs.addWidget(self.preview_every, 1)
+        form.addRow("Every (iterations)", outs)
+        form.addRow("At the end", self.with_fista)
         form.addRow("Memory", self.memory)
         self.buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Ok
                                         | QDialogButtonBox.StandardButton.Cancel)
@@ -440,6 +453,8 @@ class NewJobDialog(QDialog):
                     and math.isfinite(value):
                 v = value * unit
                 box.setValue(round(v) if isinstance(box, SpinBox) else float(v))
+        if isinstance(get("output", "with_fista"), bool):
+            self.with_fista.setChecked(get("output", "with_fista"))
         for combo, key in ((self.device, "device"), (self.precision, "precision")):
             value = get("device", key)
             if isinstance(value, str) and combo.findText(value) >= 0:
@@ -474,6 +489,7 @@ class NewJobDialog(QDialog):
                        "precision": self.precision.currentText()},
             "output": {"checkpoint_every": int(self.checkpoint_every.value()),
                        "preview_every": int(self.preview_every.value()),
+                       "with_fista": self.with_fista.isChecked(),
                        "status_seconds": 1.0},
         }
         for section, keys in self.suggested_sections.items():  # the controls' values win
@@ -530,20 +546,20 @@ class NewJobDialog(QDialog):
 
 
 class ResultDialog(QDialog):
-    """A job's result (best, mean and final estimates) with its metadata."""
+    """A job's result (with FISTA-TV, best, mean and final estimates) with its metadata."""
 
     def __init__(self, view: JobView, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         from recon.io import read_reconstruction
 
         self.setWindowTitle(f"Result: {view.name}")
-        self.resize(900, 600)
+        self.resize(1100, 600)
         outer = QVBoxLayout(self)
         lay = QHBoxLayout()
         outer.addLayout(lay, 1)
         self.panels: dict[str, ImagePanel] = {}
         self.meta: dict[str, dict[str, Any]] = {}
-        for which in ("best", "mean", "final"):
+        for which in ("with_fista", "best", "mean", "final"):
             path = view.results.get(which)
             if path is None:
                 continue
@@ -553,6 +569,11 @@ class ResultDialog(QDialog):
             it = meta.get("best_iteration") if which == "best" else None
             label = (f"{which} (it {it} of {meta.get('iterations')})" if it is not None else
                      f"{which} ({meta.get('iterations')} it)")
+            if which == "with_fista":
+                f = meta.get("fista") or {}
+                tau = f.get("tau")
+                label = (f"UDN {meta.get('udn_estimate', '')} + FISTA-TV"
+                         + (f" (tau {tau:.3g})" if isinstance(tau, int | float) else ""))
             if which == "mean" and meta.get("mean_count"):
                 n = int(meta["mean_count"])
                 label = (f"mean ({n} estimate{'s' if n != 1 else ''}, every "

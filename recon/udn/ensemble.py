@@ -42,7 +42,7 @@ import numpy.typing as npt
 from recon.formats import FormatError
 from recon.udn.state import JobState
 
-__all__ = ["EnsembleResult", "combine_runs"]
+__all__ = ["EnsembleResult", "combine_runs", "fista_tv_member"]
 
 F32 = npt.NDArray[np.float32]
 Estimate = Literal["auto", "best", "final", "mean"]
@@ -341,14 +341,7 @@ def _fista_member(rec0: dict[str, Any], run0: Path,
     The problem is read again from the run's spec (:func:`recon.problem.load_problem`, the one
     loader) and must be the data the run fitted (file and array hashes; refused otherwise).
     """
-    import time
-
-    import torch
-
-    from recon.autotau import resolve
-    from recon.fista import Fista
     from recon.problem import ProblemSpec, load_problem
-    from recon.tv import TV
 
     try:
         prob = load_problem(ProblemSpec.from_data_section(rec0["spec"]["data"]))
@@ -360,8 +353,32 @@ def _fista_member(rec0: dict[str, Any], run0: Path,
         raise ValueError(f"{run0}: {', '.join('data.' + n for n in diff)} changed since the run "
                          "(its hash differs from the run record's): the FISTA-TV member would "
                          "reconstruct other data; combine without --with-fista")
-    model = prob.model
-    b = torch.as_tensor(prob.meas, dtype=torch.float32)
+    out = fista_tv_member(prob.model, prob.meas)
+    assert out is not None  # no cancel given
+    xf, meta = out
+    if xf.size != int(np.prod(shape)):
+        raise ValueError(f"{run0}: FISTA-TV gave an estimate of shape {xf.shape}, the runs' is "
+                         f"{tuple(shape)}")
+    return xf.reshape(shape), meta
+
+
+def fista_tv_member(model: Any, meas: Any, cancel: Any = None
+                    ) -> tuple[npt.NDArray[np.float64], dict[str, Any]] | None:
+    """FISTA-TV with ``recon fista``'s defaults (automatic tau and iterations): (x, metadata).
+
+    The FISTA-TV half of the averaged recipe, for ``jobs combine --with-fista`` and a job's
+    own ``with_fista.tif``. ``cancel()`` is asked between iterations (None back when it says
+    stop).
+    """
+    import time
+
+    import torch
+
+    from recon.autotau import resolve
+    from recon.fista import Fista
+    from recon.tv import TV
+
+    b = torch.as_tensor(meas, dtype=torch.float32, device=model.op.device)
     # recon fista's defaults: Fista's own (tol, restart, prox iterations, preconditioner), and
     # TV with weight 0.5 along k (its --tv-k) where there is a k axis
     tv = TV(weight_k=0.5 if model.k > 1 else 0.0)
@@ -369,12 +386,10 @@ def _fista_member(rec0: dict[str, Any], run0: Path,
     tau, iters, tau_meta = resolve(model, b, None, None, tv=tv)
     solver = Fista(model.op, b, tau=tau, tv=tv, max_iter=iters)
     for _ in solver.steps():
-        pass
+        if cancel is not None and cancel():
+            return None
     xf = solver.x.detach().double().cpu().numpy()
-    if xf.size != int(np.prod(shape)):
-        raise ValueError(f"{run0}: FISTA-TV gave an estimate of shape {xf.shape}, the runs' is "
-                         f"{tuple(shape)}")
-    return xf.reshape(shape), {
+    return xf, {
         "weight": FISTA_WEIGHT, "tau": tau, "iterations": solver.iteration,
         "tau_rule": tau_meta.get("tau_rule"), "iterations_rule": tau_meta.get("iterations_rule"),
         "wall_time_s": round(time.perf_counter() - t0, 3), "settings": "recon fista's defaults",

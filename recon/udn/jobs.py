@@ -19,6 +19,9 @@ Run folder layout (``RUN_DIR``)::
     best.tif           the estimate with the lowest held-out error (+ .png)
     mean.tif           the mean of the estimates every ``output.average_every`` iterations
                        (iterate averaging; written once there is one; + .png)
+    with_fista.tif     ``output.with_fista`` (default): the mean (best while the mean holds
+                       fewer than two estimates) and FISTA-TV at ``recon fista``'s defaults,
+                       half and half, written when the run completes or stops early (+ .png)
     CANCEL             present while a cancellation is requested (``jobs cancel``)
 
 Every file is written atomically, by one process at a time (:class:`RunLock`: a second
@@ -657,6 +660,48 @@ class _Job:
         reason = runner.reason or StopReason.CANCELLED
         return reason.value
 
+    def _with_fista(self, results: dict[str, Any], hashes: dict[str, str],
+                    estimates: list[tuple[str, Any]], base_meta: dict[str, Any],
+                    kind: str) -> None:
+        """Write ``with_fista.tif``: the averaged recipe (docs/udn.md), appended to ``estimates``.
+
+        The run's mean of at least two estimates, else its best, half and half with FISTA-TV
+        at ``recon fista``'s defaults of the same problem. A cancel during the FISTA-TV run
+        skips it (noted); so does a FISTA-TV that fails (noted, the run's results stand).
+        """
+        from recon.io import data_hash, save_reconstruction
+        from recon.udn.ensemble import fista_tv_member
+
+        runner, problem = self.runner, self.problem
+        assert runner is not None and problem is not None
+        which = "mean" if runner.mean_count >= 2 else "best"
+        x_udn = dict(estimates)[which]
+        try:
+            out = fista_tv_member(problem.model, problem.meas, cancel=self.cancel)
+        except (ValueError, RuntimeError, ArithmeticError) as exc:  # memory, numerics
+            results["with_fista_note"] = (f"with_fista.tif not written: FISTA-TV failed "
+                                          f"({type(exc).__name__}: {exc})")
+            return
+        if out is None:
+            results["with_fista_note"] = "with_fista.tif not written: cancelled during FISTA-TV"
+            return
+        xf, fmeta = out
+        if xf.size != x_udn.size:
+            results["with_fista_note"] = (f"with_fista.tif not written: FISTA-TV gave shape "
+                                          f"{xf.shape}, the run's estimate is {x_udn.shape}")
+            return
+        w = float(fmeta["weight"])
+        x = np.asarray((1.0 - w) * x_udn + w * xf.reshape(x_udn.shape), dtype=np.float32)
+        meta = {**base_meta, "method": "udn+fista-tv", "estimate": "with_fista",
+                "udn_estimate": which, "fista": fmeta}
+        paths = save_reconstruction(self.run_dir / "with_fista.tif", x, meta, kind=kind)
+        results["with_fista"] = str(paths[0].relative_to(self.run_dir))
+        results["with_fista_estimate"] = which
+        results["fista"] = {k: fmeta[k] for k in ("tau", "iterations", "tau_rule",
+                                                  "wall_time_s")}
+        hashes["with_fista"] = data_hash(x)
+        estimates.append(("with_fista", x))
+
     def finish(self, reason: str) -> None:
         runner = self.runner
         problem = self.problem
@@ -694,6 +739,9 @@ class _Job:
         results["best_heldout"] = runner.best_heldout
         if "mean" in results:
             results.update(averaged)
+        if self.spec["output"].get("with_fista", True) and reason in (
+                "max_iter", "time_limit", "stopped_early"):
+            self._with_fista(results, hashes, estimates, base_meta, kind)
         if reason in ("max_iter", "time_limit"):
             results["still_improving"] = runner.still_improving()
         if problem.truth is not None:

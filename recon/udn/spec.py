@@ -183,6 +183,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
                               minimum=0.0),
         "average_every": Key((int,), _UDN.average_every, "iterations between the estimates "
                              "averaged into mean.tif (iterate averaging; 0: none)", minimum=0),
+        "with_fista": Key((bool,), True, "at the end, average the mean (or best) estimate half "
+                          "and half with FISTA-TV at recon fista's defaults: with_fista.tif"),
     },
 }
 

@@ -129,7 +129,7 @@ def test_jobs_from_the_gui_complete_open_and_combine(jobs_window: Any, qtbot: An
     assert len(panel.selected_all()) == 2  # the selection survives the polling
     for v in panel.views:
         assert v.finish_reason == "completed" and v.iteration == 10
-        assert set(v.results) == {"best", "final"}
+        assert set(v.results) == {"best", "final", "with_fista"}  # 10 < average_every
 
     # one job: its curves, its preview, its result with the metadata
     panel._select_folders({panel.views[0].folder})
@@ -197,6 +197,7 @@ def test_job_dialog_defaults_come_from_the_spec(live_window: Any, tmp_path: Any)
     assert dlg.headroom.value() == pytest.approx(SCHEMA["optimizer"]["headroom"].default,
                                                  abs=0.005)
     assert dlg.patience.value() == SCHEMA["stopping"]["patience"].default
+    assert dlg.with_fista.isChecked() is SCHEMA["output"]["with_fista"].default is True
     # the one default of its own: a live frame is the full sensor (docs/app.md says so)
     assert dlg.downsample.value() == 2 != SCHEMA["data"]["downsample"].default
     # a typed value out of range becomes the nearest bound, not the value typed on the way
@@ -225,6 +226,9 @@ def test_job_dialog_defaults_come_from_the_spec(live_window: Any, tmp_path: Any)
     spec = normalise_spec({"data": {"psf": "p.npy", "measurement": "m.npy"}, **secs},
                           base_dir=tmp_path)  # the dialog's sections are a valid job spec
     assert spec["optimizer"]["headroom"] == pytest.approx(1.5)
+    assert spec["output"]["with_fista"] is True
+    dlg.with_fista.setChecked(False)
+    assert dlg.sections()["output"]["with_fista"] is False
     dlg.reject()
 
 
@@ -532,7 +536,8 @@ def test_a_jobs_folder_inside_a_run_folder_is_named_and_gets_nothing(tmp_path):
 
 def test_the_result_window_shows_the_iterate_mean_with_its_count(qtbot: Any,
                                                                   tmp_path: Any) -> None:
-    """A finished run with a mean estimate (mean.tif) opens with three panels: best, the mean
+    """A finished run opens with four panels: its average with FISTA-TV (with_fista.tif, the
+    default's last step) labelled with the estimate and tau, best, the mean (mean.tif)
     labelled with how many estimates it averages and how often, and final."""
     import numpy as np
 
@@ -553,10 +558,12 @@ def test_the_result_window_shows_the_iterate_mean_with_its_count(qtbot: Any,
     rec = json.loads((rd / "run.json").read_text())
     assert rec["results"]["mean"] == "mean.tif" and rec["results"]["mean_count"] == 3
     view = JobView(folder=tmp_path, name="tiny", device="cpu", state=AppJobState.FINISHED,
-                   results={w: rd / f"{w}.tif" for w in ("best", "final", "mean")})
+                   results={w: rd / f"{w}.tif" for w in ("best", "final", "mean", "with_fista")})
     dlg = ResultDialog(view)
     qtbot.addWidget(dlg)
-    assert list(dlg.panels) == ["best", "mean", "final"]
+    assert list(dlg.panels) == ["with_fista", "best", "mean", "final"]
+    tau = dlg.meta["with_fista"]["fista"]["tau"]
+    assert dlg.panels["with_fista"].title.text() == f"<b>UDN mean + FISTA-TV (tau {tau:.3g})</b>"
     assert dlg.panels["mean"].title.text() == "<b>mean (3 estimates, every 4 it)</b>"
     assert dlg.meta["mean"]["estimate"] == "mean"
 

@@ -187,6 +187,17 @@ def test_combine_with_fista_is_half_the_runs_and_half_recon_fistas_result(three_
     np.testing.assert_allclose(xm, 0.5 * mean0 + 0.5 * xf.reshape(best.shape), rtol=0,
                                atol=1e-4 * float(np.abs(best).max()))
     assert not np.allclose(mean0, best, atol=1e-3 * float(np.abs(best).max()))
+    # the run wrote the same average itself at its end (output.with_fista, the default)
+    xw, wmeta = read_reconstruction(runs[0] / "with_fista.tif")
+    np.testing.assert_allclose(xw, xm, rtol=0, atol=1e-4 * float(np.abs(best).max()))
+    assert wmeta["method"] == "udn+fista-tv" and wmeta["udn_estimate"] == "mean"
+    assert wmeta["fista"]["tau"] == mmeta["fista"]["tau"]
+    res0 = json.loads((runs[0] / "run.json").read_text())["results"]
+    assert res0["with_fista"] == "with_fista.tif" and res0["with_fista_estimate"] == "mean"
+    assert res0["fista"]["tau"] == mmeta["fista"]["tau"]
+    assert res0["scores"]["with_fista"]["psnr"] == pytest.approx(
+        psnr(np.load(tiny_data / "truth.npy"), gain_fit(np.load(tiny_data / "truth.npy"),
+                                                        xw)[0]), abs=1e-3)
     # two runs: the mean of the runs, then half and half
     res = combine_runs(runs[:2], tmp_path / "wf2.tif", with_fista=True)
     means = [read_reconstruction(r / "mean.tif")[0] for r in runs[:2]]
@@ -236,3 +247,23 @@ def test_combine_with_fista_is_half_the_runs_and_half_recon_fistas_result(three_
     with pytest.raises(ValueError, match=r"data.measurement changed since the run"):
         combine_runs(runs[:1], tmp_path / "never.tif", with_fista=True)
     assert not (tmp_path / "never.tif").exists()
+
+
+def test_with_fista_is_written_only_when_asked_and_the_run_ended(tiny_data, tmp_path):
+    """output.with_fista false: no with_fista.tif; a cancelled run: none either (its estimate
+    is not its last); a run whose mean holds one estimate averages its best instead."""
+    off = write_spec(tiny_data, "off.toml", stopping={"max_iter": 6},
+                     output={"with_fista": False})
+    run_job(off, tmp_path / "off")
+    assert not (tmp_path / "off" / "with_fista.tif").exists()
+    assert "with_fista" not in json.loads((tmp_path / "off" / "run.json").read_text())["results"]
+    on = write_spec(tiny_data, "on.toml", stopping={"max_iter": 30},
+                    output={"average_every": 20})
+    calls = iter(range(10**6))
+    run_job(on, tmp_path / "cancelled", cancel=lambda: next(calls) >= 5)
+    rec = json.loads((tmp_path / "cancelled" / "run.json").read_text())
+    assert rec["finish_reason"] == "cancelled" and "with_fista" not in rec["results"]
+    assert not (tmp_path / "cancelled" / "with_fista.tif").exists()
+    run_job(on, tmp_path / "one")  # one estimate averaged (iteration 20 of 30): best
+    res = json.loads((tmp_path / "one" / "run.json").read_text())["results"]
+    assert res["mean_count"] == 1 and res["with_fista_estimate"] == "best"
