@@ -123,7 +123,16 @@ def test_recon_udn_defaults_are_the_specs() -> None:
              "input_channels": ("network", "input_channels"), "lr": ("optimizer", "lr"),
              "ema": ("optimizer", "ema"), "reg_noise": ("optimizer", "reg_noise"),
              "tv_weight": ("optimizer", "tv_weight"), "holdout": ("stopping", "holdout"),
-             "patience": ("stopping", "patience"), "iters": ("stopping", "max_iter")}
+             "patience": ("stopping", "patience"), "iters": ("stopping", "max_iter"),
+             "average_every": ("output", "average_every")}
     for opt, (section, key) in pairs.items():
         assert getattr(args, opt) == pytest.approx(SCHEMA[section][key].default), opt
     assert SCHEMA["optimizer"]["clip_adapt"].default is True
+    # the averaged recipe at the end: the spec's default unless --no-with-fista
+    from app.commands.recon_udn import build_spec
+
+    assert "with_fista" not in build_spec(args)["output"]  # left to the spec: true
+    assert SCHEMA["output"]["with_fista"].default is True
+    off = build_parser().parse_args(["recon", "udn", "--psf", "p.npy", "--meas", "m.npy",
+                                     "--no-with-fista"])
+    assert build_spec(off)["output"]["with_fista"] is False
