@@ -97,8 +97,8 @@ def udn_spec_sections(udn: Mapping[str, Any] | None
 
     ``udn``: ``{"network": NetworkConfig fields, "config": UDNConfig fields}``
     (:func:`recon.trade.udn_settings`, :attr:`recon.plan.Plan.udn`). A network setting goes to
-    the spec's ``network`` section, a run setting to whichever of ``optimizer``, ``stopping``
-    and ``device`` has its key (:data:`recon.udn.spec.SCHEMA`); a ``gain`` of None is the spec's
+    the spec's ``network`` section, a run setting to whichever of ``optimizer``, ``stopping``,
+    ``device`` and ``output`` (``average_every``) has its key (:data:`recon.udn.spec.SCHEMA`); a ``gain`` of None is the spec's
     ``'auto'``. ``max_iter`` and ``time_limit_s`` are left out (the suggestion's own
     ``max_iter`` / ``time_limit_s`` are the run's limits). The names (``part.key``) of settings
     no spec key takes (a trade of another release) are returned, not dropped silently.
@@ -108,7 +108,7 @@ def udn_spec_sections(udn: Mapping[str, Any] | None
     sections: dict[str, dict[str, Any]] = {}
     missing: list[str] = []
     for part, where in (("network", ("network",)),
-                        ("config", ("optimizer", "stopping", "device"))):
+                        ("config", ("optimizer", "stopping", "device", "output"))):
         given = (udn or {}).get(part)
         for key, value in (given.items() if isinstance(given, Mapping) else ()):
             if part == "config" and key in ("max_iter", "time_limit_s"):
