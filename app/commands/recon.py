@@ -33,7 +33,7 @@ def register(sub: Any) -> None:
         "with the default --prox-iters 3 the change can level off above it (on the tutorial "
         "sample at tau 1e-4 it hovers between 1e-4 and 3e-5 for thousands of iterations), so "
         "the run goes to --iters and its stop_detail says so; --prox-iters 20 converged there "
-        "in 193 (a 90 %% erased case still levelled off at 8e-5 with 20)")
+        "in 481 (a 90 %% erased case still levelled off at 8e-5 with 20)")
     f.add_argument("--tv-k", type=NONNEG, default=0.5,
                    help="weight of TV along k for video/spectral/depth (default 0.5)")
     f.add_argument("--prox-iters", type=POSITIVE_INT, default=3,
