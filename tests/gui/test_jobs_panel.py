@@ -552,7 +552,8 @@ def test_the_result_window_shows_the_iterate_mean_with_its_count(qtbot: Any,
     for name, a in (("psf", psf), ("meas", sim.meas), ("mask", sim.mask), ("truth", sim.truth)):
         np.save(d / f"{name}.npy", a)
     spec = write_spec(d, stopping={"max_iter": 12, "patience": 1000},
-                      output={"average_every": 4}, device={"threads": 1, "device": "cpu"})
+                      output={"average_every": 4, "with_fista": True},
+                      device={"threads": 1, "device": "cpu"})
     rd = tmp_path / "run"
     run_job(spec, rd)
     rec = json.loads((rd / "run.json").read_text())

@@ -187,12 +187,16 @@ def test_combine_with_fista_is_half_the_runs_and_half_recon_fistas_result(three_
     np.testing.assert_allclose(xm, 0.5 * mean0 + 0.5 * xf.reshape(best.shape), rtol=0,
                                atol=1e-4 * float(np.abs(best).max()))
     assert not np.allclose(mean0, best, atol=1e-3 * float(np.abs(best).max()))
-    # the run wrote the same average itself at its end (output.with_fista, the default)
-    xw, wmeta = read_reconstruction(runs[0] / "with_fista.tif")
+    # the same run with output.with_fista (the default) writes that average itself at its end
+    on = write_spec(tiny_data, "on.toml", stopping={"max_iter": 60, "patience": 1000},
+                    output={"average_every": 20, "with_fista": True})
+    run_job(on, tmp_path / "w0", seed=0)
+    np.testing.assert_array_equal(read_reconstruction(tmp_path / "w0" / "mean.tif")[0], mean0)
+    xw, wmeta = read_reconstruction(tmp_path / "w0" / "with_fista.tif")
     np.testing.assert_allclose(xw, xm, rtol=0, atol=1e-4 * float(np.abs(best).max()))
     assert wmeta["method"] == "udn+fista-tv" and wmeta["udn_estimate"] == "mean"
     assert wmeta["fista"]["tau"] == mmeta["fista"]["tau"]
-    res0 = json.loads((runs[0] / "run.json").read_text())["results"]
+    res0 = json.loads((tmp_path / "w0" / "run.json").read_text())["results"]
     assert res0["with_fista"] == "with_fista.tif" and res0["with_fista_estimate"] == "mean"
     assert res0["fista"]["tau"] == mmeta["fista"]["tau"]
     assert res0["scores"]["with_fista"]["psnr"] == pytest.approx(
@@ -258,7 +262,7 @@ def test_with_fista_is_written_only_when_asked_and_the_run_ended(tiny_data, tmp_
     assert not (tmp_path / "off" / "with_fista.tif").exists()
     assert "with_fista" not in json.loads((tmp_path / "off" / "run.json").read_text())["results"]
     on = write_spec(tiny_data, "on.toml", stopping={"max_iter": 30},
-                    output={"average_every": 20})
+                    output={"average_every": 20, "with_fista": True})
     calls = iter(range(10**6))
     run_job(on, tmp_path / "cancelled", cancel=lambda: next(calls) >= 5)
     rec = json.loads((tmp_path / "cancelled" / "run.json").read_text())
