@@ -35,6 +35,7 @@ from PySide6.QtWidgets import (
     QProgressBar,
     QPushButton,
     QScrollArea,
+    QSizePolicy,
     QSplitter,
     QTableWidget,
     QTableWidgetItem,
@@ -569,19 +570,21 @@ class ResultDialog(QDialog):
             it = meta.get("best_iteration") if which == "best" else None
             label = (f"{which} (it {it} of {meta.get('iterations')})" if it is not None else
                      f"{which} ({meta.get('iterations')} it)")
-            if which == "with_fista":
+            footer = f"{path.name} · {img.shape[1]}x{img.shape[0]}"
+            if which == "with_fista":  # short titles: four panels share the window's width
                 f = meta.get("fista") or {}
-                tau = f.get("tau")
-                label = (f"UDN {meta.get('udn_estimate', '')} + FISTA-TV"
-                         + (f" (tau {tau:.3g})" if isinstance(tau, int | float) else ""))
+                label = f"{meta.get('udn_estimate', 'UDN')} + FISTA-TV"
+                if isinstance(f.get("tau"), int | float):
+                    footer += f" · FISTA-TV tau {f['tau']:.3g}, {f.get('iterations')} it"
             if which == "mean" and meta.get("mean_count"):
-                n = int(meta["mean_count"])
-                label = (f"mean ({n} estimate{'s' if n != 1 else ''}, every "
-                         f"{meta.get('average_every')} it)")
+                label = f"mean of {int(meta['mean_count'])} (every {meta.get('average_every')})"
             panel = ImagePanel(label)
-            never_wider(panel.title)  # a longer title made its panel (and image) wider
+            # the same width each, whatever the title's length (a longer one made its panel,
+            # and the image, wider): widths from the stretch below, not the contents
+            panel.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
             panel.set_image(img, (0.0, float(np.percentile(img, 99.5)) or 1.0))
-            panel.footer.setText(f"{path.name} · {img.shape[1]}x{img.shape[0]}")
+            panel.footer.setText(footer)
+            panel.title.setToolTip(label)
             self.panels[which] = panel
             self.meta[which] = meta
             lay.addWidget(panel, 1)  # the same width each: images side by side at one scale

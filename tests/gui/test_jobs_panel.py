@@ -536,9 +536,10 @@ def test_a_jobs_folder_inside_a_run_folder_is_named_and_gets_nothing(tmp_path):
 
 def test_the_result_window_shows_the_iterate_mean_with_its_count(qtbot: Any,
                                                                   tmp_path: Any) -> None:
-    """A finished run opens with four panels: its average with FISTA-TV (with_fista.tif, the
-    default's last step) labelled with the estimate and tau, best, the mean (mean.tif)
-    labelled with how many estimates it averages and how often, and final."""
+    """A finished run opens with four panels of one width: its average with FISTA-TV
+    (with_fista.tif, the default's last step) labelled with the estimate (tau below), best,
+    the mean (mean.tif) labelled with how many estimates it averages and how often, and
+    final."""
     import numpy as np
 
     from app.gui.jobs_core import AppJobState, JobView
@@ -562,10 +563,16 @@ def test_the_result_window_shows_the_iterate_mean_with_its_count(qtbot: Any,
                    results={w: rd / f"{w}.tif" for w in ("best", "final", "mean", "with_fista")})
     dlg = ResultDialog(view)
     qtbot.addWidget(dlg)
+    dlg.show()
+    qtbot.waitExposed(dlg)
     assert list(dlg.panels) == ["with_fista", "best", "mean", "final"]
     tau = dlg.meta["with_fista"]["fista"]["tau"]
-    assert dlg.panels["with_fista"].title.text() == f"<b>UDN mean + FISTA-TV (tau {tau:.3g})</b>"
-    assert dlg.panels["mean"].title.text() == "<b>mean (3 estimates, every 4 it)</b>"
+    assert dlg.panels["with_fista"].title.text() == "<b>mean + FISTA-TV</b>"
+    assert f"FISTA-TV tau {tau:.3g}" in dlg.panels["with_fista"].footer.text()
+    assert dlg.panels["mean"].title.text() == "<b>mean of 3 (every 4)</b>"
+    # the same width each (a longer title made its panel wider)
+    widths = {p.width() for p in dlg.panels.values()}
+    assert max(widths) - min(widths) <= 2, widths
     assert dlg.meta["mean"]["estimate"] == "mean"
 
 
