@@ -100,8 +100,9 @@ def udn_spec_sections(udn: Mapping[str, Any] | None
     the spec's ``network`` section, a run setting to whichever of ``optimizer``, ``stopping``,
     ``device`` and ``output`` (``average_every``) has its key (:data:`recon.udn.spec.SCHEMA`);
     a ``gain`` of None is the spec's ``'auto'``. ``max_iter`` and ``time_limit_s`` are left
-    out (the suggestion's own ``max_iter`` / ``time_limit_s`` are the run's limits). The names (``part.key``) of settings
-    no spec key takes (a trade of another release) are returned, not dropped silently.
+    out (the suggestion's own ``max_iter`` / ``time_limit_s`` are the run's limits). The
+    names (``part.key``) of settings no spec key takes (a trade of another release) are
+    returned, not dropped silently.
     """
     from recon.udn.spec import SCHEMA
 
