@@ -42,7 +42,8 @@ import numpy.typing as npt
 from recon.formats import FormatError
 from recon.udn.state import JobState
 
-__all__ = ["EnsembleResult", "combine_runs", "fista_tv_member"]
+__all__ = ["MIN_MEAN_COUNT", "EnsembleResult", "average_with_fista", "combine_runs",
+           "fista_tv_member"]
 
 F32 = npt.NDArray[np.float32]
 Estimate = Literal["auto", "best", "final", "mean"]
@@ -99,6 +100,8 @@ def _why_no_mean(rec: dict[str, Any]) -> str:
         return "a run from before the iterate average"
     if every == 0:
         return "averaging was off: average_every 0"
+    if not isinstance(its, int) or its >= every:
+        return "its record names none"
     return (f"it ran {its} iterations, fewer than its average_every {every}: 'lenslesscam jobs "
             f"resume RUN --max-iter {every}' or more would average")
 
@@ -120,7 +123,7 @@ def _mean_problem(run_dir: Path) -> str | None:
     if not (run_dir / str(results["mean"])).is_file():
         return f"its {results['mean']} is missing"
     count = results.get("mean_count")
-    if isinstance(count, int) and count < 2:  # one early iterate, not an average
+    if isinstance(count, int) and count < MIN_MEAN_COUNT:  # one early iterate, no average
         return (f"its mean is the one estimate of iteration "
                 f"{results.get('mean_last_iteration', '?')}, not an average")
     return None
@@ -183,6 +186,15 @@ def _refuse_failed(dirs: Sequence[Path]) -> None:
 
 #: the FISTA-TV member's share of the average (``with_fista``): fixed, not tuned
 FISTA_WEIGHT = 0.5
+#: the fewest estimates a run's mean must hold to stand for the run in the averaged recipe
+#: (one is a single early iterate): ``jobs combine``'s ``auto`` and a job's with_fista.tif
+MIN_MEAN_COUNT = 2
+
+
+def average_with_fista(x: Any, xf: Any) -> npt.NDArray[np.float64]:
+    """The averaged recipe: ``x`` (the runs' average) and FISTA-TV's ``xf``, by FISTA_WEIGHT."""
+    return np.asarray((1.0 - FISTA_WEIGHT) * np.asarray(x, dtype=np.float64)
+                      + FISTA_WEIGHT * np.asarray(xf, dtype=np.float64).reshape(np.shape(x)))
 
 
 def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
@@ -285,7 +297,7 @@ def combine_runs(run_dirs: Sequence[str | Path], out: str | Path, *,
     fista = None
     if with_fista:
         xf, fista = _fista_member(rec0, dirs[0], mean.shape)
-        mean = (1.0 - FISTA_WEIGHT) * mean + FISTA_WEIGHT * xf
+        mean = average_with_fista(mean, xf)
     x: F32 = np.asarray(mean, dtype=np.float32)
     scores = None
     # the truth of the first member that names one (the truth is not part of the problem:

@@ -670,11 +670,11 @@ class _Job:
         skips it (noted); so does a FISTA-TV that fails (noted, the run's results stand).
         """
         from recon.io import data_hash, save_reconstruction
-        from recon.udn.ensemble import fista_tv_member
+        from recon.udn.ensemble import MIN_MEAN_COUNT, average_with_fista, fista_tv_member
 
         runner, problem = self.runner, self.problem
         assert runner is not None and problem is not None
-        which = "mean" if runner.mean_count >= 2 else "best"
+        which = "mean" if runner.mean_count >= MIN_MEAN_COUNT else "best"
         x_udn = dict(estimates)[which]
         try:
             out = fista_tv_member(problem.model, problem.meas, cancel=self.cancel)
@@ -690,8 +690,7 @@ class _Job:
             results["with_fista_note"] = (f"with_fista.tif not written: FISTA-TV gave shape "
                                           f"{xf.shape}, the run's estimate is {x_udn.shape}")
             return
-        w = float(fmeta["weight"])
-        x = np.asarray((1.0 - w) * x_udn + w * xf.reshape(x_udn.shape), dtype=np.float32)
+        x = np.asarray(average_with_fista(x_udn, xf), dtype=np.float32)
         meta = {**base_meta, "method": "udn+fista-tv", "estimate": "with_fista",
                 "udn_estimate": which, "fista": fmeta}
         paths = save_reconstruction(self.run_dir / "with_fista.tif", x, meta, kind=kind)
