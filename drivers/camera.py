@@ -553,6 +553,14 @@ class Camera(Protocol):
         """Sensor timing of the next frame, or None when the device cannot say."""
         ...
 
+    @property
+    def resulting_frame_rate_hz(self) -> float | None:
+        """The frame rate the present settings give, or None when the device cannot say.
+
+        The exposure can make it lower than :attr:`frame_rate_hz`.
+        """
+        ...
+
     def snap(self, timeout_s: float = 5.0) -> Frame:
         """Acquire one frame (raises :class:`CameraTimeout` after ``timeout_s``)."""
         ...
@@ -1194,6 +1202,19 @@ class CameraBase:
             )
         except (FeatureNotAvailable, ValueError):
             return None
+
+    @property
+    def resulting_frame_rate_hz(self) -> float | None:
+        """The rate frames come at with the present settings, or None when unknown.
+
+        The set frame rate, or less where one frame (exposure and readout, :attr:`timing`)
+        takes longer than its period; None when the device has no frame rate or no timing.
+        """
+        rate = self._optional(lambda: self.frame_rate_hz)
+        t = self.timing
+        if rate is None or t is None or not t.frame_time_us > 0:
+            return None
+        return min(float(rate), 1e6 / t.frame_time_us)
 
     def _optional(self, getter: Callable[[], Any]) -> Any:
         try:

@@ -1125,6 +1125,21 @@ class GenICamCamera(CameraBase):
         """SFNC AcquisitionFrameRate."""
         return float(self._get(Feature.FRAME_RATE, "AcquisitionFrameRate"))
 
+    @property
+    def resulting_frame_rate_hz(self) -> float | None:
+        """The device's SFNC AcquisitionResultingFrameRate (or ResultingFrameRate).
+
+        Where it has neither, the rate the frame timing allows (:class:`CameraBase`).
+        """
+        for name in ("AcquisitionResultingFrameRate", "ResultingFrameRate"):
+            if self._has(name, write=False):
+                try:
+                    with self._lock:
+                        return float(self._node(name).value)  # type: ignore[union-attr]
+                except Exception as exc:  # a device error: fall back to the timing
+                    _log.debug("%s: reading %s: %s", self.describe(), name, exc)
+        return super().resulting_frame_rate_hz
+
     def _do_set_frame_rate_hz(self, value: float) -> None:
         with self._lock:
             if self._has("AcquisitionFrameRateEnable"):

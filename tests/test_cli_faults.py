@@ -100,6 +100,10 @@ BAD_VALUES = [
     (["bench", "fista", "--sizes", "256,x"], "--sizes", ">= 16"),
     (["bench", "fista", "--methods", "fista,lasso"], "--methods", "fista, admm"),
     (["bench", "udn-video", "--frames", "1"], "--frames", ">= 2"),
+    # beyond an int64 with room: named as the option, not as a spec key "in size"
+    (["recon", "udn", "--meas", "m.npy", "--average-every", "1" + "0" * 20], "--average-every",
+     "at most 2**62"),
+    (["recon", "udn", "--meas", "m.npy", "--seed", "9" * 20], "--seed", "at most 2**62"),
 ]
 
 

@@ -67,8 +67,13 @@ def finite_float(lo: float | None = None, hi: float | None = None, *, lo_open: b
     return parse
 
 
+#: the largest magnitude of any integer option (an int64 with room, as a job spec's INT_MAX):
+#: beyond it NumPy and torch counters overflow; no count, seed or size comes near it
+INT_LIMIT = 2**62
+
+
 def integer(lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
-    """A ``type=`` for an integer in [lo, hi]."""
+    """A ``type=`` for an integer in [lo, hi], never beyond +-2**62 (``INT_LIMIT``)."""
     bound = _bound(lo, hi, False, False)
     what = f"an integer {bound}".rstrip()
 
@@ -79,6 +84,9 @@ def integer(lo: int | None = None, hi: int | None = None) -> Callable[[str], int
             raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}") from None
         if (lo is not None and value < lo) or (hi is not None and value > hi):
             raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+        if abs(value) > INT_LIMIT:
+            raise argparse.ArgumentTypeError(f"must be {what} and at most 2**62 in magnitude, "
+                                             f"got {text!r}")
         return value
 
     parse.__name__ = f"int {bound}".strip()

@@ -70,11 +70,21 @@ SCENES: dict[str, str] = {
 
 @dataclass(frozen=True)
 class CameraChoice:
-    """A camera the user can pick: ``spec`` for :func:`drivers.open_camera`."""
+    """A camera the user can pick: ``spec`` for :func:`drivers.open_camera`.
+
+    ``label`` is what the list shows (short: the list is narrow at 1366x768); ``detail``, when
+    there is one, goes with it into the tooltip.
+    """
 
     spec: str
     backend: str
     label: str
+    detail: str = ""
+
+    @property
+    def tooltip(self) -> str:
+        """The whole description."""
+        return f"{self.label} ({self.detail})" if self.detail else self.label
 
 
 @dataclass(frozen=True)
@@ -83,6 +93,13 @@ class PortChoice:
 
     port: str
     label: str
+
+
+#: the simulated camera, listed even before (and whatever) discovery finds
+SIM_CAMERA_CHOICE = CameraChoice(SIM_CAMERA, "sim", "Simulated camera",
+                                 "the Sim scene below through the bundled tutorial PSF")
+#: the simulated point source, listed first
+SIM_PORT_CHOICE = PortChoice(SIM_PORT, "Simulated point source (PTY)")
 
 
 _producer_lines_seen: set[str] = set()
@@ -139,13 +156,12 @@ def list_camera_choices(show_demo: bool = False) -> list[CameraChoice]:
             for i in infos if i.spec != SIM_CAMERA and not i.demo]
     demo = [CameraChoice(i.spec, i.backend, f"{i.spec}: {i.description} (demo)")
             for i in infos if i.spec != SIM_CAMERA and i.demo]
-    sim = CameraChoice(SIM_CAMERA, "sim", "Simulated camera (bundled scene, tutorial PSF)")
-    return [*real, sim, *(demo if show_demo else [])]
+    return [*real, SIM_CAMERA_CHOICE, *(demo if show_demo else [])]
 
 
 def list_port_choices() -> list[PortChoice]:
     """The simulated point source first, then the serial ports pyserial finds."""
-    out = [PortChoice(SIM_PORT, "Simulated point source (PTY)")]
+    out = [SIM_PORT_CHOICE]
     try:
         from drivers.registry import list_serial_ports
 

@@ -46,10 +46,10 @@ from PySide6.QtWidgets import (
 from app.devices_state import CameraState, DeviceStates, LightAction, LightState
 from app.gui.devices import (
     SIM_CAMERA,
-    SIM_PORT,
+    SIM_CAMERA_CHOICE,
+    SIM_PORT_CHOICE,
     Bench,
     CameraChoice,
-    PortChoice,
     SimConfig,
     best_effort,
     list_camera_choices,
@@ -111,6 +111,10 @@ def _read_camera(cam: Any) -> tuple[dict[str, Any], dict[str, Any]]:
         except Exception:  # FeatureNotAvailable or a device error: the control is disabled
             v = None
         values[name] = getattr(v, "value", v)
+    try:
+        values["resulting_frame_rate_hz"] = cam.resulting_frame_rate_hz
+    except Exception:  # a device error: no note beside the frame rate
+        values["resulting_frame_rate_hz"] = None
     ranges: dict[str, Any] = {}
     try:
         caps = cam.capabilities()
@@ -313,11 +317,8 @@ class MainWindow(QMainWindow):
         self.device_panel.set_scene(self.settings.sim_scene)
         self.device_panel.show_demo.setChecked(self.settings.show_demo_cameras)
         # discovery may block (GenTL producers): the lists fill in from the worker
-        self.device_panel.set_cameras(
-            [CameraChoice(SIM_CAMERA, "sim", "Simulated camera (bundled scene, tutorial PSF)")],
-            self.settings.camera)
-        self.device_panel.set_ports([PortChoice(SIM_PORT, "Simulated point source (PTY)")],
-                                    self.settings.light_port)
+        self.device_panel.set_cameras([SIM_CAMERA_CHOICE], self.settings.camera)
+        self.device_panel.set_ports([SIM_PORT_CHOICE], self.settings.light_port)
         self._restore_geometry()
         if self.settings.psf_path:
             self._load_psf(self.settings.psf_path, quiet=True)
@@ -803,7 +804,7 @@ class MainWindow(QMainWindow):
     def _camera_lost(self, exc: BaseException) -> None:
         if not self.devices.camera_failed():
             return
-        msg = f"Camera lost: {_describe(exc)} – reconnecting…"
+        msg = f"Camera lost – reconnecting…: {_describe(exc)}"
         self._set_camera_state(CameraState.LOST, msg, "error")
         self.show_error(msg, "camera")
         self.reconnect_timer.start()
@@ -835,7 +836,7 @@ class MainWindow(QMainWindow):
         def failed(exc: BaseException) -> None:
             if not self.devices.reconnect_result(False):
                 return
-            msg = f"Camera lost: {_describe(exc)} – reconnect attempt {n} failed, retrying…"
+            msg = f"Camera lost – reconnect attempt {n} failed, retrying…: {_describe(exc)}"
             set_status(self.device_panel.camera_status, msg, "error")
             self.show_error(msg, "camera")
             self.reconnect_timer.start()
@@ -946,13 +947,13 @@ class MainWindow(QMainWindow):
         if not self.light_state.watched:
             self.show_error(f"Point source: {_describe(exc)}", "light")
             return
-        msg = f"Point source lost: {_describe(exc)} – reconnecting…"
+        msg = f"Point source lost – reconnecting…: {_describe(exc)}"
         self._set_light_state(LightState.LOST, msg, "error")
         self.show_error(msg, "light")
 
     def _light_still_lost(self, exc: BaseException) -> None:
         if self.light_state is LightState.LOST:
-            msg = f"Point source lost: {_describe(exc)} – retrying…"
+            msg = f"Point source lost – retrying…: {_describe(exc)}"
             set_status(self.device_panel.light_status, msg, "error")
             self.show_error(msg, "light")
 

@@ -128,6 +128,7 @@ class DevicePanel(QGroupBox):
         row.addWidget(self.intensity)
         form.addRow("Light", row)
 
+        self.camera_combo.currentIndexChanged.connect(lambda _i: self._camera_tooltip())
         self.refresh_button.clicked.connect(self.refresh_requested)
         self.show_demo.toggled.connect(self.show_demo_changed)
         self.camera_connect.clicked.connect(self._connect_camera)
@@ -151,8 +152,16 @@ class DevicePanel(QGroupBox):
             self.camera_combo.clear()
             for c in choices:
                 self.camera_combo.addItem(c.label, c.spec)
+                self.camera_combo.setItemData(self.camera_combo.count() - 1, c.tooltip,
+                                              Qt.ItemDataRole.ToolTipRole)
             i = self.camera_combo.findData(keep)
             self.camera_combo.setCurrentIndex(max(0, i))
+        self._camera_tooltip()
+
+    def _camera_tooltip(self) -> None:
+        """The chosen camera's whole description as the list's tooltip."""
+        tip = self.camera_combo.currentData(Qt.ItemDataRole.ToolTipRole)
+        self.camera_combo.setToolTip(str(tip) if tip else "")
 
     def set_ports(self, choices: Iterable[PortChoice], current: str | None = None) -> None:
         """Fill the port list."""
@@ -259,6 +268,12 @@ class CameraControls(QGroupBox):
         self.line_time = double_spin(0.01, 1000.0, 2, 1.0, " µs")
         self.trigger_delay = double_spin(0.0, 1e6, 1, 10.0, " µs")
         self.frame_rate = double_spin(0.1, 1000.0, 1, 1.0, " Hz")
+        # beside the box (a line below it would move the controls under it): the rate the
+        # exposure allows when it is less than the set one (the box keeps the set rate,
+        # which the camera goes back to for a shorter exposure)
+        self.frame_rate_note = QLabel("")
+        self.frame_rate_note.setMinimumWidth(self.frame_rate_note.fontMetrics()
+                                             .horizontalAdvance("→ 999.9 Hz") + 4)
         self.show_roi = QCheckBox("show ROI")
         self.roi_apply = QPushButton("Set camera ROI")
         self.roi_reset = QPushButton("Full sensor")
@@ -276,7 +291,10 @@ class CameraControls(QGroupBox):
         form.addRow("Readout", self.readout_pattern)
         form.addRow("Line time", self.line_time)
         form.addRow("Trigger delay", self.trigger_delay)
-        form.addRow("Frame rate", self.frame_rate)
+        row = QHBoxLayout()
+        row.addWidget(self.frame_rate, 1)
+        row.addWidget(self.frame_rate_note)
+        form.addRow("Frame rate", row)
         row = QHBoxLayout()
         row.addWidget(self.show_roi)
         row.addWidget(self.roi_apply)
@@ -362,6 +380,21 @@ class CameraControls(QGroupBox):
                     if r is not None and all(math.isfinite(x) for x in r):
                         w.setRange(float(r[0]) * scale, float(r[1]) * scale)
                     w.setValue(float(v) * scale)
+        self._frame_rate_note(values.get("frame_rate_hz"), values.get("resulting_frame_rate_hz"),
+                              values.get("exposure_us"))
+
+    def _frame_rate_note(self, rate: Any, resulting: Any, exposure_us: Any) -> None:
+        """'→ 8.3 Hz' beside the frame rate when the exposure (and readout) allow less."""
+        note, tip = "", ""
+        if rate is not None and resulting is not None and float(resulting) < 0.995 * float(rate):
+            note = f"→ {float(resulting):.3g} Hz"
+            exposure = f" ({float(exposure_us) / 1000:.4g} ms)" if exposure_us is not None else ""
+            tip = (f"The camera delivers {float(resulting):.4g} Hz, not the set "
+                   f"{float(rate):.4g} Hz: the exposure{exposure} and the readout take longer "
+                   f"than one period. A shorter exposure goes back to the set rate.")
+        self.frame_rate_note.setText(note)
+        self.frame_rate_note.setToolTip(tip)
+        self.frame_rate.setToolTip(tip)
 
 
 class TauSpinBox(DoubleSpinBox):

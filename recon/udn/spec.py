@@ -227,7 +227,7 @@ def _check_value(where: str, key: Key, value: Any) -> Any:
         raise SpecError(f"{where} must be within float32's range (|x| <= 3.4e38: the network "
                         f"computes in float32), got {value!r}")
     if isinstance(value, int) and not isinstance(value, bool) and abs(value) > INT_MAX:
-        raise SpecError(f"{where} must be at most {INT_MAX} in size, got {value!r}")
+        raise SpecError(f"{where} must be at most 2**62 in magnitude, got {value!r}")
     return value
 
 

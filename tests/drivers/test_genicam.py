@@ -107,6 +107,25 @@ def test_missing_sfnc_nodes_are_reported_by_name(viky_cti: Path, tlsimu_cti: Pat
             tlsimu.roi = Roi(0, 0, 66, 48)  # Width increment is 4
 
 
+def test_the_resulting_frame_rate_is_the_devices_own_node_where_it_has_one(
+        viky_cti: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """viky has no sensor timing and no ResultingFrameRate: the rate it gives is unknown
+    (None, not its set 20 Hz); a device with the SFNC node is read."""
+    with GenICamCamera(0, producer=viky_cti) as viky:
+        assert viky.frame_rate_hz > 0 and viky.timing is None
+        assert viky.resulting_frame_rate_hz is None
+
+        class Node:
+            value = 12.5
+
+        has, node = viky._has, viky._node
+        monkeypatch.setattr(viky, "_has", lambda name, write=True: (
+            name == "AcquisitionResultingFrameRate" or has(name, write)))
+        monkeypatch.setattr(viky, "_node", lambda name: (
+            Node() if name == "AcquisitionResultingFrameRate" else node(name)))
+        assert viky.resulting_frame_rate_hz == 12.5
+
+
 def test_fetch_timeout_becomes_camera_timeout(tlsimu_cti: Path) -> None:
     with GenICamCamera(0, producer=tlsimu_cti) as cam:
         cam.roi = Roi(0, 0, 32, 32)

@@ -351,6 +351,21 @@ def test_frame_rate_pacing() -> None:
     assert frames[-1].timestamp - frames[0].timestamp == pytest.approx(0.1, abs=0.05)
 
 
+def test_the_resulting_frame_rate_is_what_the_exposure_allows() -> None:
+    """The set rate while a frame fits its period; 1 / frame time once the exposure makes a
+    frame longer (the app showed the set 20 Hz while 5 came)."""
+    with SimulatedCamera(8, 8, frame_rate_hz=20.0, exposure_us=10_000.0) as cam:
+        assert cam.resulting_frame_rate_hz == pytest.approx(20.0)
+        cam.exposure_us = 200_000.0
+        assert cam.frame_rate_hz == pytest.approx(20.0)  # the setting is kept
+        frame_us = cam.timing.frame_time_us
+        assert frame_us > 200_000.0
+        assert cam.resulting_frame_rate_hz == pytest.approx(1e6 / frame_us)
+        assert cam.resulting_frame_rate_hz == pytest.approx(1e6 / cam.frame_period_us())
+        cam.exposure_us = 1_000.0
+        assert cam.resulting_frame_rate_hz == pytest.approx(20.0)
+
+
 def test_frame_timing_metadata_rebuilds_the_shutter() -> None:
     with _ideal_camera(exposure_us=123.0, readout_pattern="centre-out") as cam:
         f = cam.snap()

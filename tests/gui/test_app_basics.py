@@ -37,10 +37,27 @@ def test_window_fits_a_1366x768_screen_with_every_panel_shown(live_window: Any,
     w.resize(1366, 740)
     qtbot.waitUntil(lambda: w.width() <= 1366, timeout=5_000)
     assert w.width() <= 1366 and w.height() <= 768
+    # the camera list shows its choice whole ("Simulated camera (bundled" was cut there); the
+    # details are in the tooltip
+    combo = w.device_panel.camera_combo
+    QApplication.processEvents()
+    assert _text_fits(combo), (combo.currentText(), combo.width())
+    assert combo.toolTip().startswith(combo.currentText()) and "PSF" in combo.toolTip()
     # the docks can be closed, and tabbed: jobs and trade share the bottom area
     for dock in (w.controls_dock, w.jobs_dock, w.trade_dock):
         assert dock.features() & dock.DockWidgetFeature.DockWidgetClosable
     assert w.trade_dock in w.tabifiedDockWidgets(w.jobs_dock)
+
+
+def _text_fits(combo: QComboBox) -> bool:
+    """Whether the combo box's edit field is as wide as its current text."""
+    from PySide6.QtWidgets import QStyle, QStyleOptionComboBox
+
+    opt = QStyleOptionComboBox()
+    combo.initStyleOption(opt)
+    field = combo.style().subControlRect(QStyle.ComplexControl.CC_ComboBox, opt,
+                                         QStyle.SubControl.SC_ComboBoxEditField, combo)
+    return field.width() >= combo.fontMetrics().horizontalAdvance(combo.currentText())
 
 
 def test_spin_boxes_take_the_wheel_only_when_focused(live_window: Any, qtbot: Any) -> None:

@@ -9,6 +9,7 @@ from typing import Any
 
 import pytest
 from PySide6.QtCore import Qt
+from PySide6.QtWidgets import QLabel
 
 pytestmark = pytest.mark.gui
 
@@ -45,6 +46,26 @@ def test_exposure_control_sets_the_camera(live_window: Any, qtbot: Any) -> None:
     qtbot.waitUntil(lambda: abs(w.bench.camera.exposure_us - 5000.0) < 20, timeout=5_000)
     qtbot.waitUntil(lambda: w.last_frame is not None and w.last_frame.exposure_us < 6000,
                     timeout=5_000)
+
+
+def test_a_frame_rate_the_exposure_limits_says_so_beside_the_box(live_window: Any,
+                                                                  qtbot: Any) -> None:
+    """The box kept the set rate while the exposure gave fewer frames, with nothing beside it:
+    now '→ N Hz' and a tooltip; the box keeps the set rate, and the note goes with a short
+    exposure."""
+    w = live_window
+    cc = w.camera_controls
+    rate = cc.frame_rate.value()
+    cc.exposure.setValue(1000.0 / rate * 3)  # ms: three periods
+    qtbot.waitUntil(lambda: cc.frame_rate_note.text().startswith("→"), timeout=5_000)
+    got = float(re.search(r"→ ([\d.]+) Hz", cc.frame_rate_note.text()).group(1))
+    assert got == pytest.approx(w.bench.camera.resulting_frame_rate_hz, rel=0.01)
+    assert got < rate / 2.5
+    assert cc.frame_rate.value() == pytest.approx(rate)  # the setting, not the result
+    assert "exposure" in cc.frame_rate.toolTip() and "exposure" in cc.frame_rate_note.toolTip()
+    cc.exposure.setValue(1000.0 / rate / 4)
+    qtbot.waitUntil(lambda: cc.frame_rate_note.text() == "", timeout=5_000)
+    assert cc.frame_rate.toolTip() == ""
 
 
 def test_refused_setting_is_shown_not_raised(live_window: Any, qtbot: Any) -> None:
@@ -102,6 +123,11 @@ def test_camera_unplug_shows_error_and_reconnects(live_window: Any, qtbot: Any) 
     assert w.banner.isVisible() and "Camera lost" in w.banner.text()
     assert "CameraTimeout" in w.banner.text()
     qtbot.waitUntil(lambda: w.reconnect_attempts >= 2, timeout=10_000)
+    # the attempt count comes before the cause: the one-line status, cut to its width, kept
+    # "Camera lost: CameraTimeout: ... –" and lost the count
+    qtbot.waitUntil(lambda: "failed" in w.device_panel.camera_status.text(), timeout=10_000)
+    shown = QLabel.text(w.device_panel.camera_status)
+    assert re.match(r"Camera lost – reconnect attempt \d+ failed", shown), shown
     # the window stays usable: a control still works while the camera is gone
     w.preview_controls.tau.setValue(1e-3)
     assert w.engine.settings.tau == pytest.approx(1e-3)

@@ -400,7 +400,7 @@ def test_a_seed_beyond_32_bits_is_a_spec_error(tiny_data, tmp_path):
     ("optimizer", "lr", -1.0, "optimizer.lr must be > 0"),
     # 'value cannot be converted to type float without overflow', no key named
     ("optimizer", "lr", 1e300, "optimizer.lr must be within float32's range"),
-    ("stopping", "max_iter", 2**70, "stopping.max_iter must be at most"),
+    ("stopping", "max_iter", 2**70, "stopping.max_iter must be at most 2**62 in magnitude"),
     ("output", "status_seconds", -1.0, "output.status_seconds must be >= 0"),
     ("output", "checkpoint_minutes", -5.0, "output.checkpoint_minutes must be >= 0"),
     # blamed on data.field: its value 'sensor' was found in "the sensor's black offset"
