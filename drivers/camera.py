@@ -22,8 +22,10 @@ Errors: a :class:`FrameError` is one bad frame (a corrupt compressed frame, a fa
 undecodable file, a frame of another size or pixel type); the source may still deliver the
 next. Live view skips it (counted in :attr:`StreamStats.bad`, logged) and ends only after
 :attr:`CameraBase.stream_max_bad_frames` bad frames in a row, or when no *good* frame came for
-:attr:`CameraBase.stream_timeout_s`. An acquisition ends at the first error of any kind (its
-data must be whole). Any other :class:`CameraError` ends either stream at once.
+:attr:`CameraBase.stream_timeout_s` plus two frame times (:meth:`CameraBase.expected_frame_s`,
+which follows the exposure and frame rate set while streaming). An acquisition ends at the
+first error of any kind (its data must be whole). Any other :class:`CameraError` ends either
+stream at once.
 
 Feature names (:class:`Feature`) are shared by :class:`Capabilities` and
 :class:`FeatureNotAvailable`, so a caller can ask first or try and catch.
@@ -688,6 +690,7 @@ class FrameStreamer:
         self._n = None if n_frames is None else int(n_frames)
         self._queue_size = 1 if mode is StreamMode.LIVE else int(queue_size)
         self._stall = float(stall_timeout_s)
+        self._frame_s = 0.0  # one frame's time: the stall allows it twice more (expect_frame_s)
         self._poll = float(poll_s)
         self._on_exit = on_exit
         self._max_bad = int(max_bad_frames)
@@ -711,6 +714,19 @@ class FrameStreamer:
 
     # -- thread side ---------------------------------------------------------------------------
 
+    def expect_frame_s(self, seconds: float) -> None:
+        """One frame now takes ``seconds`` (exposure and readout, or the frame period).
+
+        The stream ends as stalled only after the stall timeout plus two such frames: a long
+        exposure the camera accepts (3 s at a 2 s timeout) is not a lost camera.
+        """
+        self._frame_s = max(0.0, float(seconds)) if math.isfinite(seconds) else 0.0
+
+    @property
+    def stall_s(self) -> float:
+        """Seconds without a good frame after which the stream ends."""
+        return self._stall + 2.0 * self._frame_s
+
     def start(self) -> None:
         """Start the thread."""
         self._thread.start()
@@ -725,7 +741,7 @@ class FrameStreamer:
                     self._bad_frame(exc, last_good)  # raises when the stream must end
                     continue
                 if frame is None:
-                    if time.monotonic() - last_good > self._stall:
+                    if time.monotonic() - last_good > self.stall_s:
                         raise self._stalled(None)
                     continue
                 last_good = time.monotonic()
@@ -751,9 +767,9 @@ class FrameStreamer:
     def _stalled(self, cause: FrameError | None) -> CameraTimeout:
         if not self._bad_run:
             return CameraTimeout(
-                f"{self._device}: no frame for {self._stall:.3g} s while streaming")
+                f"{self._device}: no frame for {self.stall_s:.3g} s while streaming")
         return CameraTimeout(
-            f"{self._device}: no good frame for {self._stall:.3g} s while streaming: "
+            f"{self._device}: no good frame for {self.stall_s:.3g} s while streaming: "
             f"{self._bad_run} bad frame(s) in a row, the last: {cause or self._last_bad}")
 
     def _bad_frame(self, exc: FrameError, last_good: float) -> None:
@@ -768,7 +784,7 @@ class FrameStreamer:
         if run >= self._max_bad:
             raise CameraError(
                 f"{self._device}: {run} bad frames in a row, the last: {exc}") from exc
-        if time.monotonic() - last_good > self._stall:
+        if time.monotonic() - last_good > self.stall_s:
             raise self._stalled(exc) from exc
         now = time.monotonic()
         if self._bad_logged_at is None:
@@ -962,6 +978,11 @@ def _validate_setting(cam: CameraBase, name: str, value: Any) -> Any:
     raise AssertionError(f"no validation rule for {name}")  # a new setting needs a rule
 
 
+#: settings that change how long one frame takes (a running stream's stall timeout follows)
+_TIMING_SETTINGS = frozenset({"exposure_us", "frame_rate_hz", "line_time_us", "readout_pattern",
+                              "trigger_delay_us", "roi", "binning", "shutter_mode"})
+
+
 def _setting(name: str, doc: str) -> Any:
     """Public camera property: ``_get_<name>`` reads; a set validates, then ``_do_set_<name>``."""
 
@@ -970,6 +991,8 @@ def _setting(name: str, doc: str) -> Any:
 
     def fset(self: CameraBase, value: Any) -> None:
         getattr(self, f"_do_set_{name}")(_validate_setting(self, name, value))
+        if name in _TIMING_SETTINGS:
+            self._frame_time_changed()
 
     return property(fget, fset, doc=doc)
 
@@ -986,7 +1009,8 @@ class CameraBase:
 
     backend: str = "base"
 
-    #: Seconds without a good frame after which a stream ends with :class:`CameraTimeout`.
+    #: Seconds without a good frame after which a stream ends with :class:`CameraTimeout`, on
+    #: top of two frame times (:meth:`expected_frame_s`: a long exposure is not a stall).
     stream_timeout_s: float = 5.0
     #: Bad frames (:class:`FrameError`) in a row after which live view ends with an error.
     stream_max_bad_frames: int = 10
@@ -1216,6 +1240,28 @@ class CameraBase:
             return None
         return min(float(rate), 1e6 / t.frame_time_us)
 
+    def expected_frame_s(self) -> float:
+        """Seconds one frame takes with the present settings (0 when the device cannot say).
+
+        The period of :attr:`resulting_frame_rate_hz`, else the exposure.
+
+        Stalls and checks wait this long on top of their own timeouts.
+        """
+        try:
+            rate = self.resulting_frame_rate_hz
+            if rate is not None and rate > 0:
+                return 1.0 / float(rate)
+            exposure = self._optional(lambda: self.exposure_us)
+        except Exception as exc:  # a device error: no allowance, as before
+            _log.debug("%s: frame time unknown: %s", self.describe(), exc)
+            return 0.0
+        return float(exposure) * 1e-6 if exposure is not None and exposure > 0 else 0.0
+
+    def _frame_time_changed(self) -> None:
+        s = self._streamer
+        if s is not None:
+            s.expect_frame_s(self.expected_frame_s())
+
     def _optional(self, getter: Callable[[], Any]) -> Any:
         try:
             return getter()
@@ -1259,6 +1305,7 @@ class CameraBase:
             on_exit=self._stream_end_locked,
             max_bad_frames=self.stream_max_bad_frames,
         )
+        streamer.expect_frame_s(self.expected_frame_s())
         with self._lock:
             self._stream_begin()
         self._streamer = streamer

@@ -37,7 +37,7 @@ import os
 from dataclasses import dataclass
 
 __all__ = ["FFT_PIXELS_PER_THREAD", "MAX_AUTO_THREADS", "ThreadChoice", "apply_threads",
-           "choose_threads", "fit_threads", "machine_state"]
+           "choose_threads", "fit_threads", "machine_state", "max_requested_threads"]
 
 #: Upper bound of the automatic choice (explicit requests: ``MAX_THREADS_PER_CORE``).
 MAX_AUTO_THREADS = 8
@@ -112,6 +112,14 @@ MAX_THREADS_PER_CORE = 4
 
 def _limit(cores: int) -> int:
     return MAX_THREADS_PER_CORE * max(1, cores)
+
+
+def max_requested_threads(cores: int | None = None) -> int:
+    """The most threads a request may name on this machine (``cores``: its own by default).
+
+    :data:`MAX_THREADS_PER_CORE` per core. A job dialog's range ends there.
+    """
+    return _limit(machine_state()[0] if cores is None else int(cores))
 
 
 def _bounded(n: int, cores: int, name: str) -> int:

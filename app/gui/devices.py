@@ -343,8 +343,8 @@ class Bench:
             raise RuntimeError("no camera to reconnect")
         best_effort(f"closing {cam.describe()} before reconnecting", cam.close)
         cam.open()
-        try:
-            cam.snap(timeout_s=check_timeout_s)
+        try:  # a long exposure is not a lost camera: wait for its frame too
+            cam.snap(timeout_s=check_timeout_s + 2.0 * cam.expected_frame_s())
         except BaseException:
             best_effort(f"closing {cam.describe()} after a failed check", cam.close)
             raise

@@ -26,6 +26,7 @@ import enum
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 from collections.abc import Callable, Mapping
@@ -472,9 +473,11 @@ def job_view(folder: str | Path) -> JobView | None:
         if (v.state is not AppJobState.QUEUED and last is not None
                 and last.get("action") == "resume" and not _pid_alive(int(last["pid"]))
                 and max(sessions, default="") < str(last.get("utc", ""))):
-            # a refused resume leaves the record as it was: only its log says why
-            v.state = AppJobState.FAILED_TO_START
-            v.detail = f"the resume did not start: {_log_tail(f)}"
+            if _cancelled_while_starting(entry, last):  # the run is as it was
+                v.detail = "the resume was cancelled while starting; the run is as it was"
+            else:  # a refused resume leaves the record as it was: only its log says why
+                v.state = AppJobState.FAILED_TO_START
+                v.detail = f"the resume did not start: {_log_tail(f)}"
         v.still_improving = bool((rec.get("results") or {}).get("still_improving"))
         for which in ("final", "best", "mean", "with_fista"):
             r = (rec.get("results") or {}).get(which)
@@ -483,6 +486,9 @@ def job_view(folder: str | Path) -> JobView | None:
         return v
     if last is not None and _pid_alive(int(last["pid"])):
         v.state = AppJobState.STARTING
+    elif last is not None and _cancelled_while_starting(entry, last):
+        v.state = AppJobState.WITHDRAWN
+        v.detail = "cancelled while starting, before its run began"
     elif last is not None:
         v.state = AppJobState.FAILED_TO_START
         v.detail = _log_tail(f)
@@ -621,9 +627,40 @@ def cancel_job(folder: str | Path) -> str:
         entry["state"] = AppJobState.WITHDRAWN.value
         _write_entry(f, entry)
         return f"{f.name}: withdrawn from the queue"
+    view = job_view(f)
+    if view is not None and view.state is AppJobState.STARTING:
+        return _cancel_starting(f, entry)
     from recon.udn.jobs import request_cancel
 
     return request_cancel(f / RUN_DIR)
+
+
+def _cancel_starting(folder: Path, entry: dict[str, Any]) -> str:
+    """Stop a job whose process started but whose run has not begun.
+
+    The run refused a cancel then ('no UDN run here', or a resume's 'not running') and ran in
+    full.
+
+    SIGTERM to the launched process: before its handler is set it dies with nothing written
+    (a resume leaves the run as it was); after, the run stops at its first iteration as a
+    cancel does. The entry remembers it, so the job shows cancelled, not failed to start.
+    """
+    last = (entry.get("launches") or [{}])[-1]
+    pid = int(last.get("pid", 0))
+    if pid <= 0 or not _pid_alive(pid):
+        raise ValueError(f"{folder.name}: the job's process is gone; nothing to cancel")
+    entry["cancelled_launch"] = {"pid": pid, "utc": last.get("utc"), "at_utc": _now()}
+    _write_entry(folder, entry)
+    os.kill(pid, signal.SIGTERM)
+    what = "resume" if last.get("action") == "resume" else "job"
+    return f"{folder.name}: the {what} is cancelled while starting (SIGTERM to pid {pid})"
+
+
+def _cancelled_while_starting(entry: dict[str, Any], last: dict[str, Any]) -> bool:
+    """Whether the app cancelled this launch before its run began."""
+    c = entry.get("cancelled_launch")
+    return (isinstance(c, dict) and c.get("pid") == last.get("pid")
+            and c.get("utc") == last.get("utc"))
 
 
 def queue_resume(folder: str | Path, max_iter: int | None = None) -> None:

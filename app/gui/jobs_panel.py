@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtCore import QItemSelectionModel, Qt, QTimer, QUrl, Signal
+from PySide6.QtCore import QEvent, QItemSelectionModel, Qt, QTimer, QUrl, Signal
 from PySide6.QtGui import QAction, QDesktopServices
 from PySide6.QtWidgets import (
     QCheckBox,
@@ -45,6 +45,7 @@ from PySide6.QtWidgets import (
 
 from app.gui.image_view import ImagePanel
 from app.gui.jobs_core import (
+    RUN_DIR,
     AppJobState,
     JobQueue,
     JobView,
@@ -59,7 +60,14 @@ from app.gui.jobs_core import (
     read_loss,
     spawn_job_process,
 )
-from app.gui.widgets import ComboBox, DoubleSpinBox, SpinBox, never_wider
+from app.gui.widgets import (
+    ComboBox,
+    DoubleSpinBox,
+    ElidedLabel,
+    SciSpinBox,
+    SpinBox,
+    never_wider,
+)
 from app.gui.workers import TaskQueue
 
 __all__ = ["JobsPanel", "Measurement", "NewJobDialog", "ResultDialog"]
@@ -144,14 +152,12 @@ class NewJobDialog(QDialog):
         self.channels = SpinBox()
         self.channels.setRange(1, 512)
         self.channels.setValue(int(default("network", "channels")))
-        self.lr = DoubleSpinBox()
-        self.lr.setDecimals(5)
+        self.lr = SciSpinBox()  # typed as 1e-3 too
         self.lr.setRange(1e-5, 0.1)
         self.lr.setSingleStep(0.001)
         self.lr.setValue(float(default("optimizer", "lr")))
         self.lr.setToolTip(SCHEMA["optimizer"]["lr"].help)
-        self.tv_weight = DoubleSpinBox()
-        self.tv_weight.setDecimals(6)
+        self.tv_weight = SciSpinBox()  # 1e-7 is not 0
         self.tv_weight.setRange(0.0, 1.0)
         self.tv_weight.setSingleStep(1e-4)
         self.tv_weight.setValue(float(default("optimizer", "tv_weight")))
@@ -191,7 +197,10 @@ class NewJobDialog(QDialog):
             pass
         self.device.setCurrentText(str(default("device", "device")))
         self.threads = SpinBox()
-        self.threads.setRange(0, 256)
+        from recon.threads import max_requested_threads
+
+        # more than 4 per core is refused when the job starts (256 was offered, then failed)
+        self.threads.setRange(0, max_requested_threads())
         self.threads.setValue(int(default("device", "threads")))
         self.threads.setSpecialValueText("auto (free cores)")
         self.precision = ComboBox()
@@ -570,7 +579,7 @@ class ResultDialog(QDialog):
             it = meta.get("best_iteration") if which == "best" else None
             label = (f"{which} (it {it} of {meta.get('iterations')})" if it is not None else
                      f"{which} ({meta.get('iterations')} it)")
-            footer = f"{path.name} · {img.shape[1]}x{img.shape[0]}"
+            footer = f"{path.name} · {img.shape[0]}x{img.shape[1]} (HxW)"
             if which == "with_fista":  # short titles: four panels share the window's width
                 f = meta.get("fista") or {}
                 label = f"{meta.get('udn_estimate', 'UDN')} + FISTA-TV"
@@ -676,6 +685,13 @@ class JobsPanel(QWidget):
         #: made at the first combine, shut down by :meth:`stop`
         self._combine_queue: TaskQueue | None = None
         self._combining: str | None = None  # what the running combine is, for the message
+        #: the selected job's loss curve as last read, by the loss file's (size, mtime): read
+        #: again only when it changed, and a long one off the GUI thread (a day's loss.csv,
+        #: 200k rows, took 2-3 s to read: the window froze at every poll)
+        self._loss: dict[Path, tuple[tuple[int, int], tuple[Any, ...]]] = {}
+        self._loss_queue: TaskQueue | None = None
+        self._loss_reading = False
+        self._loss_not_before = 0.0  # monotonic time of the next background read
         for b in (self.cancel_button, self.resume_button, self.open_button,
                   self.combine_button):
             b.setEnabled(False)  # nothing is selected until the first listing
@@ -699,6 +715,7 @@ class JobsPanel(QWidget):
         bar.addWidget(self.folder_label, 1)
 
         self.table = QTableWidget(0, len(_COLUMNS))
+        self.table.viewport().installEventFilter(self)
         self.table.setHorizontalHeaderLabels(list(_COLUMNS))
         self.table.setSelectionBehavior(QTableWidget.SelectionBehavior.SelectRows)
         self.table.setSelectionMode(QTableWidget.SelectionMode.ExtendedSelection)
@@ -716,6 +733,9 @@ class JobsPanel(QWidget):
         self.loss_plot.setLabel("left", "log10")
         self.loss_plot.setLabel("bottom", "iteration")
         self.loss_plot.addLegend(offset=(-10, 10))
+        # a day's run has 10^5 points: drawn as the peaks of what the pixels can show
+        self.loss_plot.setDownsampling(auto=True, mode="peak")
+        self.loss_plot.setClipToView(True)
         self.loss_curve = self.loss_plot.plot([], [], pen=pg.mkPen("c", width=2), name="loss")
         self.held_curve = self.loss_plot.plot([], [], pen=pg.mkPen("y", width=1),
                                               name="held-out")
@@ -778,6 +798,9 @@ class JobsPanel(QWidget):
         self._combining = None
         if q is not None:
             q.shutdown()
+        lq, self._loss_queue = self._loss_queue, None
+        if lq is not None:
+            lq.shutdown()
 
     def refresh(self) -> None:
         """Poll the queue (starts queued jobs) and update the table and the details."""
@@ -790,6 +813,7 @@ class JobsPanel(QWidget):
 
         keep = {v.folder for v in self.selected_all()}
         self.views = views
+        self.message.follow(views)
         self.table.setRowCount(len(views))
         for row, v in enumerate(views):
             state = (f"finished: {v.finish_reason}" if v.state is AppJobState.FINISHED
@@ -819,6 +843,8 @@ class JobsPanel(QWidget):
             self._select_folders(keep)
         elif views and self.table.currentRow() < 0:
             self.table.selectRow(len(views) - 1)
+            # the newest job, selected at start, was half hidden: in view once laid out
+            QTimer.singleShot(0, self._show_selected)
         self._show_details()
 
     def selected(self) -> JobView | None:
@@ -832,9 +858,25 @@ class JobsPanel(QWidget):
         rows = sorted(i.row() for i in model.selectedRows()) if model is not None else []
         return [self.views[r] for r in rows if 0 <= r < len(self.views)]
 
+    def showEvent(self, event: Any) -> None:
+        """Shown (the app's start, a dock opened): the selected jobs in view."""
+        super().showEvent(event)
+        QTimer.singleShot(0, self._show_selected)
+
+    def eventFilter(self, watched: Any, event: Any) -> bool:
+        """The table's viewport resized (the window made shorter): the selection in view.
+
+        The newest job, selected at start, was half hidden after the window shrank to the
+        screen.
+        """
+        if watched is self.table.viewport() and event.type() == QEvent.Type.Resize:
+            QTimer.singleShot(0, self._show_selected)
+        return super().eventFilter(watched, event)
+
     def _show_selected(self) -> None:
         """Scroll the table to the selected rows (the last of them in view)."""
-        rows = sorted({i.row() for i in self.table.selectionModel().selectedRows()})
+        model = self.table.selectionModel()
+        rows = sorted({i.row() for i in model.selectedRows()}) if model is not None else []
         if rows:
             self.table.scrollTo(self.table.model().index(rows[-1], 0))
             self.table.scrollTo(self.table.model().index(rows[0], 0))
@@ -854,6 +896,66 @@ class JobsPanel(QWidget):
     def _selection_changed(self) -> None:
         self._shown_preview = None
         self._show_details()
+
+    #: a loss file up to this size is read on the GUI thread (about 4000 rows, 20-30 ms), so a
+    #: selected job shows its curve at once; a longer one on a worker
+    LOSS_READ_INLINE_BYTES = 256 * 1024
+
+    def _loss_of(self, folder: Path) -> tuple[Any, ...]:
+        """The job's (iterations, loss, held-out, problem) as last read from its loss file.
+
+        Read again only when the file changed; a long file on a worker, at most every 2 s and
+        never more often than every 5 times its own read time (the curve then lags a poll).
+        """
+        import time
+
+        from recon.udn.jobs import LOSS_FILE
+
+        path = folder / RUN_DIR / LOSS_FILE
+        try:
+            st = path.stat()
+            key = (st.st_size, st.st_mtime_ns)
+        except OSError:  # none yet (or unreadable: the reader says why)
+            return read_loss(folder)
+        self._loss = {f: c for f, c in self._loss.items() if f == folder}  # the selected one
+        cached = self._loss.get(folder)
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        if st.st_size <= self.LOSS_READ_INLINE_BYTES:
+            got = read_loss(folder)
+            self._loss[folder] = (key, got)
+            return got
+        if not self._loss_reading and time.monotonic() >= self._loss_not_before:
+            if self._loss_queue is None:
+                self._loss_queue = TaskQueue("loss", self)
+            self._loss_reading = True
+            t0 = time.monotonic()
+
+            def done(got: tuple[Any, ...]) -> None:
+                self._loss_reading = False
+                took = time.monotonic() - t0
+                self._loss_not_before = time.monotonic() + max(2.0, 5.0 * took)
+                self._loss[folder] = (key, got)
+                v = self.selected()
+                if v is not None and v.folder == folder:
+                    self._show_curves(*got[:3])
+
+            def failed(exc: BaseException) -> None:
+                self._loss_reading = False
+                _log.warning("reading %s: %s", path, exc)
+
+            self._loss_queue.submit(lambda: read_loss(folder), name="loss", on_done=done,
+                                    on_error=failed)
+        if cached is not None:  # the last reading while the new one is made
+            return cached[1]
+        empty = np.zeros(0)
+        return empty, empty, empty, None
+
+    def _show_curves(self, its: Any, loss: Any, held: Any) -> None:
+        ok = np.isfinite(loss) & (loss > 0)
+        self.loss_curve.setData(its[ok], np.log10(loss[ok]))
+        okh = np.isfinite(held) & (held > 0)
+        self.held_curve.setData(its[okh], np.log10(held[okh]))
 
     def _show_details(self) -> None:
         v = self.selected()
@@ -882,15 +984,12 @@ class JobsPanel(QWidget):
         lines = [" · ".join(facts)]
         if v.detail:
             lines.append(str(v.detail))
-        its, loss, held, problem = read_loss(v.folder)
+        its, loss, held, problem = self._loss_of(v.folder)
         if problem is not None:
             lines.append(f"loss curve not shown: {problem}")
         self.details.setText("\n".join(lines))
         self.details.setToolTip(str(v.folder))
-        ok = np.isfinite(loss) & (loss > 0)
-        self.loss_curve.setData(its[ok], np.log10(loss[ok]))
-        okh = np.isfinite(held) & (held > 0)
-        self.held_curve.setData(its[okh], np.log10(held[okh]))
+        self._show_curves(its, loss, held)
         if v.last_preview is None or v.last_preview != self._shown_preview:
             img = None if v.last_preview is None else _load_png(v.last_preview)
             if img is not None:
@@ -915,7 +1014,11 @@ class JobsPanel(QWidget):
             self.message.setText("a job needs a measurement (a live or snapped frame) and a PSF "
                                  "(the simulated bench's, a loaded one or a calibration)")
             return None
-        src = (f"measurement: frame {frame.frame_id} ({frame.shape[1]}x{frame.shape[0]}, "
+        problem = _size_problem(frame, psf)
+        if problem is not None:  # said before the dialog is filled in, not after
+            self.message.setText(problem)
+            return None
+        src = (f"measurement: frame {frame.frame_id} ({frame.shape[0]}x{frame.shape[1]}, "
                f"{frame.backend}); PSF: {m.psf_source or 'current'}")
         hashes = None
         try:
@@ -953,11 +1056,9 @@ class JobsPanel(QWidget):
         except Exception as exc:
             self.message.setText(f"cannot queue the job: {exc}")
             return None
-        if frame.shape != psf.shape:
-            self.message.setText(
-                f"the frame ({frame.shape[0]}x{frame.shape[1]}) and the PSF "
-                f"({psf.shape[-2]}x{psf.shape[-1]}) differ in size: a UDN job needs a "
-                "full-sensor frame and a PSF calibrated for that sensor")
+        problem = _size_problem(frame, psf)
+        if problem is not None:
+            self.message.setText(problem)
             return None
         dark = _dark_level(m)
         meta = {"frame": frame.metadata(), "psf_source": m.psf_source,
@@ -982,7 +1083,7 @@ class JobsPanel(QWidget):
         text = (f"queued {folders[0].name}" if len(folders) == 1 else
                 f"queued {len(folders)} jobs (seeds 0-{len(folders) - 1}): combine them when "
                 "they have finished")
-        self.message.setText(text + (f"; {error}" if error else ""))
+        self.message.setText(text + (f"; {error}" if error else ""), about=folders[-1])
         self.refresh()
         self._select_folders(set(folders))
         self._show_selected()  # new jobs are listed last: bring them into view
@@ -1047,9 +1148,9 @@ class JobsPanel(QWidget):
         if v is None:
             return
         try:
-            self.message.setText(cancel_job(v.folder))
+            self.message.setText(cancel_job(v.folder), about=v.folder)
         except Exception as exc:
-            self.message.setText(f"cannot cancel: {exc}")
+            self.message.setText(f"cannot cancel: {exc}", about=v.folder)
         self.refresh()
 
     def resume_selected(self) -> None:
@@ -1064,7 +1165,7 @@ class JobsPanel(QWidget):
             self.message.setText(f"cannot resume: {exc}")
             return
         self.message.setText(f"resume of {v.name} queued"
-                             + (f" (to {more} iterations)" if more else ""))
+                             + (f" (to {more} iterations)" if more else ""), about=v.folder)
         self.refresh()
 
     def open_selected(self) -> ResultDialog | None:
@@ -1105,18 +1206,53 @@ def _plan_measurement(m: Measurement) -> Any:
     return make_plan(np.asarray(m.psf, dtype=np.float32), meas)
 
 
-class _MessageLabel(QLabel):
-    """A one-line message that takes no space while empty."""
+def _size_problem(frame: Any, psf: Any) -> str | None:
+    """Why a UDN job cannot take this frame and PSF (sizes HxW, as everywhere), or None."""
+    if tuple(frame.shape) == tuple(psf.shape):
+        return None
+    return (f"the frame ({frame.shape[0]}x{frame.shape[1]}) and the PSF "
+            f"({psf.shape[-2]}x{psf.shape[-1]}) differ in size (HxW): a UDN job needs a "
+            "full-sensor frame and a PSF calibrated for that sensor (a camera ROI makes the "
+            "frame smaller: Full sensor)")
+
+
+class _MessageLabel(ElidedLabel):
+    """The panel's last message, with the time it was said; no space while empty.
+
+    One line, cut with '…' and whole in the tooltip (a combine's 776-character message took
+    four lines and left the table two rows). A click dismisses it. A message about one job
+    (``about``: its folder) goes when that job's state changes ("queued …" once it runs,
+    "cancel requested …" once it stopped); the others stay until the next one.
+    """
 
     def __init__(self) -> None:
         super().__init__("")
-        self.setWordWrap(True)
         self.setVisible(False)
+        self.about: Path | None = None
+        self.about_state: Any = None  # the job's state at the first poll after the message
 
-    def setText(self, text: str) -> None:
-        """Show ``text`` (hidden when empty)."""
-        super().setText(text)
+    def setText(self, text: str, about: Path | None = None) -> None:
+        """Show ``text`` (hidden when empty), stamped with the time."""
+        import time
+
+        self.about, self.about_state = (about if text else None), None
+        super().setText(f"{time.strftime('%H:%M:%S')}  {text}" if text else "")
         self.setVisible(bool(text))
+
+    def follow(self, views: list[JobView]) -> None:
+        """Clear a message about a job whose state has changed since (see the class)."""
+        if self.about is None:
+            return
+        state = next((v.state for v in views if v.folder == self.about), None)
+        if self.about_state is None:
+            self.about_state = state
+        elif state != self.about_state:
+            self.setText("")
+
+    def mousePressEvent(self, event: Any) -> None:
+        """A click dismisses the message."""
+        self.setText("")
+        super().mousePressEvent(event)
 
 
 def _load_png(path: Path) -> Any:

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from PySide6.QtCore import QByteArray, Qt, QTimer, Signal
+from PySide6.QtCore import QByteArray, QSignalBlocker, Qt, QTimer, Signal
 from PySide6.QtGui import QAction, QCloseEvent
 from PySide6.QtWidgets import (
     QDockWidget,
@@ -135,23 +135,33 @@ def _read_camera(cam: Any) -> tuple[dict[str, Any], dict[str, Any]]:
 
 
 class _Rate:
-    """Events per second over the last few seconds."""
+    """Events per second over the last few seconds; 0 once events stop coming.
+
+    A slow stream (one frame every 3 s) shows its one interval while the next frame is not
+    overdue (it showed 0, and a stream that stopped kept showing its old rate).
+    """
 
     def __init__(self, window_s: float = 2.0) -> None:
         self.window_s = window_s
         self.times: collections.deque[float] = collections.deque()
+        self._interval = 0.0
 
     def tick(self, t: float | None = None) -> None:
         now = time.monotonic() if t is None else t
+        if self.times:
+            self._interval = now - self.times[-1]
         self.times.append(now)
-        while self.times and now - self.times[0] > self.window_s:
+        while len(self.times) > 1 and now - self.times[0] > self.window_s:
             self.times.popleft()
 
-    def rate(self) -> float:
-        if len(self.times) < 2:
-            return 0.0
-        span = self.times[-1] - self.times[0]
-        return (len(self.times) - 1) / span if span > 0 else 0.0
+    def rate(self, now: float | None = None) -> float:
+        t = time.monotonic() if now is None else now
+        recent = [x for x in self.times if t - x <= self.window_s]
+        if len(recent) >= 2 and recent[-1] > recent[0]:
+            return (len(recent) - 1) / (recent[-1] - recent[0])
+        if self._interval > 0 and self.times and t - self.times[-1] <= 2.0 * self._interval:
+            return 1.0 / self._interval
+        return 0.0
 
 
 class WorkflowHandle:
@@ -288,6 +298,8 @@ class MainWindow(QMainWindow):
         self.settings.preview = ps.to_dict()
         self.preview_controls.set_settings(ps)
         self.preview_controls.enabled.setChecked(self.settings.preview_enabled)
+        if not self.settings.preview_enabled:  # an empty panel said nothing at start
+            self.preview_panel.set_message("preview off")
         self.engine = PreviewEngine(None, ps)
         self.preview_worker = PreviewWorker(self.engine)
         self.preview_worker.result.connect(self._on_preview)
@@ -315,6 +327,9 @@ class MainWindow(QMainWindow):
         if self.jobs_panel.folder_problem is not None:  # also logged by the panel
             self._status(self.jobs_panel.folder_problem)
         self.device_panel.set_scene(self.settings.sim_scene)
+        with QSignalBlocker(self.device_panel.intensity):
+            self.device_panel.intensity.setValue(min(max(self.settings.light_intensity, 0.0), 1.0))
+        self.camera_controls.show_roi.setChecked(self.settings.show_roi)
         self.device_panel.show_demo.setChecked(self.settings.show_demo_cameras)
         # discovery may block (GenTL producers): the lists fill in from the worker
         self.device_panel.set_cameras([SIM_CAMERA_CHOICE], self.settings.camera)
@@ -492,6 +507,7 @@ class MainWindow(QMainWindow):
         self.camera_controls.set_connected(st.connected)
         self.device_panel.set_camera_connected(st is not CameraState.DISCONNECTED,
                                                self.bench.is_simulated)
+        self.device_panel.set_busy(st is CameraState.CALIBRATING)
         self.camera_controls.set_live(st is CameraState.LIVE)
         if st is CameraState.LIVE:
             self.poll_timer.start()
@@ -807,6 +823,7 @@ class MainWindow(QMainWindow):
         msg = f"Camera lost – reconnecting…: {_describe(exc)}"
         self._set_camera_state(CameraState.LOST, msg, "error")
         self.show_error(msg, "camera")
+        self._status(msg)  # not the last "reconnected after N attempt(s)" beside the banner
         self.reconnect_timer.start()
 
     def _try_reconnect_camera(self) -> None:
@@ -974,6 +991,8 @@ class MainWindow(QMainWindow):
         self.preview_panel.set_image(res.image, res.levels)
         if note.startswith("warning:"):
             self.preview_panel.set_message(note)
+        elif not self.settings.preview_enabled:  # a frame that was under way when it went off
+            self.preview_panel.set_message("preview off")
         self._preview_rate.tick()
         self._preview_latency_ms.append(res.latency_s * 1000.0)
         self._last_preview_info = (f"{res.shape[1]}x{res.shape[0]} · {res.iterations} it/frame"
@@ -1117,7 +1136,7 @@ class MainWindow(QMainWindow):
         cam = self.bench.camera
         frame = self.last_frame if self.camera_state is CameraState.LIVE else None
         if frame is None and cam is None:
-            self.show_error("Snap: no camera connected")
+            self.show_error("Snap: no camera connected", "snap")
             return
 
         def work() -> list[Path]:
@@ -1129,9 +1148,11 @@ class MainWindow(QMainWindow):
             self.last_saved = paths[0]
             self.camera_controls.save_info.setText(f"saved {paths[0]}")
             self._status(f"saved {paths[0]}")
+            self.clear_error("snap")  # a save that works ends the last one's error
 
         self.camera_queue.submit(work, name="snap", on_done=done,
-                                 on_error=lambda e: self.show_error(f"Snap: {_describe(e)}"))
+                                 on_error=lambda e: self.show_error(f"Snap: {_describe(e)}",
+                                                                    "snap"))
 
     last_saved: Path | None = None
     last_saved_frame: Any = None
@@ -1140,6 +1161,8 @@ class MainWindow(QMainWindow):
         path, _ = QFileDialog.getSaveFileName(self, "Save frame", str(self.save_dir()),
                                               "TIFF (*.tif)")
         if path:
+            if Path(path).suffix == "":  # the dialog's TIFF filter (it made a folder 'name/')
+                path += ".tif"
             self.settings.save_dir = str(Path(path).parent)
             self.snap_and_save(path)
 
@@ -1174,6 +1197,8 @@ class MainWindow(QMainWindow):
         s.window_state = bytes(self.saveState().toBase64().data()).decode("ascii")
         s.preview = self.preview_controls.settings().to_dict()
         s.preview_enabled = self.preview_controls.enabled.isChecked()
+        s.light_intensity = float(self.device_panel.intensity.value())
+        s.show_roi = self.camera_controls.show_roi.isChecked()
         s.last_job = dict(self.jobs_panel.last_job)
         if not s.jobs_dir:
             s.jobs_dir = str(default_jobs_dir())

@@ -10,12 +10,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 from collections.abc import Iterable, Mapping
 from typing import Any
 
 from PySide6.QtCore import QSignalBlocker, Qt, Signal
-from PySide6.QtGui import QValidator
 from PySide6.QtWidgets import (
     QCheckBox,
     QComboBox,
@@ -31,7 +29,14 @@ from PySide6.QtWidgets import (
 
 from app.gui.devices import SCENES, CameraChoice, PortChoice
 from app.gui.preview_engine import MODELS, RANGES, PreviewSettings
-from app.gui.widgets import ComboBox, DoubleSpinBox, ElidedLabel, SpinBox, double_spin
+from app.gui.widgets import (
+    ComboBox,
+    DoubleSpinBox,
+    ElidedLabel,
+    SciSpinBox,
+    SpinBox,
+    double_spin,
+)
 
 __all__ = ["CameraControls", "DevicePanel", "PreviewControls", "set_status"]
 
@@ -203,28 +208,51 @@ class DevicePanel(QGroupBox):
     def _connect_light(self) -> None:
         self.connect_light_requested.emit(self.selected_port())
 
+    _busy = False
+    _camera: tuple[bool, bool] = (False, False)  # (connected, simulated)
+    _light = False
+
     def set_camera_connected(self, connected: bool, simulated: bool = False) -> None:
         """Enable the buttons that make sense."""
-        self.camera_connect.setEnabled(True)
+        self._camera = (connected, simulated)
         _keep_focus_near(self.camera_connect, [self.camera_disconnect, self.scene_combo],
                          connected)
-        self.camera_disconnect.setEnabled(connected)
-        self.scene_combo.setEnabled(connected and simulated)
+        self._enable()
 
     def set_light_connected(self, connected: bool) -> None:
         """Enable the light controls when connected."""
+        self._light = connected
         _keep_focus_near(self.light_connect,
                          [self.light_disconnect, self.light_on, self.intensity], connected)
-        self.light_disconnect.setEnabled(connected)
-        self.light_on.setEnabled(connected)
-        self.intensity.setEnabled(connected)
+        self._enable()
+
+    def set_busy(self, busy: bool) -> None:
+        """Lock the box while a workflow (PSF capture, darks) drives the camera and light.
+
+        Nothing here changes them meanwhile (ticking the light on during the darks spoiled a
+        capture).
+        """
+        self._busy = busy
+        self._enable()
+
+    def _enable(self) -> None:
+        free = not self._busy
+        connected, simulated = self._camera
+        for w in (self.camera_combo, self.camera_connect, self.refresh_button, self.show_demo,
+                  self.port_combo, self.light_connect):
+            w.setEnabled(free)
+        self.camera_disconnect.setEnabled(free and connected)
+        self.scene_combo.setEnabled(free and connected and simulated)
+        for w in (self.light_disconnect, self.light_on, self.intensity):
+            w.setEnabled(free and self._light)
 
     def show_light_state(self, on: bool | None, intensity: float | None) -> None:
         """Reflect the source's confirmed state."""
         with QSignalBlocker(self.light_on):
             self.light_on.setChecked(bool(on))
-        # an off source may report intensity 0: keep the level it will be switched on at
-        if intensity is not None and (on or intensity > 0):
+        # an off source reports 0 or its last level: keep the level it will be switched on at
+        # (remembered from the last session)
+        if intensity is not None and on:
             with QSignalBlocker(self.intensity):
                 self.intensity.setValue(float(intensity))
 
@@ -397,42 +425,11 @@ class CameraControls(QGroupBox):
         self.frame_rate.setToolTip(tip)
 
 
-class TauSpinBox(DoubleSpinBox):
-    """A spin box for a TV weight: any value from 1e-9 up, shown with 3 significant digits.
+class TauSpinBox(SciSpinBox):
+    """A spin box for a TV weight: any value from 1e-9 up, 3 significant digits.
 
-    tau spans decades (the tau auto estimate ranges over 1e-7 to 1e-2): a fixed number of
-    decimals showed 3e-6 as 0.00000 and gave back 0.
+    The tau auto estimate ranges over 1e-7 to 1e-2.
     """
-
-    _PARTIAL = re.compile(r"[0-9.eE+-]*")
-
-    def __init__(self, parent: QWidget | None = None) -> None:
-        super().__init__(parent)
-        self.setDecimals(9)
-
-    def textFromValue(self, value: float) -> str:
-        """3 significant digits: 0.0003, 2.5e-06."""
-        return f"{value:.3g}"
-
-    def valueFromText(self, text: str) -> float:
-        """The typed number (the current value while it is not one)."""
-        try:
-            return float(text.strip())
-        except ValueError:
-            return float(self.value())
-
-    def validate(self, text: str, pos: int) -> Any:
-        """Numbers in any notation; their beginnings while typing."""
-        t = text.strip()
-        try:
-            v = float(t)
-        except ValueError:
-            ok = self._PARTIAL.fullmatch(t) is not None
-            state = QValidator.State.Intermediate if ok else QValidator.State.Invalid
-            return state, text, pos
-        inside = self.minimum() <= v <= self.maximum()
-        return (QValidator.State.Acceptable if inside else QValidator.State.Intermediate,
-                text, pos)
 
 
 def _kept(box: QDoubleSpinBox, current: float | None) -> float:

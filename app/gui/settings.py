@@ -67,12 +67,15 @@ class AppSettings:
     show_demo_cameras: bool = False
     light_port: str = "sim"
     connect_light: bool = True
+    #: the level the point source is switched on at (the Light row's intensity)
+    light_intensity: float = 1.0
     sim_scene: str = "im65"
     exposure_us: float = 10_000.0
     gain: float = 1.0
     frame_rate_hz: float = 20.0
     shutter_mode: str = ""
     display_hz: float = 30.0
+    show_roi: bool = False
     preview_enabled: bool = True
     preview: dict[str, Any] = field(default_factory=dict)
     psf_path: str = ""

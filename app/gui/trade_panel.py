@@ -114,11 +114,17 @@ class TradePanel(QWidget):
         for w in (QLabel("time budget"), self.budget, self.apply_button):
             second.addWidget(w)
         second.addStretch(1)
-        lay = QVBoxLayout(self)
-        lay.addLayout(top)
-        lay.addLayout(second)
-        lay.addWidget(self.suggestion)
+        # controls on the left, the plot beside them with the dock's whole height: stacked
+        # under them in the bottom dock at 1366x768 it was 45 px tall, its labels cut
+        controls = QVBoxLayout()
+        controls.addLayout(top)
+        controls.addLayout(second)
+        controls.addWidget(self.suggestion)
+        controls.addStretch(1)
+        lay = QHBoxLayout(self)
+        lay.addLayout(controls, 0)
         lay.addWidget(self.plot, 1)
+        self.plot.setMinimumSize(320, 150)
         self.measure_button.clicked.connect(self.measure_current)
         self.load_button.clicked.connect(self._choose_csv)
         self.budget.valueChanged.connect(self._suggest)

@@ -12,6 +12,7 @@ these (``tests/gui`` checks it).
 from __future__ import annotations
 
 import math
+import re
 from typing import Any
 
 from PySide6.QtCore import Qt
@@ -63,6 +64,20 @@ def _number(box: QAbstractSpinBox, text: str, kind: type) -> Any:
     return value if math.isfinite(value) else None
 
 
+_PARTIAL_NUMBER = re.compile(r"[+-]?\d*\.?\d*(?:[eE][+-]?\d*)?")
+
+
+def _partial_number(box: QAbstractSpinBox, text: str) -> bool:
+    """Whether ``text`` (prefix and suffix off) is the beginning of a number: '1e', '2e-'."""
+    b: Any = box
+    core = text
+    if b.suffix() and core.endswith(b.suffix()):
+        core = core[:-len(b.suffix())]
+    if b.prefix() and core.startswith(b.prefix()):
+        core = core[len(b.prefix()):]
+    return _PARTIAL_NUMBER.fullmatch(core.strip()) is not None
+
+
 def _nearest_text(box: QAbstractSpinBox, text: str, kind: type) -> str:
     """``text`` of a spin box as the nearest value in its range, prefix and suffix kept.
 
@@ -105,23 +120,55 @@ class DoubleSpinBox(WheelOnFocus, QDoubleSpinBox):
         self.setCorrectionMode(QAbstractSpinBox.CorrectionMode.CorrectToNearestValue)
 
     def validate(self, text: str, pos: int) -> object:
-        """Qt's validation, except that any finite number may be typed.
+        """Qt's validation, except that any finite number may be typed, in any notation.
 
         One above the maximum (or with more decimals than shown) is corrected to the nearest
         valid value when the edit ends; Qt refused the keystroke, so 0.9 typed into a 0-0.5
-        box stopped at "0." and became 0.
+        box stopped at "0." and became 0, and 1e-5 lost its "e" and "-" and became 15.
         """
         result = super().validate(text, pos)
         state = result[0] if isinstance(result, tuple) else result
         if state != QValidator.State.Invalid:
             return result
-        if _number(self, text, float) is None:
+        if _number(self, text, float) is None and not _partial_number(self, text):
             return result
         return (QValidator.State.Intermediate, text, pos)
+
+    def valueFromText(self, text: str) -> float:
+        """The typed number in any notation (2e-4 as well as 0.0002)."""
+        value = _number(self, text, float)
+        return float(value) if value is not None else float(super().valueFromText(text))
 
     def fixup(self, text: str) -> str:
         """A number out of range becomes the nearest bound (shown with the box's decimals)."""
         return _nearest_text(self, text, float)
+
+
+class SciSpinBox(DoubleSpinBox):
+    """A spin box for a value that spans decades (a TV weight, a learning rate).
+
+    Shown with 3 significant digits, typed in any notation, kept to 1e-9.
+
+    A fixed number of decimals showed 3e-6 as 0.00000 and gave back 0.
+    """
+
+    def __init__(self, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.setDecimals(9)
+
+    def textFromValue(self, value: float) -> str:
+        """3 significant digits: 0.0003, 2.5e-06."""
+        return f"{value:.3g}"
+
+    def validate(self, text: str, pos: int) -> Any:
+        """Numbers in any notation; their beginnings while typing."""
+        v = _number(self, text, float)
+        if v is None:
+            ok = _partial_number(self, text)
+            return (QValidator.State.Intermediate if ok else QValidator.State.Invalid, text, pos)
+        inside = self.minimum() <= v <= self.maximum()
+        return (QValidator.State.Acceptable if inside else QValidator.State.Intermediate,
+                text, pos)
 
 
 class ComboBox(WheelOnFocus, QComboBox):

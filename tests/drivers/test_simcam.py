@@ -366,6 +366,26 @@ def test_the_resulting_frame_rate_is_what_the_exposure_allows() -> None:
         assert cam.resulting_frame_rate_hz == pytest.approx(20.0)
 
 
+def test_a_long_exposure_is_not_a_stall() -> None:
+    """Live view ended with 'no frame for 2 s while streaming' at a 3 s exposure the camera
+    accepts: the stall timeout now allows two frame times more, also for an exposure set
+    while streaming."""
+    with SimulatedCamera(8, 8, frame_rate_hz=50.0, exposure_us=1000.0) as cam:
+        cam.stream_timeout_s = 0.2
+        cam.start_live()
+        assert cam.latest_frame(timeout_s=2.0) is not None
+        cam.exposure_us = 600_000.0  # 0.6 s a frame: three stall timeouts
+        assert cam.expected_frame_s() == pytest.approx(1 / cam.resulting_frame_rate_hz)
+        assert cam.expected_frame_s() > 0.6
+        got = 0
+        deadline = time.monotonic() + 2.5
+        while time.monotonic() < deadline:  # no CameraTimeout while frames come slowly
+            f = cam.latest_frame(timeout_s=1.5)
+            got += f is not None
+        assert got >= 2
+        cam.stop()
+
+
 def test_frame_timing_metadata_rebuilds_the_shutter() -> None:
     with _ideal_camera(exposure_us=123.0, readout_pattern="centre-out") as cam:
         f = cam.snap()

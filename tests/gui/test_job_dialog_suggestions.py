@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from PySide6.QtWidgets import QLabel
 
 from recon.plan import Plan
 from recon.suggest import input_hashes, write_plan_suggestion, write_trade_inputs
@@ -307,3 +308,20 @@ def test_the_next_dialog_offers_the_last_jobs_settings(panel: Any, qtbot: Any,
     dlg3 = panel.new_job_dialog()
     assert dlg3.downsample.value() == 2 and dlg3.max_iter.value() == 3000
     dlg3.close()
+
+
+def test_a_frame_of_another_size_than_the_psf_is_refused_before_the_dialog(panel: Any) -> None:
+    """The dialog said 'frame 340 (200x150, sim); PSF (150x200)', as if they differed, and a
+    frame that did differ (a camera ROI) was refused only after the dialog was filled in."""
+    from app.gui.jobs_panel import Measurement
+
+    dlg = panel.new_job_dialog()
+    assert dlg is not None
+    said = [w.text() for w in dlg.findChildren(QLabel) if "measurement: frame" in w.text()]
+    assert len(said) == 1 and "(48x64, test)" in said[0], said  # HxW, as the PSF's
+    dlg.reject()
+    m = panel.state["m"]
+    panel.state["m"] = Measurement(_Frame(m.frame.pixels[:24, :32]), m.psf, psf_source="test")
+    assert panel.new_job_dialog() is None
+    msg = panel.message.text()
+    assert "the frame (24x32) and the PSF (48x64) differ in size (HxW)" in msg, msg

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 from collections.abc import Iterator
 from typing import Any
 
@@ -206,12 +207,20 @@ def test_job_dialog_defaults_come_from_the_spec(live_window: Any, tmp_path: Any)
     from PySide6.QtCore import Qt
     from PySide6.QtTest import QTest
 
+    # and in any notation: '1e-5' lost its 'e' and '-' and became 15, clamped to 1.0; a TV
+    # weight of 1e-7 became 0 (six decimals)
     for box, typed, want in ((dlg.holdout, "0.9", 0.5), (dlg.lr, "0.000005", 1e-5),
-                             (dlg.time_limit, "0.004", 0.004), (dlg.patience, "0", 1)):
+                             (dlg.time_limit, "0.004", 0.004), (dlg.patience, "0", 1),
+                             (dlg.tv_weight, "1e-5", 1e-5), (dlg.tv_weight, "2.5e-7", 2.5e-7),
+                             (dlg.lr, "1e-3", 1e-3), (dlg.holdout, "5e-2", 0.05)):
         box.lineEdit().selectAll()
         QTest.keyClicks(box.lineEdit(), typed)
         QTest.keyClick(box.lineEdit(), Qt.Key.Key_Return)
         assert box.value() == pytest.approx(want), (typed, box.value())
+    from recon.threads import MAX_THREADS_PER_CORE, machine_state
+
+    # a thread count the job would refuse (more than 4 per core) is not offered
+    assert dlg.threads.maximum() == MAX_THREADS_PER_CORE * machine_state()[0]
     dlg.lr.setValue(0.002)
     dlg.headroom.setValue(1.5)
     dlg.holdout.setValue(0.1)
@@ -262,6 +271,66 @@ def test_cancelling_a_queued_resume_leaves_the_run_as_it_was(tmp_path, capsys):
     v = job_view(job)
     assert v is not None and v.state is not AppJobState.WITHDRAWN
     assert v.finish_reason == "completed" and "best" in v.results
+
+
+def _sleeper() -> Any:
+    """A process that stands for a job process still starting (importing, reading)."""
+    import subprocess
+    import sys
+
+    return subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+
+
+def test_cancel_stops_a_job_that_is_still_starting(tmp_path):
+    """Cancel on a job shown 'starting' said 'no UDN run here (run.json not found)' and the
+    job then ran in full: now its process is stopped and the job shows cancelled."""
+    import json
+
+    from app.gui.jobs_core import APP_JOB_FILE, AppJobState, JobQueue, cancel_job, job_view
+
+    procs = []
+
+    def spawn(args, folder, env, log):
+        procs.append(_sleeper())
+        return procs[-1]
+
+    job = tmp_path / "a"
+    job.mkdir()
+    (job / APP_JOB_FILE).write_text(json.dumps({
+        "format": "lenslesscam.app_job", "format_version": 1, "name": "a", "device": "cpu",
+        "state": "queued", "action": "run"}))
+    JobQueue(tmp_path, spawn=spawn).poll()
+    assert job_view(job).state is AppJobState.STARTING
+    msg = cancel_job(job)
+    assert "cancelled while starting" in msg, msg
+    assert procs[0].wait(timeout=10) != 0  # stopped by the SIGTERM
+    v = job_view(job)
+    assert v.state is AppJobState.WITHDRAWN and "cancelled while starting" in v.detail
+    assert not v.state.cancellable
+
+
+def test_cancel_stops_a_resume_that_is_still_starting(tmp_path, capsys):
+    """Cancel on a resume shown 'starting' said 'the run is not running (finish reason
+    cancelled)' and the resume then ran: now it is stopped and the run is as it was."""
+    from app.gui.jobs_core import AppJobState, cancel_job, job_view
+
+    proc = _sleeper()
+    try:
+        job = _finished_app_job(tmp_path, capsys, {
+            "name": "b", "state": "launched", "action": "run",
+            "launches": [{"action": "run", "pid": 1, "utc": "2000-01-01T00:00:00+00:00"},
+                         {"action": "resume", "pid": proc.pid, "max_iter": 10,
+                          "utc": "2999-01-01T00:00:00+00:00"}]})
+        v = job_view(job)
+        assert v.state is AppJobState.STARTING
+        assert "cancelled while starting" in cancel_job(job)
+        assert proc.wait(timeout=10) != 0
+        v = job_view(job)
+        assert v.state is AppJobState.FINISHED and v.finish_reason == "completed"
+        assert "cancelled while starting" in v.detail and "best" in v.results
+    finally:
+        proc.kill()
+        proc.wait()
 
 
 def test_settings_with_a_bad_version_or_an_unknown_scene_start_with_defaults(tmp_path):
@@ -603,3 +672,125 @@ def test_the_jobs_strip_shows_five_jobs_and_one_line_of_details(qtbot: Any,
     last = t.rowViewportPosition(4) + t.rowHeight(4)
     assert last <= t.viewport().height(), (last, t.viewport().height())
     panel.stop()
+
+
+def _long_loss_file(run: Any, rows: int) -> None:
+    """Make the run's loss.csv ``rows`` rows long, in its own format (as a long run's)."""
+    from recon.csvmeta import format_table
+    from recon.udn.jobs import _CSV_FIELDS, FORMAT_VERSION, LOSS_FORMAT, read_loss_rows
+
+    first = read_loss_rows(run)[0]
+    table = [{**first, "iteration": str(i + 1), "loss": f"{1.0 / (i + 1):.6g}"}
+             for i in range(rows)]
+    (run / "loss.csv").write_text(format_table(LOSS_FORMAT, FORMAT_VERSION, [], _CSV_FIELDS,
+                                               table))
+
+
+def test_a_long_loss_curve_is_read_off_the_gui_thread_and_only_when_it_changed(
+        tmp_path, capsys, qtbot, monkeypatch):
+    """The selected job's loss.csv was parsed on the GUI thread at every poll: 200k rows
+    froze the window 2-3 s each second. A short one is still read at once."""
+    import threading
+
+    from app.gui import jobs_panel as jp
+
+    job = _finished_app_job(tmp_path, capsys, {
+        "name": "a", "state": "launched", "launches": [{"action": "run", "pid": 1}]})
+    threads: list[str] = []
+    real = jp.read_loss
+
+    def spy(folder):
+        threads.append(threading.current_thread().name)
+        return real(folder)
+
+    monkeypatch.setattr(jp, "read_loss", spy)
+    panel = jp.JobsPanel(job.parent, lambda: None, poll_ms=60_000)
+    qtbot.addWidget(panel)
+    try:
+        panel._select_folders({job})
+        assert threads == [threading.main_thread().name]  # short: read inline, shown at once
+        assert len(panel.loss_curve.getData()[0]) == 3
+        panel.refresh()
+        assert len(threads) == 1  # unchanged: not read again
+        _long_loss_file(job / "run", 20_000)
+        assert (job / "run" / "loss.csv").stat().st_size > panel.LOSS_READ_INLINE_BYTES
+        panel.refresh()
+        qtbot.waitUntil(lambda: len(panel.loss_curve.getData()[0]) == 20_000, timeout=20_000)
+        assert len(threads) == 2 and threads[1] != threading.main_thread().name
+        panel.refresh()
+        panel.refresh()
+        assert len(threads) == 2  # read once for that file
+    finally:
+        panel.stop()
+
+
+def test_the_message_is_one_line_stamped_and_goes_with_its_jobs_change(tmp_path, qtbot):
+    """A 776-character combine message took four lines (the table kept 2.5 rows), and
+    'queued …' stayed through the whole run; a click dismisses a message."""
+    import numpy as np
+    from PySide6.QtCore import Qt
+
+    from app.gui.jobs_core import APP_JOB_FILE, create_job
+    from app.gui.jobs_panel import JobsPanel
+
+    rng = np.random.default_rng(0)
+    job = create_job(tmp_path / "jobs", "j", rng.random((30, 40)), rng.random((30, 40)),
+                     queue=False)
+    panel = JobsPanel(tmp_path / "jobs", lambda: None, poll_ms=60_000)
+    qtbot.addWidget(panel)
+    panel.resize(1366, 220)
+    panel.show()
+    try:
+        h0 = panel.table.height()
+        long = "ensemble written to " + "/very/long/path" * 50
+        panel.message.setText(long)
+        qtbot.wait(50)
+        assert panel.message.isVisible() and panel.message.toolTip().endswith(long)
+        assert re.match(r"\d\d:\d\d:\d\d  ensemble", panel.message.text())
+        assert panel.message.height() < 2 * panel.message.fontMetrics().height()
+        assert panel.table.height() >= h0 - 2 * panel.message.fontMetrics().height()
+        qtbot.mouseClick(panel.message, Qt.MouseButton.LeftButton)
+        assert not panel.message.isVisible() and panel.message.text() == ""
+        panel.message.setText("queued j", about=job)
+        panel.refresh()
+        panel.refresh()
+        assert "queued j" in panel.message.text()  # the job is as it was
+        entry = json.loads((job / APP_JOB_FILE).read_text())
+        (job / APP_JOB_FILE).write_text(json.dumps({**entry, "state": "withdrawn"}))
+        panel.refresh()
+        assert panel.message.text() == "" and not panel.message.isVisible()
+    finally:
+        panel.stop()
+
+
+def test_the_newest_job_selected_at_start_is_in_view(tmp_path, qtbot):
+    """With more jobs than the strip shows, the newest one, selected at start, was half
+    hidden below the table's edge."""
+    import numpy as np
+
+    from app.gui.jobs_core import create_job
+    from app.gui.jobs_panel import JobsPanel
+
+    rng = np.random.default_rng(0)
+    for i in range(9):
+        create_job(tmp_path / "jobs", f"job-{i}", rng.random((30, 40)), rng.random((30, 40)),
+                   queue=False)
+    panel = JobsPanel(tmp_path / "jobs", lambda: None, poll_ms=60_000)
+    qtbot.addWidget(panel)
+    panel.resize(1366, 220)
+    panel.show()
+    try:
+        t = panel.table
+        qtbot.waitUntil(lambda: t.rowCount() == 9, timeout=5_000)
+        assert [v.name for v in panel.selected_all()] == ["job-8"]
+
+        def shown() -> bool:
+            y = t.rowViewportPosition(8)
+            return y >= 0 and y + t.rowHeight(8) <= t.viewport().height()
+
+        qtbot.waitUntil(shown, timeout=5_000)
+        panel.resize(1366, 150)  # the window made shorter (to the screen): still in view
+        qtbot.waitUntil(lambda: t.viewport().height() < 100, timeout=5_000)
+        qtbot.waitUntil(shown, timeout=5_000)
+    finally:
+        panel.stop()

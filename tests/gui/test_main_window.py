@@ -78,6 +78,27 @@ def test_refused_setting_is_shown_not_raised(live_window: Any, qtbot: Any) -> No
     qtbot.waitUntil(lambda: w.frames_shown > n + 2, timeout=5_000)
 
 
+def test_a_save_that_works_ends_the_last_ones_error_and_a_name_gets_tif(
+        live_window: Any, qtbot: Any, tmp_path: Path, monkeypatch: Any) -> None:
+    """Save as 'myframe.png' left its error banner through later saves that worked; 'myframe'
+    (no suffix, the dialog's TIFF filter) made a folder 'myframe/' with the frame in it."""
+    from PySide6.QtWidgets import QFileDialog
+
+    w = live_window
+    picked = [str(tmp_path / "myframe.png")]
+    monkeypatch.setattr(QFileDialog, "getSaveFileName",
+                        staticmethod(lambda *a, **k: (picked[0], "TIFF (*.tif)")))
+    w._save_as()
+    qtbot.waitUntil(lambda: w.banner.isVisible(), timeout=10_000)
+    assert "frames are saved as .tif" in w.banner.text()
+    picked[0] = str(tmp_path / "myframe")
+    w._save_as()
+    qtbot.waitUntil(lambda: w.last_saved is not None, timeout=10_000)
+    assert Path(w.last_saved) == tmp_path / "myframe.tif" and Path(w.last_saved).is_file()
+    assert not (tmp_path / "myframe").exists()
+    assert not w.banner.isVisible()
+
+
 def test_snap_and_save_writes_tiff_with_metadata(live_window: Any, qtbot: Any,
                                                  tmp_path: Path) -> None:
     import tifffile
@@ -201,15 +222,24 @@ def test_settings_persist_between_sessions(make_window: Any, qtbot: Any) -> None
     # the settings keep what the camera reports, which reaches the window after the camera
     # has it (the worker's answer is queued to the GUI thread): under load it came later
     qtbot.waitUntil(lambda: abs((w.settings.exposure_us or 0) - 8000.0) < 20, timeout=5_000)
+    # the light's level and "show ROI" came back as 1.00 and unticked; a preview turned off
+    # came back as an empty panel that said nothing
+    w.device_panel.intensity.setValue(0.35)
+    w.camera_controls.show_roi.setChecked(True)
+    w.preview_controls.enabled.setChecked(False)
     w.close()
     assert settings_path().exists()
     s = load_settings()
     assert s.preview["iters_per_frame"] == 7 and s.sim_scene == "im740"
     assert s.exposure_us == pytest.approx(8000.0)
+    assert s.light_intensity == pytest.approx(0.35) and s.show_roi and not s.preview_enabled
     w2 = make_window(s)
     qtbot.waitUntil(lambda: w2.camera_state == "live", timeout=20_000)
     assert w2.preview_controls.iters.value() == 7
     assert w2.device_panel.scene_combo.currentData() == "im740"
+    assert w2.device_panel.intensity.value() == pytest.approx(0.35)
+    assert w2.camera_controls.show_roi.isChecked()
+    assert w2.preview_panel.message.text() == "preview off"
     qtbot.waitUntil(lambda: abs(w2.bench.camera.exposure_us - 8000.0) < 20, timeout=5_000)
 
 
@@ -398,3 +428,38 @@ def test_a_jobs_folder_that_is_a_file_is_said_at_start(make_window: Any, tmp_pat
     assert "is a file, not a folder" in w.status_label.text()
     assert "is a file, not a folder" in w.jobs_panel.message.text()
     assert any("is a file, not a folder" in r.getMessage() for r in caplog.records)
+
+
+def test_the_footer_rate_of_a_slow_stream_and_of_one_that_stopped() -> None:
+    """At 0.3 frames a second the footer said 0.0 fps; a stream that stopped kept its last
+    rate ('camera 11.6 fps' while no frame came)."""
+    from app.gui.main_window import _Rate
+
+    r = _Rate(window_s=2.0)
+    for t in (0.0, 3.0, 6.0):
+        r.tick(t)
+    assert r.rate(now=7.0) == pytest.approx(1 / 3)
+    assert r.rate(now=13.0) == 0.0  # the next frame is overdue: stopped
+    fast = _Rate(window_s=2.0)
+    for i in range(21):
+        fast.tick(i * 0.1)
+    assert fast.rate(now=2.0) == pytest.approx(10.0)
+    assert fast.rate(now=10.0) == 0.0
+
+
+def test_the_devices_box_is_locked_while_a_workflow_drives_the_devices(live_window: Any,
+                                                                       qtbot: Any) -> None:
+    """During a PSF capture the light's on box, its Disconnect, the camera's Connect and
+    the scene stayed usable: ticking the light on during the darks spoiled the capture."""
+    w = live_window
+    dp = w.device_panel
+    dp.set_light_connected(True)  # as with a point source connected
+    free = (dp.camera_combo, dp.camera_connect, dp.camera_disconnect, dp.scene_combo,
+            dp.port_combo, dp.light_connect, dp.light_disconnect, dp.light_on, dp.intensity)
+    assert all(x.isEnabled() for x in free)
+    w._set_camera_state("calibrating", "PSF capture running…", "busy")
+    assert not any(x.isEnabled() for x in free), [x for x in free if x.isEnabled()]
+    w._set_camera_state("live", "live", "ok")
+    assert all(x.isEnabled() for x in free)
+    dp.set_light_connected(False)
+    assert not dp.light_on.isEnabled() and dp.light_connect.isEnabled()

@@ -67,3 +67,17 @@ def test_measure_on_the_live_frame(live_window: Any, qtbot: Any) -> None:
     assert all(np.isfinite(r.heldout_psnr) for r in panel.rows)
     assert panel.quality_key == "heldout_psnr"
     assert "within" in panel.suggestion.text() or "nothing fits" in panel.suggestion.text()
+
+
+def test_the_plot_has_the_docks_height_at_1366x768(make_window: Any, qtbot: Any) -> None:
+    """Stacked under its controls in the bottom dock the plot was 45 px tall at 1366x768,
+    its axis title cut to 'quality (d': it is now beside them."""
+    win = make_window(autoconnect=False)
+    win.resize(1366, 740)
+    win.trade_dock.show()
+    win.trade_dock.raise_()
+    panel = win.trade_panel
+    qtbot.waitUntil(lambda: panel.isVisible() and panel.plot.height() > 0, timeout=5_000)
+    assert panel.plot.height() >= 150, (panel.plot.height(), panel.height())
+    assert panel.plot.height() >= panel.height() - 30
+    assert panel.plot.width() >= 320
