@@ -92,6 +92,9 @@ def reconstruction_paths(path: PathLike, kind: Kind = "image") -> list[Path]:
     if str(path).strip() == "" or Path(path).name in ("", ".", ".."):
         raise ValueError(f"the output path {str(path)!r} names no file")
     target = Path(path)
+    if target.is_dir():  # named here: check_outputs' example had no suffix ('adir/x')
+        raise FileExistsError(f"{target} is a folder: name a .tif file (for example "
+                              f"{target / 'x.tif'})")
     paths = [target, target.with_suffix(".png")]
     if kind == "video":
         paths.append(target.with_suffix(".gif"))

@@ -180,6 +180,17 @@ def test_recon_refuses_an_input_behind_another_name(sim, tmp_path, capsys):
     assert code == 2 and f"refusing to write {png}" in err and png.read_bytes() == before
 
 
+def test_a_folder_as_output_gets_an_example_that_works(sim, tmp_path, capsys):
+    """'adir is a folder: name a file (for example adir/x)', and adir/x was then refused: a
+    reconstruction is saved as .tif."""
+    folder = tmp_path / "adir"
+    folder.mkdir()
+    code, _, err = _run(capsys, *_fista(sim, folder))
+    assert code != 0 and f"for example {folder / 'x.tif'})" in err, err
+    code, _, err = _run(capsys, *_fista(sim, folder / "x.tif"))
+    assert code == 0, err
+
+
 def test_second_recon_needs_overwrite(sim, tmp_path, capsys):
     out = tmp_path / "rec.tif"
     assert _run(capsys, *_fista(sim, out))[0] == 0

@@ -106,7 +106,9 @@ def register(sub: Any) -> None:
         "shutter", help="shutter function from the timing, or measured with --source"
     )
     _common(sh, source=True, source_required=False)
-    sh.add_argument("--bin-lines", type=POSITIVE_INT, default=1, help="time bin width in lines")
+    sh.add_argument("--bin-lines", type=POSITIVE_INT, default=None,
+                    help="time bin width in lines (default: the --downsample factor, so the "
+                         "bins are as fine as the rows; more bins than rows are refused)")
     sh.add_argument("--downsample", type=POSITIVE_INT, default=1, help="row downsampling factor")
     sh.add_argument("--pulse", help="strobe pulse length (default one line time)")
     sh.add_argument("--step", help="delay step (default half the pulse)")
@@ -461,6 +463,8 @@ def run_shutter(args: argparse.Namespace) -> int:
     from calibration.shutter import ShutterSettings, measure_shutter, shutter_for_frame
     from calibration.workflow import Workflow
 
+    if args.bin_lines is None:  # as fine as the rows: 1-line bins on 3-line rows made a
+        args.bin_lines = args.downsample  # file recon and simulate refused (K > rows)
     if args.bin_lines < 1 or args.downsample < 1:
         raise ValueError("--bin-lines and --downsample must be >= 1")
     pulse_us = _strobe_time(args.pulse, "--pulse") if args.pulse else None
@@ -470,11 +474,24 @@ def run_shutter(args: argparse.Namespace) -> int:
             frame = camera.snap(args.timeout)
             sf = shutter_for_frame(frame, bin_lines=args.bin_lines, row_factor=args.downsample)
             from calibration.sources import camera_description
+            from recon.checks import check_shutter_frames
+
+            # refused here, as recon and simulate would refuse the file (nothing is written)
+            check_shutter_frames(*sf.shutter.shape, "the shutter function",
+                                 downsample=args.downsample)
 
             path = sf.save(args.out, {"camera": camera_description(camera, frame)})
             print(f"wrote {path}: shutter {sf.shutter.shape[0]} bins x {sf.shutter.shape[1]} rows")
             print(f"timing {sf.timing.to_dict()}")
             return 0
+        from recon.checks import check_shutter_frames
+
+        # the model of one frame says how many bins the measured file will hold: refused
+        # before the scan, not after (recon and simulate would refuse the file)
+        model = shutter_for_frame(camera.snap(args.timeout), bin_lines=args.bin_lines,
+                                  row_factor=args.downsample)
+        check_shutter_frames(*model.shutter.shape, "the shutter function",
+                             downsample=args.downsample)
         settings = ShutterSettings(
             pulse_us=pulse_us,
             step_us=step_us,

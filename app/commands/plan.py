@@ -487,6 +487,32 @@ def run_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+def plan_data_check(saved: Any, args: argparse.Namespace) -> dict[str, Any] | None:
+    """Whether a saved plan was made on this measurement and PSF (its ``inputs`` hashes).
+
+    One line on stderr when they differ: its tau and iterations were chosen on that data (a
+    plan of another scene of the same size ran without a word, its metadata saying tau was
+    "chosen from held-out measured pixels"). Returns what the result's metadata records
+    (``recorded``, ``this``, ``match``), None for a plan that records no data (older, or
+    made from Python) or a PSF stack.
+    """
+    recorded = saved.get("inputs") if isinstance(saved, dict) else None
+    if not isinstance(recorded, dict) or not args.psf:
+        return None
+    from recon.suggest import input_hashes_of_files, inputs_match
+
+    this = input_hashes_of_files(args.meas, args.psf)
+    match = inputs_match(recorded, this)
+    if not match:
+        which = [k for k in ("measurement", "psf") if recorded.get(k) != this.get(k)]
+        print(f"recon auto: warning: plan file {args.plan} was made on another "
+              f"{' and '.join('PSF' if k == 'psf' else k for k in which)} (hashes differ): "
+              "its tau and iterations were chosen on that data; plan again for this one",
+              file=sys.stderr)
+    return {"recorded": {k: recorded.get(k) for k in ("measurement", "psf")}, "this": this,
+            "match": match}
+
+
 def check_plan_matches(saved: Any, inputs: dict[str, Any], name: str) -> None:
     """Refuse a saved plan (its JSON) made for another measurement size, naming both.
 
@@ -615,6 +641,7 @@ def run_auto(args: argparse.Namespace) -> int:
             # which measurement it is for, before its own checks (they know only its numbers)
             check_plan_matches(saved, inputs, args.plan)
             plan = Plan.from_json(saved)
+            plan_data = plan_data_check(saved, args)
         except (ValueError, RecursionError) as exc:  # bad JSON, not UTF-8, a bad field
             msg = str(exc)
             raise ValueError(msg if msg.startswith(f"plan file {args.plan}") else
@@ -626,6 +653,7 @@ def run_auto(args: argparse.Namespace) -> int:
         warn_region(plan, args)
     else:
         plan = _make(args, inputs)
+        plan_data = None
     kind = {"2d": "image", "video": "video", "depth": "depth"}[plan.model]
     check_command_outputs(args, reconstruction_paths(args.out, kind))  # the plan's previews
     if not args.quiet:
@@ -646,6 +674,8 @@ def run_auto(args: argparse.Namespace) -> int:
                       "shutter": args.shutter, "timing": args.timing, "mask": args.mask}
     meta["input_hashes"] = {k: v for k, v in inputs["problem"].hashes.items() if v is not None}
     meta["preprocessing"] = inputs["problem"].metadata
+    if plan_data is not None:  # which data the saved plan was made on, and whether it is this
+        meta["plan_inputs"] = plan_data
     paths = save_reconstruction(args.out, res.x, meta, kind=kind)
     summary = {"out": [str(p) for p in paths], "model": plan.model, "k": plan.k,
                "region": list(plan.region), "downsample": plan.downsample,

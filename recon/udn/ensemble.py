@@ -72,9 +72,15 @@ def _member(run_dir: Path, estimate: Estimate) -> tuple[dict[str, Any], F32, dic
     rec = read_record(run_dir)
     status = rec.get("status")
     if status != JobState.FINISHED:  # running, or killed: its estimate is an earlier one
+        from recon.udn.jobs import job_status
+
+        if job_status(run_dir).state == JobState.INTERRUPTED:  # killed: nobody to wait for
+            raise ValueError(f"{run_dir}: the run was interrupted (its process "
+                             f"{rec.get('pid')} is gone): its {estimate} estimate is not its "
+                             f"last; resume it ('lenslesscam jobs resume {run_dir}') first")
         raise ValueError(f"{run_dir}: the run has not finished (status {status}): its "
-                         f"{estimate} estimate is not its last; wait for it, or resume it "
-                         "('lenslesscam jobs resume') or cancel it first")
+                         f"{estimate} estimate is not its last; wait for it, or cancel it "
+                         "first ('lenslesscam jobs cancel')")
     results = rec.get("results") or {}
     if estimate not in results:
         state = rec.get("finish_reason") or rec.get("status") or "unknown"

@@ -419,3 +419,25 @@ def test_pixel_maps_of_another_size_are_one_line_naming_both_sizes(tmp_path, cap
     assert "\n" not in err
     assert (f"dark file {small} is 32x40 (rows x columns) and the measurement file "
             f"{tmp_path / 'frame.npy'} is 64x80") in err
+
+
+def test_calibrate_shutter_bins_follow_the_downsampling_and_an_unusable_file_is_not_written(
+        tmp_path, capsys):
+    """--downsample 3 with the default 1-line bins wrote 41 bins for 21 rows, a file recon
+    and simulate then refused (K > rows): the bins now default to the rows' width, and more
+    bins than rows are refused before anything is written, in the words recon uses."""
+    from recon.checks import check_shutter_frames
+
+    sh = tmp_path / "sh.npz"
+    assert main(["calibrate", "shutter", "--camera", "sim", "--downsample", "3",
+                 "--out", str(sh)]) == 0
+    capsys.readouterr()
+    k, rows = load_calibration(sh, expect="shutter").data.shape
+    check_shutter_frames(k, rows)  # what recon and simulate check: usable
+    assert rows == 21
+    bad = tmp_path / "bad.npz"
+    assert main(["calibrate", "shutter", "--camera", "sim", "--downsample", "3",
+                 "--bin-lines", "1", "--out", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "time bins for 21 rows" in err and "--bin-lines" in err, err
+    assert not bad.exists()

@@ -60,6 +60,34 @@ def test_recon_auto_runs_a_saved_plan_with_overrides(files, capsys):
     assert x.shape == (1, 1, 48, 64) and meta["plan"]["overridden"] == ["model", "iterations"]
 
 
+def test_a_saved_plan_of_other_data_is_said_and_recorded(files, capsys):
+    """A plan made on another measurement of the same size ran without a word, and the
+    result's metadata (tau "chosen from held-out measured pixels") did not say whose."""
+    import numpy as np
+
+    from recon.io import read_reconstruction
+
+    plan_file = files / "plan.json"
+    assert main(["plan", *_inputs(files), "--no-probe", "--out", str(plan_file)]) == 0
+    capsys.readouterr()
+    meas = np.load(files / "meas.npy")
+    np.save(files / "other.npy", np.roll(meas, 5, axis=-1))  # another scene, the same size
+    out = files / "other.tif"
+    argv = ["recon", "auto", "--psf", str(files / "psf.npy"), "--timing",
+            str(files / "timing.json"), "--plan", str(plan_file), "--set", "iterations=5",
+            "--quiet"]
+    assert main([*argv, "--meas", str(files / "other.npy"), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "was made on another measurement (hashes differ)" in err, err
+    assert len([line for line in err.splitlines() if "plan file" in line]) == 1
+    got = read_reconstruction(out)[1]["plan_inputs"]
+    assert got["match"] is False and got["recorded"]["psf"] == got["this"]["psf"]
+    same = files / "same.tif"
+    assert main([*argv, "--meas", str(files / "meas.npy"), "--out", str(same)]) == 0
+    assert "hashes differ" not in capsys.readouterr().err
+    assert read_reconstruction(same)[1]["plan_inputs"]["match"] is True
+
+
 def test_bad_inputs_are_one_line_errors(files, capsys):
     assert main(["plan", *_inputs(files), "--budget", "soon"]) == 2
     assert "time budget" in capsys.readouterr().err

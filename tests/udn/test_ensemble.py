@@ -147,6 +147,17 @@ def test_combine_never_writes_over_a_members_input_nor_takes_an_unfinished_run(
     with pytest.raises(ValueError, match=r"the run has not finished \(status running\)"):
         combine_runs(runs[:2], tmp_path / "ens.tif")
     assert not (tmp_path / "ens.tif").exists()
+    # killed (its process gone): not "wait for it" (jobs status said interrupted meanwhile)
+    import subprocess
+    import sys
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    rec["pid"] = gone.pid
+    rec_path.write_text(json.dumps(rec))
+    with pytest.raises(ValueError, match=r"the run was interrupted \(its process \d+ is gone\)"
+                       r".*resume it \('lenslesscam jobs resume "):
+        combine_runs(runs[:2], tmp_path / "ens.tif")
 
 
 def test_combine_with_fista_is_half_the_runs_and_half_recon_fistas_result(three_runs, tiny_data,
