@@ -331,6 +331,12 @@ def _item_from(row: dict[str, Any], meas: str, base: Path, where: str, name: str
         if isinstance(action, argparse._StoreTrueAction):
             if _flag(value, where, col):
                 argv.append(f"--{col.replace('_', '-')}")
+        elif isinstance(action, argparse.BooleanOptionalAction):
+            # with_fista = false is --no-with-fista (it went on as '--with-fista false',
+            # "unrecognized arguments: false"); no_with_fista = true likewise
+            positive = action.option_strings[0]
+            on = _flag(value, where, col) != col.startswith("no_")
+            argv.append(positive if on else "--no-" + positive[2:])
         else:
             argv += [f"--{col.replace('_', '-')}", str(value)]
     if truth and method == "udn" and spec is None:

@@ -286,3 +286,27 @@ def test_an_item_needing_more_cpus_than_the_embedded_ray_has_is_refused(data: Pa
     with pytest.raises(ValueError, match=r"an item needs 3 CPUs .* has 1: it would wait"):
         run_batch(data / "m.csv", tmp_path / "b", BatchOptions(num_cpus=1, cpus_per_item=3))
     assert not (tmp_path / "b").exists()
+
+
+def test_true_false_columns_of_on_off_options_reach_the_spec(data: Path) -> None:
+    """with_fista = false went on as '--with-fista false' ("unrecognized arguments: false");
+    the on/off options (--with-fista / --no-with-fista, --channels-last) now take true/false
+    as docs/batch.md says flags do, under either name."""
+    from app.batch.task import build_udn_spec
+
+    (data / "m.csv").write_text(
+        "measurement,psf,method,iters,with_fista,channels_last\n"
+        "meas/m00.npy,psf.npy,udn,7,false,true\nmeas/m01.npy,psf.npy,udn,7,true,false\n")
+    off, on = read_manifest(data / "m.csv")
+    assert "--no-with-fista" in off.argv and "--channels-last" in off.argv
+    assert "--with-fista" in on.argv and "--no-channels-last" in on.argv
+    assert build_udn_spec(off, threads=1)[0]["output"]["with_fista"] is False
+    assert build_udn_spec(on, threads=1)[0]["output"]["with_fista"] is True
+    (data / "n.csv").write_text("measurement,psf,method,no_with_fista\n"
+                                "meas/m00.npy,psf.npy,udn,true\n")
+    (item,) = read_manifest(data / "n.csv")
+    assert build_udn_spec(item, threads=1)[0]["output"]["with_fista"] is False
+    (data / "t.toml").write_text('[defaults]\nmethod = "udn"\npsf = "psf.npy"\n'
+                                 'with_fista = false\n\n[[item]]\nmeasurement = "meas/m00.npy"\n')
+    (item,) = read_manifest(data / "t.toml")
+    assert build_udn_spec(item, threads=1)[0]["output"]["with_fista"] is False
