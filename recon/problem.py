@@ -71,7 +71,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from dataclasses import field as dc_field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
@@ -114,6 +114,7 @@ __all__ = [
     "RECONSTRUCTION_KIND",
     "Problem",
     "ProblemSpec",
+    "ProblemSpecError",
     "load_problem",
     "load_truth",
     "prepare_truth",
@@ -135,6 +136,41 @@ RECONSTRUCTION_KIND: dict[str, str] = {
     "2d": "image", "video": "video", "spectral": "spectral", "depth": "depth",
 }
 _NORMS = ("sum", "max", "l2", "none")
+
+
+class ProblemSpecError(ValueError):
+    """A :class:`ProblemSpec` value that cannot be; it names the value as each user wrote it.
+
+    ``str()`` is ``problem: field must be ...``; :meth:`for_command_line` names the option
+    (``--field must be ...``), :meth:`for_spec` the job spec's key (``data.field must be
+    ...``): "problem: shutter (K, rows) is required" named neither.
+    """
+
+    #: what a message calls the value -> (its command-line option or None, its [data] key)
+    NAMES: ClassVar[dict[str, tuple[str | None, str]]] = {
+        "model": ("--model", "model"), "measurement": ("--meas", "measurement"),
+        "psf": ("--psf", "psf"), "psf stack": ("--psf-stack", "psf"),
+        "shutter": ("--shutter", "shutter"), "filters": ("--filters", "filters"),
+        "downsample": ("--downsample", "downsample"), "field": ("--field", "field"),
+        "color": ("--rgb", "color"), "channel order": ("--channel-order", "channel_order"),
+        "dark": ("--dark / --psf-dark", "dark / data.psf_dark"),
+        "psf normalisation": (None, "psf_normalise"),
+        "measurement normalisation": (None, "measurement_normalise"),
+    }
+
+    def __init__(self, what: str, message: str) -> None:
+        super().__init__(f"problem: {what} {message}")
+        self.what, self.message = what, message
+
+    def for_command_line(self) -> str:
+        """The message naming the option (``--field must be ...``)."""
+        option = self.NAMES.get(self.what, (None, ""))[0]
+        return f"{option} {self.message}" if option else str(self)
+
+    def for_spec(self) -> str:
+        """The message naming the job spec's key (``data.field must be ...``)."""
+        key = self.NAMES.get(self.what, (None, self.what))[1]
+        return f"data.{key} {self.message}"
 
 
 @dataclass(frozen=True)
@@ -168,7 +204,7 @@ class ProblemSpec:
 
     def __post_init__(self) -> None:
         def bad(what: str, msg: str) -> ValueError:
-            return ValueError(f"problem: {what} {msg}")
+            return ProblemSpecError(what, msg)
 
         if self.model not in MODEL_KINDS:
             raise bad("model", f"must be one of {', '.join(MODEL_KINDS)}, got {self.model!r}")

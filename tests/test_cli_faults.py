@@ -104,6 +104,9 @@ BAD_VALUES = [
     (["recon", "udn", "--meas", "m.npy", "--average-every", "1" + "0" * 20], "--average-every",
      "at most 2**62"),
     (["recon", "udn", "--meas", "m.npy", "--seed", "9" * 20], "--seed", "at most 2**62"),
+    # 10^6 inner iterations ran 49 s for two steps of an 18x25 image without a word
+    (["recon", "fista", "--meas", "m.npy", "--prox-iters", "1000000"], "--prox-iters",
+     "<= 1000"),
 ]
 
 
@@ -189,6 +192,28 @@ def test_a_folder_as_output_gets_an_example_that_works(sim, tmp_path, capsys):
     assert code != 0 and f"for example {folder / 'x.tif'})" in err, err
     code, _, err = _run(capsys, *_fista(sim, folder / "x.tif"))
     assert code == 0, err
+
+
+def test_problem_errors_name_the_option_or_the_spec_key(sim, tmp_path, capsys):
+    """'error: problem: field must be ...' and '[data] problem: shutter ...' named no option
+    and no key: now --field / --shutter on the command line, data.shutter in a spec."""
+    code, _, err = _run(capsys, *_fista(sim, tmp_path / "f.tif", "--field", "0x9"))
+    assert code != 0 and "error: --field must be (H, W) with positive integers" in err, err
+    code, _, err = _run(capsys, *_fista(sim, tmp_path / "v.tif", "--model", "video"))
+    assert code != 0 and "error: --shutter (K, rows) is required for the video model" in err
+    from recon.udn.spec import SpecError, normalise_spec
+
+    with pytest.raises(SpecError, match=r"data\.shutter \(K, rows\) is required for the "
+                       r"video model"):
+        normalise_spec({"data": {"model": "video", "psf": str(sim / "psf.npy"),
+                                 "measurement": str(sim / "meas.npy")}})
+
+
+def test_tv_k_on_a_2d_model_is_said_not_silently_ignored(sim, tmp_path, capsys):
+    code, _, err = _run(capsys, *_fista(sim, tmp_path / "k.tif", "--tv-k", "5"))
+    assert code == 0 and "warning: --tv-k 5 weighs TV along k" in err and "ignored" in err
+    code, _, err = _run(capsys, *_fista(sim, tmp_path / "k2.tif"))
+    assert "--tv-k" not in err
 
 
 def test_second_recon_needs_overwrite(sim, tmp_path, capsys):

@@ -76,4 +76,9 @@ def problem_spec(args: Any, **changes: Any) -> Any:
         "flip_rows": bool(get("flip_rows")),
     }
     kw.update(changes)
-    return ProblemSpec(**kw)
+    from recon.problem import ProblemSpecError
+
+    try:
+        return ProblemSpec(**kw)
+    except ProblemSpecError as exc:  # named as the user wrote it: --field, not "problem: field"
+        raise ValueError(exc.for_command_line()) from None

@@ -303,10 +303,12 @@ def normalise_spec(raw: Mapping[str, Any], base_dir: str | Path | None = None,
         raise SpecError(f"{source}: data.field must be [H, W] with positive integers, got "
                         f"{field!r}")
     # [data] is a recon.problem.ProblemSpec: its checks (files a model needs, field, colour)
-    from recon.problem import ProblemSpec
+    from recon.problem import ProblemSpec, ProblemSpecError
 
     try:
         ProblemSpec.from_data_section(data)
+    except ProblemSpecError as exc:  # data.shutter, not "[data] problem: shutter"
+        raise SpecError(f"{source}: {exc.for_spec()}") from None
     except ValueError as exc:
         raise SpecError(f"{source}: [data] {exc}") from None
     gain = out["optimizer"]["gain"]
