@@ -287,9 +287,11 @@ def auto_tau_plan(plan: Any, inputs: dict[str, Any]) -> Any:
     searched = (f"{search_iter} iterations per tau" + (
         f", not the budget's {limit}, which are too few to rank taus" if search_iter > limit
         else ""))
+    tried = [t * unit for t, _e, _i in choice.curve]  # the values tried, not the range's ends
     why = (f"chosen from held-out measured pixels ({choice.heldout_pixels} pixels, "
-           f"{len(choice.curve)} values of tau tried from {lo:.3g} to {hi:.3g} per "
-           f"full-resolution pixel{edge}, {searched}; recon.autotau); the search took {spent}")
+           f"{len(choice.curve)} values of tau tried from {min(tried):.3g} to {max(tried):.3g}"
+           f" within {lo:.3g}-{hi:.3g} per full-resolution pixel{edge}, {searched}; "
+           f"recon.autotau); the search took {spent}")
     new = plan.override(tau=tau, iterations=iterations)
     its = f"{iterations} iteration{'s' if iterations != 1 else ''}"
     verb = "were" if iterations != 1 else "was"
@@ -305,7 +307,7 @@ def auto_tau_plan(plan: Any, inputs: dict[str, Any]) -> Any:
     evidence = {**new.evidence, "tau_search": {
         "seconds": round(search_s, 3), "values_tried": len(choice.curve),
         "heldout_pixels": choice.heldout_pixels, "max_iter": search_iter,
-        "tau_range": [lo, hi]}}
+        "tau_range": [lo, hi], "taus_tried": tried}}
     # chosen by the planner, not set by the user
     return dataclasses.replace(new, reasons=reasons, evidence=evidence,
                                overridden=plan.overridden)

@@ -94,9 +94,9 @@ from recon.udn.rundir import (
 )
 from recon.udn.runner import UDNRunner, UDNStep, resolve_device
 from recon.udn.spec import (
-    SpecError,
     network_config,
     normalise_spec,
+    parse_spec_text,
     read_spec_text,
     udn_config,
 )
@@ -1010,6 +1010,7 @@ def run_job(spec_path: str | Path, run_dir: str | Path, *, progress: OnStep = No
     sp = Path(spec_path)
     if spec_text is None:
         spec_text = read_spec_text(sp)
+    parse_spec_text(spec_text, sp)  # not TOML: refused before a run folder is made (as not UTF-8)
     copy = spec_text if seed is None else (
         f"# run with 'jobs run --seed {seed}': optimizer.seed = {seed} overrides this file "
         "(run.json: overrides)\n" + spec_text)
@@ -1114,12 +1115,7 @@ def _run_locked(sp: Path, rd: Path, lock: RunLock, progress: OnStep, cancel: Can
     try:
         atomic_write_bytes(rd / SPEC_FILE, copy.encode("utf-8"))
         record["spec_file_hash"] = file_hash(rd / SPEC_FILE)  # a later edit is then noticed
-        import tomllib
-
-        try:
-            raw = tomllib.loads(spec_text)
-        except tomllib.TOMLDecodeError as exc:
-            raise SpecError(f"{sp}: not valid TOML: {exc}") from None
+        raw = parse_spec_text(spec_text, sp)
         if seed is not None:
             opt = raw.setdefault("optimizer", {})
             if isinstance(opt, dict):

@@ -371,14 +371,18 @@ def read_spec_text(path: str | Path) -> str:
     return read_utf8(p, error=SpecError, hint="; save the spec as UTF-8")
 
 
+def parse_spec_text(text: str, where: str | Path) -> dict[str, Any]:
+    """The TOML table of a spec's text; :class:`SpecError` naming ``where`` when it is not TOML."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SpecError(f"{where}: not valid TOML: {exc}") from None
+
+
 def load_spec(path: str | Path) -> dict[str, Any]:
     """Read and validate a TOML job spec (see :func:`normalise_spec`)."""
     p = Path(path)
-    try:
-        raw = tomllib.loads(read_spec_text(p))
-    except tomllib.TOMLDecodeError as exc:
-        raise SpecError(f"{p}: not valid TOML: {exc}") from None
-    return normalise_spec(raw, p.parent, source=str(p))
+    return normalise_spec(parse_spec_text(read_spec_text(p), p), p.parent, source=str(p))
 
 
 def network_config(spec: Mapping[str, Any], k: int) -> NetworkConfig:

@@ -39,6 +39,13 @@ def test_plan_prints_reasons_and_json(files, capsys):
     # the saved plan also records which measurement and PSF it is for (recon.suggest)
     assert set(saved.pop("inputs")) == {"measurement", "psf"} and saved.pop("created_utc")
     assert "iterations" in d["overridden"] and saved == d
+    # the reason names the values tried, not the search range's ends ('from 1e-07' when the
+    # first value tried was 1e-06)
+    search = d["evidence"]["tau_search"]
+    tried, (lo, hi) = search["taus_tried"], search["tau_range"]
+    assert len(tried) == search["values_tried"]
+    assert lo * (1 - 1e-6) <= min(tried) <= max(tried) <= hi * (1 + 1e-6)  # float rounding
+    assert f"tried from {min(tried):.3g} to {max(tried):.3g} within" in d["reasons"]["tau"]
 
 
 def test_recon_auto_runs_a_saved_plan_with_overrides(files, capsys):

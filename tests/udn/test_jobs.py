@@ -411,6 +411,17 @@ def test_a_bad_spec_value_names_its_key(tiny_data, tmp_path, section, key, value
         run_job(write_spec(tiny_data, **{section: {key: value}}), tmp_path / "run")
 
 
+def test_a_spec_that_is_not_toml_makes_no_run_folder(tiny_data, tmp_path):
+    """A spec that is not UTF-8 was refused before anything was written; one that is not TOML
+    left a failed run folder (job.toml, run.json, run.lock): now refused alike."""
+    spec = write_spec(tiny_data, stopping={"max_iter": 2})
+    bad = spec.parent / "bad.toml"
+    bad.write_text(spec.read_text().replace("[stopping]", "[stopping", 1))
+    with pytest.raises(SpecError, match=r"bad\.toml: not valid TOML: Expected ']'"):
+        run_job(bad, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_spec_with_a_byte_order_mark_runs_and_a_folder_is_not_a_spec(tiny_data, tmp_path):
     """A spec saved with a UTF-8 byte-order mark was 'Invalid statement at line 1, column 1';
     'jobs run DIR' said 'job spec not found' for a folder that is there."""
