@@ -1,9 +1,12 @@
 """UDN settings suggested for one measurement by a saved plan or trade (Qt-free).
 
 A plan (``recon.plan.Plan.to_json``) or a trade folder (``trade.csv``) is offered for a
-measurement only when it records the hashes of that measurement and its PSF
-(:func:`input_hashes`): a plan file carries them under ``"inputs"`` (``Plan.from_json``
-ignores the extra key), a trade folder in ``inputs.json`` beside ``trade.csv``. Plans and
+measurement when it records the hashes of that measurement and its PSF (:func:`input_hashes`):
+a plan file carries them under ``"inputs"`` (``Plan.from_json`` ignores the extra key), a
+trade folder in ``inputs.json`` beside ``trade.csv``. One made on another measurement with the
+same PSF (another frame of the same camera: a live camera's frames all differ, so its plans
+were never offered again) is offered after those, marked as such
+(:attr:`Suggestion.same_measurement` False); one of another PSF never. Plans and
 trades are read by their one reader each (``Plan.from_json``, ``recon.trade.read_trade_csv``).
 
 What each gives the UDN job (keys of :attr:`Suggestion.settings`):
@@ -23,6 +26,7 @@ none, and its detail says so.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import json
 import os
@@ -83,6 +87,19 @@ def input_hashes_of_files(meas_path: str | os.PathLike[str],
     return input_hashes(meas, psf)
 
 
+def _match(recorded: Any, hashes: Mapping[str, str]) -> bool | None:
+    """Whether ``recorded`` is this measurement (True), another one of this PSF (False).
+
+    None: another PSF, or nothing recorded.
+    """
+    if inputs_match(recorded, hashes):
+        return True
+    if isinstance(recorded, Mapping) and hashes.get("psf") and recorded.get(
+            "psf") == hashes.get("psf"):
+        return False
+    return None
+
+
 def inputs_match(recorded: Any, hashes: Mapping[str, str]) -> bool:
     """True when ``recorded`` names the same measurement and PSF as ``hashes``."""
     if not isinstance(recorded, Mapping):
@@ -140,6 +157,8 @@ class Suggestion:
     detail: str = ""
     spec: dict[str, dict[str, Any]] = field(default_factory=dict)
     not_carried: tuple[str, ...] = ()
+    #: made on this measurement (False: on another one with the same PSF)
+    same_measurement: bool = True
 
     @property
     def origin(self) -> str:
@@ -156,7 +175,8 @@ class Suggestion:
             vals += f", +{n} recorded UDN settings"
         when = self.created[:16].replace("T", " ")
         name = self.path.name if self.source == "plan" else self.path.parent.name
-        return f"{self.source} {when}: {vals} ({name})"
+        other = "" if self.same_measurement else " - another frame, same PSF"
+        return f"{self.source} {when}{other}: {vals} ({name})"
 
 
 def _mtime(path: Path) -> str:
@@ -221,14 +241,22 @@ def _read_plan_file(path: Path, hashes: Mapping[str, str]) -> Suggestion | None:
         d = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    if not isinstance(d, dict) or not inputs_match(d.get("inputs"), hashes):
+    same = _match(d.get("inputs"), hashes) if isinstance(d, dict) else None
+    if same is None:
         return None
     try:
         plan = Plan.from_json(d)
     except (ValueError, TypeError):
         return None
     created = str(d.get("created_utc") or _mtime(path))
-    return from_plan(plan, path, created)
+    return _marked(from_plan(plan, path, created), same)
+
+
+def _marked(s: Suggestion | None, same: bool) -> Suggestion | None:
+    if s is None or same:
+        return s
+    return dataclasses.replace(s, same_measurement=False,
+                               detail="made on another measurement with this PSF; " + s.detail)
 
 
 def _read_trade_folder(csv_path: Path, hashes: Mapping[str, str]) -> Suggestion | None:
@@ -238,7 +266,8 @@ def _read_trade_folder(csv_path: Path, hashes: Mapping[str, str]) -> Suggestion 
         rec = json.loads((csv_path.parent / INPUTS_FILE).read_text())
     except (OSError, ValueError):
         return None
-    if not isinstance(rec, dict) or not inputs_match(rec, hashes):
+    same = _match(rec, hashes) if isinstance(rec, dict) else None
+    if same is None:
         return None
     from recon.formats import FORMAT_VERSION, whole_version
 
@@ -250,15 +279,16 @@ def _read_trade_folder(csv_path: Path, hashes: Mapping[str, str]) -> Suggestion 
         rows = read_trade_csv(csv_path)
     except (OSError, ValueError, KeyError, TypeError):
         return None
-    return from_trade_rows(rows, csv_path, str(rec.get("created_utc") or _mtime(csv_path)))
+    return _marked(from_trade_rows(rows, csv_path, str(rec.get("created_utc")
+                                                       or _mtime(csv_path))), same)
 
 
 def find_suggestions(folders: Iterable[str | os.PathLike[str]],
                      hashes: Mapping[str, str]) -> list[Suggestion]:
     """Plans (``*.json``) and trades (``*/trade.csv``) in ``folders`` made for ``hashes``.
 
-    Newest first; files for other measurements, unreadable files and trades without a UDN
-    row are left out.
+    Those of this measurement first, then those of another one with the same PSF, each newest
+    first; files of another PSF, unreadable files and trades without a UDN row are left out.
     """
     found: list[Suggestion] = []
     for folder in folders:
@@ -273,7 +303,7 @@ def find_suggestions(folders: Iterable[str | os.PathLike[str]],
             s = _read_trade_folder(p, hashes)
             if s is not None:
                 found.append(s)
-    return sorted(found, key=lambda s: s.created, reverse=True)
+    return sorted(found, key=lambda s: (s.same_measurement, s.created), reverse=True)
 
 
 def write_plan_suggestion(folder: str | os.PathLike[str], plan: Any,

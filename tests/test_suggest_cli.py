@@ -1,5 +1,6 @@
 """``plan --out`` and ``trade`` record which measurement they were made for, and the app's
-job dialog logic (:func:`recon.suggest.find_suggestions`) offers them for that frame only."""
+job dialog logic (:func:`recon.suggest.find_suggestions`) offers them for that frame first,
+then for other frames of the same PSF."""
 
 from __future__ import annotations
 
@@ -42,7 +43,13 @@ def test_plan_out_is_offered_for_its_frame_and_not_for_another(tmp_path, capsys)
     app_psf = load_psf_any(tmp_path / "psf.tif")
     found = find_suggestions([sugg], input_hashes(frame, app_psf))
     assert [s.path.name for s in found] == ["plan.json"] and found[0].source == "plan"
-    assert find_suggestions([sugg], input_hashes(other, app_psf)) == []
+    assert found[0].same_measurement
+    # another frame with the same PSF (a live camera's next frame): offered, marked so (a
+    # live camera's plans were never offered again); another PSF: not offered
+    (again,) = find_suggestions([sugg], input_hashes(other, app_psf))
+    assert not again.same_measurement and "another frame, same PSF" in again.label
+    assert again.detail.startswith("made on another measurement with this PSF")
+    assert find_suggestions([sugg], input_hashes(other, app_psf[::-1].copy())) == []
 
 
 def test_trade_records_its_inputs_beside_the_csv(tmp_path, capsys):

@@ -288,7 +288,7 @@ class NewJobDialog(QDialog):
     # -- suggestions ---------------------------------------------------------------------------
 
     def refresh_suggestions(self) -> None:
-        """Look for plans and trades made for this measurement; list them (newest first)."""
+        """Look for plans and trades made for this measurement (or its PSF); list them."""
         from recon.suggest import find_suggestions
 
         found = ([] if self._hashes is None else
@@ -311,7 +311,10 @@ class NewJobDialog(QDialog):
             self._note("no plan or trade found for this measurement"
                        + (": Run planner to make one" if can_plan else ""))
         else:
-            self._note(f"{len(found)} found for this measurement: choose one and Apply")
+            other = sum(not s.same_measurement for s in found)
+            self._note(f"{len(found)} found for this measurement"
+                       + (f" ({other} made on another frame with this PSF)" if other else "")
+                       + ": choose one and Apply")
 
     def _note(self, text: str, tip: str | None = None) -> None:
         self.suggestion_note.setText(text)
