@@ -691,6 +691,7 @@ class FrameStreamer:
         self._queue_size = 1 if mode is StreamMode.LIVE else int(queue_size)
         self._stall = float(stall_timeout_s)
         self._frame_s = 0.0  # one frame's time: the stall allows it twice more (expect_frame_s)
+        self._frame_s_next = 0.0  # the new frame time, in force from the next good frame
         self._poll = float(poll_s)
         self._on_exit = on_exit
         self._max_bad = int(max_bad_frames)
@@ -718,9 +719,13 @@ class FrameStreamer:
         """One frame now takes ``seconds`` (exposure and readout, or the frame period).
 
         The stream ends as stalled only after the stall timeout plus two such frames: a long
-        exposure the camera accepts (3 s at a 2 s timeout) is not a lost camera.
+        exposure the camera accepts (3 s at a 2 s timeout) is not a lost camera. A shorter
+        frame time takes effect at the next good frame: the frame under way when a 6 s
+        exposure became 10 ms still takes its 6 s (the stream was declared lost 2 s in).
         """
-        self._frame_s = max(0.0, float(seconds)) if math.isfinite(seconds) else 0.0
+        new = max(0.0, float(seconds)) if math.isfinite(seconds) else 0.0
+        self._frame_s_next = new
+        self._frame_s = max(self._frame_s, new)
 
     @property
     def stall_s(self) -> float:
@@ -745,6 +750,7 @@ class FrameStreamer:
                         raise self._stalled(None)
                     continue
                 last_good = time.monotonic()
+                self._frame_s = self._frame_s_next  # a frame came: the new time holds now
                 with self._cond:
                     self._bad_run = 0
                 self._put(frame)

@@ -312,9 +312,10 @@ class NewJobDialog(QDialog):
                        + (": Run planner to make one" if can_plan else ""))
         else:
             other = sum(not s.same_measurement for s in found)
-            self._note(f"{len(found)} found for this measurement"
-                       + (f" ({other} made on another frame with this PSF)" if other else "")
-                       + ": choose one and Apply")
+            parts = ([f"{len(found) - other} for this measurement"] if other < len(found)
+                     else [])
+            parts += [f"{other} made on another frame with this PSF"] if other else []
+            self._note(f"{' and '.join(parts)}: choose one and Apply")
 
     def _note(self, text: str, tip: str | None = None) -> None:
         self.suggestion_note.setText(text)
@@ -872,9 +873,26 @@ class JobsPanel(QWidget):
         The newest job, selected at start, was half hidden after the window shrank to the
         screen.
         """
-        if watched is self.table.viewport() and event.type() == QEvent.Type.Resize:
+        if (watched is self.table.viewport() and event.type() == QEvent.Type.Resize
+                and self._selection_was_in_view(event.oldSize().height())):
+            # only a selection that was in view is kept there: a table the user scrolled
+            # elsewhere jumped back whenever the message line came or went
             QTimer.singleShot(0, self._show_selected)
         return super().eventFilter(watched, event)
+
+    def _selection_was_in_view(self, height: int) -> bool:
+        """Whether the last selected row lay wholly in a viewport ``height`` pixels tall.
+
+        A viewport not yet laid out (height <= 0) counts as showing it.
+        """
+        model = self.table.selectionModel()
+        rows = sorted({i.row() for i in model.selectedRows()}) if model is not None else []
+        if not rows:
+            return False
+        if height <= 0:
+            return True
+        y = self.table.rowViewportPosition(rows[-1])
+        return 0 <= y and y + self.table.rowHeight(rows[-1]) <= height
 
     def _show_selected(self) -> None:
         """Scroll the table to the selected rows (the last of them in view)."""

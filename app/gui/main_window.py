@@ -134,20 +134,29 @@ def _read_camera(cam: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     return values, ranges
 
 
+#: suffixes that name another file type: Save as refuses them (frames are saved as TIFF)
+_OTHER_FILE_TYPES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".gif", ".npy", ".npz",
+                               ".fits", ".fit", ".mat", ".h5", ".json", ".csv", ".txt"})
+
+
 class _Rate:
     """Events per second over the last few seconds; 0 once events stop coming.
 
-    A slow stream (one frame every 3 s) shows its one interval while the next frame is not
-    overdue (it showed 0, and a stream that stopped kept showing its old rate).
+    Ticks may be on any clock (a frame's own timestamp, the wall clock): "now" is the newest
+    tick plus the monotonic time since it came (a wall-clock tick compared with the
+    monotonic clock kept 9.99 fps for a stream that had stopped). A slow stream (one frame
+    every 3 s) shows its one interval while the next frame is not overdue.
     """
 
     def __init__(self, window_s: float = 2.0) -> None:
         self.window_s = window_s
         self.times: collections.deque[float] = collections.deque()
         self._interval = 0.0
+        self._arrived = 0.0  # time.monotonic() of the newest tick
 
     def tick(self, t: float | None = None) -> None:
-        now = time.monotonic() if t is None else t
+        self._arrived = time.monotonic()
+        now = self._arrived if t is None else t
         if self.times:
             self._interval = now - self.times[-1]
         self.times.append(now)
@@ -155,11 +164,13 @@ class _Rate:
             self.times.popleft()
 
     def rate(self, now: float | None = None) -> float:
-        t = time.monotonic() if now is None else now
+        if not self.times:
+            return 0.0
+        t = self.times[-1] + (time.monotonic() - self._arrived) if now is None else now
         recent = [x for x in self.times if t - x <= self.window_s]
         if len(recent) >= 2 and recent[-1] > recent[0]:
             return (len(recent) - 1) / (recent[-1] - recent[0])
-        if self._interval > 0 and self.times and t - self.times[-1] <= 2.0 * self._interval:
+        if self._interval > 0 and t - self.times[-1] <= 2.0 * self._interval:
             return 1.0 / self._interval
         return 0.0
 
@@ -985,6 +996,8 @@ class MainWindow(QMainWindow):
         self.settings.preview_enabled = on
         if not on:
             self.preview_panel.set_message("preview off")
+        elif self.preview_panel.message.text() == "preview off":  # on again, camera stopped
+            self.preview_panel.set_message("")
 
     def _on_preview(self, res: PreviewResult) -> None:
         note = self.preview_panel.message.text()
@@ -1161,8 +1174,10 @@ class MainWindow(QMainWindow):
         path, _ = QFileDialog.getSaveFileName(self, "Save frame", str(self.save_dir()),
                                               "TIFF (*.tif)")
         if path:
-            if Path(path).suffix == "":  # the dialog's TIFF filter (it made a folder 'name/')
-                path += ".tif"
+            if Path(path).suffix.lower() not in _OTHER_FILE_TYPES:
+                # the dialog's TIFF filter: 'name' made a folder 'name/', 'exp_2.5ms' was
+                # refused as a '.5ms' file; another file type (.png) is still said to be one
+                path += "" if Path(path).suffix.lower() in (".tif", ".tiff") else ".tif"
             self.settings.save_dir = str(Path(path).parent)
             self.snap_and_save(path)
 

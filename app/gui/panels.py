@@ -426,7 +426,7 @@ class CameraControls(QGroupBox):
 
 
 class TauSpinBox(SciSpinBox):
-    """A spin box for a TV weight: any value from 1e-9 up, 3 significant digits.
+    """A spin box for a TV weight: any value from 1e-9 up, up to 6 significant digits.
 
     The tau auto estimate ranges over 1e-7 to 1e-2.
     """

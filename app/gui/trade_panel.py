@@ -246,8 +246,12 @@ class TradePanel(QWidget):
     def _redraw(self) -> None:
         self.plot.clear()
         key = self.quality_key
-        self.plot.setLabel("left", "PSNR vs truth (dB)" if key == "psnr"
-                           else "held-out prediction (dB)")
+        # short: the dock is about 160 px tall at 1366x768 ("held-out prediction (dB)" was cut
+        # to "held-out prediction (dE"); the tooltip says what it is
+        self.plot.setLabel("left", "PSNR (dB)" if key == "psnr" else "held-out (dB)")
+        self.plot.setToolTip("quality: PSNR against the truth" if key == "psnr" else
+                             "quality: PSNR of the prediction of held-out measured pixels "
+                             "(no truth given)")
         for method, colour in COLOURS.items():
             pts = [r for r in self.rows if r.method == method and getattr(r, key) is not None]
             if pts:

@@ -78,6 +78,14 @@ def _partial_number(box: QAbstractSpinBox, text: str) -> bool:
     return _PARTIAL_NUMBER.fullmatch(core.strip()) is not None
 
 
+def _whole(box: QAbstractSpinBox, text: str) -> int | None:
+    """The whole number nearest to the number ``text`` holds in any notation, else None."""
+    value = _number(box, text, float)
+    if value is None or abs(value) > 2**62:
+        return None
+    return math.floor(value + 0.5)
+
+
 def _nearest_text(box: QAbstractSpinBox, text: str, kind: type) -> str:
     """``text`` of a spin box as the nearest value in its range, prefix and suffix kept.
 
@@ -103,9 +111,32 @@ class SpinBox(WheelOnFocus, QSpinBox):
         self._wheel_guard_init()
         self.setCorrectionMode(QAbstractSpinBox.CorrectionMode.CorrectToNearestValue)
 
+    def validate(self, text: str, pos: int) -> object:
+        """Qt's validation, except that any number may be typed, in any notation.
+
+        '1e4' lost its 'e' and became 14 (and '2.5' 25); now it is 10000 (2.5: the nearest
+        whole number), corrected to the range when the edit ends.
+        """
+        result = super().validate(text, pos)
+        state = result[0] if isinstance(result, tuple) else result
+        if state != QValidator.State.Invalid:
+            return result
+        if _whole(self, text) is None and not _partial_number(self, text):
+            return result
+        return (QValidator.State.Intermediate, text, pos)
+
+    def valueFromText(self, text: str) -> int:
+        """The typed number in any notation, the nearest whole number."""
+        value = _whole(self, text)
+        return value if value is not None else int(super().valueFromText(text))
+
     def fixup(self, text: str) -> str:
-        """A number out of range becomes the nearest bound."""
-        return _nearest_text(self, text, int)
+        """The nearest whole number in the range (2.5 is 3; 1e9 in a 1-100 box is 100)."""
+        value = _whole(self, text)
+        if value is None:
+            return text
+        value = min(max(value, self.minimum()), self.maximum())
+        return f"{self.prefix()}{self.textFromValue(value)}{self.suffix()}"
 
 
 class DoubleSpinBox(WheelOnFocus, QDoubleSpinBox):
@@ -135,9 +166,14 @@ class DoubleSpinBox(WheelOnFocus, QDoubleSpinBox):
         return (QValidator.State.Intermediate, text, pos)
 
     def valueFromText(self, text: str) -> float:
-        """The typed number in any notation (2e-4 as well as 0.0002)."""
+        """The typed number in any notation (2e-4 as well as 0.0002), to the box's decimals.
+
+        4e-4 in a 3-decimal box is 0, as 0.0004 typed is: the value is what is shown.
+        """
         value = _number(self, text, float)
-        return float(value) if value is not None else float(super().valueFromText(text))
+        if value is None:
+            return float(super().valueFromText(text))
+        return round(float(value), self.decimals())
 
     def fixup(self, text: str) -> str:
         """A number out of range becomes the nearest bound (shown with the box's decimals)."""
@@ -147,7 +183,8 @@ class DoubleSpinBox(WheelOnFocus, QDoubleSpinBox):
 class SciSpinBox(DoubleSpinBox):
     """A spin box for a value that spans decades (a TV weight, a learning rate).
 
-    Shown with 3 significant digits, typed in any notation, kept to 1e-9.
+    Shown with up to 6 significant digits (so what is shown is the value: with 3, Return on
+    0.000123456 made it 0.000123), typed in any notation, kept to 1e-9.
 
     A fixed number of decimals showed 3e-6 as 0.00000 and gave back 0.
     """
@@ -157,8 +194,8 @@ class SciSpinBox(DoubleSpinBox):
         self.setDecimals(9)
 
     def textFromValue(self, value: float) -> str:
-        """3 significant digits: 0.0003, 2.5e-06."""
-        return f"{value:.3g}"
+        """Up to 6 significant digits: 0.0003, 2.5e-06, 0.000123456."""
+        return f"{value:.6g}"
 
     def validate(self, text: str, pos: int) -> Any:
         """Numbers in any notation; their beginnings while typing."""

@@ -386,6 +386,23 @@ def test_a_long_exposure_is_not_a_stall() -> None:
         cam.stop()
 
 
+def test_a_shorter_exposure_keeps_the_frame_under_way_from_being_a_stall() -> None:
+    """A 6 s exposure set to 10 ms while streaming: the stall allowance fell to the new frame
+    time at once, and the frame being exposed made the stream 'lost'. The shorter time now
+    holds from the next good frame."""
+    with SimulatedCamera(8, 8, frame_rate_hz=50.0, exposure_us=700_000.0) as cam:
+        cam.stream_timeout_s = 0.2
+        cam.start_live()
+        assert cam.latest_frame(timeout_s=3.0) is not None  # a frame: the next is under way
+        cam.exposure_us = 1000.0
+        got = 0
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
+            got += cam.latest_frame(timeout_s=0.5) is not None
+        assert got >= 2
+        cam.stop()
+
+
 def test_frame_timing_metadata_rebuilds_the_shutter() -> None:
     with _ideal_camera(exposure_us=123.0, readout_pattern="centre-out") as cam:
         f = cam.snap()

@@ -90,6 +90,27 @@ def test_a_matching_plan_is_offered_and_fills_the_fields(panel: Any, qtbot: Any)
     assert dlg.sections()["stopping"]["time_limit_s"] == pytest.approx(7200.0)
 
 
+def test_a_plan_of_another_frame_of_this_psf_is_offered_and_said_so(panel: Any) -> None:
+    """A live camera's frames all differ: a plan made on the last frame was never offered
+    again. It is now, after this frame's, and the note does not call it this measurement's."""
+    m = panel.state["m"]
+    folder = panel.suggestion_dirs[0]
+    earlier = m.frame.pixels + 1  # another frame, the same PSF
+    write_plan_suggestion(folder, _plan(downsample=4), input_hashes(earlier, m.psf))
+    dlg = panel.new_job_dialog()
+    assert dlg.suggestion_box.count() == 1
+    assert "another frame, same PSF" in dlg.suggestion_box.itemText(0)
+    assert dlg.suggestion_note.text() == ("1 made on another frame with this PSF: choose one "
+                                          "and Apply")
+    dlg.reject()
+    write_plan_suggestion(folder, _plan(downsample=6), _hashes(m))
+    dlg = panel.new_job_dialog()
+    assert dlg.suggestion_box.count() == 2 and "another" not in dlg.suggestion_box.itemText(0)
+    assert dlg.suggestion_note.text().startswith(
+        "1 for this measurement and 1 made on another frame with this PSF")
+    dlg.reject()
+
+
 def test_a_matching_trade_sets_channels_and_precision(panel: Any, qtbot: Any) -> None:
     m = panel.state["m"]
     folder = panel.suggestion_dirs[0] / "trade-1"

@@ -212,7 +212,12 @@ def test_job_dialog_defaults_come_from_the_spec(live_window: Any, tmp_path: Any)
     for box, typed, want in ((dlg.holdout, "0.9", 0.5), (dlg.lr, "0.000005", 1e-5),
                              (dlg.time_limit, "0.004", 0.004), (dlg.patience, "0", 1),
                              (dlg.tv_weight, "1e-5", 1e-5), (dlg.tv_weight, "2.5e-7", 2.5e-7),
-                             (dlg.lr, "1e-3", 1e-3), (dlg.holdout, "5e-2", 0.05)):
+                             (dlg.lr, "1e-3", 1e-3), (dlg.holdout, "5e-2", 0.05),
+                             # to the box's decimals, as shown (4e-4 was kept as 0.0004
+                             # while "0.000" showed); 1e-5 h is "none"
+                             (dlg.holdout, "4e-4", 0.0), (dlg.time_limit, "1e-5", 0.0),
+                             # whole-number boxes: '1e4' became 14, '2.5' 25
+                             (dlg.max_iter, "1e4", 10_000), (dlg.patience, "2.5", 3)):
         box.lineEdit().selectAll()
         QTest.keyClicks(box.lineEdit(), typed)
         QTest.keyClick(box.lineEdit(), Qt.Key.Key_Return)
@@ -792,5 +797,14 @@ def test_the_newest_job_selected_at_start_is_in_view(tmp_path, qtbot):
         panel.resize(1366, 150)  # the window made shorter (to the screen): still in view
         qtbot.waitUntil(lambda: t.viewport().height() < 100, timeout=5_000)
         qtbot.waitUntil(shown, timeout=5_000)
+        # scrolled away by the user: a message that comes and goes leaves the table where it is
+        t.scrollToTop()
+        qtbot.wait(50)
+        top = t.verticalScrollBar().value()
+        panel.message.setText("a message")
+        qtbot.wait(100)
+        panel.message.setText("")
+        qtbot.wait(100)
+        assert t.verticalScrollBar().value() == top and not shown()
     finally:
         panel.stop()

@@ -97,6 +97,10 @@ def test_a_save_that_works_ends_the_last_ones_error_and_a_name_gets_tif(
     assert Path(w.last_saved) == tmp_path / "myframe.tif" and Path(w.last_saved).is_file()
     assert not (tmp_path / "myframe").exists()
     assert not w.banner.isVisible()
+    picked[0] = str(tmp_path / "exp_2.5ms")  # a dot in the name is not a file type
+    w._save_as()
+    qtbot.waitUntil(lambda: Path(w.last_saved).name == "exp_2.5ms.tif", timeout=10_000)
+    assert not w.banner.isVisible()
 
 
 def test_snap_and_save_writes_tiff_with_metadata(live_window: Any, qtbot: Any,
@@ -240,6 +244,9 @@ def test_settings_persist_between_sessions(make_window: Any, qtbot: Any) -> None
     assert w2.device_panel.intensity.value() == pytest.approx(0.35)
     assert w2.camera_controls.show_roi.isChecked()
     assert w2.preview_panel.message.text() == "preview off"
+    w2.set_live(False)  # on again with the camera stopped: no frame comes to replace it
+    w2.preview_controls.enabled.setChecked(True)
+    assert w2.preview_panel.message.text() != "preview off"
     qtbot.waitUntil(lambda: abs(w2.bench.camera.exposure_us - 8000.0) < 20, timeout=5_000)
 
 
@@ -445,6 +452,17 @@ def test_the_footer_rate_of_a_slow_stream_and_of_one_that_stopped() -> None:
         fast.tick(i * 0.1)
     assert fast.rate(now=2.0) == pytest.approx(10.0)
     assert fast.rate(now=10.0) == 0.0
+    # ticks on the wall clock (a frame's timestamp), read without a "now": the time since
+    # the newest tick decides, whatever the clock (9.99 fps stayed for a stopped stream)
+    import time
+
+    wall = _Rate(window_s=2.0)
+    t0 = time.time()
+    for i in range(11):
+        wall.tick(t0 - 1.0 + i * 0.1)
+    assert wall.rate() == pytest.approx(10.0, rel=0.05)
+    wall._arrived -= 3.0  # as if the newest frame came 3 s ago
+    assert wall.rate() == 0.0
 
 
 def test_the_devices_box_is_locked_while_a_workflow_drives_the_devices(live_window: Any,

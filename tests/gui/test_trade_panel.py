@@ -81,3 +81,12 @@ def test_the_plot_has_the_docks_height_at_1366x768(make_window: Any, qtbot: Any)
     assert panel.plot.height() >= 150, (panel.plot.height(), panel.height())
     assert panel.plot.height() >= panel.height() - 30
     assert panel.plot.width() >= 320
+    # the quality axis' title fits its height ("held-out prediction (dE")
+    import dataclasses
+
+    for rows in (_rows(), [dataclasses.replace(r, psnr=None) for r in _rows()]):
+        panel.set_rows(rows)  # with the truth's PSNR, and with the held-out proxy only
+        qtbot.wait(50)
+        label = panel.plot.getAxis("left").label
+        assert label.boundingRect().width() <= panel.plot.getViewBox().height(), (
+            panel.quality_key, label.toPlainText())
