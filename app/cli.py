@@ -48,14 +48,15 @@ class CliError(Exception):
 class Parser(argparse.ArgumentParser):
     """argparse with a one-line error: the problem and where the usage is (not the usage).
 
-    A value such as ``-1e30`` is read as a negative number, as ``-5`` and ``-0.5`` are
-    (argparse's own rule has no exponent, so ``--dark -1e30`` was "expected one argument").
+    A value such as ``-1e30`` or ``-5s`` is read as a negative number, as ``-5`` and
+    ``-0.5`` are (argparse's own rule has no exponent and no unit, so ``--dark -1e30`` and
+    ``--budget -5s`` were "expected one argument"): the option's own check then says why.
     """
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._negative_number_matcher = re.compile(
-            r"^-\d+$|^-\d*\.\d+$|^-(\d+\.?\d*|\.\d+)[eE][+-]?\d+$")
+            r"^-(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?([a-zA-Zµ]{1,3})?$")
 
     def error(self, message: str) -> NoReturn:
         """Exit 2 with one line: the problem and where the usage is."""

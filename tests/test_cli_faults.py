@@ -104,6 +104,8 @@ BAD_VALUES = [
     (["recon", "udn", "--meas", "m.npy", "--average-every", "1" + "0" * 20], "--average-every",
      "at most 2**62"),
     (["recon", "udn", "--meas", "m.npy", "--seed", "9" * 20], "--seed", "at most 2**62"),
+    # a negative value with a unit was "expected one argument"
+    (["snap", "--exposure", "-1ms"], "--exposure", "duration must be > 0"),
     # 10^6 inner iterations ran 49 s for two steps of an 18x25 image without a word
     (["recon", "fista", "--meas", "m.npy", "--prox-iters", "1000000"], "--prox-iters",
      "<= 1000"),

@@ -37,9 +37,11 @@ _UNITS_US = {"us": 1.0, "µs": 1.0, "ms": 1000.0, "s": 1_000_000.0}
 
 def parse_duration_us(text: str) -> float:
     """``10ms`` -> 10000.0 (microseconds); units us, µs, ms, s; a bare number is us."""
-    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(us|µs|ms|s)?\s*", text)
+    # a sign read, so that -1ms is "must be > 0"
+    m = re.fullmatch(r"\s*(-?[0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(us|µs|ms|s)?\s*", text)
     if not m:
-        raise argparse.ArgumentTypeError(f"not a duration: {text!r} (e.g. 10ms, 500us, 0.5s)")
+        raise argparse.ArgumentTypeError(f"not a duration: {text!r} (e.g. 10ms, 500us, 0.5s; "
+                                         "a bare number is microseconds)")
     value = float(m.group(1)) * _UNITS_US[m.group(2) or "us"]
     if value <= 0:
         raise argparse.ArgumentTypeError(f"duration must be > 0: {text!r}")
@@ -68,7 +70,8 @@ def register(subparsers: Any) -> None:
     s.add_argument(
         "--camera", default="sim", help="sim | genicam[:N] | v4l2[:N|:PATH] (default sim)"
     )
-    s.add_argument("--exposure", type=parse_duration_us, help="exposure, e.g. 10ms")
+    s.add_argument("--exposure", type=parse_duration_us,
+                   help="exposure, e.g. 10ms (units us, ms, s; a bare number is us)")
     s.add_argument("--gain", type=FINITE, help="gain (device units)")
     s.add_argument("--timeout", type=POSITIVE, default=5.0, help="seconds to wait for the frame")
     s.add_argument("--light-state", help="sim only: state file of a simulated point source")

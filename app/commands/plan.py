@@ -31,8 +31,8 @@ def parse_budget(value: str | None) -> float | None:
     """'60s', '5min', '2h', '500ms' or a bare number of seconds; None or 'none' for none."""
     if value is None or value.strip().lower() in ("", "none"):
         return None
-    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*(ms|s|sec|min|m|h)?\s*",
-                     value)
+    m = re.fullmatch(r"\s*(-?[0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*(ms|s|sec|min|m|h)?\s*",
+                     value)  # a sign read, so that -5s is "must be positive"
     if not m:
         raise ValueError(f"cannot read {value!r} as a time budget (examples: 60s, 5min, 2h)")
     seconds = float(m.group(1)) * _UNITS[m.group(2) or ""]

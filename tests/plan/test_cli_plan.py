@@ -98,6 +98,8 @@ def test_a_saved_plan_of_other_data_is_said_and_recorded(files, capsys):
 def test_bad_inputs_are_one_line_errors(files, capsys):
     assert main(["plan", *_inputs(files), "--budget", "soon"]) == 2
     assert "time budget" in capsys.readouterr().err
+    assert main(["plan", *_inputs(files), "--budget", "-5s"]) == 2  # "expected one argument"
+    assert "the time budget must be positive, got '-5s'" in capsys.readouterr().err
     assert main(["plan", "--meas", str(files / "meas.npy")]) == 2
     assert "--psf" in capsys.readouterr().err
     assert main(["plan", *_inputs(files), "--no-probe", "--set", "k"]) == 2
