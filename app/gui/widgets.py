@@ -49,16 +49,21 @@ class WheelOnFocus:
         super().wheelEvent(event)  # type: ignore[misc]
 
 
-def _number(box: QAbstractSpinBox, text: str, kind: type) -> Any:
-    """The finite number a spin box's ``text`` holds (prefix and suffix off), else None."""
+def _core(box: QAbstractSpinBox, text: str) -> str:
+    """A spin box's ``text`` without its prefix and suffix, stripped."""
     b: Any = box
     core = text
     if b.suffix() and core.endswith(b.suffix()):
         core = core[:-len(b.suffix())]
     if b.prefix() and core.startswith(b.prefix()):
         core = core[len(b.prefix()):]
+    return core.strip()
+
+
+def _number(box: QAbstractSpinBox, text: str, kind: type) -> Any:
+    """The finite number a spin box's ``text`` holds (prefix and suffix off), else None."""
     try:
-        value = kind(core.strip())
+        value = kind(_core(box, text))
     except ValueError:
         return None
     return value if math.isfinite(value) else None
@@ -69,13 +74,7 @@ _PARTIAL_NUMBER = re.compile(r"[+-]?\d*\.?\d*(?:[eE][+-]?\d*)?")
 
 def _partial_number(box: QAbstractSpinBox, text: str) -> bool:
     """Whether ``text`` (prefix and suffix off) is the beginning of a number: '1e', '2e-'."""
-    b: Any = box
-    core = text
-    if b.suffix() and core.endswith(b.suffix()):
-        core = core[:-len(b.suffix())]
-    if b.prefix() and core.startswith(b.prefix()):
-        core = core[len(b.prefix()):]
-    return _PARTIAL_NUMBER.fullmatch(core.strip()) is not None
+    return _PARTIAL_NUMBER.fullmatch(_core(box, text)) is not None
 
 
 def _whole(box: QAbstractSpinBox, text: str) -> int | None:

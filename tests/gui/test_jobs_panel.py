@@ -655,19 +655,7 @@ def test_the_jobs_strip_shows_five_jobs_and_one_line_of_details(qtbot: Any,
     """In the strip the main window gives the panel at 1366x768 (220 px), five jobs and the
     selected one's details fit: rows a line of text high, the details one line (state,
     memory; the folder is their tooltip). They showed three rows before."""
-    import numpy as np
-
-    from app.gui.jobs_core import create_job
-    from app.gui.jobs_panel import JobsPanel
-
-    rng = np.random.default_rng(0)
-    for i in range(5):
-        create_job(tmp_path / "jobs", f"job-s{i}", rng.random((30, 40)), rng.random((30, 40)),
-                   queue=False)
-    panel = JobsPanel(tmp_path / "jobs", lambda: None, poll_ms=60_000)
-    qtbot.addWidget(panel)
-    panel.resize(1366, 220)
-    panel.show()
+    panel = _strip_panel(tmp_path, qtbot, [f"job-s{i}" for i in range(5)])
     qtbot.waitUntil(lambda: panel.table.rowCount() == 5, timeout=5_000)
     panel._select_folders({panel.views[0].folder})
     qtbot.waitUntil(lambda: panel.details.text().startswith("state: held"), timeout=5_000)
@@ -732,19 +720,12 @@ def test_a_long_loss_curve_is_read_off_the_gui_thread_and_only_when_it_changed(
 def test_the_message_is_one_line_stamped_and_goes_with_its_jobs_change(tmp_path, qtbot):
     """A 776-character combine message took four lines (the table kept 2.5 rows), and
     'queued …' stayed through the whole run; a click dismisses a message."""
-    import numpy as np
     from PySide6.QtCore import Qt
 
-    from app.gui.jobs_core import APP_JOB_FILE, create_job
-    from app.gui.jobs_panel import JobsPanel
+    from app.gui.jobs_core import APP_JOB_FILE
 
-    rng = np.random.default_rng(0)
-    job = create_job(tmp_path / "jobs", "j", rng.random((30, 40)), rng.random((30, 40)),
-                     queue=False)
-    panel = JobsPanel(tmp_path / "jobs", lambda: None, poll_ms=60_000)
-    qtbot.addWidget(panel)
-    panel.resize(1366, 220)
-    panel.show()
+    panel = _strip_panel(tmp_path, qtbot, ["j"])
+    job = panel.views[0].folder
     try:
         h0 = panel.table.height()
         long = "ensemble written to " + "/very/long/path" * 50
@@ -771,19 +752,7 @@ def test_the_message_is_one_line_stamped_and_goes_with_its_jobs_change(tmp_path,
 def test_the_newest_job_selected_at_start_is_in_view(tmp_path, qtbot):
     """With more jobs than the strip shows, the newest one, selected at start, was half
     hidden below the table's edge."""
-    import numpy as np
-
-    from app.gui.jobs_core import create_job
-    from app.gui.jobs_panel import JobsPanel
-
-    rng = np.random.default_rng(0)
-    for i in range(9):
-        create_job(tmp_path / "jobs", f"job-{i}", rng.random((30, 40)), rng.random((30, 40)),
-                   queue=False)
-    panel = JobsPanel(tmp_path / "jobs", lambda: None, poll_ms=60_000)
-    qtbot.addWidget(panel)
-    panel.resize(1366, 220)
-    panel.show()
+    panel = _strip_panel(tmp_path, qtbot, [f"job-{i}" for i in range(9)])
     try:
         t = panel.table
         qtbot.waitUntil(lambda: t.rowCount() == 9, timeout=5_000)
@@ -808,3 +777,22 @@ def test_the_newest_job_selected_at_start_is_in_view(tmp_path, qtbot):
         assert t.verticalScrollBar().value() == top and not shown()
     finally:
         panel.stop()
+
+
+def _strip_panel(tmp_path: Any, qtbot: Any, names: list[str]) -> Any:
+    """A jobs panel as the main window's strip holds it at 1366x768 (220 px), with a held job
+    per name, created in that order."""
+    import numpy as np
+
+    from app.gui.jobs_core import create_job
+    from app.gui.jobs_panel import JobsPanel
+
+    rng = np.random.default_rng(0)
+    for name in names:
+        create_job(tmp_path / "jobs", name, rng.random((30, 40)), rng.random((30, 40)),
+                   queue=False)
+    panel = JobsPanel(tmp_path / "jobs", lambda: None, poll_ms=60_000)
+    qtbot.addWidget(panel)
+    panel.resize(1366, 220)
+    panel.show()
+    return panel
