@@ -158,12 +158,15 @@ class ProblemSpecError(ValueError):
         "measurement normalisation": (None, "measurement_normalise"),
     }
 
-    def __init__(self, what: str, message: str) -> None:
+    def __init__(self, what: str, message: str, command_line: str | None = None) -> None:
         super().__init__(f"problem: {what} {message}")
         self.what, self.message = what, message
+        self.command_line = command_line  # the whole message where the option reads otherwise
 
     def for_command_line(self) -> str:
         """The message naming the option (``--field must be ...``)."""
+        if self.command_line is not None:
+            return self.command_line
         option = self.NAMES.get(self.what, (None, ""))[0]
         return f"{option} {self.message}" if option else str(self)
 
@@ -203,8 +206,8 @@ class ProblemSpec:
     meas_normalise: str = "max"
 
     def __post_init__(self) -> None:
-        def bad(what: str, msg: str) -> ValueError:
-            return ProblemSpecError(what, msg)
+        def bad(what: str, msg: str, command_line: str | None = None) -> ValueError:
+            return ProblemSpecError(what, msg, command_line)
 
         if self.model not in MODEL_KINDS:
             raise bad("model", f"must be one of {', '.join(MODEL_KINDS)}, got {self.model!r}")
@@ -251,7 +254,8 @@ class ProblemSpec:
             raise bad("measurement normalisation", f"must be sum, max, l2 or none, got "
                       f"{self.meas_normalise!r}")
         if self.model == "depth" and self.color == "rgb":
-            raise bad("color", "must be gray for the depth model")
+            raise bad("color", "must be gray for the depth model",
+                      "--rgb is not for the depth model (its PSF stack reconstructs gray)")
         if isinstance(self.psf_stack, list):
             object.__setattr__(self, "psf_stack", tuple(self.psf_stack))
         for d in (self.dark, self.psf_dark):

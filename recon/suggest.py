@@ -234,7 +234,8 @@ def from_trade_rows(rows: Iterable[Any], path: Path, created: str) -> Suggestion
     return Suggestion("trade", Path(path), created, s, detail, spec, missing)
 
 
-def _read_plan_file(path: Path, hashes: Mapping[str, str]) -> Suggestion | None:
+def _read_plan_file(path: Path, hashes: Mapping[str, str],
+                    shape: tuple[int, int] | None = None) -> Suggestion | None:
     from recon.plan import Plan
 
     try:
@@ -244,6 +245,9 @@ def _read_plan_file(path: Path, hashes: Mapping[str, str]) -> Suggestion | None:
     same = _match(d.get("inputs"), hashes) if isinstance(d, dict) else None
     if same is None:
         return None
+    size = d.get("measurement_window") or d.get("sensor")
+    if not same and shape is not None and isinstance(size, list) and tuple(size) != tuple(shape):
+        return None  # another frame of another size (a camera ROI): recon auto refuses it too
     try:
         plan = Plan.from_json(d)
     except (ValueError, TypeError):
@@ -284,11 +288,13 @@ def _read_trade_folder(csv_path: Path, hashes: Mapping[str, str]) -> Suggestion 
 
 
 def find_suggestions(folders: Iterable[str | os.PathLike[str]],
-                     hashes: Mapping[str, str]) -> list[Suggestion]:
+                     hashes: Mapping[str, str],
+                     shape: tuple[int, int] | None = None) -> list[Suggestion]:
     """Plans (``*.json``) and trades (``*/trade.csv``) in ``folders`` made for ``hashes``.
 
-    Those of this measurement first, then those of another one with the same PSF, each newest
-    first; files of another PSF, unreadable files and trades without a UDN row are left out.
+    Those of this measurement first, then those of another one with the same PSF (and, for a
+    plan, made for a measurement of ``shape`` when it is given), each newest first; files of
+    another PSF, unreadable files and trades without a UDN row are left out.
     """
     found: list[Suggestion] = []
     for folder in folders:
@@ -296,7 +302,7 @@ def find_suggestions(folders: Iterable[str | os.PathLike[str]],
         if not root.is_dir():
             continue
         for p in sorted(root.glob("*.json")):
-            s = _read_plan_file(p, hashes)
+            s = _read_plan_file(p, hashes, shape)
             if s is not None:
                 found.append(s)
         for p in sorted([*root.glob("trade.csv"), *root.glob("*/trade.csv")]):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -104,6 +105,9 @@ BAD_VALUES = [
     (["recon", "udn", "--meas", "m.npy", "--average-every", "1" + "0" * 20], "--average-every",
      "at most 2**62"),
     (["recon", "udn", "--meas", "m.npy", "--seed", "9" * 20], "--seed", "at most 2**62"),
+    # 10^8 scales looped in the set-up at full CPU, deaf to SIGTERM; 10^23 iterations ran
+    (["recon", "udn", "--meas", "m.npy", "--scales", "100000000"], "--scales", "<= 32"),
+    (["recon", "fista", "--meas", "m.npy", "--iters", "9" * 23], "--iters", "at most 2**62"),
     # a negative value with a unit was "expected one argument"
     (["snap", "--exposure", "-1ms"], "--exposure", "duration must be > 0"),
     # 10^6 inner iterations ran 49 s for two steps of an 18x25 image without a word
@@ -200,15 +204,44 @@ def test_problem_errors_name_the_option_or_the_spec_key(sim, tmp_path, capsys):
     """'error: problem: field must be ...' and '[data] problem: shutter ...' named no option
     and no key: now --field / --shutter on the command line, data.shutter in a spec."""
     code, _, err = _run(capsys, *_fista(sim, tmp_path / "f.tif", "--field", "0x9"))
-    assert code != 0 and "error: --field must be (H, W) with positive integers" in err, err
+    assert code != 0 and "error: --field must be at least 1x1 pixels (HxW), got '0x9'" in err
     code, _, err = _run(capsys, *_fista(sim, tmp_path / "v.tif", "--model", "video"))
     assert code != 0 and "error: --shutter (K, rows) is required for the video model" in err
+    from recon.problem import ProblemSpec, ProblemSpecError
+
+    with pytest.raises(ProblemSpecError) as info:  # a field the spec refuses, as a command
+        ProblemSpec(meas="m.npy", psf="p.npy", field=(0, 9))
+    assert info.value.for_command_line().startswith("--field must be (H, W) with positive")
     from recon.udn.spec import SpecError, normalise_spec
 
     with pytest.raises(SpecError, match=r"data\.shutter \(K, rows\) is required for the "
                        r"video model"):
         normalise_spec({"data": {"model": "video", "psf": str(sim / "psf.npy"),
                                  "measurement": str(sim / "meas.npy")}})
+
+
+def test_a_field_is_read_by_the_one_size_parser(sim, tmp_path, capsys):
+    """' 9x9' and 9X9 were refused (parse_hw takes them); 0x5 said 'got (0, 5)'; a huge side
+    was 'scene field ... is larger', naming no option."""
+    from app.commands._inputs import field_value
+
+    assert field_value(" 9x9") == field_value("9X9") == (9, 9)
+    for bad, words in (("0x5", "--field must be at least 1x1 pixels (HxW), got '0x5'"),
+                       ("9" * 23 + "x5", "--field must be at most 16384 pixels a side"),
+                       ("foo", "--field must be 'sensor', 'full' or HxW, got 'foo'")):
+        with pytest.raises(ValueError, match=re.escape(words)):
+            field_value(bad)
+
+
+def test_depth_with_rgb_is_said_in_words_that_fit_the_option(tmp_path, capsys):
+    """'--rgb must be gray for the depth model' (the spec's message under the option)."""
+    from recon.problem import ProblemSpec, ProblemSpecError
+
+    with pytest.raises(ProblemSpecError) as info:
+        ProblemSpec(model="depth", meas="m.npy", psf_stack="s.npz", color="rgb")
+    assert info.value.for_command_line() == ("--rgb is not for the depth model (its PSF stack "
+                                             "reconstructs gray)")
+    assert info.value.for_spec() == "data.color must be gray for the depth model"
 
 
 def test_tv_k_on_a_2d_model_is_said_not_silently_ignored(sim, tmp_path, capsys):

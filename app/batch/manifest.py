@@ -252,6 +252,12 @@ def _flag(value: Any, where: str, col: str) -> bool:
     raise ValueError(f"{where}: column {col!r} is a flag: write true or false, got {value!r}")
 
 
+def _is_flag_text(value: Any) -> bool:
+    """Whether a cell says true or false (as :func:`_flag` reads it)."""
+    return isinstance(value, bool) or str(value).strip().lower() in (
+        "1", "true", "yes", "on", "0", "false", "no", "off")
+
+
 def _expand(base: Path, pattern: str, where: str) -> list[str]:
     full = _resolve(base, pattern)
     if not _GLOB.search(pattern):
@@ -336,7 +342,16 @@ def _item_from(row: dict[str, Any], meas: str, base: Path, where: str, name: str
             # "unrecognized arguments: false"); no_with_fista = true likewise
             positive = action.option_strings[0]
             on = _flag(value, where, col) != col.startswith("no_")
+            both = [c for c in row if c != col and opts.get(c) is action]
+            if both:  # the last one won without a word
+                raise ValueError(f"{where}: columns {col!r} and {both[0]!r} both set "
+                                 f"{positive}: give one of them")
             argv.append(positive if on else "--no-" + positive[2:])
+        elif action.nargs == "?" and _is_flag_text(value):
+            # an option with an optional value (--compile [MODE]): true is the option alone
+            # (it was 'invalid choice: true'), false leaves it out
+            if _flag(value, where, col):
+                argv.append(f"--{col.replace('_', '-')}")
         else:
             argv += [f"--{col.replace('_', '-')}", str(value)]
     if truth and method == "udn" and spec is None:

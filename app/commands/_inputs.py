@@ -27,10 +27,16 @@ def field_value(value: str | None) -> Any:
     """``--field`` as a ProblemSpec field: 'sensor', 'full' or (H, W)."""
     if value in (None, "sensor", "full"):
         return value or "sensor"
-    m = re.fullmatch(r"(\d+)x(\d+)", value or "")
-    if not m:
-        raise ValueError(f"--field must be 'sensor', 'full' or HxW, got {value!r}")
-    return (int(m.group(1)), int(m.group(2)))
+    from app.commands._options import parse_hw
+
+    try:  # the one size parser: ' 9x9' and 9X9 too, 0x5 and 10^23 x 5 named as --field
+        return parse_hw(value or "", "--field")
+    except ValueError:
+        if value and value.strip().lower() in ("sensor", "full"):
+            return value.strip().lower()
+        if re.fullmatch(r"\s*\d+\s*[xX,]\s*\d+\s*", value or ""):
+            raise
+        raise ValueError(f"--field must be 'sensor', 'full' or HxW, got {value!r}") from None
 
 
 def dark_value(value: str | None, option: str = "--dark") -> Any:

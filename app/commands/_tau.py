@@ -11,6 +11,8 @@ import argparse
 import sys
 from typing import Any
 
+from app.commands._options import POSITIVE_INT
+
 
 def tau_type(text: str) -> float | None:
     """``type=`` for ``--tau``: ``auto`` (None) or a finite number >= 0."""
@@ -23,17 +25,17 @@ def tau_type(text: str) -> float | None:
 
 
 def iters_type(text: str) -> int | None:
-    """``type=`` for ``--iters``: ``auto`` (None) or an integer >= 1."""
+    """``type=`` for ``--iters``: ``auto`` (None) or an integer >= 1 (``POSITIVE_INT``).
+
+    At most 2**62 in magnitude, as every integer option.
+    """
     if text.strip().lower() == "auto":
         return None
     try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be 'auto' or an integer >= 1, got {text!r}"
+        return int(POSITIVE_INT(text))
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"must be 'auto' or {str(exc)[len('must be '):]}"
                                          ) from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be 'auto' or an integer >= 1, got {text!r}")
-    return value
 
 
 def add_tau_arguments(p: argparse.ArgumentParser, *, iters: bool = True) -> None:

@@ -87,6 +87,15 @@ def _common_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _stamp(path: Path) -> tuple[int, int] | None:
+    """(modification time in ns, size) of a file, or None when there is none."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_mtime_ns, st.st_size
+
+
 def run_with_progress(start: Any, args: argparse.Namespace, total: int | None,
                       run_dir: str) -> int:
     """Run ``start(progress=..., cancel=...)`` with a progress bar and signal handling."""
@@ -104,13 +113,17 @@ def run_with_progress(start: Any, args: argparse.Namespace, total: int | None,
         bar.update(s.iteration, f"loss {s.loss:.3g} held-out {held} ETA {eta}")
 
     event = threading.Event()
+    where = Path(run_dir) / "run.json"
+    before = _stamp(where)
     try:
         with cancel_on_signals(event):
             outcome = start(progress=progress, cancel=event)
     except (ValueError, FileNotFoundError, OSError, ArithmeticError, RuntimeError) as exc:
         bar.close()
-        where = Path(run_dir) / "run.json"
-        suffix = f" (run record: {where})" if where.is_file() else ""
+        # the record this command wrote, not one of an earlier run in that folder (a spec
+        # refused before anything was written pointed at the earlier run's record)
+        after = _stamp(where)
+        suffix = f" (run record: {where})" if after is not None and after != before else ""
         raise CliError(f"{exc}{suffix}") from exc
     bar.close()
     rec = outcome.record

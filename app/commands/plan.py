@@ -499,7 +499,8 @@ def plan_data_check(saved: Any, args: argparse.Namespace) -> dict[str, Any] | No
     made from Python) or a PSF stack.
     """
     recorded = saved.get("inputs") if isinstance(saved, dict) else None
-    if not isinstance(recorded, dict) or not args.psf:
+    if (not isinstance(recorded, dict) or not args.psf or not recorded.get("measurement")
+            or not recorded.get("psf")):  # nothing recorded ("inputs": {} too)
         return None
     from recon.suggest import input_hashes_of_files, inputs_match
 
@@ -509,7 +510,7 @@ def plan_data_check(saved: Any, args: argparse.Namespace) -> dict[str, Any] | No
         which = [k for k in ("measurement", "psf") if recorded.get(k) != this.get(k)]
         print(f"recon auto: warning: plan file {args.plan} was made on another "
               f"{' and '.join('PSF' if k == 'psf' else k for k in which)} (hashes differ): "
-              "its tau and iterations were chosen on that data; plan again for this one",
+              "its settings were chosen for that data; plan again for this one",
               file=sys.stderr)
     return {"recorded": {k: recorded.get(k) for k in ("measurement", "psf")}, "this": this,
             "match": match}
@@ -583,6 +584,21 @@ def warn_small_budget(plan: Any) -> None:
           f"downsampled grid), {verdict}; give --budget "
           f"{min_useful_budget_s(plan.seconds_per_iter):.2g}s or more ({MIN_ITERS} iterations "
           "and their set-up at this grid)", file=sys.stderr)
+
+
+def warn_udn_budget_spent(plan: Any, res: Any) -> None:
+    """One line on stderr when a UDN plan stopped at its budget before a tenth of its iterations.
+
+    A 1 s budget, most of it the network's set-up, ran 1 of 500 iterations, and the result
+    was saved as if nothing happened.
+    """
+    if (plan.method != "udn" or res.stop_reason != "time_limit" or plan.iterations < 1
+            or res.iterations * 10 >= plan.iterations):
+        return
+    print(f"lenslesscam recon auto: warning: the UDN ran only {res.iterations} of the plan's "
+          f"{plan.iterations} iterations within the {plan.budget_s:g} s budget (the network's "
+          "set-up counts towards it): far from a reconstruction; give a larger --budget",
+          file=sys.stderr)
 
 
 def check_auto_result(res: Any, dtype: Any) -> None:
@@ -670,6 +686,7 @@ def run_auto(args: argparse.Namespace) -> int:
                   timing=inputs["timing"], psf_stack=inputs["stack"], mask=inputs["mask"],
                   dtype=torch.float64 if args.float64 else torch.float32, callback=on_step)
     bar.close()
+    warn_udn_budget_spent(plan, res)
     check_auto_result(res, torch.float64 if args.float64 else torch.float32)
     meta = res.metadata()
     meta["inputs"] = {"psf": args.psf or args.psf_stack, "meas": args.meas,

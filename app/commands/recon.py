@@ -159,7 +159,7 @@ def run_fista(args: argparse.Namespace) -> int:
     def make(model: Any, b: Any) -> tuple[Any, Any, int, dict[str, Any]]:
         if args.tv_k is not None and model.k == 1:  # it was ignored without a word
             print(f"recon fista: warning: --tv-k {args.tv_k:g} weighs TV along k, which a "
-                  "model with one frame (2d) does not have: ignored", file=sys.stderr)
+                  "model with one frame (K = 1) does not have: ignored", file=sys.stderr)
         weight_k = 0.5 if args.tv_k is None else args.tv_k
         tv = TV(isotropic=args.tv == "iso", weight_k=weight_k if model.k > 1 else 0.0)
         tau, iters, tau_meta = resolve_tau(args, model, b, tv)
@@ -276,8 +276,9 @@ def plateau_detail(changes: list[float], tol: float, method: str,
 def _check_explains(solver: Any, model: Any, b: Any, method: str, kind: str = "2d") -> None:
     """:func:`check_explains` for the result of a ``recon fista`` / ``recon admm`` solver."""
     admm = method.startswith("admm")
+    k1 = getattr(model, "k", 1) == 1  # one frame: no TV along k to weigh
     extreme = ("--penalty, --rho" if admm else
-               "--precondition" if kind == "2d" else "--tv-k, --precondition")
+               "--precondition" if kind == "2d" or k1 else "--tv-k, --precondition")
     objective_hint = (
         "ADMM's fixed penalty enforces a large tau slowly (its splitting D v = u holds only in "
         "the limit, and tau multiplies what is left of it): raise --penalty or --rho (at tau 1e6 "

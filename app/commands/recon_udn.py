@@ -26,9 +26,10 @@ from app.commands._options import (
     add_overwrite_option,
     check_command_outputs,
     check_output_folders,
+    integer,
     refuse_run_folder_outputs,
 )
-from recon.udn import COMPILE_MODES
+from recon.udn import COMPILE_MODES, MAX_SCALES
 
 
 def register_udn(methods: Any) -> None:
@@ -40,7 +41,8 @@ def register_udn(methods: Any) -> None:
     g = u.add_argument_group("network")
     g.add_argument("--variant", choices=["auto", "2d", "frames", "3d"], default="auto",
                    help="2d, frames (K as channels), 3d, auto (2d for K=1 else frames)")
-    g.add_argument("--scales", type=POSITIVE_INT, default=5, help="levels (default 5)")
+    g.add_argument("--scales", type=integer(1, MAX_SCALES), default=5,
+                   help=f"levels (default 5, at most {MAX_SCALES})")
     g.add_argument("--net-channels", type=POSITIVE_INT, default=32, help="channels (default 32)")
     g.add_argument("--skip-channels", type=NONNEG_INT, default=4, help="skip channels (default 4)")
     g.add_argument("--input-channels", type=POSITIVE_INT, default=32, help="channels of z (32)")

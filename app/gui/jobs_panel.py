@@ -292,7 +292,7 @@ class NewJobDialog(QDialog):
         from recon.suggest import find_suggestions
 
         found = ([] if self._hashes is None else
-                 find_suggestions(self._suggestion_dirs, self._hashes))
+                 find_suggestions(self._suggestion_dirs, self._hashes, tuple(self.sensor)))
         self.suggestions_found = found
         self.suggestion_box.clear()
         for s in found:

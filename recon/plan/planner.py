@@ -237,8 +237,10 @@ class Plan:
             raise ValueError(f"plan.k must be an integer >= 1, got {self.k!r}")
         if int(self.downsample) != self.downsample or self.downsample < 1:
             raise ValueError(f"plan.downsample must be an integer >= 1, got {self.downsample!r}")
-        if int(self.iterations) != self.iterations or self.iterations < 0:
-            raise ValueError(f"plan.iterations must be an integer >= 0, got {self.iterations!r}")
+        if (int(self.iterations) != self.iterations or self.iterations < 0
+                or self.iterations > 2**62):  # an int64 with room, as every integer option
+            raise ValueError(f"plan.iterations must be an integer from 0 to 2**62, got "
+                             f"{self.iterations!r}")
         if self.method == "fista-tv" and self.iterations < 1:
             raise ValueError("plan.iterations must be >= 1 for fista-tv")
         if not (math.isfinite(self.tau) and self.tau >= 0):

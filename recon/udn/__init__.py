@@ -29,6 +29,10 @@ if TYPE_CHECKING:
 #: torch.compile modes a run takes (``UDNConfig.compile_mode``; ``reduce-overhead`` records CUDA
 #: graphs). Here, without torch, so the command line can list them without importing it.
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune-no-cudagraphs")
+#: the most encoder/decoder levels a network may have: more than any axis can halve (2^32
+#: pixels); 10^8 looped in the set-up at full CPU, deaf to SIGTERM. Here, without torch, for
+#: the command line
+MAX_SCALES = 32
 
 _LAZY = {"Generator": "recon.udn.network", "NetworkConfig": "recon.udn.network",
          "UDNConfig": "recon.udn.runner", "UDNResult": "recon.udn.runner",
@@ -42,6 +46,7 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "COMPILE_MODES",
+    "MAX_SCALES",
     "Generator",
     "NetworkConfig",
     "UDNConfig",

@@ -80,7 +80,7 @@ def _member(run_dir: Path, estimate: Estimate) -> tuple[dict[str, Any], F32, dic
                              f"last; resume it ('lenslesscam jobs resume {run_dir}') first")
         raise ValueError(f"{run_dir}: the run has not finished (status {status}): its "
                          f"{estimate} estimate is not its last; wait for it, or cancel it "
-                         "first ('lenslesscam jobs cancel')")
+                         f"first ('lenslesscam jobs cancel {run_dir}')")
     results = rec.get("results") or {}
     if estimate not in results:
         state = rec.get("finish_reason") or rec.get("status") or "unknown"

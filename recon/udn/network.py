@@ -87,6 +87,11 @@ class NetworkConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"network {name} must be an integer >= 1, got {value!r}")
+        from recon.udn import MAX_SCALES
+
+        if self.scales > MAX_SCALES:
+            raise ValueError(f"network scales must be at most {MAX_SCALES} (more than any axis "
+                             f"can halve), got {self.scales!r}")
         if (not isinstance(self.skip_channels, int) or isinstance(self.skip_channels, bool)
                 or self.skip_channels < 0):
             raise ValueError(f"network skip_channels must be an integer >= 0, got "

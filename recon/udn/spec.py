@@ -41,7 +41,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from recon.udn import COMPILE_MODES
+from recon.udn import COMPILE_MODES, MAX_SCALES
 from recon.udn.network import NetworkConfig
 from recon.udn.runner import UDNConfig
 
@@ -114,7 +114,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
     "network": {
         "variant": Key((str,), "auto", "2d, frames (K as output channels), 3d, or auto (2d "
                        "for K = 1, else frames)", ("auto", "2d", "frames", "3d")),
-        "scales": Key((int,), _NET.scales, "encoder/decoder levels", minimum=1),
+        "scales": Key((int,), _NET.scales, "encoder/decoder levels", minimum=1,
+                      maximum=MAX_SCALES),
         "channels": Key((int,), _NET.channels, "feature channels per level", minimum=1),
         "skip_channels": Key((int,), _NET.skip_channels, "skip-connection channels",
                              minimum=0),

@@ -310,3 +310,16 @@ def test_true_false_columns_of_on_off_options_reach_the_spec(data: Path) -> None
                                  'with_fista = false\n\n[[item]]\nmeasurement = "meas/m00.npy"\n')
     (item,) = read_manifest(data / "t.toml")
     assert build_udn_spec(item, threads=1)[0]["output"]["with_fista"] is False
+    # both names in one row: the last won without a word
+    (data / "b.csv").write_text("measurement,psf,method,with_fista,no_with_fista\n"
+                                "meas/m00.npy,psf.npy,udn,true,true\n")
+    with pytest.raises(ValueError, match=r"b\.csv:2: columns 'with_fista' and 'no_with_fista' "
+                       r"both set --with-fista"):
+        read_manifest(data / "b.csv")
+    # an option with an optional value: compile = true is --compile ('invalid choice: true')
+    (data / "c.csv").write_text("measurement,psf,method,compile\n"
+                                "meas/m00.npy,psf.npy,udn,true\nmeas/m01.npy,psf.npy,udn,false\n"
+                                "meas/m02.npy,psf.npy,udn,reduce-overhead\n")
+    on, off, mode = read_manifest(data / "c.csv")
+    assert "--compile" in on.argv and "--compile" not in off.argv
+    assert mode.argv[mode.argv.index("--compile") + 1] == "reduce-overhead"

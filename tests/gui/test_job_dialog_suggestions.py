@@ -104,6 +104,10 @@ def test_a_plan_of_another_frame_of_this_psf_is_offered_and_said_so(panel: Any) 
                                           "and Apply")
     dlg.reject()
     write_plan_suggestion(folder, _plan(downsample=6), _hashes(m))
+    # one made on a frame of another size (a camera ROI) is not offered: recon auto refuses it
+    small = Plan(model="2d", k=1, sensor=(24, 32), field=(24, 32), region=(0, 0, 24, 32),
+                 downsample=2, method="udn", iterations=9, budget_s=60.0)
+    write_plan_suggestion(folder, small, input_hashes(earlier[:24, :32], m.psf))
     dlg = panel.new_job_dialog()
     assert dlg.suggestion_box.count() == 2 and "another" not in dlg.suggestion_box.itemText(0)
     assert dlg.suggestion_note.text().startswith(

@@ -89,10 +89,36 @@ def test_a_saved_plan_of_other_data_is_said_and_recorded(files, capsys):
     assert len([line for line in err.splitlines() if "plan file" in line]) == 1
     got = read_reconstruction(out)[1]["plan_inputs"]
     assert got["match"] is False and got["recorded"]["psf"] == got["this"]["psf"]
+    empty = json.loads(plan_file.read_text())
+    empty["inputs"] = {}  # records nothing: not "made on another measurement and PSF"
+    (files / "empty.json").write_text(json.dumps(empty))
+    assert main([*argv[:7], str(files / "empty.json"), *argv[8:], "--meas",
+                 str(files / "other.npy"), "--out", str(files / "e.tif")]) == 0
+    assert "hashes differ" not in capsys.readouterr().err
+    assert "plan_inputs" not in read_reconstruction(files / "e.tif")[1]
     same = files / "same.tif"
     assert main([*argv, "--meas", str(files / "meas.npy"), "--out", str(same)]) == 0
     assert "hashes differ" not in capsys.readouterr().err
     assert read_reconstruction(same)[1]["plan_inputs"]["match"] is True
+
+
+def test_a_udn_plan_that_spent_its_budget_setting_up_says_so(capsys):
+    """A 1 s budget ran 1 of the plan's 500 UDN iterations and saved the result without a
+    word."""
+    from types import SimpleNamespace
+
+    from app.commands.plan import warn_udn_budget_spent
+
+    plan = SimpleNamespace(method="udn", iterations=500, budget_s=1.0)
+    warn_udn_budget_spent(plan, SimpleNamespace(stop_reason="time_limit", iterations=1))
+    err = capsys.readouterr().err
+    assert "the UDN ran only 1 of the plan's 500 iterations within the 1 s budget" in err
+    for res in (SimpleNamespace(stop_reason="time_limit", iterations=50),
+                SimpleNamespace(stop_reason="max_iter", iterations=1)):
+        warn_udn_budget_spent(plan, res)
+    warn_udn_budget_spent(SimpleNamespace(method="fista-tv", iterations=500, budget_s=1.0),
+                          SimpleNamespace(stop_reason="time_limit", iterations=1))
+    assert capsys.readouterr().err == ""
 
 
 def test_bad_inputs_are_one_line_errors(files, capsys):

@@ -411,7 +411,7 @@ def test_a_bad_spec_value_names_its_key(tiny_data, tmp_path, section, key, value
         run_job(write_spec(tiny_data, **{section: {key: value}}), tmp_path / "run")
 
 
-def test_a_spec_that_is_not_toml_makes_no_run_folder(tiny_data, tmp_path):
+def test_a_spec_that_is_not_toml_makes_no_run_folder(tiny_data, tmp_path, capsys):
     """A spec that is not UTF-8 was refused before anything was written; one that is not TOML
     left a failed run folder (job.toml, run.json, run.lock): now refused alike."""
     spec = write_spec(tiny_data, stopping={"max_iter": 2})
@@ -420,6 +420,11 @@ def test_a_spec_that_is_not_toml_makes_no_run_folder(tiny_data, tmp_path):
     with pytest.raises(SpecError, match=r"bad\.toml: not valid TOML: Expected ']'"):
         run_job(bad, tmp_path / "run")
     assert not (tmp_path / "run").exists()
+    # into a folder holding an earlier run: its record is not this command's to point at
+    run_job(spec, tmp_path / "done")
+    assert cli_main(["jobs", "run", str(bad), "--out", str(tmp_path / "done")]) == 2
+    err = capsys.readouterr().err
+    assert "not valid TOML" in err and "run record" not in err, err
 
 
 def test_a_spec_with_a_byte_order_mark_runs_and_a_folder_is_not_a_spec(tiny_data, tmp_path):
