@@ -19,8 +19,10 @@ def add_layout_arguments(p: Any) -> None:
                    help="colour order stored in the files (bgr: the DiffuserCam MirFlickr "
                         "dataset); PSF, measurement and truth alike")
     p.add_argument("--flip-rows", action="store_true",
-                   help="flip the rows of PSF, measurement, mask, shutter, filters and truth "
-                        "alike (they share one frame: this only turns the result upside down)")
+                   help="files stored upside down (the DiffuserCam MirFlickr dataset): flip the "
+                        "rows of PSF, measurement, mask, shutter, filters and truth alike, a "
+                        "plain flip (on upright files with an even number of rows it also "
+                        "moves the PSF's centre row, and the result, by one row)")
 
 
 def field_value(value: str | None) -> Any:
