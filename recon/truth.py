@@ -107,13 +107,16 @@ def result_fields(meta: Mapping[str, Any] | None) -> tuple[tuple[int, int] | Non
 
 
 def _read(path: PathLike, est_shape: Sequence[int], layout: Mapping[str, Any],
-          key: str | None, stack: bool, expect: int | None, dtype: Any) -> Array:
+          key: str | None, stack: bool, expect: int | None, dtype: Any,
+          gray_only: bool = False) -> Array:
     """The truth file as (C, K0, H, W), colour and channel order as the layout says.
 
     :func:`recon.problem.read_truth`, the one way a problem's truth is read; a gray result
     that has (or is binned from) several frames, bands or planes also takes a (K, H, W) stack,
     which that reader would take for colour channels (a (3, H, W) file is a stack only when
-    ``expect``, the number of slices wanted, is 3).
+    ``expect``, the number of slices wanted, is 3, or for a model that has no colour,
+    ``gray_only``: depth, whose recon auto result of 3 planes was scored against the luma of
+    a 3-plane truth, "1 planes").
     """
     from recon.problem import read_truth
     from recon.readers import load_image
@@ -121,7 +124,7 @@ def _read(path: PathLike, est_shape: Sequence[int], layout: Mapping[str, Any],
     if stack and est_shape[0] == 1:
         raw = np.asarray(load_image(Path(path), key=key, prefer=TRUTH_KEYS))
         hwc = raw.ndim == 3 and raw.shape[2] in (3, 4) and raw.shape[0] not in (1, 3, 4)
-        if raw.ndim == 3 and not hwc and (raw.shape[0] != 3 or expect == 3):
+        if raw.ndim == 3 and not hwc and (raw.shape[0] != 3 or expect == 3 or gray_only):
             t = raw.astype(dtype)[np.newaxis]  # (K, H, W): a gray stack of K slices
             if not np.all(np.isfinite(t)):
                 raise ValueError(f"truth file {path} has NaN or infinite values")
@@ -260,7 +263,7 @@ def prepare_truth_like(path: PathLike, est_shape: Sequence[int], layout: Mapping
     # planes are of a stack of unknown size)
     expect = (plan.get("base_bins") if plan and plan.get("base_bins") else
               None if plan and plan.get("planes") else k)
-    t = _read(path, est_shape, layout, key, stack, expect, dtype)
+    t = _read(path, est_shape, layout, key, stack, expect, dtype, gray_only=kind == "depth")
     if layout["flip_rows"]:
         t = np.ascontiguousarray(t[:, :, ::-1])  # (C, K, H, W): the rows are axis 2
     if t.shape[0] != c:

@@ -278,3 +278,18 @@ def test_an_explicit_field_smaller_than_the_sensor_cuts_the_truth_alike(tmp_path
     assert metrics_report(t, x, gain_fit=True)["psnr"] == pytest.approx(report["psnr"], abs=1e-4)
     with pytest.raises(ValueError, match=r"covers 24x32 .* part of the scene field 30x40"):
         load_truth(spec.with_changes(field=(30, 40)), (1, 1, 30, 40))
+
+
+def test_a_three_plane_truth_of_a_depth_result_is_a_stack_not_colour(tmp_path):
+    """A recon auto depth result of 3 planes (the plan's planes: a stack of unknown size) read
+    a (3, H, W) truth as RGB and refused it ('1 planes'); depth has no colour."""
+    from recon.truth import _read
+
+    planes = np.random.default_rng(0).random((3, 12, 16)).astype(np.float32)
+    np.save(tmp_path / "t.npy", planes)
+    layout = {"color": "gray", "channel_order": "rgb", "flip_rows": False, "downsample": 1}
+    t = _read(tmp_path / "t.npy", (1, 3, 12, 16), layout, None, True, None, np.float32,
+              gray_only=True)
+    assert t.shape == (1, 3, 12, 16) and np.array_equal(t[0], planes)
+    luma = _read(tmp_path / "t.npy", (1, 3, 12, 16), layout, None, True, None, np.float32)
+    assert luma.shape[1] == 1  # elsewhere (video, spectral) a 3-slice file is still colour
