@@ -221,19 +221,3 @@ def test_the_grid_keeps_the_pulse_within_half_the_exposure_and_the_scan_within_i
     list(wf)
     d = wf.result.measurement.delays_us
     assert d.size <= limit and np.diff(d)[0] == pytest.approx(6.7)
-
-
-def test_a_measured_shutter_with_more_bins_than_rows_is_not_written(make_camera, source,
-                                                                    tmp_path):
-    """The measured timing decides the bins: a file recon and simulate refuse (K > rows) was
-    saved; the workflow now refuses it, in recon's words, and writes nothing."""
-    cam = make_camera(line_time_us=12.5, trigger_delay_us=30.0, exposure_us=160.0)
-    out = tmp_path / "shutter.npz"
-    settings = ShutterSettings(intensity=1.0, n_darks=4, settle_frames=0)
-    wf = Workflow(measure_shutter(cam, source, settings, bin_lines=1, row_factor=8, out=out),
-                  "shutter")
-    with pytest.raises(ValueError, match=r"the measured shutter function has K = \d+ time bins "
-                       r"for \d+ rows"):
-        list(wf)
-    assert not out.exists()
-    assert source.status().mode is LightMode.OFF
