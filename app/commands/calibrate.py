@@ -107,8 +107,8 @@ def register(sub: Any) -> None:
     )
     _common(sh, source=True, source_required=False)
     sh.add_argument("--bin-lines", type=POSITIVE_INT, default=None,
-                    help="time bin width in lines (default: the --downsample factor, so the "
-                         "bins are as fine as the rows; more bins than rows are refused)")
+                    help="time bin width in lines (default: the finest the rows resolve, at "
+                         "least the --downsample factor; more bins than rows are refused)")
     sh.add_argument("--downsample", type=POSITIVE_INT, default=1, help="row downsampling factor")
     sh.add_argument("--pulse", help="strobe pulse length (default one line time)")
     sh.add_argument("--step", help="delay step (default half the pulse)")
@@ -460,38 +460,25 @@ def run_darks(args: argparse.Namespace) -> int:
 def run_shutter(args: argparse.Namespace) -> int:
     """Shutter function from the camera's timing, or measured by strobing the source."""
     _check_outputs(args, "shutter")
-    from calibration.shutter import ShutterSettings, measure_shutter, shutter_for_frame
+    from calibration.shutter import ShutterSettings, measure_shutter
     from calibration.workflow import Workflow
 
-    if args.bin_lines is None:  # as fine as the rows: 1-line bins on 3-line rows made a
-        args.bin_lines = args.downsample  # file recon and simulate refused (K > rows)
-    if args.bin_lines < 1 or args.downsample < 1:
+    if (args.bin_lines is not None and args.bin_lines < 1) or args.downsample < 1:
         raise ValueError("--bin-lines and --downsample must be >= 1")
     pulse_us = _strobe_time(args.pulse, "--pulse") if args.pulse else None
     step_us = _strobe_time(args.step, "--step") if args.step else None
     with _devices(args) as (camera, source):
+        frame = camera.snap(args.timeout)
+        # the frame's model says how many bins a file will hold: refused before the scan and
+        # before anything is written when more than the rows (recon and simulate refuse it)
+        sf = _shutter_model(frame, args)
         if source is None:
-            frame = camera.snap(args.timeout)
-            sf = shutter_for_frame(frame, bin_lines=args.bin_lines, row_factor=args.downsample)
             from calibration.sources import camera_description
-            from recon.checks import check_shutter_frames
-
-            # refused here, as recon and simulate would refuse the file (nothing is written)
-            check_shutter_frames(*sf.shutter.shape, "the shutter function",
-                                 downsample=args.downsample)
 
             path = sf.save(args.out, {"camera": camera_description(camera, frame)})
             print(f"wrote {path}: shutter {sf.shutter.shape[0]} bins x {sf.shutter.shape[1]} rows")
             print(f"timing {sf.timing.to_dict()}")
             return 0
-        from recon.checks import check_shutter_frames
-
-        # the model of one frame says how many bins the measured file will hold: refused
-        # before the scan, not after (recon and simulate would refuse the file)
-        model = shutter_for_frame(camera.snap(args.timeout), bin_lines=args.bin_lines,
-                                  row_factor=args.downsample)
-        check_shutter_frames(*model.shutter.shape, "the shutter function",
-                             downsample=args.downsample)
         settings = ShutterSettings(
             pulse_us=pulse_us,
             step_us=step_us,
@@ -517,6 +504,37 @@ def run_shutter(args: argparse.Namespace) -> int:
     print(f"wrote {sf.path}: shutter {sf.shutter.shape[0]} bins x {sf.shutter.shape[1]} rows")
     print(sf.measurement.summary())
     return 0
+
+
+def _shutter_model(frame: Any, args: argparse.Namespace) -> Any:
+    """The frame's shutter function at ``--bin-lines``, or at the finest bins the rows resolve.
+
+    Without ``--bin-lines``: at least the --downsample factor wide, wider until the bins are
+    no more than the rows (a rolling shutter resolves at most as many frames as rows: 1-line
+    bins on 3-line rows, or a long exposure, made a file that recon and simulate refused).
+    Sets ``args.bin_lines`` to the width used; refuses more bins than rows in recon's words.
+    """
+    from calibration.shutter import shutter_for_frame
+    from recon.checks import check_shutter_frames
+
+    def model(width: int) -> Any:
+        return shutter_for_frame(frame, bin_lines=width, row_factor=args.downsample)
+
+    if args.bin_lines is None:
+        width = args.downsample
+        sf = model(width)
+        k, rows = sf.shutter.shape
+        if k > rows:  # about k * width lines of time: start near the width that fits
+            width = max(width + 1, -(-k * width // rows))
+            sf = model(width)
+            while sf.shutter.shape[0] > sf.shutter.shape[1]:
+                width += 1
+                sf = model(width)
+        args.bin_lines = width
+    else:
+        sf = model(args.bin_lines)
+    check_shutter_frames(*sf.shutter.shape, "the shutter function", downsample=args.downsample)
+    return sf
 
 
 def _strobe_time(text: str, option: str) -> float:

@@ -441,3 +441,13 @@ def test_calibrate_shutter_bins_follow_the_downsampling_and_an_unusable_file_is_
     err = capsys.readouterr().err
     assert "time bins for 21 rows" in err and "--bin-lines" in err, err
     assert not bad.exists()
+    # a long exposure: the default bins widen until the rows resolve them (1-line bins made
+    # 331 for 64 rows), with the scan (--source) as without it
+    for extra in ([], ["--source", "sim", "--frames-per-delay", "1"]):
+        long = tmp_path / f"long{len(extra)}.npz"
+        assert main(["calibrate", "shutter", "--camera", "sim", "--exposure", "3ms", *extra,
+                     "--out", str(long)]) == 0, capsys.readouterr().err
+        capsys.readouterr()
+        k, rows = load_calibration(long, expect="shutter").data.shape
+        check_shutter_frames(k, rows)
+        assert k > rows // 2  # as fine as the rows allow, not needlessly coarse
