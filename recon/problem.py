@@ -418,7 +418,7 @@ def read_mask(path: PathLike) -> F32:
     return raw.astype(np.float32)
 
 
-def read_shutter(path: PathLike) -> tuple[F64, dict[str, Any]]:
+def read_shutter(path: PathLike, rows: int | None = None) -> tuple[F64, dict[str, Any]]:
     """A shutter function M (K, rows) and its metadata (the calibration ``.npz`` checked).
 
     Reads the ``.npz`` that ``lenslesscam calibrate shutter`` writes (hashes checked, its
@@ -426,7 +426,9 @@ def read_shutter(path: PathLike) -> tuple[F64, dict[str, Any]]:
     ``shutter`` entry, TIFF). Refuses (ValueError, one line) non-finite or negative values, an
     all-zero function, an all-zero time bin and more bins than rows
     (:func:`recon.checks.check_shutter`, :func:`recon.checks.check_shutter_frames`); rows that
-    integrate no light are named in a :class:`~recon.checks.MeasurementWarning`.
+    integrate no light are named in a :class:`~recon.checks.MeasurementWarning`. ``rows``: the
+    measurement's rows, when known: a file stored (rows, K) is named as transposed (it was
+    "K = 48 time bins for 9 rows").
     """
     p = Path(path)
     meta: dict[str, Any] = {}
@@ -443,6 +445,10 @@ def read_shutter(path: PathLike) -> tuple[F64, dict[str, Any]]:
         raise ValueError(f"shutter file {p} must be finite and non-negative")
     if not np.any(m > 0):
         raise ValueError(f"shutter file {p} is all zero: no row integrates any light")
+    if rows is not None and m.shape[0] == rows and m.shape[1] != rows:
+        raise ValueError(f"shutter file {p} has shape {m.shape}: the shutter function is "
+                         f"(K, rows), (K, {rows}) for this measurement; this one looks "
+                         "transposed (rows, K)")
     check_shutter_frames(m.shape[0], m.shape[1], f"shutter file {p}")
     check_shutter(m, f"shutter file {p}")
     return m, meta
@@ -804,7 +810,7 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
     shutter: F64 | None = None
     shutter_meta: dict[str, Any] = {}
     if spec.model == "video":
-        m, shutter_meta = read_shutter(str(spec.shutter))
+        m, shutter_meta = read_shutter(str(spec.shutter), rows=h_full)
         if spec.flip_rows:
             m = np.ascontiguousarray(m[:, ::-1])
         if m.shape[1] == h_full:

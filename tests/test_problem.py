@@ -539,3 +539,19 @@ def test_flip_rows_turns_files_stored_upside_down_upright_exactly(tmp_path):
                      "--out", str(d / "x.tif")]) == 0
         out[d] = read_reconstruction(d / "x.tif")[0]
     np.testing.assert_allclose(out[down], out[up], rtol=1e-5, atol=1e-6)  # the same sums
+
+
+def test_a_transposed_shutter_file_is_named_as_such(tmp_path):
+    """A (rows, K) file was refused as 'K = 48 time bins for 9 rows', naming the file's own
+    columns as the rows; the measurement's rows say it is transposed."""
+    from recon.problem import ProblemSpec, load_problem
+    from recon.simulate import synthetic_psf
+
+    np.save(tmp_path / "psf.npy", synthetic_psf((48, 40), seed=1))
+    np.save(tmp_path / "meas.npy", np.random.default_rng(0).random((48, 40)).astype(np.float32))
+    np.save(tmp_path / "sh.npy", np.ones((48, 9)))  # (rows, K): transposed
+    with pytest.raises(ValueError, match=r"has shape \(48, 9\): the shutter function is "
+                       r"\(K, rows\), \(K, 48\) for this measurement; this one looks "
+                       r"transposed"):
+        load_problem(ProblemSpec(model="video", meas=str(tmp_path / "meas.npy"),
+                                 psf=str(tmp_path / "psf.npy"), shutter=str(tmp_path / "sh.npy")))
