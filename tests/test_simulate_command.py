@@ -99,6 +99,18 @@ def test_a_scene_of_the_sensor_shape_gets_no_note(case, capsys):
     meta = json.loads((case / "sim" / "simulation.json").read_text())
     assert meta["scene_resized_from"] is None and meta["scene_shape"] == [24, 32]
     assert meta["scene_dtype"] == "float32" and meta["notes"] == []
+    assert meta["scene_frames"] == 1  # a (9, H, W) video scene recorded only its H, W
+
+
+def test_a_video_scene_records_its_frames(case, capsys):
+    k = 3
+    np.save(case / "shutter.npy", np.ones((k, 24), np.float32) / k)
+    np.save(case / "frames.npy", np.random.default_rng(1).random((k, 24, 32)).astype(np.float32))
+    code, _, err = _run(capsys, *_sim(case, "--model", "video", "--shutter",
+                                      case / "shutter.npy", scene="frames.npy"))
+    assert code == 0, err
+    meta = json.loads((case / "sim" / "simulation.json").read_text())
+    assert meta["scene_shape"] == [24, 32] and meta["scene_frames"] == k
 
 
 # --------------------------------------------------------------------------------------------

@@ -167,7 +167,8 @@ def load_scene(spec: str, shape: tuple[int, int], k: int = 1) -> Scene:
     out = np.stack([_resize(f, shape) for f in frames])
     if out.shape[0] == 1 and k > 1:
         out = np.repeat(out, k, axis=0)
-    meta = {"scene_shape": list(src), "scene_dtype": dtype,
+    # scene_shape is a frame's H, W; the frames (or bands, planes) the file held beside it
+    meta = {"scene_shape": list(src), "scene_frames": int(frames.shape[0]), "scene_dtype": dtype,
             "scene_resized_from": list(src) if resized else None,
             "scene_resize_method": RESIZE_METHOD if resized else None,
             "scene_stretched": stretched if resized else None}
