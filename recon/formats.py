@@ -16,6 +16,7 @@ from typing import Any
 
 __all__ = [
     "FORMAT_VERSION",
+    "INT_LIMIT",
     "FormatError",
     "array_hash",
     "file_hash",
@@ -27,6 +28,9 @@ __all__ = [
 
 #: Version of the on-disk formats written by this release (bumped on incompatible changes).
 FORMAT_VERSION = 1
+#: the largest magnitude of any integer a user gives (an option, a job spec's or a plan's
+#: value, a dialog's box): an int64 with room, beyond which NumPy and torch counters overflow
+INT_LIMIT = 2**62
 
 
 class FormatError(ValueError):

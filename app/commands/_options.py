@@ -16,6 +16,8 @@ import os
 import re
 from collections.abc import Callable, Iterable
 
+from recon.formats import INT_LIMIT
+
 __all__ = [
     "BITS",
     "FINITE",
@@ -67,9 +69,6 @@ def finite_float(lo: float | None = None, hi: float | None = None, *, lo_open: b
     return parse
 
 
-#: the largest magnitude of any integer option (an int64 with room, as a job spec's INT_MAX):
-#: beyond it NumPy and torch counters overflow; no count, seed or size comes near it
-INT_LIMIT = 2**62
 
 
 def integer(lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:

@@ -27,6 +27,8 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from recon.formats import INT_LIMIT
+
 __all__ = ["ComboBox", "DoubleSpinBox", "ElidedLabel", "SpinBox", "WheelOnFocus", "double_spin",
            "never_wider"]
 
@@ -77,10 +79,24 @@ def _partial_number(box: QAbstractSpinBox, text: str) -> bool:
     return _PARTIAL_NUMBER.fullmatch(_core(box, text)) is not None
 
 
+def _any_notation(box: QAbstractSpinBox, qt_result: Any, text: str, pos: int) -> Any:
+    """Qt's validation of ``text``, with numbers in any notation let through.
+
+    A number in any notation, or the beginning of one ('1e', '2e-'), is Intermediate (Qt
+    refused the keystroke): corrected to the box's range and step when the edit ends.
+    """
+    state = qt_result[0] if isinstance(qt_result, tuple) else qt_result
+    if state != QValidator.State.Invalid:
+        return qt_result
+    if _number(box, text, float) is None and not _partial_number(box, text):
+        return qt_result
+    return (QValidator.State.Intermediate, text, pos)
+
+
 def _whole(box: QAbstractSpinBox, text: str) -> int | None:
     """The whole number nearest to the number ``text`` holds in any notation, else None."""
     value = _number(box, text, float)
-    if value is None or abs(value) > 2**62:
+    if value is None or abs(value) > INT_LIMIT:
         return None
     return math.floor(value + 0.5)
 
@@ -116,13 +132,7 @@ class SpinBox(WheelOnFocus, QSpinBox):
         '1e4' lost its 'e' and became 14 (and '2.5' 25); now it is 10000 (2.5: the nearest
         whole number), corrected to the range when the edit ends.
         """
-        result = super().validate(text, pos)
-        state = result[0] if isinstance(result, tuple) else result
-        if state != QValidator.State.Invalid:
-            return result
-        if _whole(self, text) is None and not _partial_number(self, text):
-            return result
-        return (QValidator.State.Intermediate, text, pos)
+        return _any_notation(self, super().validate(text, pos), text, pos)
 
     def valueFromText(self, text: str) -> int:
         """The typed number in any notation, the nearest whole number."""
@@ -156,13 +166,7 @@ class DoubleSpinBox(WheelOnFocus, QDoubleSpinBox):
         valid value when the edit ends; Qt refused the keystroke, so 0.9 typed into a 0-0.5
         box stopped at "0." and became 0, and 1e-5 lost its "e" and "-" and became 15.
         """
-        result = super().validate(text, pos)
-        state = result[0] if isinstance(result, tuple) else result
-        if state != QValidator.State.Invalid:
-            return result
-        if _number(self, text, float) is None and not _partial_number(self, text):
-            return result
-        return (QValidator.State.Intermediate, text, pos)
+        return _any_notation(self, super().validate(text, pos), text, pos)
 
     def valueFromText(self, text: str) -> float:
         """The typed number in any notation (2e-4 as well as 0.0002), to the box's decimals.

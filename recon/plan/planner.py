@@ -31,7 +31,7 @@ import torch
 
 from recon.checks import check_field
 from recon.fista import Fista, FistaStep
-from recon.formats import whole_version
+from recon.formats import INT_LIMIT, whole_version
 from recon.models import ForwardModel
 from recon.plan.analysis import (
     LAMBDA_T,
@@ -238,7 +238,7 @@ class Plan:
         if int(self.downsample) != self.downsample or self.downsample < 1:
             raise ValueError(f"plan.downsample must be an integer >= 1, got {self.downsample!r}")
         if (int(self.iterations) != self.iterations or self.iterations < 0
-                or self.iterations > 2**62):  # an int64 with room, as every integer option
+                or self.iterations > INT_LIMIT):  # as every integer a user gives
             raise ValueError(f"plan.iterations must be an integer from 0 to 2**62, got "
                              f"{self.iterations!r}")
         if self.method == "fista-tv" and self.iterations < 1:

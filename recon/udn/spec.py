@@ -41,6 +41,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
+from recon.formats import INT_LIMIT
 from recon.udn import COMPILE_MODES, MAX_SCALES
 from recon.udn.network import NetworkConfig
 from recon.udn.runner import UDNConfig
@@ -195,10 +196,9 @@ def _suggest(name: str, known: list[str]) -> str:
     return f"; did you mean '{close[0]}'?" if close else ""
 
 
-#: the largest float32 (numbers beyond it overflow the network's tensors) and the largest
-#: integer a spec takes (an int64 with room: torch and NumPy counters)
+#: the largest float32 (numbers beyond it overflow the network's tensors); the largest
+#: integer a spec takes is recon.formats.INT_LIMIT
 FLOAT32_MAX = 3.4028234663852886e38
-INT_MAX = 2**62
 
 
 def _check_value(where: str, key: Key, value: Any) -> Any:
@@ -227,7 +227,7 @@ def _check_value(where: str, key: Key, value: Any) -> Any:
     if isinstance(value, float) and abs(value) > FLOAT32_MAX:
         raise SpecError(f"{where} must be within float32's range (|x| <= 3.4e38: the network "
                         f"computes in float32), got {value!r}")
-    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > INT_MAX:
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > INT_LIMIT:
         raise SpecError(f"{where} must be at most 2**62 in magnitude, got {value!r}")
     return value
 
