@@ -689,10 +689,10 @@ class JobsPanel(QWidget):
         #: made at the first combine, shut down by :meth:`stop`
         self._combine_queue: TaskQueue | None = None
         self._combining: str | None = None  # what the running combine is, for the message
-        #: the selected job's loss curve as last read, by the loss file's (size, mtime): read
-        #: again only when it changed, and a long one off the GUI thread (a day's loss.csv,
-        #: 200k rows, took 2-3 s to read: the window froze at every poll)
-        self._loss: dict[Path, tuple[tuple[int, int], tuple[Any, ...]]] = {}
+        #: the selected job's loss curve as last read (folder, the loss file's (size, mtime),
+        #: the curve): read again only when it changed, and a long one off the GUI thread (a
+        #: day's loss.csv, 200k rows, took 2-3 s to read: the window froze at every poll)
+        self._loss: tuple[Path, tuple[int, int], tuple[Any, ...]] | None = None
         self._loss_queue: TaskQueue | None = None
         self._loss_reading = False
         self._loss_not_before = 0.0  # monotonic time of the next background read
@@ -858,9 +858,12 @@ class JobsPanel(QWidget):
 
     def selected_all(self) -> list[JobView]:
         """Every selected job, in table order."""
+        return [self.views[r] for r in self._selected_rows() if 0 <= r < len(self.views)]
+
+    def _selected_rows(self) -> list[int]:
+        """The selected rows, in table order."""
         model = self.table.selectionModel()
-        rows = sorted(i.row() for i in model.selectedRows()) if model is not None else []
-        return [self.views[r] for r in rows if 0 <= r < len(self.views)]
+        return sorted({i.row() for i in model.selectedRows()}) if model is not None else []
 
     def showEvent(self, event: Any) -> None:
         """Shown (the app's start, a dock opened): the selected jobs in view."""
@@ -885,8 +888,7 @@ class JobsPanel(QWidget):
 
         A viewport not yet laid out (height <= 0) counts as showing it.
         """
-        model = self.table.selectionModel()
-        rows = sorted({i.row() for i in model.selectedRows()}) if model is not None else []
+        rows = self._selected_rows()
         if not rows:
             return False
         if height <= 0:
@@ -896,8 +898,7 @@ class JobsPanel(QWidget):
 
     def _show_selected(self) -> None:
         """Scroll the table to the selected rows (the last of them in view)."""
-        model = self.table.selectionModel()
-        rows = sorted({i.row() for i in model.selectedRows()}) if model is not None else []
+        rows = self._selected_rows()
         if rows:
             self.table.scrollTo(self.table.model().index(rows[-1], 0))
             self.table.scrollTo(self.table.model().index(rows[0], 0))
@@ -938,13 +939,12 @@ class JobsPanel(QWidget):
             key = (st.st_size, st.st_mtime_ns)
         except OSError:  # none yet (or unreadable: the reader says why)
             return read_loss(folder)
-        self._loss = {f: c for f, c in self._loss.items() if f == folder}  # the selected one
-        cached = self._loss.get(folder)
-        if cached is not None and cached[0] == key:
-            return cached[1]
+        last = self._loss if self._loss is not None and self._loss[0] == folder else None
+        if last is not None and last[1] == key:
+            return last[2]
         if st.st_size <= self.LOSS_READ_INLINE_BYTES:
             got = read_loss(folder)
-            self._loss[folder] = (key, got)
+            self._loss = (folder, key, got)
             return got
         if not self._loss_reading and time.monotonic() >= self._loss_not_before:
             if self._loss_queue is None:
@@ -956,9 +956,9 @@ class JobsPanel(QWidget):
                 self._loss_reading = False
                 took = time.monotonic() - t0
                 self._loss_not_before = time.monotonic() + max(2.0, 5.0 * took)
-                self._loss[folder] = (key, got)
                 v = self.selected()
-                if v is not None and v.folder == folder:
+                if v is not None and v.folder == folder:  # not another job's, chosen meanwhile
+                    self._loss = (folder, key, got)
                     self._show_curves(*got[:3])
 
             def failed(exc: BaseException) -> None:
@@ -967,8 +967,8 @@ class JobsPanel(QWidget):
 
             self._loss_queue.submit(lambda: read_loss(folder), name="loss", on_done=done,
                                     on_error=failed)
-        if cached is not None:  # the last reading while the new one is made
-            return cached[1]
+        if last is not None:  # the last reading while the new one is made
+            return last[2]
         empty = np.zeros(0)
         return empty, empty, empty, None
 
