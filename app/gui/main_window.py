@@ -134,6 +134,8 @@ def _read_camera(cam: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     return values, ranges
 
 
+#: what the preview panel says while the preview is off
+_PREVIEW_OFF = "preview off"
 #: suffixes that name another file type: Save as refuses them (frames are saved as TIFF)
 _OTHER_FILE_TYPES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".gif", ".npy", ".npz",
                                ".fits", ".fit", ".mat", ".h5", ".json", ".csv", ".txt"})
@@ -310,7 +312,7 @@ class MainWindow(QMainWindow):
         self.preview_controls.set_settings(ps)
         self.preview_controls.enabled.setChecked(self.settings.preview_enabled)
         if not self.settings.preview_enabled:  # an empty panel said nothing at start
-            self.preview_panel.set_message("preview off")
+            self.preview_panel.set_message(_PREVIEW_OFF)
         self.engine = PreviewEngine(None, ps)
         self.preview_worker = PreviewWorker(self.engine)
         self.preview_worker.result.connect(self._on_preview)
@@ -995,8 +997,8 @@ class MainWindow(QMainWindow):
     def _preview_enabled(self, on: bool) -> None:
         self.settings.preview_enabled = on
         if not on:
-            self.preview_panel.set_message("preview off")
-        elif self.preview_panel.message.text() == "preview off":  # on again, camera stopped
+            self.preview_panel.set_message(_PREVIEW_OFF)
+        elif self.preview_panel.message.text() == _PREVIEW_OFF:  # on again, camera stopped
             self.preview_panel.set_message("")
 
     def _on_preview(self, res: PreviewResult) -> None:
@@ -1005,7 +1007,7 @@ class MainWindow(QMainWindow):
         if note.startswith("warning:"):
             self.preview_panel.set_message(note)
         elif not self.settings.preview_enabled:  # a frame that was under way when it went off
-            self.preview_panel.set_message("preview off")
+            self.preview_panel.set_message(_PREVIEW_OFF)
         self._preview_rate.tick()
         self._preview_latency_ms.append(res.latency_s * 1000.0)
         self._last_preview_info = (f"{res.shape[1]}x{res.shape[0]} · {res.iterations} it/frame"
@@ -1174,10 +1176,10 @@ class MainWindow(QMainWindow):
         path, _ = QFileDialog.getSaveFileName(self, "Save frame", str(self.save_dir()),
                                               "TIFF (*.tif)")
         if path:
-            if Path(path).suffix.lower() not in _OTHER_FILE_TYPES:
+            if Path(path).suffix.lower() not in {".tif", ".tiff", *_OTHER_FILE_TYPES}:
                 # the dialog's TIFF filter: 'name' made a folder 'name/', 'exp_2.5ms' was
                 # refused as a '.5ms' file; another file type (.png) is still said to be one
-                path += "" if Path(path).suffix.lower() in (".tif", ".tiff") else ".tif"
+                path += ".tif"
             self.settings.save_dir = str(Path(path).parent)
             self.snap_and_save(path)
 
