@@ -136,9 +136,10 @@ def load_filter_cube(
     """
     from recon.formats import file_hash
     from recon.io import box_downsample, load_image
+    from recon.readers import FILTER_KEYS
 
     p = Path(path)
-    raw = np.asarray(load_image(p, key=key))
+    raw = np.asarray(load_image(p, key=key, prefer=FILTER_KEYS))
     if downsample > 1:
         if raw.ndim != 3:
             raise ValueError(f"filter cube {p} must have 3 axes, got {raw.shape}")

@@ -13,8 +13,9 @@ API::
     prob.inputs     # name -> {path, file_hash, array_hash, shape} (what a run record stores;
                     # dark-frame files by their file hash alone)
     prob.hashes     # name -> file hash
-    prob.metadata   # the preprocessing (mask_hash, psf_grid, ...), for a result's metadata;
-                    # metadata['warnings']: the input warnings (measurement, PSF) as text;
+    prob.metadata   # the preprocessing (mask_hash, psf_grid, filters_scale, ...), for a
+                    # result's metadata; metadata['warnings']: the input warnings
+                    # (measurement, PSF) as text;
                     # metadata['meas_scale']: what the measurement was divided by (its
                     # normalisation, in the file's units after dark subtraction; 1.0: none)
     prob.sensor     # the real sensor on the reconstruction grid (rows, cols)
@@ -41,7 +42,9 @@ Rules (the same for every command):
 - **Shutter** M (K, rows): at the sensor's rows (then averaged over ``downsample`` rows,
   :func:`recon.preprocess.downsample_rows`) or already at the reconstruction's rows. The
   ``.npz`` of ``lenslesscam calibrate shutter`` is read with its hashes checked.
-- **Filters** (K, H, W): at sensor or reconstruction resolution (box-downsampled).
+- **Filters** (K, H, W): at sensor or reconstruction resolution (box-downsampled), then
+  scaled to a maximum of 1 (``metadata['filters_scale']``: the maximum divided by), so a cube
+  in percent and one in [0, 1] make the same problem and a fixed tau means one thing.
 - **Colour**: ``gray`` (Rec. 601 luma) or ``rgb``; ``channel_order='bgr'`` for files that
   store B, G, R (the DiffuserCam Lensless MirFlickr dataset); PSF, measurement, truth and
   dark frames are reordered alike, so the problem is always R, G, B.
@@ -103,6 +106,7 @@ from recon.preprocess import (
     to_gray,
 )
 from recon.readers import (
+    FILTER_KEYS,
     EmptyPsfError,
     load_image,
     load_measurement,
@@ -465,7 +469,7 @@ def read_filters(path: PathLike, sensors: Sequence[tuple[int, int]] = ()) -> F64
     negative transmission, no all-zero band; rounding below 0 clipped).
     """
     p = Path(path)
-    f = _read(p, "filter cube", ("filters", "mask", "arr_0", "data")).astype(np.float64)
+    f = _read(p, "filter cube", FILTER_KEYS).astype(np.float64)
     if f.ndim != 3:
         raise ValueError(f"filter cube file {p} must be a (K, H, W) array, got shape {f.shape}")
     fits = {tuple(int(n) for n in s) for s in sensors}
@@ -831,6 +835,7 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
                              downsample=ds)
         check_shutter(shutter, f"shutter file {spec.shutter}{where}", rows_warning=False)
     filters: F64 | None = None
+    filters_scale: float | None = None
     if spec.model == "spectral":
         # (H, W, K) cubes (SpectralDiffuserCam's .mat) are read as calibrate filters reads them
         f = read_filters(str(spec.filters), sensors=[(h_full, w_full), coarse] if ds > 1
@@ -851,6 +856,10 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
                              "HxW --out cube.tif checks and converts a cube")
         if filters is not f:  # a band that only the pixels downsampling drops held
             check_filter_cube(filters, f"filter cube file {spec.filters} (downsampled {ds}x)")
+        # scaled to a maximum of 1, as the measurement: a cube in percent or in [0, 1] makes
+        # one problem, so a fixed tau means one thing (calibrate filters' default 'max')
+        filters_scale = float(filters.max())
+        filters = filters / filters_scale
 
     # scene field, in pixels of the reconstruction grid
     if spec.field == "sensor":
@@ -907,6 +916,8 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
         # what the measurement was divided by (meas_normalise; 1.0 for none), in the file's
         # units after dark subtraction, so a result's absolute scale can be recovered
         "meas_scale": meas_scale,
+        # what the filter cube was divided by (its maximum; spectral only)
+        **({} if filters_scale is None else {"filters_scale": filters_scale}),
     }
     if spec.model != "depth" and color == "rgb" and psf.shape[0] == 1:
         meta["psf_channels"] = "one gray PSF shared by R, G and B"

@@ -34,8 +34,8 @@ from recon.preprocess import (
 )
 from recon.textfmt import percent
 
-__all__ = ["DarkSpec", "EmptyPsfError", "PathLike", "load_image", "load_measurement", "load_psf",
-           "load_psf_any", "load_psf_stack"]
+__all__ = ["FILTER_KEYS", "DarkSpec", "EmptyPsfError", "PathLike", "load_image",
+           "load_measurement", "load_psf", "load_psf_any", "load_psf_stack"]
 
 PathLike = str | os.PathLike[str]
 Array = npt.NDArray[Any]
@@ -87,6 +87,11 @@ _DARK_KEYS: tuple[str, ...] = ("dark_mean", "dark", *_DEFAULT_KEYS)
 
 
 _STACK_KEYS: tuple[str, ...] = ("psf", "psfs", "zstack", "stack", "arr_0", "data")
+
+
+FILTER_KEYS: tuple[str, ...] = ("filters", "mask", "arr_0", "data")
+"""The variables a filter cube's ``.mat``/``.npz`` is read from, in order (recon and
+``calibrate filters`` alike)."""
 
 
 def _load_image(path: PathLike, *, key: str | None, prefer: Sequence[str]) -> Array:

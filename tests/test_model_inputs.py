@@ -128,7 +128,44 @@ def test_an_hwk_mat_cube_is_read_as_calibrate_filters_reads_it(pair):
     small = cube.reshape(4, H // 2, 2, W // 2, 2).mean(axis=(2, 4))
     scipy.io.savemat(pair / "hwk_small.mat", {"mask": np.moveaxis(small, 0, -1)})
     down = load_problem(_spectral(pair, "hwk_small.mat", downsample=2))
-    np.testing.assert_allclose(down.filters, small, rtol=1e-6)
+    np.testing.assert_allclose(down.filters, small / small.max(), rtol=1e-6)
+
+
+def test_calibrate_filters_and_recon_take_the_same_array_of_a_mat_file(pair):
+    """A .mat with the cube and another array: one choice of variable, not two."""
+    import scipy.io
+
+    from calibration.filters import load_filter_cube
+
+    cube = _cube()
+    scipy.io.savemat(pair / "two.mat", {"filters": cube, "data": _cube(4, H, W)[:, ::-1]})
+    recon_side = load_problem(_spectral(pair, "two.mat")).filters
+    calib_side = load_filter_cube(pair / "two.mat", (H, W)).cube  # was: the "data" array
+    np.testing.assert_allclose(recon_side, calib_side, rtol=1e-6)
+    np.testing.assert_allclose(recon_side, cube / cube.max(), rtol=1e-6)
+
+
+def test_a_filter_cube_in_other_units_gives_the_same_problem_and_result(pair, capsys):
+    """Transmission in percent or in [0, 1]: the loader scales the cube to a maximum of 1,
+    as the measurement, so a fixed --tau means one thing (was: 100x weaker TV in percent)."""
+    cube = _cube()
+    np.save(pair / "unit.npy", cube)
+    np.save(pair / "percent.npy", cube * 100)
+    unit = load_problem(_spectral(pair, "unit.npy"))
+    percent = load_problem(_spectral(pair, "percent.npy"))
+    np.testing.assert_allclose(percent.filters, unit.filters, rtol=1e-6)
+    assert float(unit.filters.max()) == pytest.approx(1.0)
+    assert percent.metadata["filters_scale"] == pytest.approx(100 * cube.max(), rel=1e-6)
+    outs = []
+    for name in ("unit", "percent"):
+        code, _, err = run_cli(capsys, "recon", "fista", "--model", "spectral", "--psf",
+                               pair / "psf.npy", "--meas", pair / "meas.npy", "--filters",
+                               pair / f"{name}.npy", "--tau", "1e-3", "--iters", "20",
+                               "--out", pair / f"{name}.npy.tif")
+        assert code == 0, err
+        from recon.readers import load_image
+        outs.append(load_image(pair / f"{name}.npy.tif").astype(np.float64))
+    np.testing.assert_allclose(outs[1], outs[0], rtol=1e-4, atol=1e-6 * outs[0].max())
 
 
 def test_a_cube_that_fits_neither_or_both_layouts_says_how_to_convert_it(tmp_path, pair):
