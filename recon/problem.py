@@ -759,6 +759,14 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
             raise ValueError(f"mask file {spec.mask} marks no pixel as measured (all erased)")
 
 
+    if not padded and (h_full % ds or w_full % ds):
+        lost = [f"{n} {what}{'s' if n > 1 else ''}" for n, what in
+                ((h_full % ds, "row"), (w_full % ds, "column")) if n]
+        warn_input(f"downsampling {ds}x drops the last {' and '.join(lost)} of the "
+                   f"{h_full}x{w_full} measurement ({ds} does not divide its size): the "
+                   f"reconstruction sees {coarse[0] * ds}x{coarse[1] * ds} of it",
+                   MeasurementWarning)
+
     # embed the sensor in the padded grid of a padded PSF
     grid_full = psf_hw
     if padded:

@@ -555,3 +555,25 @@ def test_a_transposed_shutter_file_is_named_as_such(tmp_path):
                        r"transposed"):
         load_problem(ProblemSpec(model="video", meas=str(tmp_path / "meas.npy"),
                                  psf=str(tmp_path / "psf.npy"), shutter=str(tmp_path / "sh.npy")))
+
+
+def test_a_downsampling_factor_that_does_not_divide_the_size_says_what_it_drops(small):
+    """24x30 at 4x: the last 2 columns were dropped silently (a bright edge lost unsaid)."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        prob = load_problem(_spec(small, downsample=4))
+    said = [t for t in prob.metadata["warnings"] if "downsampling 4x" in t]
+    assert said == ["downsampling 4x drops the last 2 columns of the 24x30 measurement (4 does "
+                    "not divide its size): the reconstruction sees 24x28 of it"], said
+    assert any("drops the last 2 columns" in str(w.message) for w in seen)
+    assert prob.meas.shape[-2:] == (6, 7)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        prob = load_problem(_spec(small, downsample=3))  # divides 24 and 30: nothing dropped
+    assert not [t for t in prob.metadata["warnings"] if "downsampling" in t]
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        prob = load_problem(_spec(small, downsample=5))
+    assert any("the last 4 rows of the 24x30" in t for t in prob.metadata["warnings"])
