@@ -341,3 +341,23 @@ def test_simulate_reads_an_hwk_cube_as_recon_does(pair, capsys):
         assert code == 0, err
         outs[name] = np.load(pair / f"sim_{name[:3]}" / "meas.npy")
     np.testing.assert_allclose(outs["hwk.mat"], outs["khw.npy"], rtol=1e-6)
+
+
+def test_recon_admm_lists_and_takes_the_2d_model_only(pair, capsys):
+    """Its help listed video, spectral and depth and their inputs, which it then refused."""
+    from app.cli import build_parser
+
+    sub = build_parser()._subparsers._group_actions[0].choices["recon"]
+    admm = sub._subparsers._group_actions[0].choices["admm"]
+    text = admm.format_help()
+    for word in ("{2d,video,spectral,depth}", "--shutter", "--filters", "--psf-stack",
+                 "PSF file (2d, video, spectral)"):
+        assert word not in text, word
+    assert "--model 2d" in text
+    for model in ("video", "spectral", "depth"):
+        with pytest.raises(SystemExit) as exc:  # argparse's refusal (exit 2)
+            run_cli(capsys, "recon", "admm", "--model", model, "--meas", pair / "meas.npy",
+                    "--psf", pair / "psf.npy", "--out", pair / "a.tif")
+        line = _one_line_error(int(exc.value.code), capsys.readouterr().err)
+        assert f"handles the 2d model only, not {model}; use recon fista" in line
+    assert not (pair / "a.tif").exists()

@@ -56,7 +56,8 @@ def register(sub: Any) -> None:
     a = methods.add_parser("admm", help="ADMM-TV (2d model, with or without a mask)")
     _add_tv_solver_arguments(
         a, "stop when the relative change of v and the residuals of ADMM's splittings (M v = "
-        "x, D v = u, v = w, relative to ||M v|| and ||v||) are all below this (default 1e-5)")
+        "x, D v = u, v = w, relative to ||M v|| and ||v||) are all below this (default 1e-5)",
+        only_2d="recon admm")
     a.add_argument("--rho", type=POSITIVE, default=0.01,
                    help="the TV and non-negativity penalties relative to max|H|^2 times the "
                    "data penalty (default 0.01)")
@@ -91,9 +92,10 @@ def _precondition(text: str) -> str | float:
             f"must be auto, off or a number > 0 and <= 1, got {text!r}") from None
 
 
-def _add_tv_solver_arguments(p: argparse.ArgumentParser, tol_help: str) -> None:
+def _add_tv_solver_arguments(p: argparse.ArgumentParser, tol_help: str,
+                             only_2d: str | None = None) -> None:
     """Inputs, tau/iterations, tolerance, TV form and output: shared by fista and admm."""
-    add_input_arguments(p)
+    add_input_arguments(p, only_2d=only_2d)
     add_tau_arguments(p)
     p.add_argument("--tol", type=NONNEG, default=1e-5, help=tol_help)
     p.add_argument("--tv", choices=["iso", "aniso"], default="iso", help="2D TV form")
@@ -101,21 +103,52 @@ def _add_tv_solver_arguments(p: argparse.ArgumentParser, tol_help: str) -> None:
     add_overwrite_option(p)
 
 
-def add_input_arguments(p: argparse.ArgumentParser, *, float64: bool = True) -> None:
+def _only_2d(command: str) -> Callable[[str], str]:
+    """``--model`` of a command that handles the 2d model alone (2d, or a refusal).
+
+    The refusal says where the other models are reconstructed.
+    """
+
+    def parse(text: str) -> str:
+        if text == "2d":
+            return text
+        others = ("video", "spectral", "depth")
+        if text in others:
+            raise argparse.ArgumentTypeError(f"{command} handles the 2d model only, not "
+                                             f"{text}; use recon fista (or recon udn)")
+        raise argparse.ArgumentTypeError(f"must be 2d (recon fista also takes "
+                                         f"{', '.join(others)}), got {text!r}")
+    return parse
+
+
+def add_input_arguments(p: argparse.ArgumentParser, *, float64: bool = True,
+                        only_2d: str | None = None) -> None:
     """Inputs shared by every reconstruction method.
 
     ``float64``: offer ``--float64`` (the UDN's network runs in float32 or bf16, its
-    ``--precision``).
+    ``--precision``). ``only_2d``: the name of a command that handles the 2d model alone
+    (``recon admm``): its ``--model`` takes 2d, and its help lists neither the other models nor
+    their inputs (``--psf-stack``, ``--shutter``, ``--filters`` stay, unlisted, so that a
+    stack given is named with the model it implies).
     """
-    p.add_argument("--model", choices=["2d", "video", "spectral", "depth"], default=None,
-                   help="forward model: 2d, video (rolling shutter), spectral (filter "
-                   "array), depth (PSF stack) (default: depth with --psf-stack, else 2d)")
-    p.add_argument("--psf", help="PSF file (2d, video, spectral)")
-    p.add_argument("--psf-stack", help="depth: multi-page TIFF, (K,H,W) array or a folder")
+    if only_2d:
+        p.add_argument("--model", type=_only_2d(only_2d), default=None, metavar="2d",
+                       help="forward model: 2d, the only one this method handles (recon "
+                       "fista takes video, spectral and depth too)")
+    else:
+        p.add_argument("--model", choices=["2d", "video", "spectral", "depth"], default=None,
+                       help="forward model: 2d, video (rolling shutter), spectral (filter "
+                       "array), depth (PSF stack) (default: depth with --psf-stack, else 2d)")
+    hide = argparse.SUPPRESS if only_2d else None
+    p.add_argument("--psf", help="PSF file" if only_2d else "PSF file (2d, video, spectral)")
+    p.add_argument("--psf-stack",
+                   help=hide or "depth: multi-page TIFF, (K,H,W) array or a folder")
     p.add_argument("--meas", required=True, help="measurement file")
     p.add_argument("--mask", help="erasure / dead-pixel mask (1 = measured)")
-    p.add_argument("--shutter", help="video: shutter function M (K, rows) (.npy/.npz/.tif)")
-    p.add_argument("--filters", help="spectral: filter cube (K, H, W) (.npy/.npz/.mat/.tif)")
+    p.add_argument("--shutter",
+                   help=hide or "video: shutter function M (K, rows) (.npy/.npz/.tif)")
+    p.add_argument("--filters",
+                   help=hide or "spectral: filter cube (K, H, W) (.npy/.npz/.mat/.tif)")
     p.add_argument("--downsample", type=POSITIVE_INT, default=1, help="box downsampling factor")
     p.add_argument("--dark", help="dark level: a number, 'auto' or a dark-frame file")
     p.add_argument("--psf-dark", help="dark level of the PSF: a number, 'auto' or a dark-frame "
