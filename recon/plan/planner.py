@@ -262,6 +262,13 @@ class Plan:
             if self.k != -(-self.base_bins // self.bin_factor):
                 raise ValueError(f"plan.k = {self.k} does not match {self.base_bins} shutter bins "
                                  f"binned by {self.bin_factor}")
+            rows = self.sensor[0] // self.downsample
+            if self.k > rows:  # the rule of recon.checks.check_shutter_frames, said for a plan
+                fewer = -(-self.base_bins // -(-self.base_bins // rows))
+                raise ValueError(
+                    f"a video plan of K = {self.k} frames for {rows} rows ({self.sensor[0]} "
+                    f"downsampled {self.downsample}x): a rolling shutter resolves at most as "
+                    f"many frames as rows; set k={fewer} or fewer, or a smaller downsample")
         if self.model == "depth":
             if self.planes is None:
                 raise ValueError("a depth plan needs planes [first, last)")
@@ -1011,6 +1018,16 @@ def make_plan(
                 f"held-out MSE {tab}); a static scene needs one image")
             reasons["k"] = "one image (static scene)"
 
+    if model == "video" and k > h // d:  # a rolling shutter resolves at most a frame a row
+        d_res = d
+        while d > 1 and k > h // d:
+            d -= 1
+        if k > h // d:  # not even at full resolution (the shutter was checked against rows)
+            bin_factor = -(-int(base_bins) // h)
+            k = -(-int(base_bins) // bin_factor)
+        reasons["downsample"] += (f"; lowered from {d_res} to {d} so the {h // d} rows resolve "
+                                  f"the K = {k} frames")
+
     # method for the budget
     reg4 = (region.top, region.left, region.height, region.width)
     plan = Plan(model=model, k=k, sensor=(h, w), field=fld, region=reg4,
@@ -1026,7 +1043,8 @@ def make_plan(
             cost = iteration_cost(pm, use_cache=use_cache)
             choice = method_for_budget(cost, budget_s)
             bigger = plan.downsample * 2
-            if (choice.affordable or h // bigger < 16 or w // bigger < 16):
+            if (choice.affordable or h // bigger < 16 or w // bigger < 16
+                    or plan.k > h // bigger):  # K frames need K rows (video)
                 break
             plan = dataclasses.replace(plan, downsample=bigger)
         if plan.downsample != first:
@@ -1035,7 +1053,8 @@ def make_plan(
                 f"; raised from {first} to {plan.downsample} so the budget allows at least "
                 f"{MIN_ITERS} iterations" if choice.affordable else
                 f"; raised from {first} to {plan.downsample} for the budget, the coarsest grid "
-                "the planner goes to (a coarser one would have a side under 16 px), where it "
+                "the planner goes to (a coarser one would have a side under 16 px, or fewer "
+                "rows than frames), where it "
                 f"still allows fewer than {MIN_ITERS} iterations")
     choice = method_for_budget(cost, budget_s)
     reasons["method"] = (choice.reason if choice.affordable or cost is None or budget_s is None

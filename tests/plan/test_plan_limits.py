@@ -193,3 +193,25 @@ def test_a_saved_plan_keeps_its_bins_whatever_the_cap(static_cap, monkeypatch):
     assert base_bin_lines(t.frame_lines, H) > 1
     prep = prepare(plan, cap.psf, cap.meas, timing=t)
     assert prep.model.k == plan.k == 4
+
+
+def test_a_video_plan_keeps_a_row_per_frame(moving_cap, monkeypatch):
+    """The time analysis may find more frames than the resolution's grid has rows (36 frames,
+    3 px per sample on 48 rows: 16): the plan lowers the downsampling, as recon fista refuses
+    K > rows, and the budget's raise stops there too (it made K = 36 on 16 rows)."""
+    import dataclasses
+
+    import recon.plan.planner as planner
+
+    real_ts, real_res = planner.time_scale, planner.psf_resolution
+    monkeypatch.setattr(planner, "time_scale", lambda *a, **kw: dataclasses.replace(
+        real_ts(*a, **kw), k=36, factor=1, motion=True))
+    monkeypatch.setattr(planner, "psf_resolution", lambda *a, **kw: dataclasses.replace(
+        real_res(*a, **kw), factor=3))
+    cap = moving_cap
+    for budget, probe in ((30.0, False), (0.01, True)):
+        plan = planner.make_plan(cap.psf, cap.meas, timing=cap.timing, budget_s=budget,
+                                 probe=probe)
+        assert (plan.model, plan.k, plan.downsample) == ("video", 36, 1)
+        assert "lowered from 3 to 1 so the 48 rows resolve the K = 36 frames" in (
+            plan.reasons["downsample"])

@@ -222,6 +222,9 @@ def test_a_udn_plans_budget_counts_the_networks_set_up(static_cap, monkeypatch):
     ({"k": -3, "model": "video"}, "'k' must be >= 1"),
     ({"k": 4}, "k applies to a video or depth plan"),
     ({"planes": [2, 0]}, r"\[first, last\) with first < last"),
+    # 36 frames for 24 rows: recon fista refuses that (K > rows); recon auto ran it
+    ({"model": "video", "k": 36, "downsample": 2},
+     r"K = 36 frames for 24 rows \(48 downsampled 2x\).*set k=18 or fewer"),
 ])
 def test_bad_overrides_are_one_line_errors(change, message):
     """``--set`` values of the wrong kind were tracebacks (TypeError, IndexError) or silently
