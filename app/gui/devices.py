@@ -19,6 +19,8 @@ import os
 import shutil
 import sys
 import tempfile
+import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,6 +68,10 @@ SCENES: dict[str, str] = {
     "im408": "bottle caps",
     "none": "none (dark; point source only)",
 }
+
+
+class ReconnectCancelled(Exception):
+    """A reconnect attempt ended by the user (Disconnect, another camera) before its check."""
 
 
 @dataclass(frozen=True)
@@ -332,23 +338,44 @@ class Bench:
             except Exception as exc:
                 _log.warning("closing %r: %s", cam, exc)
 
-    def reconnect_camera(self, check_timeout_s: float = 1.0) -> Any:
-        """Close and reopen the same camera object, then check a frame arrives.
+    def reconnect_camera(self, check_timeout_s: float = 1.0,
+                         cancel: threading.Event | None = None) -> tuple[Any, Any]:
+        """Close and reopen the same camera object, start its live stream, wait for a frame.
 
-        Raises the camera's error (for example :class:`~drivers.camera.CameraTimeout`) when it
-        is still gone; the camera is then left closed.
+        Returns ``(camera, first frame)``; the stream keeps running. The wait allows
+        ``check_timeout_s`` plus two frame times (a long exposure is not a lost camera), in
+        slices of at most 0.2 s: setting ``cancel`` (Disconnect, another camera) ends it within
+        one slice, where a blocking snap held the camera worker for the whole wait (21 s at a
+        10 s exposure). Raises the camera's error (:class:`~drivers.camera.CameraTimeout` when
+        no frame came, :class:`ReconnectCancelled`); the camera is then left closed.
         """
+        from drivers.camera import CameraTimeout
+
         cam = self.camera
         if cam is None:
             raise RuntimeError("no camera to reconnect")
         best_effort(f"closing {cam.describe()} before reconnecting", cam.close)
-        cam.open()
-        try:  # a long exposure is not a lost camera: wait for its frame too
-            cam.snap(timeout_s=check_timeout_s + 2.0 * cam.expected_frame_s())
+        if cancel is not None and cancel.is_set():
+            raise ReconnectCancelled("reconnect cancelled")
+        try:
+            cam.open()
+            cam.start_live()
+            wait_s = check_timeout_s + 2.0 * cam.expected_frame_s()
+            deadline = time.monotonic() + wait_s
+            while True:
+                if cancel is not None and cancel.is_set():
+                    raise ReconnectCancelled("reconnect cancelled")
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise CameraTimeout(f"{cam.describe()}: no frame within {wait_s:.3g} s "
+                                        "of reopening")
+                frame = cam.latest_frame(timeout_s=min(0.2, left))
+                if frame is not None:
+                    return cam, frame
         except BaseException:
+            best_effort(f"stopping {cam.describe()} after a failed check", cam.stop)
             best_effort(f"closing {cam.describe()} after a failed check", cam.close)
             raise
-        return cam
 
     # -- point source --------------------------------------------------------------------------
 

@@ -25,6 +25,7 @@ import contextlib
 import logging
 import math
 import re
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -322,6 +323,7 @@ class MainWindow(QMainWindow):
         self.poll_timer = QTimer(self)
         self.poll_timer.setInterval(max(5, round(1000.0 / max(1.0, self.settings.display_hz))))
         self.poll_timer.timeout.connect(self._poll)
+        self._reconnect_cancel = threading.Event()  # the attempt under way's (set: ended)
         self.reconnect_timer = QTimer(self)
         self.reconnect_timer.setSingleShot(True)
         self.reconnect_timer.setInterval(self.reconnect_interval_ms)
@@ -557,7 +559,7 @@ class MainWindow(QMainWindow):
 
     def connect_camera(self, spec: str) -> None:
         """Open camera ``spec`` (closing the current one), apply the settings, start live."""
-        self.reconnect_timer.stop()
+        self._cancel_reconnect()
         self.poll_timer.stop()
         self._set_camera_state("connecting", f"connecting to {spec}…", "busy")
         s = self.settings
@@ -628,9 +630,14 @@ class MainWindow(QMainWindow):
         self.preview_controls.psf_label.setText(text)
         self.preview_controls.psf_label.setToolTip(src)
 
+    def _cancel_reconnect(self) -> None:
+        """Stop reconnect attempts, and end one under way within its next 0.2 s slice."""
+        self.reconnect_timer.stop()
+        self._reconnect_cancel.set()
+
     def disconnect_camera(self) -> None:
         """Stop and close the camera (also stops reconnect attempts)."""
-        self.reconnect_timer.stop()
+        self._cancel_reconnect()
         self._set_camera_state("disconnected", "disconnecting…", "busy")
         bench = self.bench
 
@@ -845,23 +852,27 @@ class MainWindow(QMainWindow):
             return
         bench = self.bench
 
-        def work() -> tuple[dict[str, Any], dict[str, Any]]:
+        cancel = self._reconnect_cancel = threading.Event()  # set by Disconnect / Connect
+
+        def work() -> tuple[dict[str, Any], dict[str, Any], Any]:
             cam = bench.camera
             if cam is None:
                 raise RuntimeError("no camera")
             best_effort(f"stopping {cam.describe()} before reconnecting", cam.stop)
-            bench.reconnect_camera(check_timeout_s=min(2.0, self.reconnect_interval_ms / 1000))
-            cam.start_live()
-            return _read_camera(cam)
+            _cam, frame = bench.reconnect_camera(
+                check_timeout_s=min(2.0, self.reconnect_interval_ms / 1000), cancel=cancel)
+            return (*_read_camera(cam), frame)
 
-        def done(r: tuple[dict[str, Any], dict[str, Any]]) -> None:
+        def done(r: tuple[dict[str, Any], dict[str, Any], Any]) -> None:
             if self.camera_state is not CameraState.LOST:
                 return
-            self._camera_values(*r)
+            values, ranges, frame = r
+            self._camera_values(values, ranges)
             self._set_camera_state(CameraState.LIVE, f"reconnected after {n} attempt(s) – live",
                                    "ok")
             self.clear_error("camera", "other")
             self._status(f"camera reconnected after {n} attempt(s)")
+            self._show_frame(frame)  # the check's frame: at a long exposure the next is late
 
         def failed(exc: BaseException) -> None:
             if not self.devices.reconnect_result(False):
@@ -1227,6 +1238,7 @@ class MainWindow(QMainWindow):
             super().closeEvent(event)
             return
         self.devices.closing = True
+        self._reconnect_cancel.set()  # a reconnect check under way ends within 0.2 s
         for t in (self.poll_timer, self.reconnect_timer, self.light_timer, self.readout_timer):
             t.stop()
         if self._save_on_close:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import time
 from pathlib import Path
 from typing import Any
 
@@ -161,6 +162,48 @@ def test_camera_unplug_shows_error_and_reconnects(live_window: Any, qtbot: Any) 
     n = w.frames_shown
     qtbot.waitUntil(lambda: w.frames_shown > n + 3, timeout=10_000)
     assert not w.banner.isVisible()
+
+
+def test_disconnect_ends_a_reconnect_check_at_a_long_exposure(live_window: Any, qtbot: Any,
+                                                              monkeypatch: Any) -> None:
+    """A reconnect check waits two frame times for its frame (21 s at a 10 s exposure); it
+    held the camera worker all that time, so Disconnect (queued behind it) waited as long."""
+    w = live_window
+    cam = w.bench.camera
+    cam.stream_timeout_s = 0.5
+    w.set_live(True)
+    qtbot.waitUntil(lambda: w.camera_state == "live", timeout=5_000)
+    cam.simulate_unplug()
+    qtbot.waitUntil(lambda: w.camera_state == "lost", timeout=10_000)
+    monkeypatch.setattr(cam, "expected_frame_s", lambda: 10.0)  # a 10 s exposure, say
+    qtbot.waitUntil(lambda: w.reconnect_attempts >= 1 and w.camera_queue.busy, timeout=10_000)
+    time.sleep(0.3)  # the check is waiting for its frame
+    t0 = time.monotonic()
+    w.disconnect_camera()  # "disconnecting…" until the camera worker has closed it
+    qtbot.waitUntil(lambda: "not connected" in QLabel.text(w.device_panel.camera_status),
+                    timeout=3_000)
+    assert time.monotonic() - t0 < 2.0
+    qtbot.wait(300)
+    assert w.camera_state == "disconnected"  # the ended attempt does not bring it back
+
+
+def test_a_reconnected_camera_shows_the_check_frame_at_once(live_window: Any,
+                                                            qtbot: Any) -> None:
+    """The reconnect check's frame is shown: at a long exposure the next one comes a frame
+    time later."""
+    w = live_window
+    cam = w.bench.camera
+    cam.stream_timeout_s = 0.5
+    w.set_live(True)
+    qtbot.waitUntil(lambda: w.camera_state == "live", timeout=5_000)
+    cam.simulate_unplug()
+    qtbot.waitUntil(lambda: w.camera_state == "lost", timeout=10_000)
+    n = w.frames_shown
+    shown: list[Any] = []
+    w.frame_shown.connect(shown.append)
+    cam.simulate_replug()
+    qtbot.waitUntil(lambda: w.camera_state == "live", timeout=10_000)
+    assert w.frames_shown > n and shown  # shown in the same turn as the state change
 
 
 def test_bad_frames_are_skipped_and_counted_in_the_footer(live_window: Any, qtbot: Any,
