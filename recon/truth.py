@@ -181,7 +181,9 @@ def _slices(t: Array, path: PathLike, est_k: int, kind: str | None,
         result = f"the {kind} result" if kind in _K_WORDS else "the result"
         has = "is one image" if k0 == 1 else f"has {k0} {what}"
         is_ = f"has {est_k} {what}" if est_k > 1 else "is one image"
-        raise ValueError(f"truth file {path} {has}; {result} {is_}")
+        colour = (" (a colour truth of a gray result: give it as an (H, W, 3) image, which is "
+                  "taken to luma)" if k0 == 3 and int(t.shape[0]) == 1 else "")
+        raise ValueError(f"truth file {path} {has}; {result} {is_}{colour}")
     return t, None
 
 
@@ -263,7 +265,11 @@ def prepare_truth_like(path: PathLike, est_shape: Sequence[int], layout: Mapping
     # planes are of a stack of unknown size)
     expect = (plan.get("base_bins") if plan and plan.get("base_bins") else
               None if plan and plan.get("planes") else k)
-    t = _read(path, est_shape, layout, key, stack, expect, dtype, gray_only=kind == "depth")
+    # a gray result of frames, bands or planes: a (3, H, W) array is 3 of them, not colour
+    # (a 3-frame truth of a K = 1 video was taken to luma and scored, silently)
+    sliced_kind = kind == "depth" or (kind in ("video", "spectral") and c == 1)
+    stack = stack or sliced_kind
+    t = _read(path, est_shape, layout, key, stack, expect, dtype, gray_only=sliced_kind)
     if layout["flip_rows"]:
         t = np.ascontiguousarray(t[:, :, ::-1])  # (C, K, H, W): the rows are axis 2
     if t.shape[0] != c:

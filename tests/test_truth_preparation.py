@@ -292,4 +292,26 @@ def test_a_three_plane_truth_of_a_depth_result_is_a_stack_not_colour(tmp_path):
               gray_only=True)
     assert t.shape == (1, 3, 12, 16) and np.array_equal(t[0], planes)
     luma = _read(tmp_path / "t.npy", (1, 3, 12, 16), layout, None, True, None, np.float32)
-    assert luma.shape[1] == 1  # elsewhere (video, spectral) a 3-slice file is still colour
+    assert luma.shape[1] == 1  # without gray_only (a colour result) a 3-slice file is colour
+
+
+def test_a_three_frame_truth_of_a_one_frame_gray_video_is_frames_not_colour(tmp_path):
+    """A (3, H, W) truth against a gray video result of K = 1 was read as R, G, B, taken to
+    luma and scored, silently; it is 3 frames, which one frame cannot be scored against. A
+    colour image (H, W, 3) is still colour, taken to luma for the gray result."""
+    from recon.truth import prepare_truth_like
+
+    rng = np.random.default_rng(0)
+    layout = {"color": "gray", "channel_order": "rgb", "flip_rows": False, "downsample": 1}
+    np.save(tmp_path / "frames.npy", rng.random((3, 12, 16)).astype(np.float32))
+    with pytest.raises(ValueError, match=r"has 3 frames; the video result is one image \(a "
+                                         r"colour truth of a gray result: give it as an "
+                                         r"\(H, W, 3\) image"):
+        prepare_truth_like(tmp_path / "frames.npy", (1, 1, 12, 16), layout, kind="video")
+    rgb = rng.random((12, 16, 3)).astype(np.float32)
+    np.save(tmp_path / "rgb.npy", rgb)
+    t, _ = prepare_truth_like(tmp_path / "rgb.npy", (1, 1, 12, 16), layout, kind="video")
+    np.testing.assert_allclose(t[0, 0], rgb @ np.array([0.299, 0.587, 0.114]), rtol=1e-5)
+    # three frames against a 3-frame result: a stack, as before
+    t, _ = prepare_truth_like(tmp_path / "frames.npy", (1, 3, 12, 16), layout, kind="video")
+    np.testing.assert_array_equal(t[0], np.load(tmp_path / "frames.npy"))
