@@ -23,7 +23,7 @@ __all__ = ["FILTER_NEGATIVE_TOLERANCE", "NEGATIVE_PSF_WARN_SHARE", "NEGATIVE_WAR
            "NEGATIVE_WARN_FRACTION", "MeasurementCheck", "MeasurementWarning", "check_field",
            "check_filter_cube", "check_measurement", "check_pair", "check_shutter",
            "check_shutter_frames", "field_reach", "index_ranges", "negative_after_dark",
-           "negative_measurement"]
+           "negative_measurement", "warn_downsample_remainder"]
 
 Array = npt.NDArray[Any]
 
@@ -390,3 +390,25 @@ def check_shutter_frames(k: int, rows: int, what: str = "shutter function", *,
             f"{what} has K = {int(k)} time bins for {int(rows)} rows: a rolling shutter "
             f"resolves at most as many frames as rows; use fewer, wider bins (calibrate "
             f"shutter --bin-lines){less}")
+
+
+def warn_downsample_remainder(h: int, w: int, ds: int, what: str = "measurement",
+                              measured: Array | None = None) -> None:
+    """Say the rows and columns a downsampling factor that does not divide ``h`` x ``w`` drops.
+
+    A :class:`MeasurementWarning` (one line): box downsampling keeps whole blocks, so the last
+    ``h % ds`` rows and ``w % ds`` columns are not reconstructed (a bright edge there was lost
+    unsaid). Nothing when ``ds`` divides both, or when ``measured`` (an (h, w) mask, nonzero =
+    measured) measures none of the dropped pixels (a padded grid's margin).
+    """
+    if ds <= 1 or not (h % ds or w % ds):
+        return
+    if measured is not None:
+        m = np.asarray(measured) != 0
+        if not (m[h // ds * ds:].any() or m[:, w // ds * ds:].any()):
+            return
+    lost = [f"{n} {kind}{'s' if n > 1 else ''}" for n, kind in
+            ((h % ds, "row"), (w % ds, "column")) if n]
+    warn_input(f"downsampling {ds}x drops the last {' and '.join(lost)} of the {h}x{w} {what} "
+               f"({ds} does not divide its size): the reconstruction sees "
+               f"{h // ds * ds}x{w // ds * ds} of it", MeasurementWarning, stacklevel=2)

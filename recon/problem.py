@@ -93,6 +93,7 @@ from recon.checks import (
     check_pair,
     check_shutter,
     check_shutter_frames,
+    warn_downsample_remainder,
 )
 from recon.formats import array_hash
 from recon.inputwarnings import warn_input
@@ -759,13 +760,8 @@ def _load_problem(spec: ProblemSpec, *, dtype: torch.dtype | None,
             raise ValueError(f"mask file {spec.mask} marks no pixel as measured (all erased)")
 
 
-    if not padded and (h_full % ds or w_full % ds):
-        lost = [f"{n} {what}{'s' if n > 1 else ''}" for n, what in
-                ((h_full % ds, "row"), (w_full % ds, "column")) if n]
-        warn_input(f"downsampling {ds}x drops the last {' and '.join(lost)} of the "
-                   f"{h_full}x{w_full} measurement ({ds} does not divide its size): the "
-                   f"reconstruction sees {coarse[0] * ds}x{coarse[1] * ds} of it",
-                   MeasurementWarning)
+    if not padded:
+        warn_downsample_remainder(h_full, w_full, ds)
 
     # embed the sensor in the padded grid of a padded PSF
     grid_full = psf_hw

@@ -125,8 +125,26 @@ def test_a_remainder_the_downsampling_drops_is_no_difference(tmp_path, capsys):
         blocks_scene(h, w, seed=1).astype(np.float32)[None, None])).numpy()[0]
     np.save(tmp_path / "psf.npy", psf)
     np.save(tmp_path / "meas.npy", b)
-    fista = _recon(capsys, tmp_path, "f.tif", "--downsample", "4", method="fista")
-    auto = _recon(capsys, tmp_path, "a.tif", "--set", "downsample=4")
+    import warnings
+
+    from recon.checks import MeasurementWarning
+
+    with warnings.catch_warnings():  # said on stderr, not raised (pytest's filter: error)
+        warnings.simplefilter("default", MeasurementWarning)
+        code, _, err = _run(capsys, "recon", "fista", "--psf", tmp_path / "psf.npy", "--meas",
+                            tmp_path / "meas.npy", "--tau", "1e-3", "--iters", "10",
+                            "--downsample", "4", "--out", tmp_path / "f.tif")
+    assert code == 0, err
+    assert "downsampling 4x drops the last 2 rows and 2 columns of the 26x34" in err
+    fista = tmp_path / "f.tif"
+    with warnings.catch_warnings():  # recon auto says it too (was silent)
+        warnings.simplefilter("default", MeasurementWarning)
+        code, _, err = _run(capsys, "recon", "auto", "--psf", tmp_path / "psf.npy", "--meas",
+                            tmp_path / "meas.npy", "--tau", "1e-3", "--set", "iterations=10",
+                            "--quiet", "--set", "downsample=4", "--out", tmp_path / "a.tif")
+    assert code == 0, err
+    assert "downsampling 4x drops the last 2 rows and 2 columns of the 26x34" in err
+    auto = tmp_path / "a.tif"
     code, out, err = _run(capsys, "metrics", "--ref", fista, "--est", auto)
     assert code == 0, err
     assert "geometry_differs" not in json.loads(out)

@@ -29,7 +29,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from recon.checks import check_field
+from recon.checks import check_field, warn_downsample_remainder
 from recon.fista import Fista, FistaStep
 from recon.formats import INT_LIMIT, whole_version
 from recon.models import ForwardModel
@@ -1171,6 +1171,8 @@ def prepare(
     base, _ = base_shutter(shutter, timing, plan.sensor[0], plan.base_bins)
     model = planned_model(plan, psf, shutter=base, psf_stack=psf_stack, mask=mask,
                           dtype=dtype, device=device)
+    warn_downsample_remainder(int(b.shape[1]), int(b.shape[2]), plan.downsample,
+                              measured=None if mask is None else np.asarray(mask))
     if mask is None:
         b_d = box_downsample(b, plan.downsample)
     else:  # the one mask rule (recon.preprocess.downsample_masked), as the model's mask
