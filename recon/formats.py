@@ -37,6 +37,21 @@ class FormatError(ValueError):
     """A file exists but is not what it claims to be (corrupt, wrong format or version)."""
 
 
+class NewerFormat(FormatError):
+    """A file of ours written by a newer release (its ``format_version`` is above ours).
+
+    Never passed over as damaged, never overwritten: the release that wrote it reads it.
+    """
+
+
+class NotOurFile(FormatError):
+    """A file that does not claim to be one of ours (no metadata, or another format's).
+
+    The one :class:`FormatError` a caller may answer by reading the file as a plain image; a
+    file of ours that is newer, of another kind or corrupt is refused instead.
+    """
+
+
 def software_version() -> str:
     """Version of the installed ``lenslesscam`` distribution (or 'unknown' from a bare tree)."""
     try:

@@ -36,7 +36,7 @@ from typing import Any
 import torch
 
 from recon.atomic import _umask_mode, atomic_write_json, fsync_dir, temp_files
-from recon.formats import FORMAT_VERSION, FormatError
+from recon.formats import FORMAT_VERSION, FormatError, NewerFormat
 
 __all__ = [
     "CHECKPOINT_FILE",
@@ -291,9 +291,12 @@ def _check_payload(ck: Any, where: str) -> dict[str, Any]:
     if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
         raise FormatError(f"{where} is not a UDN checkpoint")
     v = ck.get("format_version", 0)
-    if not isinstance(v, int) or v > FORMAT_VERSION:
-        raise FormatError(f"{where}: checkpoint version {v!r} is newer than this release reads "
-                          f"({FORMAT_VERSION})")
+    if not isinstance(v, int):
+        raise FormatError(f"{where}: checkpoint version {v!r} is not a version number")
+    if v > FORMAT_VERSION:
+        raise NewerFormat(f"{where}: checkpoint version {v} was written by a newer lenslesscam "
+                          f"(this release reads {FORMAT_VERSION}): resume the run with that "
+                          "release; nothing was changed")
     if not isinstance(ck.get("iteration"), int) or not isinstance(ck.get("state"), dict):
         raise FormatError(f"{where}: the checkpoint lacks its iteration or state")
     return ck
@@ -332,11 +335,18 @@ def _read_hashes(run_dir: Path) -> tuple[list[dict[str, Any]] | None, str | None
         return None, None
     try:
         obj = json.loads(p.read_text(encoding="utf-8"))
+        v = obj.get("format_version") if isinstance(obj, dict) else None
+        if isinstance(v, int) and v > FORMAT_VERSION:
+            raise NewerFormat(f"{p}: format_version {v} was written by a newer lenslesscam "
+                              f"(this release reads {FORMAT_VERSION}): resume the run with that "
+                              "release; nothing was changed")
         entries = obj["checkpoints"]
         if obj.get("format") != HASHES_FORMAT or not isinstance(entries, list) or not all(
                 isinstance(e, dict) and isinstance(e.get("sha256"), str)
                 and isinstance(e.get("iteration"), int) for e in entries):
             raise ValueError("unexpected content")
+    except NewerFormat:
+        raise
     except (OSError, ValueError, KeyError, TypeError) as exc:
         return None, f"{HASHES_FILE} is unreadable ({_first_line(exc)}); checkpoints unverified"
     return entries, None
@@ -467,6 +477,8 @@ def load_latest_checkpoint(run_dir: str | Path
             continue
         try:
             ck = _load_bytes(data, name)
+        except NewerFormat:
+            raise  # not damaged: a newer release's, which must neither be passed over nor lost
         except FormatError as exc:
             problems.append(str(exc))
             continue

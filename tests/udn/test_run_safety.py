@@ -194,6 +194,55 @@ def test_truncated_checkpoint_falls_back_to_the_previous_one(tiny_data, tmp_path
                load_checkpoint(out / "checkpoint.pt")["state"]["notes"])
 
 
+def _as_newer(out: Path, name: str) -> None:
+    """Rewrite checkpoint ``name`` as a newer release would: format_version 5, its hash and
+    size recorded in checkpoints.json."""
+    import hashlib
+
+    import torch
+
+    ck = torch.load(out / name, map_location="cpu", weights_only=True)
+    old_sha = hashlib.sha256((out / name).read_bytes()).hexdigest()
+    ck["format_version"] = 5
+    torch.save(ck, out / name)
+    new_sha = hashlib.sha256((out / name).read_bytes()).hexdigest()
+    hashes = json.loads((out / "checkpoints.json").read_text())
+    for e in hashes["checkpoints"]:
+        if e["sha256"] == old_sha:
+            e["sha256"] = new_sha
+    (out / "checkpoints.json").write_text(json.dumps(hashes))
+
+
+@pytest.mark.parametrize("names", [("checkpoint.pt",), ("checkpoint.pt", "checkpoint.prev.pt")])
+def test_a_newer_releases_checkpoint_is_refused_never_passed_over(tiny_data, tmp_path, capsys,
+                                                                 names):
+    """A checkpoint of a newer format version was taken for a damaged one: the resume went on
+    from the previous checkpoint and overwrote the newer one; with both newer it advised
+    --restart, which overwrote both."""
+    out = tmp_path / "run"
+    small_run(tiny_data, out)
+    for name in names:
+        _as_newer(out, name)
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    for extra in ([], ["--restart"]):
+        line = one_line_error(["jobs", "resume", out, "--max-iter", "12", *extra], capsys)
+        assert "checkpoint version 5 was written by a newer lenslesscam" in line, line
+        assert "--restart" not in line and "resume the run with that release" in line
+        assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+
+
+def test_a_newer_checkpoints_json_is_refused_not_rewritten(tiny_data, tmp_path, capsys):
+    out = tmp_path / "run"
+    small_run(tiny_data, out)
+    hashes = json.loads((out / "checkpoints.json").read_text())
+    hashes["format_version"] = 4
+    (out / "checkpoints.json").write_text(json.dumps(hashes))
+    before = (out / "checkpoints.json").read_bytes()
+    line = one_line_error(["jobs", "resume", out, "--max-iter", "12"], capsys)
+    assert "checkpoints.json: format_version 4 was written by a newer lenslesscam" in line
+    assert (out / "checkpoints.json").read_bytes() == before
+
+
 def test_a_corrupt_byte_is_caught_by_the_hash(tiny_data, tmp_path):
     out = tmp_path / "run"
     small_run(tiny_data, out)
