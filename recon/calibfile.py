@@ -42,6 +42,7 @@ from recon.atomic import atomic_write
 from recon.formats import (
     FORMAT_VERSION,
     FormatError,
+    NotOurFile,
     array_hash,
     json_default,
     provenance,
@@ -365,11 +366,11 @@ def save_pixel_maps(
 
 def _check_meta(p: Path, meta: Any, expect: str | None) -> tuple[str, dict[str, Any]]:
     if not isinstance(meta, dict):
-        raise FormatError(f"{p} is not a lenslesscam calibration file (no metadata)")
+        raise NotOurFile(f"{p} is not a lenslesscam calibration file (no metadata)")
     fmt = meta.get("format")
     kind = _KIND_OF_FORMAT.get(fmt) if isinstance(fmt, str) else None
     if kind is None:
-        raise FormatError(
+        raise NotOurFile(
             f"{p} is not a lenslesscam calibration file (format {fmt!r}; expected one of "
             f"{', '.join(sorted(_KIND_OF_FORMAT))})"
         )
@@ -412,7 +413,7 @@ def _read_tiff(p: Path, expect: str | None) -> Calibration:
     try:
         meta = json.loads(desc)
     except (TypeError, ValueError):
-        raise FormatError(
+        raise NotOurFile(
             f"{p} is not a lenslesscam calibration file (no JSON metadata in its description)"
         ) from None
     kind, meta = _check_meta(p, meta, expect)
@@ -440,7 +441,7 @@ def _read_npz(p: Path, expect: str | None) -> Calibration:
         raise FormatError(f"cannot read {p} as .npz: {exc}") from exc
     raw = arrays.pop("metadata", None)
     if raw is None or raw.ndim != 0 or raw.dtype.kind != "U":
-        raise FormatError(f"{p} is not a lenslesscam calibration file (no metadata entry)")
+        raise NotOurFile(f"{p} is not a lenslesscam calibration file (no metadata entry)")
     try:
         meta = json.loads(str(raw))
     except ValueError:

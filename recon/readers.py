@@ -104,6 +104,8 @@ def _load_image(path: PathLike, *, key: str | None, prefer: Sequence[str]) -> Ar
         raise ValueError(f"{p}: not a regular file (a pipe, socket or device); save the data "
                          "to a file")
     ext = p.suffix.lower()
+    if ext in _TIFF_EXT or ext == ".npz":
+        _check_ours(p)
     if ext in _TIFF_EXT:
         return _read_tiff(p)
     if ext in _CV_EXT:
@@ -118,6 +120,52 @@ def _load_image(path: PathLike, *, key: str | None, prefer: Sequence[str]) -> Ar
         f"{p}: unknown image file extension {p.suffix!r} (expected one of "
         f"{', '.join(_TIFF_EXT + _CV_EXT + ('.npy', '.npz', '.mat'))})"
     )
+
+
+def _declared_format(p: Path) -> str | None:
+    """The ``format`` a TIFF's first description or an ``.npz``'s ``metadata`` entry declares.
+
+    Cheap (the pixels are not read); None for a file without such metadata or one that cannot
+    be read (its reader says why).
+    """
+    import json
+
+    try:
+        if p.suffix.lower() == ".npz":
+            with np.load(p, allow_pickle=False) as z:
+                if "metadata" not in z.files:
+                    return None
+                raw = z["metadata"]
+                meta = json.loads(str(raw)) if raw.ndim == 0 and raw.dtype.kind == "U" else None
+        else:
+            import tifffile
+
+            with tifffile.TiffFile(p) as tf:
+                meta = json.loads(tf.pages.first.description)
+    except Exception:
+        return None
+    fmt = meta.get("format") if isinstance(meta, dict) else None
+    return fmt if isinstance(fmt, str) else None
+
+
+def _check_ours(p: Path) -> None:
+    """Refuse a calibration or reconstruction file of ours that is newer or corrupt.
+
+    Read as a plain image, a file whose metadata declares one of our formats kept its pixels
+    and lost its checks: a newer ``format_version`` or pixels that fail their hash were used
+    silently. Its own reader checks it first (:func:`recon.calibfile.load_calibration`,
+    :func:`recon.reconfile.read_reconstruction`), raising :class:`~recon.formats.FormatError`.
+    """
+    fmt = _declared_format(p)
+    if fmt is None:
+        return
+    from recon.calibfile import CALIBRATION_FORMATS, load_calibration
+    from recon.reconfile import RECONSTRUCTION_FORMAT, read_reconstruction
+
+    if fmt in CALIBRATION_FORMATS.values():
+        load_calibration(p)
+    elif fmt == RECONSTRUCTION_FORMAT:
+        read_reconstruction(p)
 
 
 def _read_tiff(p: Path) -> Array:
@@ -784,7 +832,7 @@ def load_psf_any(path: PathLike) -> F32:
     A PSF calibration file (:mod:`recon.calibfile`), else any image file through
     :func:`load_psf`.
     """
-    from recon.formats import FormatError
+    from recon.formats import NotOurFile
 
     p = Path(path)
     try:
@@ -792,7 +840,7 @@ def load_psf_any(path: PathLike) -> F32:
 
         psf, _meta = load_psf_calibration(p)
         return np.asarray(psf, dtype=np.float32)
-    except FormatError:  # not a calibration file: read it as an image
+    except NotOurFile:  # not a calibration file: read it as an image (one of ours is checked)
         pass
     out: F32 = np.asarray(load_psf(p, normalise="sum"), dtype=np.float32)[0]
     return out

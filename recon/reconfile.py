@@ -24,6 +24,7 @@ from recon.falsecolor import load_false_color_weights
 from recon.formats import (
     FORMAT_VERSION,
     FormatError,
+    NotOurFile,
     array_hash,
     json_default,
     provenance,
@@ -251,12 +252,12 @@ def read_reconstruction(path: PathLike) -> tuple[F32, dict[str, Any]]:
     try:
         meta = json.loads(desc)
     except (TypeError, ValueError) as exc:
-        raise FormatError(
+        raise NotOurFile(
             f"{p} is not a lenslesscam reconstruction (no JSON metadata in its description)"
         ) from exc
     if not isinstance(meta, dict) or meta.get("format") != RECONSTRUCTION_FORMAT:
         found = meta.get("format") if isinstance(meta, dict) else None
-        raise FormatError(
+        raise NotOurFile(
             f"{p} is not a lenslesscam reconstruction (format {found!r}, expected "
             f"{RECONSTRUCTION_FORMAT!r})"
         )

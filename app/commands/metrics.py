@@ -69,14 +69,14 @@ def _load(path: Path, key: str | None) -> tuple[Any, str | None, dict[str, Any] 
     import numpy as np
 
     from recon import io as rio
-    from recon.formats import FormatError
+    from recon.formats import NotOurFile
 
     if path.suffix.lower() in (".tif", ".tiff"):
         try:
             arr, meta = rio.read_reconstruction(path)
             return arr.astype(np.float64), meta.get("kind"), meta
-        except FormatError:
-            pass  # a plain TIFF: read it as an image below
+        except NotOurFile:
+            pass  # a plain TIFF: read it as an image below (a newer or corrupt one is refused)
     a = np.asarray(rio.load_image(path, key=key))
     if a.dtype.kind not in "biuf":
         raise ValueError(f"{path}: not a numeric image (dtype {a.dtype})")
