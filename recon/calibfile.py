@@ -486,7 +486,7 @@ def load_calibration(path: PathLike, *, expect: str | None = None) -> Calibratio
         return _read_tiff(p, expect)
     if ext == ".npz":
         return _read_npz(p, expect)
-    raise FormatError(f"{p}: calibration files are .tif/.tiff or .npz, not {p.suffix!r}")
+    raise NotOurFile(f"{p}: calibration files are .tif/.tiff or .npz, not {p.suffix!r}")
 
 
 #: calibration kinds whose main array is already dark-subtracted (the capture took darks)

@@ -457,3 +457,49 @@ def test_a_udn_row_records_the_settings_it_ran_and_reads_them_back(tmp_path):
         read_trade(path)
     assert "\n" not in str(err.value) and f"{path} line" in str(err.value)
     assert "column udn_settings is '[1, 2]', not a JSON object" in str(err.value)
+
+
+def test_a_newer_or_damaged_trade_journal_is_said(tmp_path, capsys, monkeypatch):
+    """A journal of a newer format version was resumed (its rows' new fields dropped), and a
+    line that could not be read was measured again without a word."""
+    import json
+
+    import recon.trade as rt
+
+    case = _case()
+    for name, a in (("psf", case.psf[0]), ("meas", case.meas), ("mask", case.mask),
+                    ("truth", case.truth)):
+        np.save(tmp_path / f"{name}.npy", a)
+    argv = ["trade", *(x for n in ("meas", "psf", "mask", "truth")
+                       for x in (f"--{n}", str(tmp_path / f"{n}.npy"))),
+            "--quick", "--no-udn", "--threads", "1", "--out", str(tmp_path / "out")]
+    real = rt.run_trade
+    ran: list[str] = []
+
+    def interrupted(case, grid, **kw):
+        for row in real(case, grid, **kw):
+            if row.setting not in ran:
+                ran.append(row.setting)
+            if len(ran) == 3:
+                raise KeyboardInterrupt
+            yield row
+
+    monkeypatch.setattr(rt, "run_trade", interrupted)
+    assert main(argv) == 130
+    journal = tmp_path / "out" / "trade.partial.jsonl"
+    lines = journal.read_text().splitlines(keepends=True)
+    head = json.loads(lines[0])
+    journal.write_text(json.dumps({**head, "format_version": 9}) + "\n" + "".join(lines[1:]))
+    before = journal.read_bytes()
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "has format_version 9, which this release does not read" in err, err
+    assert journal.read_bytes() == before
+    # a damaged line in the middle: said, and its setting measured again
+    journal.write_text(lines[0] + "{not json\n" + "".join(lines[2:]))
+    monkeypatch.setattr(rt, "run_trade", real)
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "1 line(s) of" in err and "could not be read (damaged)" in err, err

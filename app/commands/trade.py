@@ -293,12 +293,22 @@ class _Journal:
             raise ValueError(f"{self.path} is the partial result of another trade (other data, "
                              "field, grid or --threads): give that command again to finish it, "
                              "pass --overwrite to discard it, or choose another --out")
-        n = 0
+        from recon.formats import FORMAT_VERSION, whole_version
+
+        version = whole_version(head.get("format_version"))
+        if version is None or version > FORMAT_VERSION:
+            # a newer release's rows may hold fields this one would drop
+            raise ValueError(f"{self.path} has format_version {head.get('format_version')!r}, "
+                             f"which this release does not read (1..{FORMAT_VERSION}): finish "
+                             "the trade with the release that began it, pass --overwrite to "
+                             "discard it, or choose another --out")
+        n, damaged = 0, 0
         for line in lines[1:]:
             try:
                 e = json.loads(line)
                 rows = [TradeRow(**r) for r in e["rows"]]
             except (ValueError, KeyError, TypeError):
+                damaged += 1
                 continue
             self.entries.setdefault(e["case"], {})[e["setting"]] = rows
             n += 1
@@ -311,6 +321,9 @@ class _Journal:
                 self.earlier[k] = max(self.earlier.get(k, 0.0), float(t))
         print(f"trade: resuming from {self.path}: {n} settings already measured",
               file=sys.stderr)
+        if damaged:
+            print(f"trade: note: {damaged} line(s) of {self.path} could not be read (damaged): "
+                  "their settings are measured again", file=sys.stderr)
         return True
 
     def done(self, case: str) -> dict[str, list[Any]]:
