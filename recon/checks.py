@@ -19,11 +19,26 @@ import numpy.typing as npt
 from recon.inputwarnings import warn_input
 from recon.textfmt import percent
 
-__all__ = ["FILTER_NEGATIVE_TOLERANCE", "NEGATIVE_PSF_WARN_SHARE", "NEGATIVE_WARN_DEPTH",
-           "NEGATIVE_WARN_FRACTION", "MeasurementCheck", "MeasurementWarning", "check_field",
-           "check_filter_cube", "check_measurement", "check_pair", "check_shutter",
-           "check_shutter_frames", "field_reach", "index_ranges", "negative_after_dark",
-           "negative_measurement", "warn_downsample_remainder"]
+__all__ = [
+    "FILTER_NEGATIVE_TOLERANCE",
+    "NEGATIVE_PSF_WARN_SHARE",
+    "NEGATIVE_WARN_DEPTH",
+    "NEGATIVE_WARN_FRACTION",
+    "MeasurementCheck",
+    "MeasurementWarning",
+    "check_field",
+    "check_filter_cube",
+    "check_measurement",
+    "check_pair",
+    "check_shutter",
+    "check_shutter_frames",
+    "downsample_remainder_text",
+    "field_reach",
+    "index_ranges",
+    "negative_after_dark",
+    "negative_measurement",
+    "warn_downsample_remainder",
+]
 
 Array = npt.NDArray[Any]
 
@@ -392,23 +407,33 @@ def check_shutter_frames(k: int, rows: int, what: str = "shutter function", *,
             f"shutter --bin-lines){less}")
 
 
-def warn_downsample_remainder(h: int, w: int, ds: int, what: str = "measurement",
-                              measured: Array | None = None) -> None:
-    """Say the rows and columns a downsampling factor that does not divide ``h`` x ``w`` drops.
+def downsample_remainder_text(h: int, w: int, ds: int, what: str = "measurement",
+                              measured: Array | None = None) -> str | None:
+    """What a downsampling factor that does not divide ``h`` x ``w`` drops, or None.
 
-    A :class:`MeasurementWarning` (one line): box downsampling keeps whole blocks, so the last
-    ``h % ds`` rows and ``w % ds`` columns are not reconstructed (a bright edge there was lost
-    unsaid). Nothing when ``ds`` divides both, or when ``measured`` (an (h, w) mask, nonzero =
-    measured) measures none of the dropped pixels (a padded grid's margin).
+    Box downsampling keeps whole blocks, so the last ``h % ds`` rows and ``w % ds`` columns are
+    not reconstructed. None when ``ds`` divides both, or when ``measured`` (an (h, w) mask,
+    nonzero = measured) measures none of the dropped pixels (a padded grid's margin).
     """
     if ds <= 1 or not (h % ds or w % ds):
-        return
+        return None
     if measured is not None:
         m = np.asarray(measured) != 0
         if not (m[h // ds * ds:].any() or m[:, w // ds * ds:].any()):
-            return
+            return None
     lost = [f"{n} {kind}{'s' if n > 1 else ''}" for n, kind in
             ((h % ds, "row"), (w % ds, "column")) if n]
-    warn_input(f"downsampling {ds}x drops the last {' and '.join(lost)} of the {h}x{w} {what} "
-               f"({ds} does not divide its size): the reconstruction sees "
-               f"{h // ds * ds}x{w // ds * ds} of it", MeasurementWarning, stacklevel=2)
+    return (f"downsampling {ds}x drops the last {' and '.join(lost)} of the {h}x{w} {what} "
+            f"({ds} does not divide its size): the reconstruction sees "
+            f"{h // ds * ds}x{w // ds * ds} of it")
+
+
+def warn_downsample_remainder(h: int, w: int, ds: int, what: str = "measurement",
+                              measured: Array | None = None) -> None:
+    """:func:`downsample_remainder_text` as a :class:`MeasurementWarning`, when there is one.
+
+    For a factor the user chose (a bright edge in the dropped strip was lost unsaid).
+    """
+    text = downsample_remainder_text(h, w, ds, what, measured)
+    if text is not None:
+        warn_input(text, MeasurementWarning, stacklevel=2)

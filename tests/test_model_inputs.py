@@ -99,6 +99,7 @@ def test_rounding_below_zero_in_a_filter_cube_is_clipped_not_refused(pair):
     assert load_problem(_spectral(pair, "f.npy")).filters.min() == 0
 
 
+@pytest.mark.filterwarnings("ignore:downsampling 2x drops:recon.checks.MeasurementWarning")
 def test_a_band_that_only_the_dropped_pixels_held_is_refused_after_downsampling(tmp_path):
     rng = np.random.default_rng(0)
     np.save(tmp_path / "psf.npy", rng.random((17, 20)).astype(np.float32))
@@ -215,6 +216,7 @@ def test_a_time_bin_no_row_integrates_is_refused(pair, capsys):
     assert "bins [1-8]" in _one_line_error(code, err)
 
 
+@pytest.mark.filterwarnings("ignore:downsampling 2x drops:recon.checks.MeasurementWarning")
 def test_a_bin_only_the_dropped_rows_held_is_refused_after_downsampling(tmp_path):
     rng = np.random.default_rng(0)
     np.save(tmp_path / "psf.npy", rng.random((17, 20)).astype(np.float32))

@@ -29,7 +29,11 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from recon.checks import check_field, warn_downsample_remainder
+from recon.checks import (
+    check_field,
+    downsample_remainder_text,
+    warn_downsample_remainder,
+)
 from recon.fista import Fista, FistaStep
 from recon.formats import INT_LIMIT, whole_version
 from recon.models import ForwardModel
@@ -1056,6 +1060,10 @@ def make_plan(
                 "the planner goes to (a coarser one would have a side under 16 px, or fewer "
                 "rows than frames), where it "
                 f"still allows fewer than {MIN_ITERS} iterations")
+    dropped = downsample_remainder_text(h, w, plan.downsample,
+                                        measured=None if mask is None else np.asarray(mask))
+    if dropped is not None:
+        reasons["downsample"] += f"; {dropped}"
     choice = method_for_budget(cost, budget_s)
     reasons["method"] = (choice.reason if choice.affordable or cost is None or budget_s is None
                          else _too_small_budget_text(budget_s, cost, choice.iterations)) + (
@@ -1171,8 +1179,9 @@ def prepare(
     base, _ = base_shutter(shutter, timing, plan.sensor[0], plan.base_bins)
     model = planned_model(plan, psf, shutter=base, psf_stack=psf_stack, mask=mask,
                           dtype=dtype, device=device)
-    warn_downsample_remainder(int(b.shape[1]), int(b.shape[2]), plan.downsample,
-                              measured=None if mask is None else np.asarray(mask))
+    if "downsample" in plan.overridden:  # the user's factor (the plan's reason says its own)
+        warn_downsample_remainder(int(b.shape[1]), int(b.shape[2]), plan.downsample,
+                                  measured=None if mask is None else np.asarray(mask))
     if mask is None:
         b_d = box_downsample(b, plan.downsample)
     else:  # the one mask rule (recon.preprocess.downsample_masked), as the model's mask
