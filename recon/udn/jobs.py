@@ -513,9 +513,22 @@ class _Job:
         self.rows = []
         if p.is_file():
             self.rows = [r for r in read_loss_rows(self.run_dir) if int(r["iteration"]) <= upto]
+        note = None
         if upto > 0 and not self.rows:
             note = (f"{LOSS_FILE} was {'empty' if p.is_file() else 'missing'} at the resume: "
                     f"the loss history restarts at iteration {upto + 1}")
+        elif upto > 0:
+            # a repaired file (a damaged row deleted, a cut-off end): one row per iteration
+            from recon.checks import index_ranges
+
+            # (rows missing before the first one: a history that restarted, noted then)
+            have = {int(r["iteration"]) for r in self.rows}
+            missing = sorted(set(range(min(have), upto + 1)) - have)
+            if missing:
+                note = (f"{LOSS_FILE} lacks the rows of iterations {index_ranges(missing)[1:-1]} "
+                        f"({len(missing)} of {min(have)}-{upto} before the resume): the loss "
+                        "history has a gap there")
+        if note is not None:
             self.notes.append(note)
             if self.notice is not None:
                 self.notice(note)

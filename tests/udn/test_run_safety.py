@@ -478,6 +478,22 @@ def test_a_short_loss_row_is_named_and_a_lost_history_is_noted(tiny_data, tmp_pa
     assert int(read_loss_rows(out)[0]["iteration"]) == 9
 
 
+def test_a_gap_in_a_repaired_loss_csv_is_noted(tiny_data, tmp_path, capsys):
+    """After a cut-off loss.csv was repaired as told (the damaged row deleted), the resume left
+    the rows after it missing without a word."""
+    out = tmp_path / "run"
+    small_run(tiny_data, out)  # rows 1-8, checkpoint at 8
+    lines = (out / "loss.csv").read_text().splitlines(keepends=True)
+    keep = [ln for ln in lines if ln[:2] not in ("4,", "6,", "7,", "8,")]
+    (out / "loss.csv").write_text("".join(keep))
+    assert cli_main(["jobs", "resume", str(out), "--max-iter", "10", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    words = ("loss.csv lacks the rows of iterations 4, 6-8 (4 of 1-8 before the resume): the "
+             "loss history has a gap there")
+    assert f"lenslesscam jobs resume: note: {words}" in err, err
+    assert words in record(out)["notes"]
+
+
 def test_a_lost_loss_csv_is_printed_at_the_resume(tiny_data, tmp_path, capsys):
     """The note that loss.csv was missing went into run.json only; the resume prints it (one
     line on stderr, as its other notes)."""
