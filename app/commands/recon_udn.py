@@ -206,6 +206,8 @@ def run_udn(args: argparse.Namespace) -> int:
         # unreadable)
         refuse_outputs_in_run_folders([args.write_spec], "--write-spec")
         check_command_outputs(args, [args.write_spec])
+        if Path(args.write_spec).suffix.lower() != ".toml":  # (--overwrite replaced a .tif)
+            raise ValueError(f"--write-spec {args.write_spec}: a job spec is saved as .toml")
         from recon.atomic import atomic_write_bytes
 
         # data under the spec's folder named relative to it (the folder can be moved or

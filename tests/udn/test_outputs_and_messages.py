@@ -286,3 +286,16 @@ def test_a_link_then_dotdot_into_a_run_folder_is_found(tmp_path):
     (tmp_path / "a").mkdir()
     (tmp_path / "a" / "link").symlink_to(run / "inner")
     assert run_folder_holding(tmp_path / "a" / "link" / ".." / "x.tif") == run.resolve()
+
+
+def test_write_spec_takes_a_toml_name(tiny_data, tmp_path, capsys):
+    """`--write-spec result.tif --overwrite` replaced a TIFF with TOML text under its name."""
+    tif = tmp_path / "result.tif"
+    tif.write_bytes(b"II*\x00 a tiff")
+    for target, extra in ((tif, ["--overwrite"]), (tmp_path / "spec.txt", [])):
+        code, stdout, err = run_cli(capsys, *_udn_args(tiny_data), "--write-spec", target,
+                                    *extra)
+        assert code == 2 and stdout == "", err
+        assert len(err.strip().splitlines()) == 1
+        assert f"--write-spec {target}: a job spec is saved as .toml" in err
+    assert tif.read_bytes() == b"II*\x00 a tiff" and not (tmp_path / "spec.txt").exists()
