@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -32,7 +33,8 @@ EXIT_CANCELLED = 3
 
 def register(sub: Any) -> None:
     """Add ``jobs`` and its actions."""
-    p = sub.add_parser("jobs", help="overnight UDN jobs: run, resume, status, cancel, combine")
+    p = sub.add_parser("jobs", help="overnight UDN jobs: run, resume, status, list, cancel, "
+                                    "combine")
     act = p.add_subparsers(dest="action", metavar="ACTION", required=True)
 
     r = act.add_parser("run", help="run a job spec (TOML) into a new run folder")
@@ -55,6 +57,14 @@ def register(sub: Any) -> None:
     t.add_argument("run_dir", help="run folder")
     t.add_argument("--json", action="store_true", help="print JSON")
     t.set_defaults(func=cmd_status)
+
+    ls = act.add_parser("list", help="list the runs in a folder, one line each (default: the "
+                                     "app's jobs folder)")
+    ls.add_argument("folder", nargs="?",
+                    help="folder holding run folders (FOLDER/RUN or FOLDER/JOB/run, as the app "
+                    "writes them); default: the app's jobs folder")
+    ls.add_argument("--json", action="store_true", help="print JSON (a list of statuses)")
+    ls.set_defaults(func=cmd_list)
 
     c = act.add_parser("cancel", help="ask a running job to stop cleanly")
     c.add_argument("run_dir", help="run folder")
@@ -194,6 +204,59 @@ def cmd_status(args: argparse.Namespace) -> int:
         print(json.dumps(st.to_dict(), default=str))
     else:
         print(format_status(st))
+    return 0
+
+
+def _app_jobs_dir() -> Path:
+    """The app's jobs folder: the one its settings name, else its default (read only)."""
+    from app.gui.settings import SETTINGS_FORMAT, default_jobs_dir, settings_path
+
+    try:
+        raw = json.loads(settings_path().read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        raw = None
+    chosen = raw.get("jobs_dir") if isinstance(raw, dict) and raw.get(
+        "format") == SETTINGS_FORMAT else None
+    return Path(chosen) if isinstance(chosen, str) and chosen else default_jobs_dir()
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    """``jobs list``: the runs under a folder, oldest first; an unreadable one is named."""
+    from recon.udn.jobs import RECORD_FILE, format_hms, job_status
+
+    root = Path(args.folder) if args.folder else _app_jobs_dir()
+    if not root.is_dir():
+        if args.folder:
+            raise ValueError(f"{root}: no such folder")
+        print("[]" if args.json else f"no runs: the app's jobs folder {root} does not exist "
+              "yet (give a folder to list another)")
+        return 0
+    runs = sorted({p.parent for pattern in (f"*/{RECORD_FILE}", f"*/*/{RECORD_FILE}")
+                   for p in root.glob(pattern)})
+    rows: list[dict[str, Any]] = []
+    for rd in runs:
+        try:
+            rows.append(job_status(rd).to_dict())
+        except (OSError, ValueError) as exc:  # one damaged run does not hide the others
+            rows.append({"run_dir": str(rd), "error": str(exc)})
+    if args.json:
+        print(json.dumps(rows, default=str))
+        return 0
+    if not rows:
+        print(f"no runs in {root}")
+        return 0
+    print(f"{len(rows)} run(s) in {root}:")
+    for r in rows:
+        where = os.path.relpath(r["run_dir"], root)
+        if "error" in r:
+            print(f"  {where}  unreadable: {r['error']}")
+            continue
+        state = str(r["state"]) if r["state"] != "finished" else str(r["finish_reason"])
+        of = f"/{r['max_iter']}" if r.get("max_iter") else ""
+        best = ("" if r.get("best_iteration") is None else
+                f"  best at {r['best_iteration']}")
+        print(f"  {where}  {state}  iteration {r['iteration']}{of}{best}  "
+              f"{format_hms(r.get('elapsed_s'))}" + (f"  ({r['name']})" if r.get("name") else ""))
     return 0
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import re
 import shlex
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -299,3 +300,38 @@ def test_write_spec_takes_a_toml_name(tiny_data, tmp_path, capsys):
         assert len(err.strip().splitlines()) == 1
         assert f"--write-spec {target}: a job spec is saved as .toml" in err
     assert tif.read_bytes() == b"II*\x00 a tiff" and not (tmp_path / "spec.txt").exists()
+
+
+def test_jobs_list_shows_each_run_and_names_a_damaged_one(two_runs, tmp_path, capsys,
+                                                          monkeypatch):
+    """There was no way to see the runs of a folder from the command line (the app's jobs
+    table only): `jobs list` shows each, in both layouts, and a damaged record by name."""
+    import shutil
+
+    _, runs = two_runs
+    root = tmp_path / "jobs"
+    shutil.copytree(runs[0], root / "plain")
+    shutil.copytree(runs[1], root / "20261127-app-job" / "run")  # the app's layout
+    (root / "broken").mkdir()
+    (root / "broken" / "run.json").write_text("{")
+    code, out, err = run_cli(capsys, "jobs", "list", root)
+    assert code == 0, err
+    lines = out.strip().splitlines()
+    assert lines[0] == f"3 run(s) in {root}:"
+    assert lines[1].startswith("  20261127-app-job/run  completed  iteration ")
+    assert lines[2].startswith("  broken  unreadable: ") and "run.json" in lines[2]
+    assert lines[3].startswith("  plain  completed  iteration ")
+    code, out, _ = run_cli(capsys, "jobs", "list", root, "--json")
+    got = json.loads(out)
+    assert [Path(r["run_dir"]).name for r in got] == ["run", "broken", "plain"]
+    assert got[0]["finish_reason"] == "completed" and "error" in got[1]
+    # the default is the app's jobs folder
+    monkeypatch.setenv("LENSLESSCAM_JOBS_DIR", str(root))
+    monkeypatch.setenv("LENSLESSCAM_CONFIG_DIR", str(tmp_path / "config"))
+    code, out, _ = run_cli(capsys, "jobs", "list")
+    assert code == 0 and out.startswith(f"3 run(s) in {root}:")
+    monkeypatch.setenv("LENSLESSCAM_JOBS_DIR", str(tmp_path / "none"))
+    code, out, _ = run_cli(capsys, "jobs", "list")
+    assert code == 0 and "does not exist yet" in out
+    code, _, err = run_cli(capsys, "jobs", "list", tmp_path / "none")
+    assert code == 2 and "no such folder" in err
