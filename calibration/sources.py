@@ -102,18 +102,45 @@ def source_off_quietly(source: LightSource | None) -> None:
 
 
 def source_alive(source: LightSource | None, *, stage: str) -> Callable[[], None]:
-    """A per-frame check for :func:`calibration.frames.acquire_frames`: the source still answers.
+    """A per-frame check for :func:`calibration.frames.acquire_frames`: the light is unchanged.
 
-    While the light must stay on, a source that died (its firmware, cable or port) would leave
-    the camera looking at a stale scene; querying its state after each frame turns that into a
-    :class:`CalibrationError` within one frame time.
+    The source still answers and is as the stage set it. While the light must stay on, a source
+    that died (its firmware, cable or port) would leave the camera looking at a stale scene,
+    and one switched off or re-set (a firmware restart comes back off) would mix frames of
+    another light into the average; querying its state after each frame turns either into a
+    :class:`CalibrationError` within one frame time. The state to keep (mode, intensity,
+    strobe timing) is read when the check is made.
     """
     source = _require(source, stage)
+    # what the light was set to (read now, just after the stage set it): a source that
+    # answers but was switched off, restarted (its READY state is off) or re-set by another
+    # program would leave frames of another light in the average
+    ref = source_call(source, "report its state", source.status, stage=stage)
 
     def check() -> None:
-        source_call(source, "report its state", source.status, stage=stage)
+        st = source_call(source, "report its state", source.status, stage=stage)
+        changed = [f"{name} {a} -> {b}" for name, a, b in (
+            ("mode", _mode(ref), _mode(st)),
+            ("intensity", f"{ref.intensity:g}", f"{st.intensity:g}"),
+            ("strobe delay", f"{ref.strobe_delay_us:g} us", f"{st.strobe_delay_us:g} us"),
+            ("strobe duration", f"{ref.strobe_duration_us:g} us",
+             f"{st.strobe_duration_us:g} us")) if a != b]
+        if changed:
+            raise CalibrationError(
+                f"{stage}: the point source changed while its frames were taken "
+                f"({', '.join(changed)})",
+                f"Leave the {_describe(source)} alone during the capture (another program on "
+                "its port, a restart or a power cut changes it) and run the calibration "
+                "again; nothing was saved",
+                stage=stage,
+            )
 
     return check
+
+
+def _mode(st: Any) -> str:
+    m = getattr(st, "mode", None)
+    return str(getattr(m, "value", m))
 
 
 def source_identity(source: LightSource | None, *, stage: str) -> str:

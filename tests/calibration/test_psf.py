@@ -431,3 +431,31 @@ def test_one_dark_frame_leaves_the_psf_dark_noise_unknown(make_camera, source):
     cal = Workflow(capture_psf(cam, source, replace(FAST, n_darks=1))).run()
     assert cal.metadata["darks_averaged"] == 1 and cal.metadata["dark_noise_adu"] is None
     assert Workflow(capture_psf(cam, source, FAST)).run().metadata["dark_noise_adu"] > 0
+
+
+def test_source_switched_off_mid_capture_is_refused(make_camera, source, firmware, true_psf,
+                                                    tmp_path):
+    """The light went off during the frames (a firmware restart comes back off; another
+    program on the port): the source still answered, so the average of lit and dark frames
+    was saved as the PSF (peak at 26 % of full scale against 74 %), exit 0."""
+    render = render_frames(true_psf)
+    lit_frames = [0]
+
+    def off_after_three_lit_frames(frames, shutter):
+        out = render(frames, shutter)
+        if source.is_on:
+            lit_frames[0] += 1
+            if lit_frames[0] == 3:
+                source.off()  # as a restart or another program would leave it
+        return out
+
+    cam = make_camera(renderer=off_after_three_lit_frames)
+    settings = PsfSettings(n_frames=20, n_darks=2, intensity=1.0, auto_exposure=False,
+                           exposure_us=500.0, settle_frames=0, frame_timeout_s=2.0)
+    out = tmp_path / "psf.tif"
+    with pytest.raises(CalibrationError, match=r"frames: the point source changed while its "
+                                               r"frames were taken \(mode on -> off") as info:
+        for _ in Workflow(capture_psf(cam, source, settings, out=out)):
+            pass
+    assert "nothing was saved" in str(info.value)
+    assert not out.exists()
