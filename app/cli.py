@@ -162,6 +162,9 @@ def main(argv: Sequence[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     except RuntimeError as exc:
+        if _device_error(exc):  # a camera or point source refused or failed: its message
+            print(f"lenslesscam {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+            return 2
         if not is_allocation_failure(exc):
             raise
         print(f"lenslesscam {args.command}: error: out of memory: {_one_line(exc)} (the "
@@ -174,6 +177,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     finally:
         warnings.showwarning = saved_show
+
+
+def _device_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is a driver's error (a camera's or a point source's), said in one line.
+
+    Every command that opens a device gets it (``calibrate`` printed a traceback for "cannot
+    open v4l2 device" and "feature 'exposure' is not available"); the drivers are looked up
+    only where the command imported them.
+    """
+    for module, name in (("drivers.camera", "CameraError"),
+                         ("drivers.lightsource", "LightSourceError")):
+        cls = getattr(sys.modules.get(module), name, None)
+        if isinstance(cls, type) and isinstance(exc, cls):
+            return True
+    return False
 
 
 def _stdout_gone() -> bool:

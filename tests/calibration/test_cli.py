@@ -451,3 +451,29 @@ def test_calibrate_shutter_bins_follow_the_downsampling_and_an_unusable_file_is_
         k, rows = load_calibration(long, expect="shutter").data.shape
         check_shutter_frames(k, rows)
         assert k > rows // 2  # as fine as the rows allow, not needlessly coarse
+
+
+def test_a_camera_that_fails_or_lacks_a_feature_is_one_line(tmp_path, capsys):
+    """`calibrate` printed a traceback for a camera that does not open (CameraError) and for
+    --exposure on a camera without that feature (FeatureNotAvailable); snap said one line."""
+    import cv2
+
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for i in range(20):
+        cv2.imwrite(str(seq / f"{i:04d}.png"),
+                    np.random.default_rng(i).integers(0, 4000, (24, 32)).astype(np.uint16))
+    cases = [
+        (["calibrate", "darks", "--camera", "v4l2:/dev/null", "--out", tmp_path / "a.npz",
+          "--no-prompt"], "cannot open v4l2 file '/dev/null'"),
+        (["calibrate", "darks", "--camera", f"v4l2:{seq}/%04d.png", "--out", tmp_path / "b.npz",
+          "--no-prompt", "--exposure", "1ms"], "exposure"),
+    ]
+    for argv, words in cases:
+        code = main([str(a) for a in argv])
+        err = capsys.readouterr().err
+        assert code == 2, err
+        lines = [ln for ln in err.strip().splitlines() if ln]
+        assert len(lines) == 1 and lines[0].startswith("lenslesscam calibrate: error: "), err
+        assert words in lines[0], err
+    assert not (tmp_path / "a.npz").exists() and not (tmp_path / "b.npz").exists()
