@@ -70,6 +70,9 @@ __all__ = [
 
 Centre = Literal["none", "centroid"] | tuple[float, float]
 
+#: the most frames the SNR advice names (beyond it a target is said to be out of reach)
+MAX_AVERAGE = 1_000_000
+
 #: a PSF peak this many times the noise is light, not noise: the auto-exposure's test for
 #: light (capped at ``min_snr``), and the line between "no PSF signal" and "the SNR target is
 #: beyond this exposure and averaging" when a PSF misses ``min_snr``
@@ -368,7 +371,12 @@ def check_quality(q: PsfQuality, settings: PsfSettings, *, exposure_us: float | 
             )
         # the light is there: the SNR target is beyond what this exposure and averaging reach
         n, nd = settings.n_frames, settings.n_darks
-        need = (settings.min_snr / q.snr) ** 2 * 2.0 / (1.0 / n + 1.0 / nd)
+        ratio = settings.min_snr / q.snr  # (a float product: inf, never OverflowError)
+        need = ratio * ratio * 2.0 / (1.0 / n + 1.0 / nd)
+        frames = (f"about {math.ceil(need):d} PSF and {math.ceil(need):d} dark frames reach "
+                  "it: the SNR grows as the square root of their number" if need <= MAX_AVERAGE
+                  else f"more than {MAX_AVERAGE:,} PSF and dark frames each would be needed: "
+                  "the target is out of reach")
         low = q.peak_fraction < settings.target_peak - settings.peak_tolerance
         longer = (
             f"a longer exposure or a brighter source (the peak is at "
@@ -379,9 +387,8 @@ def check_quality(q: PsfQuality, settings: PsfSettings, *, exposure_us: float | 
             f"there (peak {q.peak_adu:.3g} ADU, {100 * q.peak_fraction:.0f}% of full scale){exp}, "
             f"but {n} PSF and {nd} dark frames average the noise only down to "
             f"{q.noise_adu:.3g} ADU",
-            f"Average more frames (about {math.ceil(need):d} PSF and {math.ceil(need):d} dark "
-            f"frames reach it: the SNR grows as the square root of their number), {longer}"
-            "or lower the SNR target (--min-snr); nothing was saved",
+            f"Average more frames ({frames}), {longer}or lower the SNR target (--min-snr); "
+            "nothing was saved",
             stage="quality",
         )
     fy, fx = q.offset_fraction

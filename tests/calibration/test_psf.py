@@ -365,6 +365,21 @@ def test_an_unreachable_snr_target_is_not_blamed_on_the_light(make_camera, sourc
     assert out_dir_files(tmp_path) == ["light-state.json"]
 
 
+@pytest.mark.parametrize("target", [1e100, 1e200])
+def test_an_absurd_snr_target_is_out_of_reach_not_a_crash(make_camera, source, tmp_path,
+                                                          target):
+    """--min-snr 1e200 ended in OverflowError after the whole capture; 1e100 advised
+    averaging a 190-digit number of frames."""
+    cam = make_camera()
+    with pytest.raises(CalibrationError) as info:
+        Workflow(capture_psf(cam, source, replace(FAST, min_snr=target),
+                             out=tmp_path / "psf.tif")).run()
+    text = str(info.value)
+    assert "more than 1,000,000 PSF and dark frames each would be needed: the target is out " \
+           "of reach" in text, text
+    assert not (tmp_path / "psf.tif").exists()
+
+
 def test_quality_check_tells_no_signal_from_an_unreachable_target():
     from calibration.psf import check_quality
 
