@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from calibration.workflow import CalibrationError, Progress, Steps
-from drivers.camera import Camera, CameraError, Frame
+from drivers.camera import Camera, CameraError, Frame, SourceEnded
 
 __all__ = ["FrameStats", "acquire_frames", "full_scale_of", "robust_sigma"]
 
@@ -114,6 +114,15 @@ def acquire_frames(
         for i in range(total):
             try:
                 frame = camera.pop_frame(timeout_s)
+            except SourceEnded as exc:  # a file source, never looped: its frames are all
+                skipped = f", {settle} skipped first to settle" if settle else ""
+                raise CalibrationError(
+                    f"{stage}: the file source ended after {i} of the {total} frames this "
+                    f"stage reads ({n} to average{skipped}) ({exc})",
+                    "Ask for fewer frames (--frames, --darks) or record more; a file's frames "
+                    "are never averaged twice; nothing was saved",
+                    stage=stage,
+                ) from exc
             except CameraError as exc:
                 raise CalibrationError(
                     f"{stage}: the camera failed at {what} {max(i - settle, 0) + 1} of {n} ({exc})",

@@ -65,6 +65,7 @@ __all__ = [
     "FrameError",
     "FrameStreamer",
     "Roi",
+    "SourceEnded",
     "StreamMode",
     "StreamStats",
     "TriggerMode",
@@ -165,6 +166,10 @@ class AcquisitionOverflow(CameraError):
 
 class AcquisitionFinished(CameraError):
     """A finite acquisition delivered all its frames; there is nothing more to pop."""
+
+
+class SourceEnded(CameraError):
+    """A file source (an image sequence, a video) opened without looping reached its end."""
 
 
 # --------------------------------------------------------------------------------------------

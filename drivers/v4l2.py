@@ -69,6 +69,7 @@ from drivers.camera import (
     Feature,
     Frame,
     FrameError,
+    SourceEnded,
 )
 
 __all__ = [
@@ -599,7 +600,8 @@ class V4L2Camera(CameraBase):
 
         if self._is_file and self._n_file_frames and self._file_pos >= self._n_file_frames:
             if not self._loop:
-                raise CameraError(f"{self.describe()}: end of file after {self._file_pos} frames")
+                raise SourceEnded(f"{self.describe()}: end of file after {self._file_pos} "
+                                  "frames")
             self._rewind()
         if self._ahead is not None:
             ok, img, self._ahead = True, self._ahead, None

@@ -209,10 +209,13 @@ def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
             port = sim.port
         else:
             port = src_spec
-        if parse_camera_spec(args.camera).name == "sim":
+        backend = parse_camera_spec(args.camera).name
+        if backend == "sim":
             camera = open_camera("sim", **sim_camera_kwargs(args, state_path))
         else:
-            camera = open_camera(args.camera)
+            # a file source (image sequence, video) ends where it ends: looped, its frames
+            # were averaged again and again as if new (16 darks from 5 files)
+            camera = open_camera(args.camera, **({"loop": False} if backend == "v4l2" else {}))
         stack.callback(camera.close)
         if args.exposure:
             camera.exposure_us = parse_duration_us(args.exposure)

@@ -477,3 +477,24 @@ def test_a_camera_that_fails_or_lacks_a_feature_is_one_line(tmp_path, capsys):
         assert len(lines) == 1 and lines[0].startswith("lenslesscam calibrate: error: "), err
         assert words in lines[0], err
     assert not (tmp_path / "a.npz").exists() and not (tmp_path / "b.npz").exists()
+
+
+def test_a_file_sequence_is_never_looped_by_a_calibration(tmp_path, capsys):
+    """16 darks from a 5-file sequence: the sequence looped, each file was averaged about three
+    times as if new, and the noise and hot-pixel maps were computed on copies."""
+    import cv2
+
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for i in range(5):
+        cv2.imwrite(str(seq / f"{i:04d}.png"),
+                    np.random.default_rng(i).integers(0, 4000, (24, 32)).astype(np.uint16))
+    base = ["calibrate", "darks", "--camera", f"v4l2:{seq}/%04d.png", "--no-prompt"]
+    code = main([*base, "--out", str(tmp_path / "a.npz")])
+    err = capsys.readouterr().err
+    assert code == 2 and "the file source ended after 5 of the 17 frames this stage reads (16 " \
+        "to average, 1 skipped first to settle)" in err, err
+    assert "Ask for fewer frames" in err and not (tmp_path / "a.npz").exists()
+    code = main([*base, "--frames", "4", "--out", str(tmp_path / "b.npz")])
+    assert code == 0, capsys.readouterr().err
+    assert load_calibration(tmp_path / "b.npz").metadata["frames_averaged"] == 4
