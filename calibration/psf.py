@@ -80,6 +80,9 @@ SIGNAL_SNR = 10.0
 #: a centring or crop (``centre``, ``shape``) that leaves out more than this fraction of the
 #: PSF's light (its pixels above 3 x noise) is warned about
 CROP_WARN_FRACTION = 0.05
+#: ... and one that leaves out more than this is refused: a tenth of the caustic is not the
+#: camera's PSF (a 1x1 crop was saved, "resolution nan")
+CROP_REFUSE_FRACTION = 0.9
 
 
 @dataclass(frozen=True)
@@ -725,18 +728,40 @@ def capture_psf(
                 support_level=s.support_level,
             )
             kept = light_kept(psf, out_psf, noise)
-            if 1.0 - kept > CROP_WARN_FRACTION:
-                what = []
-                if shift != (0, 0):
-                    what.append(f"centring shift ({shift[0]:+d}, {shift[1]:+d}) px")
-                if shape2[0] < psf.shape[0] or shape2[1] < psf.shape[1]:
-                    what.append(f"crop to {shape2[0]}x{shape2[1]}")
-                notes.append(
-                    f"the {' and '.join(what)} of the {psf.shape[0]}x{psf.shape[1]} capture "
-                    f"leaves out {100 * (1 - kept):.0f}% of the PSF's light: reconstructions "
-                    "with it miss that part of the caustic; choose a larger shape, or move the "
-                    "source to the sensor centre"
+            what = []
+            if shift != (0, 0):
+                what.append(f"centring shift ({shift[0]:+d}, {shift[1]:+d}) px")
+            if shape2[0] < psf.shape[0] or shape2[1] < psf.shape[1]:
+                what.append(f"crop to {shape2[0]}x{shape2[1]}")
+            done = (f"the {' and '.join(what) or 'placement'} of the {psf.shape[0]}x"
+                    f"{psf.shape[1]} capture leaves out {100 * (1 - kept):.0f}% of the PSF's "
+                    "light")
+            if 1.0 - kept > CROP_REFUSE_FRACTION:
+                raise CalibrationError(
+                    f"{done}: a reconstruction with it would miss most of the caustic",
+                    "Choose a larger --shape (or none), or move the source towards the sensor "
+                    "centre; nothing was saved",
+                    stage="quality",
                 )
+            if 1.0 - kept > CROP_WARN_FRACTION:
+                notes.append(
+                    f"{done}: reconstructions with it miss that part of the caustic; choose a "
+                    "larger shape, or move the source to the sensor centre"
+                )
+        limited = ae_log[-1].get("limited") if ae_log else None
+        if limited in ("max", "min", "steps", "resolution"):
+            last = ae_log[-1]
+            why = {"max": f"at the longest exposure allowed ({last['exposure_us']:g} us)",
+                   "min": f"at the shortest exposure ({last['exposure_us']:g} us)",
+                   "steps": f"after {len(ae_log)} steps",
+                   "resolution": "at the camera's exposure step"}[limited]
+            notes.append(
+                f"auto-exposure stopped {why} with the peak at "
+                f"{100 * last['peak_fraction']:.0f}% of full scale, not the target "
+                f"{100 * s.target_peak:.0f} +/- {100 * s.peak_tolerance:.0f}%: "
+                + ("a brighter source or a longer maximum exposure gives more signal"
+                   if limited == "max" else "a dimmer source gives the target"
+                   if limited == "min" else "the PSF was captured there"))
         timing = light.last.timing
         metadata: dict[str, Any] = {
             "camera": camera_description(camera, light.last),

@@ -474,3 +474,29 @@ def test_source_switched_off_mid_capture_is_refused(make_camera, source, firmwar
             pass
     assert "nothing was saved" in str(info.value)
     assert not out.exists()
+
+
+def test_a_crop_that_leaves_out_nearly_all_light_is_refused(make_camera, source, tmp_path):
+    """--shape 1x1 warned that it left out 100 % of the light, then saved a 1x1 PSF
+    ("resolution nan"), exit 0."""
+    cam = make_camera()
+    out = tmp_path / "psf.tif"
+    with pytest.raises(CalibrationError, match=r"crop to 1x1 of the 64x80 capture leaves out "
+                                               r"100% of the PSF's light") as info:
+        Workflow(capture_psf(cam, source, replace(FAST, shape=(1, 1)), out=out)).run()
+    assert "nothing was saved" in str(info.value) and not out.exists()
+
+
+def test_auto_exposure_stopped_at_its_limit_is_said(make_camera, source, tmp_path):
+    """A dim source: auto-exposure ended at its longest exposure with the peak far below the
+    target (18 % against 75 %), and the PSF was saved without a word."""
+    cam = make_camera()
+    settings = replace(FAST, intensity=0.02, max_exposure_us=2000.0)
+    cal = Workflow(capture_psf(cam, source, settings, out=tmp_path / "psf.tif")).run()
+    said = [w for w in cal.warnings if w.startswith("auto-exposure stopped at the longest "
+                                                    "exposure allowed (2000 us)")]
+    assert len(said) == 1 and "not the target 75 +/- 5%" in said[0], cal.warnings
+    assert cal.metadata["warnings"] == list(cal.warnings)
+    # a source bright enough for the target: nothing said
+    ok = Workflow(capture_psf(cam, source, FAST)).run()
+    assert not [w for w in ok.warnings if "auto-exposure" in w]
