@@ -44,7 +44,7 @@ from calibration.sources import (
 )
 from calibration.workflow import CalibrationError, Progress, Steps
 from drivers.camera import Camera, CameraError, FeatureNotAvailable, Frame, Roi
-from drivers.lightsource import LightSource
+from drivers.lightsource import MAX_TIME_US, LightSource
 from drivers.timing import (
     ReadoutPattern,
     SensorTiming,
@@ -502,6 +502,26 @@ def measure_shutter(
                 f"a {pulse:g} us pulse is longer than half the {model.exposure_us:g} us "
                 "exposure: the rows' edges cannot be told apart",
                 "Use a shorter pulse (default: one line time) or a longer exposure",
+                stage="setup",
+            )
+        if span + pulse > MAX_TIME_US:  # the source's longest strobe delay and pulse
+            raise CalibrationError(
+                f"a {span:g} us span ends beyond the point source's longest strobe delay "
+                f"({MAX_TIME_US:g} us)",
+                "Use a shorter span (--span; by default the frame time and trigger delay "
+                "set it)",
+                stage="setup",
+            )
+        if model is not None and s.step_us is None and step > model.exposure_us / 2.0:
+            # the span forced the step up (at most max_delays delays): a row's exposure window
+            # would fall between delays, and the scan would end in "no row saw the pulses"
+            raise CalibrationError(
+                f"a {span:g} us span in at most {s.max_delays} delays needs steps of {step:g} "
+                f"us, more than half the {model.exposure_us:g} us exposure: the rows' "
+                "windows would fall between the delays",
+                f"Use a shorter span (--span; the default, "
+                f"{1.25 * (model.trigger_delay_us + model.frame_time_us) + pulse:.4g} us, "
+                "covers the frame) or a longer exposure",
                 stage="setup",
             )
         delays = np.arange(0.0, span + step / 2.0, step)

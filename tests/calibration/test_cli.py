@@ -498,3 +498,20 @@ def test_a_file_sequence_is_never_looped_by_a_calibration(tmp_path, capsys):
     code = main([*base, "--frames", "4", "--out", str(tmp_path / "b.npz")])
     assert code == 0, capsys.readouterr().err
     assert load_calibration(tmp_path / "b.npz").metadata["frames_averaged"] == 4
+
+
+@pytest.mark.parametrize(("span", "says"), [
+    ("9s", "a 9e+06 us span in at most 2000 delays needs steps of"),
+    ("100s", "a 1e+08 us span ends beyond the point source's longest strobe delay"),
+])
+def test_a_span_the_scan_cannot_resolve_is_refused_before_the_scan(tmp_path, capsys, span,
+                                                                   says):
+    """--span 9s coarsened the step to milliseconds on a 100 us exposure, scanned for 13 s
+    and blamed the light and its wiring ("only 0 rows saw the strobe pulses"); --span 100s
+    failed on "strobe delay_us ... outside [0, 1e+07]", which does not name --span."""
+    out = tmp_path / "shutter.npz"
+    code = main(["calibrate", "shutter", "--source", "sim", "--span", span, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and says in err and "--span" in err, err
+    assert len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
+    assert not out.exists()
