@@ -331,12 +331,35 @@ def _check_outputs(args: argparse.Namespace, kind: str) -> None:
         check_command_outputs(args, [args.out])
 
 
-def _bad_pixels(args: argparse.Namespace) -> Any:
+def _bad_pixels(args: argparse.Namespace) -> tuple[Any, dict[str, Any] | None]:
+    """The bad pixels of ``--pixel-maps`` and what the PSF's metadata records of the file."""
     if not args.pixel_maps:
-        return None
-    from recon.calibfile import load_pixel_mask
+        return None, None
+    import numpy as np
 
-    return load_pixel_mask(args.pixel_maps) == 0
+    from recon.calibfile import load_calibration
+    from recon.formats import file_hash
+
+    cal = load_calibration(args.pixel_maps, expect="pixel-maps")
+    path = Path(args.pixel_maps).expanduser().resolve()
+    info = {"file": str(path), "file_hash": file_hash(path),
+            "camera": cal.metadata.get("camera"), "date": cal.metadata.get("date")}
+    return np.asarray(cal.data) == 0, info
+
+
+def _other_camera(maps: dict[str, Any] | None, camera: Any) -> str | None:
+    """A warning when the pixel maps were taken with another camera than ``camera``."""
+    if not maps or not isinstance(maps.get("camera"), dict):
+        return None
+    from calibration.sources import camera_description
+
+    now, then = camera_description(camera), maps["camera"]
+    differ = [f"{k} {then[k]} vs {now[k]}" for k in ("backend", "camera_id", "model")
+              if then.get(k) is not None and now.get(k) is not None and then[k] != now[k]]
+    if not differ:
+        return None
+    return (f"--pixel-maps {maps.get('file')} were taken with another camera "
+            f"({', '.join(differ)}): its hot and dead pixels may not be this sensor's")
 
 
 def run_psf(args: argparse.Namespace) -> int:
@@ -346,11 +369,17 @@ def run_psf(args: argparse.Namespace) -> int:
     from calibration.workflow import Workflow
 
     settings = _psf_settings(args)
-    bad = _bad_pixels(args)
+    bad, maps = _bad_pixels(args)
     with _devices(args) as (camera, source):
+        other = _other_camera(maps, camera)
+        if other is not None:
+            _warn([other])
+            assert maps is not None
+            maps["warning"] = other
         wf = Workflow(
             capture_psf(camera, source, settings, out=args.out, bad_pixels=bad,
-                        bad_pixels_from=f"--pixel-maps {args.pixel_maps}"),
+                        bad_pixels_from=f"--pixel-maps {args.pixel_maps}",
+                        extra_metadata=None if maps is None else {"pixel_maps": maps}),
             "PSF calibration",
         )
         cal = _drive(wf, "PSF")

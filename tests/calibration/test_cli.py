@@ -515,3 +515,35 @@ def test_a_span_the_scan_cannot_resolve_is_refused_before_the_scan(tmp_path, cap
     assert code == 2 and says in err and "--span" in err, err
     assert len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
     assert not out.exists()
+
+
+def test_pixel_maps_are_recorded_and_another_cameras_are_said(tmp_path, capsys):
+    """A PSF's metadata did not say which pixel maps repaired it, and maps of another camera
+    of the same size (a file source) were taken without a word."""
+    import cv2
+
+    from recon.formats import file_hash
+
+    same = tmp_path / "same.npz"
+    assert main(["calibrate", "darks", "--camera", "sim", "--sim-size", "32x40", "--no-prompt",
+                 "--frames", "4", "--out", str(same)]) == 0
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for i in range(6):
+        cv2.imwrite(str(seq / f"{i:04d}.png"),
+                    np.random.default_rng(i).integers(0, 4000, (32, 40)).astype(np.uint16))
+    other = tmp_path / "other.npz"
+    assert main(["calibrate", "darks", "--camera", f"v4l2:{seq}/%04d.png", "--no-prompt",
+                 "--frames", "4", "--out", str(other)]) == 0
+    capsys.readouterr()
+    for maps, warned in ((same, False), (other, True)):
+        out = tmp_path / f"psf-{maps.stem}.tif"
+        assert main(["calibrate", "psf", "--source", "sim", "--sim-size", "32x40", "--frames",
+                     "4", "--darks", "4", "--pixel-maps", str(maps), "--out", str(out)]) == 0
+        err = capsys.readouterr().err
+        meta = load_calibration(out).metadata["pixel_maps"]
+        assert meta["file"] == str(maps.resolve()) and meta["file_hash"] == file_hash(maps)
+        said = [ln for ln in err.splitlines() if "were taken with another camera" in ln]
+        assert bool(said) == warned, err
+        if warned:
+            assert "backend v4l2 vs sim" in said[0] and meta["warning"] in said[0]
