@@ -38,9 +38,11 @@ def _common(p: argparse.ArgumentParser, *, source: bool, source_required: bool) 
     if source:
         g.add_argument(
             "--source",
-            required=source_required,
-            help="point source: 'sim' (simulated firmware on a PTY) or a serial port path",
+            help="point source: 'sim' (simulated firmware on a PTY) or a serial port path"
+            + (" (default: sim with the simulated camera; a real camera needs its port)"
+               if source_required else ""),
         )
+        p.set_defaults(source_required=source_required)
         g.add_argument(
             "--intensity", type=UNIT, default=1.0, help="source intensity 0..1 (default 1)"
         )
@@ -196,6 +198,12 @@ def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
         # so the clean-up below runs: light off, firmware stopped, temporary files removed
         stack.enter_context(_terminate_as_interrupt())
         src_spec: str | None = getattr(args, "source", None)
+        if src_spec is None and getattr(args, "source_required", False):
+            # the simulated bench with nothing attached; a real camera sees a real source only
+            if parse_camera_spec(args.camera).name != "sim":
+                raise ValueError(f"--source is needed with --camera {args.camera}: the serial "
+                                 "port of the point source (sim goes with --camera sim)")
+            src_spec = "sim"
         state_path = None
         source = None
         port: str | None

@@ -547,3 +547,16 @@ def test_pixel_maps_are_recorded_and_another_cameras_are_said(tmp_path, capsys):
         assert bool(said) == warned, err
         if warned:
             assert "backend v4l2 vs sim" in said[0] and meta["warning"] in said[0]
+
+
+def test_the_simulated_source_is_the_default_with_the_simulated_camera(tmp_path, capsys):
+    """`calibrate psf --out p.tif` with nothing attached: "the following arguments are
+    required: --source", though the camera defaults to the simulated one."""
+    out = tmp_path / "p.tif"
+    assert main(["calibrate", "psf", "--frames", "4", "--darks", "4", "--out", str(out)]) == 0
+    assert load_calibration(out, expect="psf").data.shape == (64, 80)
+    capsys.readouterr()
+    code = main(["calibrate", "psf", "--camera", "v4l2:0", "--out", str(tmp_path / "q.tif")])
+    err = capsys.readouterr().err
+    assert code == 2 and "--source is needed with --camera v4l2:0" in err, err
+    assert not (tmp_path / "q.tif").exists()
