@@ -564,7 +564,7 @@ def _auto_exposure(
                 )
                 raise CalibrationError(
                     f"no light from the point source{said}: the brightest pixels are "
-                    f"{signal:.3g} ADU above the dark level, within the dark noise "
+                    f"{signal:.3g} ADU above the dark level, below {light_snr:g} x its noise "
                     f"({noise1:.3g} ADU), even at the longest exposure {exposure:g} us",
                     "Check that the point source is switched on, connected and pointed at the "
                     "diffuser; raise its intensity or the maximum exposure; nothing was saved",

@@ -44,8 +44,9 @@ def _require(source: LightSource | None, stage: str) -> LightSource:
     """
     if source is None:
         raise CalibrationError(f"{stage}: no point source is connected",
-                               "Connect the point source (Controls, Point source) and start "
-                               "again; nothing was saved", stage=stage)
+                               "Connect the point source (in the app: Controls, Point "
+                               "source; on the command line: --source) and start again; "
+                               "nothing was saved", stage=stage)
     return source
 
 

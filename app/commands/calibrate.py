@@ -198,6 +198,8 @@ def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
         # so the clean-up below runs: light off, firmware stopped, temporary files removed
         stack.enter_context(_terminate_as_interrupt())
         src_spec: str | None = getattr(args, "source", None)
+        if src_spec is not None and not src_spec.strip():
+            raise ValueError("--source is empty: give sim or the point source's serial port")
         if src_spec is None and getattr(args, "source_required", False):
             # the simulated bench with nothing attached; a real camera sees a real source only
             if parse_camera_spec(args.camera).name != "sim":
@@ -300,10 +302,16 @@ def _psf_settings(args: argparse.Namespace) -> Any:
 
     centre: Any = args.centre
     if centre not in ("none", "centroid"):
+        import math
+
         parts = centre.split(",")
-        if len(parts) != 2:
-            raise ValueError(f"--centre must be 'none', 'centroid' or ROW,COL, got {centre!r}")
-        centre = (float(parts[0]), float(parts[1]))
+        try:
+            centre = tuple(float(v) for v in parts)
+        except ValueError:
+            centre = ()
+        if len(centre) != 2 or not all(math.isfinite(v) for v in centre):
+            raise ValueError(f"--centre must be 'none', 'centroid' or ROW,COL (two finite "
+                             f"numbers, pixels of the capture), got {args.centre!r}")
     return PsfSettings(
         n_frames=args.frames,
         n_darks=args.darks,
@@ -410,9 +418,12 @@ def run_depth(args: argparse.Namespace) -> int:
     from calibration.psf import capture_depth_stack
     from calibration.workflow import Workflow
 
-    positions = [p.strip() for p in args.positions.split(",") if p.strip()]
-    if not positions:
+    positions = [p.strip() for p in args.positions.split(",")]
+    if not any(positions):
         raise ValueError("--positions lists no position")
+    if not all(positions):  # "10mm,,20mm": a typo, or a position left out
+        raise ValueError(f"--positions {args.positions!r} has an empty entry: give one label "
+                         "per position, comma-separated")
     repeated = sorted({p for p in positions if positions.count(p) > 1})
     if repeated:
         raise ValueError(f"--positions names {', '.join(repeated)} more than once: each plane "

@@ -560,3 +560,20 @@ def test_the_simulated_source_is_the_default_with_the_simulated_camera(tmp_path,
     err = capsys.readouterr().err
     assert code == 2 and "--source is needed with --camera v4l2:0" in err, err
     assert not (tmp_path / "q.tif").exists()
+
+
+@pytest.mark.parametrize(("argv", "says"), [
+    (["psf", "--centre", "a,b"], "--centre must be 'none', 'centroid' or ROW,COL"),
+    (["psf", "--centre", "nan,5"], "--centre must be 'none', 'centroid' or ROW,COL"),
+    (["psf", "--source", ""], "--source is empty: give sim or the point source's serial port"),
+    (["depth", "--source", "sim", "--positions", "10mm,,20mm", "--no-prompt"],
+     "--positions '10mm,,20mm' has an empty entry"),
+])
+def test_option_typos_are_named(tmp_path, capsys, argv, says):
+    """'could not convert string to float: a' did not name --centre; an empty --positions
+    entry was dropped; --source '' answered in the app's words."""
+    out = tmp_path / "x.tif"
+    code = main(["calibrate", *argv, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and says in err, err
+    assert not out.exists()
