@@ -618,9 +618,26 @@ def run_filters(args: argparse.Namespace) -> int:
     else:
         import numpy as np
 
+        from recon.calibfile import calibration_kind, load_calibration
+        from recon.formats import NotOurFile
         from recon.io import load_image
 
-        like = np.asarray(load_image(args.like))
+        p = Path(args.like)
+        if p.suffix.lower() == ".npz" or calibration_kind(p) is not None:
+            # a calibration file of the sensor (pixel maps, a shutter's .npz, a PSF TIFF): its
+            # main array (a pixel-maps .npz holds several, which the plain reader refused)
+            try:
+                cal = load_calibration(p)
+            except NotOurFile:  # an .npz of someone else's: read as an array
+                like = np.asarray(load_image(p))
+            else:
+                if cal.kind == "shutter":
+                    raise ValueError(f"--like {p} is a shutter calibration, (time bins, rows): "
+                                     "it does not give the sensor's size; give a PSF or "
+                                     "pixel-maps file, or --sensor HxW")
+                like = np.asarray(cal.data)
+        else:
+            like = np.asarray(load_image(p))
         if like.ndim < 2:
             raise ValueError(f"--like {args.like} is not an image (shape {like.shape})")
         shape = (int(like.shape[-2]), int(like.shape[-1]))

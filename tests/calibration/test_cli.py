@@ -577,3 +577,25 @@ def test_option_typos_are_named(tmp_path, capsys, argv, says):
     err = capsys.readouterr().err
     assert code == 2 and says in err, err
     assert not out.exists()
+
+
+def test_calibrate_filters_takes_the_sensor_size_like_a_calibration_file(tmp_path, capsys):
+    """--like darks.npz (its help: 'a PSF or calibration file of the sensor's size') was refused
+    as 'several arrays'; a shutter file, whose array is (time bins, rows), is not a size."""
+    pm = tmp_path / "pm.npz"
+    assert main(["calibrate", "darks", "--camera", "sim", "--sim-size", "32x40", "--no-prompt",
+                 "--frames", "2", "--out", str(pm)]) == 0
+    np.save(tmp_path / "cube.npy", np.random.default_rng(0).random((3, 32, 40)))
+    out = tmp_path / "cube.tif"
+    code = main(["calibrate", "filters", "--cube", str(tmp_path / "cube.npy"), "--like", str(pm),
+                 "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    assert load_calibration(out).data.shape == (3, 32, 40)
+    shutter = tmp_path / "shutter.npz"
+    assert main(["calibrate", "shutter", "--camera", "sim", "--sim-size", "32x40",
+                 "--out", str(shutter)]) == 0
+    capsys.readouterr()
+    code = main(["calibrate", "filters", "--cube", str(tmp_path / "cube.npy"), "--like",
+                 str(shutter), "--out", str(tmp_path / "c2.tif")])
+    err = capsys.readouterr().err
+    assert code == 2 and "is a shutter calibration" in err, err
