@@ -416,6 +416,16 @@ def _read_tiff(p: Path, expect: str | None) -> Calibration:
         raise NotOurFile(
             f"{p} is not a lenslesscam calibration file (no JSON metadata in its description)"
         ) from None
+    return checked_calibration_tiff(p, meta, data, expect)
+
+
+def checked_calibration_tiff(p: Path, meta: Any, data: Array,
+                             expect: str | None = None) -> Calibration:
+    """A calibration TIFF ``p`` from its metadata and pixels, checked.
+
+    The checks of :func:`load_calibration` (format, version, kind, shape, hash), for a caller
+    that read the pixels already.
+    """
     kind, meta = _check_meta(p, meta, expect)
     if kind not in _TIFF_KINDS:
         raise FormatError(f"{p}: a {kind} calibration must be an .npz file, not a TIFF")

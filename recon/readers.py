@@ -104,10 +104,12 @@ def _load_image(path: PathLike, *, key: str | None, prefer: Sequence[str]) -> Ar
         raise ValueError(f"{p}: not a regular file (a pipe, socket or device); save the data "
                          "to a file")
     ext = p.suffix.lower()
-    if ext in _TIFF_EXT or ext == ".npz":
+    if ext == ".npz":
         _check_ours(p)
     if ext in _TIFF_EXT:
-        return _read_tiff(p)
+        data = _read_tiff(p)
+        _check_ours(p, data)
+        return data
     if ext in _CV_EXT:
         return _read_cv(p)
     if ext == ".npy":
@@ -148,24 +150,35 @@ def _declared_format(p: Path) -> str | None:
     return fmt if isinstance(fmt, str) else None
 
 
-def _check_ours(p: Path) -> None:
+def _check_ours(p: Path, data: Array | None = None) -> None:
     """Refuse a calibration or reconstruction file of ours that is newer or corrupt.
 
     Read as a plain image, a file whose metadata declares one of our formats kept its pixels
     and lost its checks: a newer ``format_version`` or pixels that fail their hash were used
-    silently. Its own reader checks it first (:func:`recon.calibfile.load_calibration`,
-    :func:`recon.reconfile.read_reconstruction`), raising :class:`~recon.formats.FormatError`.
+    silently. Its own reader's checks run first, raising :class:`~recon.formats.FormatError`:
+    on ``data``, a TIFF's pixels as read already (one read, not two), or, for an ``.npz``
+    (small: pixel maps, shutters), by :func:`recon.calibfile.load_calibration`.
     """
+    import json
+
     fmt = _declared_format(p)
     if fmt is None:
         return
-    from recon.calibfile import CALIBRATION_FORMATS, load_calibration
-    from recon.reconfile import RECONSTRUCTION_FORMAT, read_reconstruction
+    from recon.calibfile import CALIBRATION_FORMATS, checked_calibration_tiff, load_calibration
+    from recon.reconfile import RECONSTRUCTION_FORMAT, checked_reconstruction
 
+    if data is None:
+        if fmt in CALIBRATION_FORMATS.values():
+            load_calibration(p)
+        return
+    import tifffile
+
+    with tifffile.TiffFile(p) as tf:
+        meta = json.loads(tf.pages.first.description)
     if fmt in CALIBRATION_FORMATS.values():
-        load_calibration(p)
+        checked_calibration_tiff(p, meta, data)
     elif fmt == RECONSTRUCTION_FORMAT:
-        read_reconstruction(p)
+        checked_reconstruction(p, meta, data)
 
 
 def _read_tiff(p: Path) -> Array:

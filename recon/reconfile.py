@@ -255,6 +255,17 @@ def read_reconstruction(path: PathLike) -> tuple[F32, dict[str, Any]]:
         raise NotOurFile(
             f"{p} is not a lenslesscam reconstruction (no JSON metadata in its description)"
         ) from exc
+    return checked_reconstruction(p, meta, data), meta
+
+
+def checked_reconstruction(p: Path, meta: Any, data: npt.NDArray[Any]) -> F32:
+    """The pixels ``data`` of reconstruction TIFF ``p`` as (C, K, H, W), checked.
+
+    The checks of :func:`read_reconstruction` against its metadata ``meta`` (format, version,
+    shape, hash), for a caller that read the pixels already. Raises
+    :class:`~recon.formats.NotOurFile` (not a reconstruction) or
+    :class:`~recon.formats.FormatError` (newer, corrupt).
+    """
     if not isinstance(meta, dict) or meta.get("format") != RECONSTRUCTION_FORMAT:
         found = meta.get("format") if isinstance(meta, dict) else None
         raise NotOurFile(
@@ -283,4 +294,4 @@ def read_reconstruction(path: PathLike) -> tuple[F32, dict[str, Any]]:
     expected = meta.get("data_hash")
     if expected is not None and array_hash(arr) != expected:
         raise FormatError(f"{p}: data hash does not match its metadata; the file is corrupt")
-    return arr, meta
+    return arr

@@ -496,6 +496,14 @@ def test_a_newer_or_damaged_trade_journal_is_said(tmp_path, capsys, monkeypatch)
     err = capsys.readouterr().err
     assert "has format_version 9, which this release does not read" in err, err
     assert journal.read_bytes() == before
+    # --overwrite discards it, as the message says (it refused all the same)
+    newer = journal.read_text()
+    monkeypatch.setattr(rt, "run_trade", interrupted)
+    ran.clear()
+    assert main([*argv, "--overwrite"]) == 130
+    assert "which this release does not read (--overwrite): discarded" in (
+        capsys.readouterr().err)
+    assert journal.read_text() != newer
     # a damaged line in the middle: said, and its setting measured again
     journal.write_text(lines[0] + "{not json\n" + "".join(lines[2:]))
     monkeypatch.setattr(rt, "run_trade", real)

@@ -221,7 +221,7 @@ def _app_jobs_dir() -> Path:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    """``jobs list``: the runs under a folder, oldest first; an unreadable one is named."""
+    """``jobs list``: the runs under a folder, by folder name; an unreadable one is named."""
     from recon.udn.jobs import RECORD_FILE, format_hms, job_status
 
     root = Path(args.folder) if args.folder else _app_jobs_dir()
@@ -237,8 +237,10 @@ def cmd_list(args: argparse.Namespace) -> int:
     for rd in runs:
         try:
             rows.append(job_status(rd).to_dict())
-        except (OSError, ValueError) as exc:  # one damaged run does not hide the others
-            rows.append({"run_dir": str(rd), "error": str(exc)})
+        except Exception as exc:  # one damaged run (any field of it) does not hide the others
+            text = str(exc) if isinstance(exc, OSError | ValueError) else (
+                f"{rd / RECORD_FILE}: {type(exc).__name__}: {exc}")
+            rows.append({"run_dir": str(rd), "error": text})
     if args.json:
         print(json.dumps(rows, default=str))
         return 0

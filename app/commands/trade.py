@@ -296,6 +296,11 @@ class _Journal:
         from recon.formats import FORMAT_VERSION, whole_version
 
         version = whole_version(head.get("format_version"))
+        if (version is None or version > FORMAT_VERSION) and overwrite:
+            print(f"trade: note: {self.path} has format_version "
+                  f"{head.get('format_version')!r}, which this release does not read "
+                  "(--overwrite): discarded", file=sys.stderr)
+            return False
         if version is None or version > FORMAT_VERSION:
             # a newer release's rows may hold fields this one would drop
             raise ValueError(f"{self.path} has format_version {head.get('format_version')!r}, "

@@ -51,6 +51,7 @@ from app.gui.devices import (
     SIM_PORT_CHOICE,
     Bench,
     CameraChoice,
+    ReconnectCancelled,
     SimConfig,
     best_effort,
     list_camera_choices,
@@ -875,6 +876,8 @@ class MainWindow(QMainWindow):
             self._show_frame(frame)  # the check's frame: at a long exposure the next is late
 
         def failed(exc: BaseException) -> None:
+            if isinstance(exc, ReconnectCancelled) or self.devices.closing:
+                return  # ended by Disconnect, another camera or the window closing
             if not self.devices.reconnect_result(False):
                 return
             msg = f"Camera lost – reconnect attempt {n} failed, retrying…: {_describe(exc)}"

@@ -526,8 +526,9 @@ class _Job:
             missing = sorted(set(range(min(have), upto + 1)) - have)
             if missing:
                 note = (f"{LOSS_FILE} lacks the rows of iterations {index_ranges(missing)[1:-1]} "
-                        f"({len(missing)} of {min(have)}-{upto} before the resume): the loss "
-                        "history has a gap there")
+                        f"({len(missing)} rows): the loss history has a gap there")
+                if note in (self.record.get("notes") or []):
+                    note = None  # said at an earlier resume
         if note is not None:
             self.notes.append(note)
             if self.notice is not None:

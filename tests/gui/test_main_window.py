@@ -185,6 +185,8 @@ def test_disconnect_ends_a_reconnect_check_at_a_long_exposure(live_window: Any, 
     assert time.monotonic() - t0 < 2.0
     qtbot.wait(300)
     assert w.camera_state == "disconnected"  # the ended attempt does not bring it back
+    assert not w.reconnect_timer.isActive()  # nor arms another attempt
+    assert "failed" not in QLabel.text(w.device_panel.camera_status)
 
 
 def test_a_reconnected_camera_shows_the_check_frame_at_once(live_window: Any,

@@ -314,22 +314,28 @@ def test_jobs_list_shows_each_run_and_names_a_damaged_one(two_runs, tmp_path, ca
     shutil.copytree(runs[1], root / "20261127-app-job" / "run")  # the app's layout
     (root / "broken").mkdir()
     (root / "broken" / "run.json").write_text("{")
+    # a record that parses but holds a field of the wrong type (a traceback hid every run)
+    shutil.copytree(runs[0], root / "odd")
+    rec = json.loads((root / "odd" / "run.json").read_text())
+    rec["spec"]["job"] = "x"
+    (root / "odd" / "run.json").write_text(json.dumps(rec))
     code, out, err = run_cli(capsys, "jobs", "list", root)
     assert code == 0, err
     lines = out.strip().splitlines()
-    assert lines[0] == f"3 run(s) in {root}:"
+    assert lines[0] == f"4 run(s) in {root}:"
     assert lines[1].startswith("  20261127-app-job/run  completed  iteration ")
     assert lines[2].startswith("  broken  unreadable: ") and "run.json" in lines[2]
-    assert lines[3].startswith("  plain  completed  iteration ")
+    assert lines[3].startswith("  odd  unreadable: ") and "run.json" in lines[3]
+    assert lines[4].startswith("  plain  completed  iteration ")
     code, out, _ = run_cli(capsys, "jobs", "list", root, "--json")
     got = json.loads(out)
-    assert [Path(r["run_dir"]).name for r in got] == ["run", "broken", "plain"]
+    assert [Path(r["run_dir"]).name for r in got] == ["run", "broken", "odd", "plain"]
     assert got[0]["finish_reason"] == "completed" and "error" in got[1]
     # the default is the app's jobs folder
     monkeypatch.setenv("LENSLESSCAM_JOBS_DIR", str(root))
     monkeypatch.setenv("LENSLESSCAM_CONFIG_DIR", str(tmp_path / "config"))
     code, out, _ = run_cli(capsys, "jobs", "list")
-    assert code == 0 and out.startswith(f"3 run(s) in {root}:")
+    assert code == 0 and out.startswith(f"4 run(s) in {root}:")
     monkeypatch.setenv("LENSLESSCAM_JOBS_DIR", str(tmp_path / "none"))
     code, out, _ = run_cli(capsys, "jobs", "list")
     assert code == 0 and "does not exist yet" in out

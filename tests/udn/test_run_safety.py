@@ -488,10 +488,14 @@ def test_a_gap_in_a_repaired_loss_csv_is_noted(tiny_data, tmp_path, capsys):
     (out / "loss.csv").write_text("".join(keep))
     assert cli_main(["jobs", "resume", str(out), "--max-iter", "10", "--quiet"]) == 0
     err = capsys.readouterr().err
-    words = ("loss.csv lacks the rows of iterations 4, 6-8 (4 of 1-8 before the resume): the "
-             "loss history has a gap there")
+    words = ("loss.csv lacks the rows of iterations 4, 6-8 (4 rows): the loss history has a gap "
+             "there")
     assert f"lenslesscam jobs resume: note: {words}" in err, err
     assert words in record(out)["notes"]
+    # said once: a later resume does not repeat it
+    assert cli_main(["jobs", "resume", str(out), "--max-iter", "12", "--quiet"]) == 0
+    assert "lacks the rows" not in capsys.readouterr().err
+    assert record(out)["notes"].count(words) == 1
 
 
 def test_a_lost_loss_csv_is_printed_at_the_resume(tiny_data, tmp_path, capsys):
