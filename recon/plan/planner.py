@@ -266,13 +266,6 @@ class Plan:
             if self.k != -(-self.base_bins // self.bin_factor):
                 raise ValueError(f"plan.k = {self.k} does not match {self.base_bins} shutter bins "
                                  f"binned by {self.bin_factor}")
-            rows = self.sensor[0] // self.downsample
-            if self.k > rows:  # the rule of recon.checks.check_shutter_frames, said for a plan
-                fewer = -(-self.base_bins // -(-self.base_bins // rows))
-                raise ValueError(
-                    f"a video plan of K = {self.k} frames for {rows} rows ({self.sensor[0]} "
-                    f"downsampled {self.downsample}x): a rolling shutter resolves at most as "
-                    f"many frames as rows; set k={fewer} or fewer, or a smaller downsample")
         if self.model == "depth":
             if self.planes is None:
                 raise ValueError("a depth plan needs planes [first, last)")
@@ -289,6 +282,23 @@ class Plan:
                 and all(isinstance(v, Mapping) for v in self.udn.values())):
             raise ValueError(f"plan.udn must be an object with a 'network' and a 'config' "
                              f"object (recon.udn settings), got {self.udn!r:.80}")
+
+    def check_rows(self) -> None:
+        """Refuse a video plan of more frames than its grid has rows (naming the k that fits).
+
+        The rule of :func:`recon.checks.check_shutter_frames`, said for a plan. Not part of
+        :meth:`validate`: a plan file of an earlier release that broke it still loads, so that
+        ``--set k=...`` or ``--set downsample=...`` can mend it before it runs.
+        """
+        if self.model != "video" or self.base_bins is None:
+            return
+        rows = self.sensor[0] // self.downsample
+        if self.k > rows:
+            fewer = -(-self.base_bins // -(-self.base_bins // rows))
+            raise ValueError(
+                f"a video plan of K = {self.k} frames for {rows} rows ({self.sensor[0]} "
+                f"downsampled {self.downsample}x): a rolling shutter resolves at most as many "
+                f"frames as rows; set k={fewer} or fewer, or a smaller downsample")
 
     # -- derived ---------------------------------------------------------------------------
     @property
@@ -437,7 +447,9 @@ class Plan:
                 merged["seconds_per_iter"])
         merged["reasons"] = reasons
         merged["overridden"] = tuple(dict.fromkeys([*self.overridden, *changes]))
-        return Plan(**merged)
+        out = Plan(**merged)
+        out.check_rows()
+        return out
 
     def _stack_planes(self, changes: Mapping[str, Any], new: Mapping[str, Any],
                       merged: dict[str, Any]) -> dict[str, str] | None:
@@ -1060,8 +1072,8 @@ def make_plan(
                 "the planner goes to (a coarser one would have a side under 16 px, or fewer "
                 "rows than frames), where it "
                 f"still allows fewer than {MIN_ITERS} iterations")
-    dropped = downsample_remainder_text(h, w, plan.downsample,
-                                        measured=None if mask is None else np.asarray(mask))
+    dropped = downsample_remainder_text(
+        h, w, plan.downsample, measured=None if mask is None else np.asarray(mask).reshape(h, w))
     if dropped is not None:
         reasons["downsample"] += f"; {dropped}"
     choice = method_for_budget(cost, budget_s)
@@ -1169,6 +1181,7 @@ def prepare(
 
     :func:`execute` runs on it and ``plan``'s tau auto searches on it: one preparation for both.
     """
+    plan.check_rows()  # a plan file of an earlier release, run without --set mending it
     b = _scaled_meas(meas)
     if tuple(b.shape[1:]) != tuple(plan.sensor):
         # both are grids: a measurement embedded in a padded PSF grid is that grid here
@@ -1180,8 +1193,9 @@ def prepare(
     model = planned_model(plan, psf, shutter=base, psf_stack=psf_stack, mask=mask,
                           dtype=dtype, device=device)
     if "downsample" in plan.overridden:  # the user's factor (the plan's reason says its own)
-        warn_downsample_remainder(int(b.shape[1]), int(b.shape[2]), plan.downsample,
-                                  measured=None if mask is None else np.asarray(mask))
+        hb, wb = int(b.shape[1]), int(b.shape[2])
+        warn_downsample_remainder(hb, wb, plan.downsample, measured=None if mask is None
+                                  else np.asarray(mask).reshape(hb, wb))
     if mask is None:
         b_d = box_downsample(b, plan.downsample)
     else:  # the one mask rule (recon.preprocess.downsample_masked), as the model's mask

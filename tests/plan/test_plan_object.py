@@ -291,3 +291,19 @@ def test_frames_with_a_short_last_one_are_said_so(monkeypatch):
     four = _plan(base_bins=11).override(model="video", k=5)
     assert four.k == 4
     assert "11 shutter bins in groups of 3 make 4 frames (the last of 2)" in four.reasons["k"]
+
+
+def test_a_plan_file_of_more_frames_than_rows_loads_and_is_mended_by_set():
+    """The K-rows rule refused such a plan file as it was read, so `--set k=...` (applied
+    after reading) could never mend it; it is refused when it would run, and mended by --set."""
+    bad = _plan(model="video", k=36, bin_factor=1, downsample=2)  # 36 frames, 24 rows
+    back = Plan.from_json(json.loads(json.dumps(bad.to_json())))
+    with pytest.raises(ValueError, match=r"K = 36 frames for 24 rows.*set k=18 or fewer"):
+        back.check_rows()
+    cap_psf = synthetic_psf((48, 64), seed=1)
+    with pytest.raises(ValueError, match=r"K = 36 frames for 24 rows"):
+        execute(back, cap_psf, np.ones((48, 64), np.float32),
+                shutter=np.ones((36, 48), np.float32))
+    fixed = back.override(k=18)
+    assert (fixed.k, fixed.bin_factor) == (18, 2)
+    fixed.check_rows()
