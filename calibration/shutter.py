@@ -519,9 +519,11 @@ def measure_shutter(
                 f"a {span:g} us span in at most {s.max_delays} delays needs steps of {step:g} "
                 f"us, more than half the {model.exposure_us:g} us exposure: the rows' "
                 "windows would fall between the delays",
-                f"Use a shorter span (--span; the default, "
-                f"{1.25 * (model.trigger_delay_us + model.frame_time_us) + pulse:.4g} us, "
-                "covers the frame) or a longer exposure",
+                (f"Use a shorter span (--span; the default, "
+                 f"{1.25 * (model.trigger_delay_us + model.frame_time_us) + pulse:.4g} us, "
+                 "covers the frame) or a longer exposure" if s.span_us is not None else
+                 "Use a longer exposure, or a smaller ROI (fewer rows to scan): the frame is "
+                 "too long for this exposure in the scan's delays"),
                 stage="setup",
             )
         delays = np.arange(0.0, span + step / 2.0, step)
