@@ -848,6 +848,9 @@ def capture_depth_stack(
     prompt: Callable[[int, str], None] | None = None,
     settings: PsfSettings | None = None,
     out: str | os.PathLike[str] | None = None,
+    bad_pixels: np.ndarray | None = None,
+    bad_pixels_from: str = "the bad-pixel map",
+    extra_metadata: dict[str, Any] | None = None,
 ) -> Steps[DepthStack]:
     """Capture a PSF per position of a user-driven series and save them as one stack.
 
@@ -855,7 +858,8 @@ def capture_depth_stack(
     the terminal, the GUI waits for the user's "next" in its wizard, a test moves the
     simulated source. Each plane is auto-exposed on its own and scaled to the first plane's
     exposure and gain, so the planes keep their relative energies. A refusal names the
-    position it happened at.
+    position it happened at. ``bad_pixels`` are repaired in every plane (as
+    :func:`capture_psf` does).
     """
     labels = [str(p) for p in positions]
     if not labels:
@@ -869,7 +873,10 @@ def capture_depth_stack(
         if prompt is not None:
             prompt(i, pos)
         try:
-            cal = yield from scaled(capture_psf(camera, source, settings), i / k, (i + 1) / k)
+            cal = yield from scaled(capture_psf(camera, source, settings,
+                                                bad_pixels=bad_pixels,
+                                                bad_pixels_from=bad_pixels_from),
+                                    i / k, (i + 1) / k)
         except CalibrationError as exc:
             raise CalibrationError(
                 f"position {pos} ({i + 1} of {k}): {exc.problem}", exc.hint, stage=exc.stage
@@ -903,6 +910,7 @@ def capture_depth_stack(
         "exposure_us": e0,
         "gain": planes[0].gain,
         "units": "ADU above the dark level at the first plane's exposure and gain",
+        **(extra_metadata or {}),
     }
     result = DepthStack(stack=stack, positions=labels, planes=planes, metadata=metadata)
     if out is not None:

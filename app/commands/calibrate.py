@@ -441,10 +441,18 @@ def run_depth(args: argparse.Namespace) -> int:
         if not sys.stdin.readline():
             raise ValueError("no answer on standard input (use --no-prompt to run unattended)")
 
+    bad, maps = _bad_pixels(args)  # (it was accepted and ignored)
     with _devices(args) as (camera, source):
+        other = _other_camera(maps, camera)
+        if other is not None:
+            _warn([other])
+            assert maps is not None
+            maps["warning"] = other
         wf = Workflow(
             capture_depth_stack(
-                camera, source, positions, prompt=prompt, settings=settings, out=args.out
+                camera, source, positions, prompt=prompt, settings=settings, out=args.out,
+                bad_pixels=bad, bad_pixels_from=f"--pixel-maps {args.pixel_maps}",
+                extra_metadata=None if maps is None else {"pixel_maps": maps},
             ),
             "depth stack",
         )

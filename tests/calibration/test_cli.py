@@ -599,3 +599,25 @@ def test_calibrate_filters_takes_the_sensor_size_like_a_calibration_file(tmp_pat
                  str(shutter), "--out", str(tmp_path / "c2.tif")])
     err = capsys.readouterr().err
     assert code == 2 and "is a shutter calibration" in err, err
+
+
+def test_calibrate_depth_uses_and_records_its_pixel_maps(tmp_path, capsys):
+    """`calibrate depth --pixel-maps` was accepted and ignored: no pixel was repaired and the
+    stack did not say which maps it had."""
+    from recon.formats import file_hash
+
+    pm = tmp_path / "pm.npz"
+    assert main(["calibrate", "darks", "--camera", "sim", "--sim-size", "32x40", "--no-prompt",
+                 "--frames", "4", "--out", str(pm)]) == 0
+    out = tmp_path / "stack.tif"
+    assert main(["calibrate", "depth", "--source", "sim", "--sim-size", "32x40", "--positions",
+                 "a,b", "--no-prompt", "--frames", "4", "--darks", "4", "--pixel-maps", str(pm),
+                 "--out", str(out)]) == 0, capsys.readouterr().err
+    meta = load_calibration(out).metadata
+    assert meta["pixel_maps"]["file_hash"] == file_hash(pm)
+    # a size that does not fit the maps is refused, as for calibrate psf
+    code = main(["calibrate", "depth", "--source", "sim", "--sim-size", "24x40", "--positions",
+                 "a", "--no-prompt", "--frames", "2", "--darks", "2", "--pixel-maps", str(pm),
+                 "--out", str(tmp_path / "s2.tif")])
+    err = capsys.readouterr().err
+    assert code == 2 and "the maps belong to another sensor size" in err, err
