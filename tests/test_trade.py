@@ -272,28 +272,40 @@ def test_case_differences_compare_shape_field_and_psf():
     assert case_differences(rec, full) == ["scene field 24x32 (here 48x64)"]
 
 
+def _trade_files(tmp_path):
+    """The quick trade's command line (no --out) on a case saved as files in ``tmp_path``."""
+    case = _case()
+    for name, a in (("psf", case.psf[0]), ("meas", case.meas), ("mask", case.mask),
+                    ("truth", case.truth)):
+        np.save(tmp_path / f"{name}.npy", a)
+    return ["trade", *(x for n in ("meas", "psf", "mask", "truth")
+                       for x in (f"--{n}", str(tmp_path / f"{n}.npy"))),
+            "--quick", "--no-udn", "--threads", "1"]
+
+
+def _interrupted_at_third(real, ran):
+    """``run_trade`` that records the settings it ran in ``ran`` and stops (Ctrl-C) at the
+    third setting's first row: two are complete."""
+    def interrupted(case, grid, **kw):
+        for row in real(case, grid, **kw):
+            if row.setting not in ran:
+                ran.append(row.setting)
+            if len(ran) == 3:
+                raise KeyboardInterrupt
+            yield row
+
+    return interrupted
+
+
 def test_an_interrupted_trade_goes_on_where_it_was(tmp_path, capsys, monkeypatch):
     """trade --protocol takes 20 minutes, and an interrupt lost all of it: each measured
     setting is kept in trade.partial.jsonl, and the same command skips what it holds."""
     import recon.trade as rt
 
-    case = _case()
-    for name, a in (("psf", case.psf[0]), ("meas", case.meas), ("mask", case.mask),
-                    ("truth", case.truth)):
-        np.save(tmp_path / f"{name}.npy", a)
-    argv = ["trade", *(x for n in ("meas", "psf", "mask", "truth")
-                       for x in (f"--{n}", str(tmp_path / f"{n}.npy"))),
-            "--quick", "--no-udn", "--threads", "1"]
+    argv = _trade_files(tmp_path)
     real = rt.run_trade
     ran: list[str] = []
-
-    def interrupted(case, grid, **kw):
-        for row in real(case, grid, **kw):
-            if row.setting not in ran:
-                ran.append(row.setting)
-            if len(ran) == 3:  # the third setting's first row: two are complete
-                raise KeyboardInterrupt
-            yield row
+    interrupted = _interrupted_at_third(real, ran)
 
     monkeypatch.setattr(rt, "run_trade", interrupted)
     assert main([*argv, "--out", str(tmp_path / "out")]) == 130
@@ -466,23 +478,10 @@ def test_a_newer_or_damaged_trade_journal_is_said(tmp_path, capsys, monkeypatch)
 
     import recon.trade as rt
 
-    case = _case()
-    for name, a in (("psf", case.psf[0]), ("meas", case.meas), ("mask", case.mask),
-                    ("truth", case.truth)):
-        np.save(tmp_path / f"{name}.npy", a)
-    argv = ["trade", *(x for n in ("meas", "psf", "mask", "truth")
-                       for x in (f"--{n}", str(tmp_path / f"{n}.npy"))),
-            "--quick", "--no-udn", "--threads", "1", "--out", str(tmp_path / "out")]
+    argv = [*_trade_files(tmp_path), "--out", str(tmp_path / "out")]
     real = rt.run_trade
     ran: list[str] = []
-
-    def interrupted(case, grid, **kw):
-        for row in real(case, grid, **kw):
-            if row.setting not in ran:
-                ran.append(row.setting)
-            if len(ran) == 3:
-                raise KeyboardInterrupt
-            yield row
+    interrupted = _interrupted_at_third(real, ran)
 
     monkeypatch.setattr(rt, "run_trade", interrupted)
     assert main(argv) == 130

@@ -164,17 +164,23 @@ def test_camera_unplug_shows_error_and_reconnects(live_window: Any, qtbot: Any) 
     assert not w.banner.isVisible()
 
 
+def _lose_camera(w: Any, qtbot: Any) -> Any:
+    """Unplug the live simulated camera (short stall timeout) and wait until it is lost."""
+    cam = w.bench.camera
+    cam.stream_timeout_s = 0.5
+    w.set_live(True)  # restart the stream with the short stall timeout
+    qtbot.waitUntil(lambda: w.camera_state == "live", timeout=5_000)
+    cam.simulate_unplug()
+    qtbot.waitUntil(lambda: w.camera_state == "lost", timeout=10_000)
+    return cam
+
+
 def test_disconnect_ends_a_reconnect_check_at_a_long_exposure(live_window: Any, qtbot: Any,
                                                               monkeypatch: Any) -> None:
     """A reconnect check waits two frame times for its frame (21 s at a 10 s exposure); it
     held the camera worker all that time, so Disconnect (queued behind it) waited as long."""
     w = live_window
-    cam = w.bench.camera
-    cam.stream_timeout_s = 0.5
-    w.set_live(True)
-    qtbot.waitUntil(lambda: w.camera_state == "live", timeout=5_000)
-    cam.simulate_unplug()
-    qtbot.waitUntil(lambda: w.camera_state == "lost", timeout=10_000)
+    cam = _lose_camera(w, qtbot)
     monkeypatch.setattr(cam, "expected_frame_s", lambda: 10.0)  # a 10 s exposure, say
     qtbot.waitUntil(lambda: w.reconnect_attempts >= 1 and w.camera_queue.busy, timeout=10_000)
     time.sleep(0.3)  # the check is waiting for its frame
@@ -194,12 +200,7 @@ def test_a_reconnected_camera_shows_the_check_frame_at_once(live_window: Any,
     """The reconnect check's frame is shown: at a long exposure the next one comes a frame
     time later."""
     w = live_window
-    cam = w.bench.camera
-    cam.stream_timeout_s = 0.5
-    w.set_live(True)
-    qtbot.waitUntil(lambda: w.camera_state == "live", timeout=5_000)
-    cam.simulate_unplug()
-    qtbot.waitUntil(lambda: w.camera_state == "lost", timeout=10_000)
+    cam = _lose_camera(w, qtbot)
     n = w.frames_shown
     shown: list[Any] = []
     w.frame_shown.connect(shown.append)
