@@ -138,14 +138,20 @@ def test_roi_applies_to_the_camera_and_preview_follows(live_window: Any, qtbot: 
     qtbot.waitUntil(lambda: w.last_frame.shape == (150, 200), timeout=10_000)
 
 
-def test_camera_unplug_shows_error_and_reconnects(live_window: Any, qtbot: Any) -> None:
-    w = live_window
+def _lose_camera(w: Any, qtbot: Any) -> Any:
+    """Unplug the live simulated camera (short stall timeout) and wait until it is lost."""
     cam = w.bench.camera
     cam.stream_timeout_s = 0.5
     w.set_live(True)  # restart the stream with the short stall timeout
     qtbot.waitUntil(lambda: w.camera_state == "live", timeout=5_000)
     cam.simulate_unplug()
     qtbot.waitUntil(lambda: w.camera_state == "lost", timeout=10_000)
+    return cam
+
+
+def test_camera_unplug_shows_error_and_reconnects(live_window: Any, qtbot: Any) -> None:
+    w = live_window
+    cam = _lose_camera(w, qtbot)
     assert w.banner.isVisible() and "Camera lost" in w.banner.text()
     assert "CameraTimeout" in w.banner.text()
     qtbot.waitUntil(lambda: w.reconnect_attempts >= 2, timeout=10_000)
@@ -162,17 +168,6 @@ def test_camera_unplug_shows_error_and_reconnects(live_window: Any, qtbot: Any) 
     n = w.frames_shown
     qtbot.waitUntil(lambda: w.frames_shown > n + 3, timeout=10_000)
     assert not w.banner.isVisible()
-
-
-def _lose_camera(w: Any, qtbot: Any) -> Any:
-    """Unplug the live simulated camera (short stall timeout) and wait until it is lost."""
-    cam = w.bench.camera
-    cam.stream_timeout_s = 0.5
-    w.set_live(True)  # restart the stream with the short stall timeout
-    qtbot.waitUntil(lambda: w.camera_state == "live", timeout=5_000)
-    cam.simulate_unplug()
-    qtbot.waitUntil(lambda: w.camera_state == "lost", timeout=10_000)
-    return cam
 
 
 def test_disconnect_ends_a_reconnect_check_at_a_long_exposure(live_window: Any, qtbot: Any,
