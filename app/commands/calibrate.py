@@ -621,6 +621,10 @@ def run_filters(args: argparse.Namespace) -> int:
     _check_outputs(args, "filter-cube")
     from calibration.filters import load_filter_cube
 
+    if args.key is not None and Path(args.cube).suffix.lower() not in (".mat", ".npz"):
+        raise ValueError(f"--key {args.key} names a variable of a .mat or .npz file; "
+                         f"{args.cube} holds one array (leave --key out)")
+
     if args.sensor:
         shape = parse_hw(args.sensor, "--sensor")
     else:

@@ -621,3 +621,14 @@ def test_calibrate_depth_uses_and_records_its_pixel_maps(tmp_path, capsys):
                  "--out", str(tmp_path / "s2.tif")])
     err = capsys.readouterr().err
     assert code == 2 and "the maps belong to another sensor size" in err, err
+
+
+def test_calibrate_filters_key_on_a_file_without_variables_is_named(tmp_path, capsys):
+    """--key nope on a .npy cube was ignored without a word (a typo of the file, or of the
+    key, passed unnoticed)."""
+    np.save(tmp_path / "cube.npy", np.random.default_rng(0).random((3, 8, 10)))
+    code = main(["calibrate", "filters", "--cube", str(tmp_path / "cube.npy"), "--key", "nope",
+                 "--sensor", "8x10", "--out", str(tmp_path / "c.tif")])
+    err = capsys.readouterr().err
+    assert code == 2 and "--key nope names a variable of a .mat or .npz file" in err, err
+    assert not (tmp_path / "c.tif").exists()
