@@ -42,6 +42,7 @@ from recon.atomic import atomic_write
 from recon.formats import (
     FORMAT_VERSION,
     FormatError,
+    NewerFormat,
     NotOurFile,
     array_hash,
     json_default,
@@ -378,7 +379,7 @@ def _check_meta(p: Path, meta: Any, expect: str | None) -> tuple[str, dict[str, 
         raise FormatError(f"{p} is a {kind} calibration, expected a {expect} calibration")
     version = whole_version(meta.get("format_version"))
     if version is None or not (1 <= version <= FORMAT_VERSION):
-        raise FormatError(
+        raise (NewerFormat if version is not None and version > FORMAT_VERSION else FormatError)(
             f"{p}: {kind} calibration format_version {meta.get('format_version')!r} is not "
             f"supported by this release (reads 1..{FORMAT_VERSION})"
         )

@@ -407,7 +407,7 @@ def check_shutter_frames(k: int, rows: int, what: str = "shutter function", *,
             f"shutter --bin-lines){less}")
 
 
-def downsample_remainder_text(h: int, w: int, ds: int, what: str = "measurement",
+def downsample_remainder_text(h: int, w: int, ds: int,
                               measured: Array | None = None) -> str | None:
     """What a downsampling factor that does not divide ``h`` x ``w`` drops, or None.
 
@@ -423,17 +423,17 @@ def downsample_remainder_text(h: int, w: int, ds: int, what: str = "measurement"
             return None
     lost = [f"{n} {kind}{'s' if n > 1 else ''}" for n, kind in
             ((h % ds, "row"), (w % ds, "column")) if n]
-    return (f"downsampling {ds}x drops the last {' and '.join(lost)} of the {h}x{w} {what} "
+    return (f"downsampling {ds}x drops the last {' and '.join(lost)} of the {h}x{w} measurement "
             f"({ds} does not divide its size): the reconstruction sees "
             f"{h // ds * ds}x{w // ds * ds} of it")
 
 
-def warn_downsample_remainder(h: int, w: int, ds: int, what: str = "measurement",
+def warn_downsample_remainder(h: int, w: int, ds: int,
                               measured: Array | None = None) -> None:
     """:func:`downsample_remainder_text` as a :class:`MeasurementWarning`, when there is one.
 
     For a factor the user chose (a bright edge in the dropped strip was lost unsaid).
     """
-    text = downsample_remainder_text(h, w, ds, what, measured)
+    text = downsample_remainder_text(h, w, ds, measured)
     if text is not None:
         warn_input(text, MeasurementWarning, stacklevel=2)

@@ -18,6 +18,8 @@ __all__ = [
     "FORMAT_VERSION",
     "INT_LIMIT",
     "FormatError",
+    "NewerFormat",
+    "NotOurFile",
     "array_hash",
     "file_hash",
     "json_default",

@@ -124,11 +124,11 @@ def _load_image(path: PathLike, *, key: str | None, prefer: Sequence[str]) -> Ar
     )
 
 
-def _declared_format(p: Path) -> str | None:
-    """The ``format`` a TIFF's first description or an ``.npz``'s ``metadata`` entry declares.
+def _our_metadata(p: Path) -> dict[str, Any] | None:
+    """The metadata a TIFF's first description or an ``.npz``'s ``metadata`` entry holds.
 
-    Cheap (the pixels are not read); None for a file without such metadata or one that cannot
-    be read (its reader says why).
+    Cheap (the pixels are not read); None for a file without such JSON or one that cannot be
+    read (its reader says why).
     """
     import json
 
@@ -146,8 +146,7 @@ def _declared_format(p: Path) -> str | None:
                 meta = json.loads(tf.pages.first.description)
     except Exception:
         return None
-    fmt = meta.get("format") if isinstance(meta, dict) else None
-    return fmt if isinstance(fmt, str) else None
+    return meta if isinstance(meta, dict) else None
 
 
 def _check_ours(p: Path, data: Array | None = None) -> None:
@@ -159,25 +158,19 @@ def _check_ours(p: Path, data: Array | None = None) -> None:
     on ``data``, a TIFF's pixels as read already (one read, not two), or, for an ``.npz``
     (small: pixel maps, shutters), by :func:`recon.calibfile.load_calibration`.
     """
-    import json
-
-    fmt = _declared_format(p)
-    if fmt is None:
+    meta = _our_metadata(p)
+    if meta is None:
         return
     from recon.calibfile import CALIBRATION_FORMATS, checked_calibration_tiff, load_calibration
     from recon.reconfile import RECONSTRUCTION_FORMAT, checked_reconstruction
 
-    if data is None:
-        if fmt in CALIBRATION_FORMATS.values():
-            load_calibration(p)
-        return
-    import tifffile
-
-    with tifffile.TiffFile(p) as tf:
-        meta = json.loads(tf.pages.first.description)
+    fmt = meta.get("format")
     if fmt in CALIBRATION_FORMATS.values():
-        checked_calibration_tiff(p, meta, data)
-    elif fmt == RECONSTRUCTION_FORMAT:
+        if data is None:
+            load_calibration(p)
+        else:
+            checked_calibration_tiff(p, meta, data)
+    elif fmt == RECONSTRUCTION_FORMAT and data is not None:
         checked_reconstruction(p, meta, data)
 
 

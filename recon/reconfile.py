@@ -24,6 +24,7 @@ from recon.falsecolor import load_false_color_weights
 from recon.formats import (
     FORMAT_VERSION,
     FormatError,
+    NewerFormat,
     NotOurFile,
     array_hash,
     json_default,
@@ -274,7 +275,7 @@ def checked_reconstruction(p: Path, meta: Any, data: npt.NDArray[Any]) -> F32:
         )
     version = whole_version(meta.get("format_version"))
     if version is None or version < 1 or version > FORMAT_VERSION:
-        raise FormatError(
+        raise (NewerFormat if version is not None and version > FORMAT_VERSION else FormatError)(
             f"{p}: reconstruction format_version {meta.get('format_version')!r} is not "
             f"supported by this release (reads 1..{FORMAT_VERSION})"
         )

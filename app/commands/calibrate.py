@@ -363,19 +363,26 @@ def _bad_pixels(args: argparse.Namespace) -> tuple[Any, dict[str, Any] | None]:
     return np.asarray(cal.data) == 0, info
 
 
-def _other_camera(maps: dict[str, Any] | None, camera: Any) -> str | None:
-    """A warning when the pixel maps were taken with another camera than ``camera``."""
-    if not maps or not isinstance(maps.get("camera"), dict):
-        return None
-    from calibration.sources import camera_description
+def _maps_metadata(maps: dict[str, Any] | None, camera: Any) -> dict[str, Any] | None:
+    """What a PSF or stack records of its pixel maps (None: none given).
 
-    now, then = camera_description(camera), maps["camera"]
-    differ = [f"{k} {then[k]} vs {now[k]}" for k in ("backend", "camera_id", "model")
-              if then.get(k) is not None and now.get(k) is not None and then[k] != now[k]]
-    if not differ:
+    Maps taken with another camera than ``camera`` are said, on stderr and in the record.
+    """
+    if maps is None:
         return None
-    return (f"--pixel-maps {maps.get('file')} were taken with another camera "
-            f"({', '.join(differ)}): its hot and dead pixels may not be this sensor's")
+    then = maps.get("camera")
+    if isinstance(then, dict):
+        from calibration.sources import camera_description
+
+        now = camera_description(camera)
+        differ = [f"{k} {then[k]} vs {now[k]}" for k in ("backend", "camera_id", "model")
+                  if then.get(k) is not None and now.get(k) is not None and then[k] != now[k]]
+        if differ:
+            maps["warning"] = (f"--pixel-maps {maps.get('file')} were taken with another "
+                               f"camera ({', '.join(differ)}): its hot and dead pixels may not "
+                               "be this sensor's")
+            _warn([maps["warning"]])
+    return {"pixel_maps": maps}
 
 
 def run_psf(args: argparse.Namespace) -> int:
@@ -387,15 +394,10 @@ def run_psf(args: argparse.Namespace) -> int:
     settings = _psf_settings(args)
     bad, maps = _bad_pixels(args)
     with _devices(args) as (camera, source):
-        other = _other_camera(maps, camera)
-        if other is not None:
-            _warn([other])
-            assert maps is not None
-            maps["warning"] = other
         wf = Workflow(
             capture_psf(camera, source, settings, out=args.out, bad_pixels=bad,
                         bad_pixels_from=f"--pixel-maps {args.pixel_maps}",
-                        extra_metadata=None if maps is None else {"pixel_maps": maps}),
+                        extra_metadata=_maps_metadata(maps, camera)),
             "PSF calibration",
         )
         cal = _drive(wf, "PSF")
@@ -443,16 +445,11 @@ def run_depth(args: argparse.Namespace) -> int:
 
     bad, maps = _bad_pixels(args)  # (it was accepted and ignored)
     with _devices(args) as (camera, source):
-        other = _other_camera(maps, camera)
-        if other is not None:
-            _warn([other])
-            assert maps is not None
-            maps["warning"] = other
         wf = Workflow(
             capture_depth_stack(
                 camera, source, positions, prompt=prompt, settings=settings, out=args.out,
                 bad_pixels=bad, bad_pixels_from=f"--pixel-maps {args.pixel_maps}",
-                extra_metadata=None if maps is None else {"pixel_maps": maps},
+                extra_metadata=_maps_metadata(maps, camera),
             ),
             "depth stack",
         )
@@ -630,26 +627,21 @@ def run_filters(args: argparse.Namespace) -> int:
     else:
         import numpy as np
 
-        from recon.calibfile import calibration_kind, load_calibration
+        from recon.calibfile import load_calibration
         from recon.formats import NotOurFile
         from recon.io import load_image
 
         p = Path(args.like)
-        if p.suffix.lower() == ".npz" or calibration_kind(p) is not None:
-            # a calibration file of the sensor (pixel maps, a shutter's .npz, a PSF TIFF): its
-            # main array (a pixel-maps .npz holds several, which the plain reader refused)
-            try:
-                cal = load_calibration(p)
-            except NotOurFile:  # an .npz of someone else's: read as an array
-                like = np.asarray(load_image(p))
-            else:
-                if cal.kind == "shutter":
-                    raise ValueError(f"--like {p} is a shutter calibration, (time bins, rows): "
-                                     "it does not give the sensor's size; give a PSF or "
-                                     "pixel-maps file, or --sensor HxW")
-                like = np.asarray(cal.data)
-        else:
-            like = np.asarray(load_image(p))
+        try:  # a calibration .npz holds several arrays (which load_image refuses): its main one
+            cal = load_calibration(p) if p.suffix.lower() == ".npz" else None
+        except NotOurFile:  # an .npz of someone else's: read as an array
+            cal = None
+        if cal is not None and cal.kind == "shutter":
+            raise ValueError(f"--like {p} is a shutter calibration, (time bins, rows): it does "
+                             "not give the sensor's size; give a PSF or pixel-maps file, or "
+                             "--sensor HxW")
+        # (a TIFF of ours, PSF or stack, is checked by load_image as any input)
+        like = np.asarray(cal.data if cal is not None else load_image(p))
         if like.ndim < 2:
             raise ValueError(f"--like {args.like} is not an image (shape {like.shape})")
         shape = (int(like.shape[-2]), int(like.shape[-1]))

@@ -285,28 +285,28 @@ class _Journal:
             head = json.loads(lines[0]) if lines else {}
         except ValueError:
             head = {}
-        if head.get("format") != self.FORMAT or head.get("key") not in self.keys:
-            if overwrite:
-                print(f"trade: note: {self.path} was another trade's partial result "
-                      "(--overwrite): discarded", file=sys.stderr)
-                return False
-            raise ValueError(f"{self.path} is the partial result of another trade (other data, "
-                             "field, grid or --threads): give that command again to finish it, "
-                             "pass --overwrite to discard it, or choose another --out")
         from recon.formats import FORMAT_VERSION, whole_version
 
         version = whole_version(head.get("format_version"))
-        if (version is None or version > FORMAT_VERSION) and overwrite:
-            print(f"trade: note: {self.path} has format_version "
-                  f"{head.get('format_version')!r}, which this release does not read "
-                  "(--overwrite): discarded", file=sys.stderr)
-            return False
-        if version is None or version > FORMAT_VERSION:
+        if head.get("format") != self.FORMAT or head.get("key") not in self.keys:
+            what, cause = "was another trade's partial result", (
+                "is the partial result of another trade (other data, field, grid or "
+                "--threads): give that command again to finish it")
+        elif version is None or version > FORMAT_VERSION:
             # a newer release's rows may hold fields this one would drop
-            raise ValueError(f"{self.path} has format_version {head.get('format_version')!r}, "
-                             f"which this release does not read (1..{FORMAT_VERSION}): finish "
-                             "the trade with the release that began it, pass --overwrite to "
-                             "discard it, or choose another --out")
+            what = (f"has format_version {head.get('format_version')!r}, which this release "
+                    "does not read")
+            cause = (f"{what} (1..{FORMAT_VERSION}): finish the trade with the release that "
+                     "began it")
+        else:
+            what = cause = ""
+        if what:
+            if overwrite:
+                print(f"trade: note: {self.path} {what} (--overwrite): discarded",
+                      file=sys.stderr)
+                return False
+            raise ValueError(f"{self.path} {cause}, pass --overwrite to discard it, or choose "
+                             "another --out")
         n, damaged = 0, 0
         for line in lines[1:]:
             try:

@@ -339,10 +339,10 @@ class Bench:
                 _log.warning("closing %r: %s", cam, exc)
 
     def reconnect_camera(self, check_timeout_s: float = 1.0,
-                         cancel: threading.Event | None = None) -> tuple[Any, Any]:
+                         cancel: threading.Event | None = None) -> Any:
         """Close and reopen the same camera object, start its live stream, wait for a frame.
 
-        Returns ``(camera, first frame)``; the stream keeps running. The wait allows
+        Returns the first frame; the stream keeps running. The wait allows
         ``check_timeout_s`` plus two frame times (a long exposure is not a lost camera), in
         slices of at most 0.2 s: setting ``cancel`` (Disconnect, another camera) ends it within
         one slice, where a blocking snap held the camera worker for the whole wait (21 s at a
@@ -371,7 +371,7 @@ class Bench:
                                         "of reopening")
                 frame = cam.latest_frame(timeout_s=min(0.2, left))
                 if frame is not None:
-                    return cam, frame
+                    return frame
         except BaseException:
             best_effort(f"stopping {cam.describe()} after a failed check", cam.stop)
             best_effort(f"closing {cam.describe()} after a failed check", cam.close)

@@ -860,7 +860,7 @@ class MainWindow(QMainWindow):
             if cam is None:
                 raise RuntimeError("no camera")
             best_effort(f"stopping {cam.describe()} before reconnecting", cam.stop)
-            _cam, frame = bench.reconnect_camera(
+            frame = bench.reconnect_camera(
                 check_timeout_s=min(2.0, self.reconnect_interval_ms / 1000), cancel=cancel)
             return (*_read_camera(cam), frame)
 

@@ -1036,11 +1036,8 @@ def make_plan(
 
     if model == "video" and k > h // d:  # a rolling shutter resolves at most a frame a row
         d_res = d
-        while d > 1 and k > h // d:
+        while d > 1 and k > h // d:  # (k <= h: the shutter's bins were checked against rows)
             d -= 1
-        if k > h // d:  # not even at full resolution (the shutter was checked against rows)
-            bin_factor = -(-int(base_bins) // h)
-            k = -(-int(base_bins) // bin_factor)
         reasons["downsample"] += (f"; lowered from {d_res} to {d} so the {h // d} rows resolve "
                                   f"the K = {k} frames")
 

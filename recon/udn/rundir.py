@@ -287,6 +287,12 @@ def clean_temp_files(run_dir: str | Path, subdirs: tuple[str, ...] = ("previews"
 # --------------------------------------------------------------------------------------------
 
 
+def _newer(what: str) -> NewerFormat:
+    """The refusal of a run file a newer release wrote (``what``: the file and its version)."""
+    return NewerFormat(f"{what} was written by a newer lenslesscam (this release reads "
+                       f"{FORMAT_VERSION}): resume the run with that release; nothing was changed")
+
+
 def _check_payload(ck: Any, where: str) -> dict[str, Any]:
     if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
         raise FormatError(f"{where} is not a UDN checkpoint")
@@ -294,9 +300,7 @@ def _check_payload(ck: Any, where: str) -> dict[str, Any]:
     if not isinstance(v, int):
         raise FormatError(f"{where}: checkpoint version {v!r} is not a version number")
     if v > FORMAT_VERSION:
-        raise NewerFormat(f"{where}: checkpoint version {v} was written by a newer lenslesscam "
-                          f"(this release reads {FORMAT_VERSION}): resume the run with that "
-                          "release; nothing was changed")
+        raise _newer(f"{where}: checkpoint version {v}")
     if not isinstance(ck.get("iteration"), int) or not isinstance(ck.get("state"), dict):
         raise FormatError(f"{where}: the checkpoint lacks its iteration or state")
     return ck
@@ -337,9 +341,7 @@ def _read_hashes(run_dir: Path) -> tuple[list[dict[str, Any]] | None, str | None
         obj = json.loads(p.read_text(encoding="utf-8"))
         v = obj.get("format_version") if isinstance(obj, dict) else None
         if isinstance(v, int) and v > FORMAT_VERSION:
-            raise NewerFormat(f"{p}: format_version {v} was written by a newer lenslesscam "
-                              f"(this release reads {FORMAT_VERSION}): resume the run with that "
-                              "release; nothing was changed")
+            raise _newer(f"{p}: format_version {v}")
         entries = obj["checkpoints"]
         if obj.get("format") != HASHES_FORMAT or not isinstance(entries, list) or not all(
                 isinstance(e, dict) and isinstance(e.get("sha256"), str)
