@@ -35,6 +35,9 @@ from app.commands._options import (
 def _common(p: argparse.ArgumentParser, *, source: bool, source_required: bool) -> None:
     g = p.add_argument_group("devices")
     g.add_argument("--camera", default="sim", help="camera spec: sim, genicam[:N], v4l2[:N]")
+    from app.commands.devices import add_producer_argument
+
+    add_producer_argument(g)
     if source:
         g.add_argument(
             "--source",
@@ -206,6 +209,9 @@ def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
                 raise ValueError(f"--source is needed with --camera {args.camera}: the serial "
                                  "port of the point source (sim goes with --camera sim)")
             src_spec = "sim"
+        from app.commands.devices import producer_kwargs
+
+        kwargs = producer_kwargs(args.producer, args.camera)  # refused with another backend
         state_path = None
         source = None
         port: str | None
@@ -225,7 +231,7 @@ def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
         else:
             # a file source (image sequence, video) ends where it ends: looped, its frames
             # were averaged again and again as if new (16 darks from 5 files)
-            camera = open_camera(args.camera, **({"loop": False} if backend == "v4l2" else {}))
+            camera = open_camera(args.camera, **({"loop": False} if backend == "v4l2" else kwargs))
         stack.callback(camera.close)
         if args.exposure:
             camera.exposure_us = parse_duration_us(args.exposure)

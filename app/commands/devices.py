@@ -57,9 +57,7 @@ def register(subparsers: Any) -> None:
         "and serial ports.",
     )
     p.add_argument("--json", action="store_true", help="machine-readable output")
-    p.add_argument(
-        "--producer", action="append", default=[], metavar="CTI", help="extra GenTL producer"
-    )
+    add_producer_argument(p)
     p.set_defaults(func=_devices)
 
     s = subparsers.add_parser(
@@ -78,9 +76,7 @@ def register(subparsers: Any) -> None:
     from app.commands.calibrate import add_sim_camera_arguments
 
     add_sim_camera_arguments(s)  # the very camera calibrate --camera sim opens
-    s.add_argument(
-        "--producer", action="append", default=[], metavar="CTI", help="extra GenTL producer"
-    )
+    add_producer_argument(s)
     s.add_argument("--out", required=True, help="output TIFF file")
     add_overwrite_option(s)
     s.set_defaults(func=_snap)
@@ -124,6 +120,31 @@ def _devices(args: argparse.Namespace) -> int:
     if not ports:
         print("  (none; simulated source: python -m drivers.pointsource_sim --pty)")
     return 0
+
+
+def add_producer_argument(p: Any) -> None:
+    """``--producer CTI`` (repeatable): the same option, and numbering, in every camera command."""
+    p.add_argument("--producer", action="append", default=[], metavar="CTI",
+                   help="extra GenTL producer (genicam:N counts its cameras as `devices "
+                        "--producer CTI` lists them)")
+
+
+def producer_kwargs(producers: list[str], camera: str) -> dict[str, Any]:
+    """The camera constructor's ``producers`` for ``--producer`` (empty: the default search).
+
+    ``genicam:N`` counts the devices of every producer found, so the same ``--producer``
+    options must be given to ``devices``, ``snap`` and ``calibrate`` for N to name the same
+    camera. ``--producer`` with another backend is refused: it would be ignored.
+    """
+    from drivers.registry import parse_camera_spec
+
+    if not producers:
+        return {}
+    if parse_camera_spec(camera).name != "genicam":
+        raise ValueError(f"--producer applies to --camera genicam[:N], not {camera}")
+    from drivers.genicam import find_producers
+
+    return {"producers": find_producers(producers)}
 
 
 def check_camera_command_outputs(args: argparse.Namespace, outputs: list[str]) -> None:
@@ -188,10 +209,7 @@ def _snap(args: argparse.Namespace) -> int:
                       file=sys.stderr)
     elif args.light_state:
         raise CliError("--light-state applies to the simulated camera only")
-    if spec.name == "genicam" and args.producer:
-        from drivers.genicam import find_producers
-
-        kwargs["producers"] = find_producers(args.producer)
+    kwargs.update(producer_kwargs(args.producer, args.camera))
     try:
         with open_camera(args.camera, **kwargs) as cam:
             if args.exposure is not None:

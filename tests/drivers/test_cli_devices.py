@@ -283,3 +283,35 @@ def test_snap_says_which_camera_it_was(tmp_path: Path, capsys: pytest.CaptureFix
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[-1].startswith("camera: genicam camera 0")
     assert "TLSimu" in lines[-1]
+
+
+def test_calibrate_takes_producer_and_counts_genicam_cameras_as_devices_does(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,
+    tlsimu_cti: Path,
+) -> None:
+    """``genicam:N`` is the N-th camera of ``devices --producer CTI`` in every command.
+
+    Before, ``calibrate`` had no ``--producer``: a camera of an extra producer could not be
+    calibrated, and genicam:0 was another camera there than in ``snap --producer``.
+    """
+    from recon.calibfile import load_calibration
+
+    monkeypatch.setattr(app.cli, "COMMAND_MODULES",
+                        ("app.commands.devices", "app.commands.calibrate"))
+    assert app.cli.main(["devices", "--json", "--producer", str(tlsimu_cti)]) == 0
+    first = json.loads(capsys.readouterr().out)["cameras"][1]
+    assert first["spec"] == "genicam:0"
+    out = tmp_path / "d.npz"
+    argv = ["calibrate", "darks", "--camera", "genicam:0", "--producer", str(tlsimu_cti),
+            "--frames", "2", "--no-prompt", "--out", str(out)]
+    assert app.cli.main(argv) == 0, capsys.readouterr().err
+    model = load_calibration(out).metadata["camera"]["model"]
+    assert model in first["description"] and model.startswith("TLSimu")
+    # given where it would be ignored, it is refused in one line, in both commands
+    for cmd, name in ((["calibrate", "darks", "--no-prompt"], "x.npz"), (["snap"], "x.tif")):
+        rc = app.cli.main([*cmd, "--camera", "sim", "--producer", str(tlsimu_cti),
+                           "--out", str(tmp_path / name)])
+        err = capsys.readouterr().err
+        assert rc == 2 and "--producer applies to --camera genicam" in err, err
+        assert "Traceback" not in err
+    assert not list(tmp_path.glob("x.*"))
