@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import logging
 import os
 import re
 import sys
@@ -131,6 +132,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     saved_show = warnings.showwarning
     warnings.showwarning = _show_warning
+    log_handler = _log_warnings_as_lines()
     try:
         needs_torch = args.command not in NO_TORCH_COMMANDS and not getattr(args, "no_torch", False)
         if needs_torch or args.global_threads is not None:
@@ -177,6 +179,45 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     finally:
         warnings.showwarning = saved_show
+        for name in _OUR_LOGGERS:
+            logging.getLogger(name).removeHandler(log_handler)
+
+
+#: The packages whose log warnings a command prints (their records still propagate).
+_OUR_LOGGERS = ("app", "benchmarks", "calibration", "drivers", "recon")
+
+
+def _log_warnings_as_lines() -> logging.Handler:
+    """Print our packages' log warnings as the command's warnings are printed: one line each.
+
+    Without a handler Python printed them bare ("could not switch the point source off: ...",
+    under the CLI's own "lenslesscam calibrate: error: ..." line), unlike every other line the
+    command prints. Installed for the command's duration only.
+    """
+    handler = logging.StreamHandler(_StderrNow())
+    handler.setLevel(logging.WARNING)
+    handler.setFormatter(_OneLineFormatter())
+    for name in _OUR_LOGGERS:
+        logging.getLogger(name).addHandler(handler)
+    return handler
+
+
+class _StderrNow:
+    """``sys.stderr`` as it is when written to (a test's capture replaces it)."""
+
+    def write(self, text: str) -> int:
+        return sys.stderr.write(text)
+
+    def flush(self) -> None:
+        sys.stderr.flush()
+
+
+class _OneLineFormatter(logging.Formatter):
+    """The record's first line, prefixed as a command's warnings are (no traceback)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        lines = record.getMessage().splitlines()
+        return f"lenslesscam: warning: {lines[0] if lines else ''}"
 
 
 def _device_error(exc: BaseException) -> bool:

@@ -315,3 +315,31 @@ def test_calibrate_takes_producer_and_counts_genicam_cameras_as_devices_does(
         assert rc == 2 and "--producer applies to --camera genicam" in err, err
         assert "Traceback" not in err
     assert not list(tmp_path.glob("x.*"))
+
+
+def test_a_drivers_log_warning_is_one_prefixed_line_of_the_command(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Our packages' log warnings print as the command's own warnings do.
+
+    Before, Python printed them bare (no handler): "v4l2:...: colour frames are reduced to
+    grey ..." (or, in calibrate, "could not switch the point source off: ...") under the
+    command's prefixed lines.
+    """
+    import cv2
+
+    for i in range(2):  # a colour recording read by the V4L2/OpenCV path, reduced to grey
+        img = np.zeros((12, 16, 3), np.uint8)
+        img[..., 2] = 200 + i
+        assert cv2.imwrite(str(tmp_path / f"{i:04d}.png"), img)
+    out = tmp_path / "f.tif"
+    argv = ["snap", "--camera", f"v4l2:{tmp_path}/%04d.png", "--out", str(out)]
+    assert app.cli.main(argv) == 0
+    said = [ln for ln in capsys.readouterr().err.splitlines() if "reduced to grey" in ln]
+    assert len(said) == 1 and said[0].startswith("lenslesscam: warning: v4l2 file "), said
+    assert out.exists()
+    import logging
+
+    # the command's handler is gone after it: nothing is printed twice in a second command
+    assert not [h for n in ("app", "drivers", "recon", "calibration")
+                for h in logging.getLogger(n).handlers]
