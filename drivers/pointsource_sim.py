@@ -38,6 +38,7 @@ import errno
 import os
 import re
 import select
+import shutil
 import signal
 import subprocess
 import sys
@@ -349,6 +350,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--silent", type=int, default=0, help="do not answer the first N commands")
     p.add_argument("--parent-pid", type=int,
                    help="exit when process PARENT_PID is no longer this process's parent")
+    p.add_argument("--remove-when-orphaned", type=Path, metavar="DIR",
+                   help="with --parent-pid: a temporary folder of the parent's (the state "
+                        "file's), removed when the firmware exits because the parent is gone")
     args = p.parse_args(argv)
 
     keep: list[int] = []
@@ -388,8 +392,9 @@ def main(argv: list[str] | None = None) -> int:
     _write(fd, f"READY {fw.identity}\n".encode())
     print(f"PORT {port_shown}", flush=True)
     print("READY", flush=True)
+    parent = _parent_to_watch(args.parent_pid)
     try:
-        serve(fd, fw, stop, wake_r, _parent_to_watch(args.parent_pid))
+        serve(fd, fw, stop, wake_r, parent)
     finally:
         with contextlib.suppress(OSError):
             fw.state = fw.state.evolve(mode=LightMode.OFF)
@@ -401,6 +406,10 @@ def main(argv: list[str] | None = None) -> int:
         for f in [fd, *keep, wake_r, wake_w]:
             with contextlib.suppress(OSError):
                 os.close(f)
+        if (args.remove_when_orphaned is not None and parent is not None
+                and os.getppid() != parent):
+            # the parent was killed outright (SIGKILL) and could not remove its folder
+            shutil.rmtree(args.remove_when_orphaned, ignore_errors=True)
     return 0
 
 
@@ -440,6 +449,7 @@ def spawn_simulated_source(
     link: str | os.PathLike[str] | None = None,
     extra_args: tuple[str, ...] = (),
     timeout_s: float = 15.0,
+    owned_folder: str | os.PathLike[str] | None = None,
 ) -> SimulatedSource:
     """Start the simulated firmware on a fresh PTY and wait until it is READY.
 
@@ -448,13 +458,19 @@ def spawn_simulated_source(
 
     The process runs in its own session, so the terminal's Ctrl-C (SIGINT to the foreground
     process group) does not kill it before the caller has switched the light off; it exits by
-    itself when the caller's process ends without stopping it.
+    itself when the caller's process ends without stopping it. ``owned_folder``: a temporary
+    folder of the caller's (holding the state file) that the firmware removes when it exits
+    that way, since the caller, killed outright, could not; the default state file's folder is
+    such a folder.
     """
     if state_path is None:
-        state_path = Path(tempfile.mkdtemp(prefix="lenslesscam-light-")) / "light-state.json"
+        owned_folder = tempfile.mkdtemp(prefix="lenslesscam-light-")
+        state_path = Path(owned_folder) / "light-state.json"
     state = Path(state_path)
     cmd = [sys.executable, "-m", "drivers.pointsource_sim", "--pty", "--state-file", str(state),
            "--parent-pid", str(os.getpid())]
+    if owned_folder is not None:
+        cmd += ["--remove-when-orphaned", str(owned_folder)]
     if link is not None:
         cmd += ["--link", str(link)]
     cmd += list(extra_args)

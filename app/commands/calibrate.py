@@ -219,7 +219,8 @@ def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
             from drivers.pointsource_sim import spawn_simulated_source
 
             tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="lenslesscam-cal-"))
-            sim = spawn_simulated_source(Path(tmp) / "light-state.json")
+            # removed by the firmware if this process is killed outright (no clean-up here)
+            sim = spawn_simulated_source(Path(tmp) / "light-state.json", owned_folder=tmp)
             stack.callback(sim.stop)
             state_path = sim.state_path
             port = sim.port

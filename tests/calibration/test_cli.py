@@ -300,7 +300,8 @@ def test_ctrl_c_in_the_terminal_switches_the_source_off_quietly(tmp_path):
 @pytest.mark.skipif(not HAS_PROC, reason="reads processes from Linux /proc")
 def test_firmware_exits_when_the_calibrate_process_is_killed(tmp_path):
     """SIGKILL gives the command no clean-up: its firmware (in its own session, out of reach
-    of the terminal's signals) notices that its parent is gone and exits by itself."""
+    of the terminal's signals) notices that its parent is gone and exits by itself, removing
+    the command's temporary folder (before, /tmp/lenslesscam-cal-* was left behind)."""
     import os
     import signal
     import time
@@ -313,6 +314,8 @@ def test_firmware_exits_when_the_calibrate_process_is_killed(tmp_path):
         while alive(fw) and time.monotonic() < deadline:
             time.sleep(0.1)
         assert not alive(fw), "the simulated firmware outlived its parent"
+        # and took the command's temporary folder (its state file) with it
+        assert not list(tmp_path.glob("lenslesscam-cal-*"))
     finally:
         if alive(fw):
             os.kill(fw, signal.SIGKILL)
