@@ -2,10 +2,11 @@
 
 :func:`atomic_write` and :func:`atomic_open` write to a temporary file in the same folder,
 flush, fsync, then ``os.replace`` it onto the target, so a crash or a full disk leaves either the
-old file or the new one, never half of one. :func:`atomic_folder` does the same for a folder of
-files written together (a simulation): they are written into a temporary sibling folder that
-takes the folder's place only once all of them are there. :func:`check_outputs` refuses, before
-anything is computed, writes that would overwrite an input or an existing file. What a saved
+old file or the new one, never half of one. :func:`atomic_files` does the same for a set of
+files written together (a simulation): they are staged in a hidden folder inside the target
+and moved in only once all of them are there, leaving every other file of the folder alone.
+:func:`check_outputs` refuses, before anything is computed, writes that would overwrite an
+input or an existing file. What a saved
 file contains (format versions, provenance, hashes) is :mod:`recon.formats`.
 """
 
@@ -25,13 +26,12 @@ from typing import IO, Any
 from recon.formats import json_default
 
 __all__ = [
-    "atomic_folder",
+    "atomic_files",
     "atomic_open",
     "atomic_write",
     "atomic_write_bytes",
     "atomic_write_json",
     "check_outputs",
-    "folder_swap_problem",
     "fsync_dir",
     "is_temp_name",
     "temp_files",
@@ -79,101 +79,55 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[A
 
 
 @contextlib.contextmanager
-def atomic_folder(path: str | os.PathLike[str], *, owned: Iterable[str] = ()) -> Iterator[Path]:
-    """Build a folder in a temporary sibling; on success it takes the place of ``path``.
+def atomic_files(path: str | os.PathLike[str], *, owned: Iterable[str] = (),
+                 last: Iterable[str] = ()) -> Iterator[Path]:
+    """Write a set of files into the folder ``path`` whole or not at all; touch nothing else.
 
-    Yields the temporary folder ``.<name>.partial-<pid>-<random>`` (same parent, so the final
-    rename stays on one file system); write every file into it. When the block ends normally,
-    the entries of an existing ``path`` that the caller does not own (names not in ``owned``
-    and not written into the new folder, for example a reconstruction saved beside a
-    simulation) are carried over as hard links (copies where links fail), the old folder is
-    renamed aside, the new one renamed in, and the old one deleted. On any exception
-    (``KeyboardInterrupt`` included) the temporary folder is removed and ``path`` is left as
-    it was. Whether an existing ``path`` may be replaced is the caller's to check first
-    (:func:`check_outputs`).
+    Yields a hidden staging folder ``.partial-<pid>-<random>`` inside ``path`` (made, with its
+    parents, when missing); write every file of the set into it (files, not folders). When the
+    block ends normally each staged file is moved onto its name in ``path`` (one rename each,
+    within one file system), the names in ``owned`` that this set does not write (the files of
+    an earlier set, listed by its record) are removed, and the names in ``last`` (that record)
+    are moved in after all the others. On any exception (``KeyboardInterrupt`` included) the
+    staging folder is removed and ``path`` is as it was (removed again when this call made it).
 
-    A kill between the two renames (a window of two system calls) leaves the old folder
-    complete under its aside name ``.<name>.old-<pid>-<random>``; a kill with SIGKILL during
-    the writes leaves the hidden partial folder, never a partial ``path``.
+    Entries of ``path`` outside the set (a reconstruction saved beside a simulation, a run
+    folder another process is writing into) are never moved, copied or deleted: an earlier
+    version swapped the whole folder for a new one, and files other processes wrote into it
+    while it was swapped were lost. It also needs no writable parent and works on the current
+    folder or a mount point. A kill during the final renames (a few system calls) can leave
+    some files new and others old, the record last; a kill earlier leaves the staging folder
+    (its name starts with ``.partial-``), never a partial file.
     """
     given = Path(path)
-    target = Path(os.path.realpath(given)) if given.is_symlink() else given
-    parent = target.parent
-    parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-{os.getpid()}-", dir=parent))
-    aside: Path | None = None
+    target = Path(os.path.realpath(given))  # a symlinked folder is written through the link
+    made = not target.exists()
+    target.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".partial-{os.getpid()}-", dir=target))
     try:
-        yield tmp
-        if target.is_dir():
-            skip = set(owned)
-            for entry in sorted(target.iterdir()):
-                if entry.name not in skip and not os.path.lexists(tmp / entry.name):
-                    _carry(entry, tmp / entry.name)
-            shutil.copymode(target, tmp)
-        else:
-            os.chmod(tmp, 0o777 & ~_umask_bits())  # mkdtemp makes it 0700
-        fsync_dir(tmp)
-        if target.is_dir():
-            aside = parent / f".{target.name}.old-{os.getpid()}-{os.urandom(4).hex()}"
-            os.rename(target, aside)
-        os.rename(tmp, target)
+        yield stage
+        staged = sorted(p.name for p in stage.iterdir())
+        records = [n for n in staged if n in set(last)]
+        for name in staged:
+            if name not in records:
+                os.replace(stage / name, target / name)
+        for stale in sorted(set(owned) - set(staged)):
+            with contextlib.suppress(FileNotFoundError):
+                (target / stale).unlink()
+        for name in records:
+            os.replace(stage / name, target / name)
+        stage.rmdir()
+        fsync_dir(target)
     except BaseException as exc:
-        if aside is not None and aside.is_dir() and not os.path.lexists(target):
-            os.rename(aside, target)  # put the old folder back
-        shutil.rmtree(tmp, ignore_errors=True)
-        full = _short_write(exc, target)
+        shutil.rmtree(stage, ignore_errors=True)
+        if made:
+            with contextlib.suppress(OSError):
+                target.rmdir()  # only when empty: nothing else is ever removed
+        full = _short_write(exc, given)
         if full is not None:
             raise full from exc
-        _name_target(exc, target)
+        _name_target(exc, given)
         raise
-    fsync_dir(parent)
-    if aside is not None:
-        shutil.rmtree(aside, ignore_errors=True)
-
-
-def folder_swap_problem(path: str | os.PathLike[str]) -> str | None:
-    """Why :func:`atomic_folder` cannot replace the folder ``path`` whole (None: it can).
-
-    It renames the folder aside and a new one in: not possible for a mount point, not
-    wanted for the current folder or one above it (the shell would be left in a deleted
-    folder; ``.`` cannot be renamed at all), and not allowed when the folder's parent is not
-    writable (its sibling cannot be made). A caller then writes the files one by one, each
-    atomically. Ask before the work: the answer may need a probe of the parent.
-    """
-    given = Path(os.path.abspath(path))
-    target = Path(os.path.realpath(given))
-    if not target.is_dir():
-        return None  # a new folder: made in its parent, which the output checks probe
-    if os.path.ismount(target):
-        return f"{given} is a mount point"
-    try:
-        cwd = Path.cwd().resolve()
-    except OSError:
-        cwd = None
-    if cwd is not None and (cwd == target or target in cwd.parents):
-        return f"{given} holds the current folder"
-    try:
-        os.rmdir(tempfile.mkdtemp(prefix=f".{target.name}.probe-", dir=target.parent))
-    except OSError as exc:
-        return f"its parent {target.parent} is not writable ({exc.strerror or exc})"
-    return None
-
-
-def _carry(src: Path, dst: Path) -> None:
-    """Carry ``src`` into a new folder: a hard link (a copy where linking fails), recursively."""
-    if src.is_symlink():
-        os.symlink(os.readlink(src), dst)
-    elif src.is_dir():
-        shutil.copytree(src, dst, symlinks=True, copy_function=_link_or_copy)
-    else:
-        _link_or_copy(str(src), str(dst))
-
-
-def _link_or_copy(src: str, dst: str) -> None:
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
 
 
 def is_temp_name(name: str) -> bool:

@@ -620,7 +620,7 @@ def test_a_short_write_is_said_as_the_full_disk_it_is(tmp_path):
     and the file, and leaves nothing behind."""
     import errno
 
-    from recon.atomic import atomic_folder, atomic_open, atomic_write
+    from recon.atomic import atomic_files, atomic_open, atomic_write
 
     def short(*_a, **_k):
         raise OSError("30000 requested and 17952 written")
@@ -630,7 +630,7 @@ def test_a_short_write_is_said_as_the_full_disk_it_is(tmp_path):
             short(fh)
 
     def via_folder(path):
-        with atomic_folder(path):
+        with atomic_files(path):
             short()
 
     for name, write in (("a.tif", lambda p: atomic_write(p, short)), ("b.bin", via_open),

@@ -35,8 +35,11 @@ def _tree(folder):
 
 
 def _debris(parent):
-    """Hidden partial / aside folders that a folder save left in ``parent``."""
-    return sorted(p.name for p in parent.iterdir() if p.name.startswith(".sim."))
+    """Hidden staging folders a save left in ``parent`` or in its ``sim`` folder."""
+    found = [p for p in parent.iterdir() if p.name.startswith((".sim.", ".partial-"))]
+    if (parent / "sim").is_dir():
+        found += [p for p in (parent / "sim").iterdir() if p.name.startswith(".partial-")]
+    return sorted(p.name for p in found)
 
 
 # --------------------------------------------------------------------------------------------
@@ -192,33 +195,18 @@ def test_an_overwrite_replaces_its_files_and_keeps_the_others(case, capsys):
     assert _debris(case) == []
 
 
-def test_the_current_folder_is_written_file_by_file(case, capsys, monkeypatch):
-    """`--out .` could not be renamed (EBUSY after all the work), and `--out $PWD` swapped
-    the shell's folder for a new one. Both now write the files one by one, with a note."""
+def test_the_current_folder_and_a_read_only_parent_are_written_whole(case, capsys,
+                                                                    monkeypatch):
+    """`--out .` could not be renamed (EBUSY after all the work), `--out $PWD` swapped the
+    shell's folder for a new one, and a folder in a parent that cannot be written was written
+    file by file, with a note. The files are now staged inside the folder: all three are
+    written whole, with no note, and the folder itself stays (the shell's folder)."""
+    import tempfile
+
     sim = case / "sim"
     sim.mkdir()
     (sim / "notes.txt").write_text("mine")
     monkeypatch.chdir(sim)
-    for out in (".", str(sim)):
-        code, _, err = _run(capsys, "simulate", "--psf", case / "psf.npy", "--scene",
-                            case / "scene.npy", "--out", out, "--overwrite")
-        assert code == 0, err
-        assert "holds the current folder" in err and "one by one" in err
-        assert os.getcwd() == str(sim) and (sim / "meas.npy").is_file()
-        assert (sim / "notes.txt").read_text() == "mine"
-    assert _debris(case) == [] and _debris(sim) == []
-
-
-def test_a_folder_whose_parent_cannot_be_written_is_written_file_by_file(case, capsys,
-                                                                         monkeypatch):
-    """The folder save makes a sibling: an existing, writable --out in a read-only parent
-    passed the output check, then failed after the work. Now it is written file by file."""
-    import tempfile
-
-    from recon import atomic
-
-    code, _, err = _run(capsys, *_sim(case))
-    assert code == 0, err
     real = tempfile.mkdtemp
 
     def refuse_in_parent(*a, **kw):
@@ -227,11 +215,39 @@ def test_a_folder_whose_parent_cannot_be_written_is_written_file_by_file(case, c
         return real(*a, **kw)
 
     monkeypatch.setattr(tempfile, "mkdtemp", refuse_in_parent)
-    assert "is not writable" in atomic.folder_swap_problem(case / "sim")
-    old = np.load(case / "sim" / "meas.npy")
-    code, _, err = _run(capsys, *_sim(case, "--seed", "5", "--noise", "0.05", "--overwrite"))
+    inode = sim.stat().st_ino
+    old = None
+    for seed, out in (("1", "."), ("2", str(sim))):
+        code, _, err = _run(capsys, "simulate", "--psf", case / "psf.npy", "--scene",
+                            case / "scene.npy", "--out", out, "--overwrite", "--seed", seed,
+                            "--noise", "0.05")
+        assert code == 0, err
+        assert "note" not in err, err
+        assert os.getcwd() == str(sim) and sim.stat().st_ino == inode
+        meas = np.load(sim / "meas.npy")
+        assert old is None or not np.array_equal(meas, old)
+        old = meas
+        assert (sim / "notes.txt").read_text() == "mine"
+    assert _debris(case) == []
+
+
+def test_other_entries_of_the_folder_are_never_moved_or_copied(case, capsys):
+    """`simulate --out DIR --overwrite` swapped DIR for a new folder holding links to its
+    other entries: files another process wrote into DIR (a run folder inside it) between the
+    copy and the swap were lost. The other entries are now left where they are."""
+    code, _, err = _run(capsys, *_sim(case))
     assert code == 0, err
-    assert "one by one" in err and not np.array_equal(np.load(case / "sim" / "meas.npy"), old)
+    runs = case / "sim" / "runs"
+    runs.mkdir()
+    (runs / "checkpoint.pt").write_bytes(b"weights")
+    before = (runs.stat().st_ino, (runs / "checkpoint.pt").stat().st_ino,
+              (case / "sim").stat().st_ino)
+    code, _, err = _run(capsys, *_sim(case, "--seed", "9", "--overwrite"))
+    assert code == 0, err
+    after = (runs.stat().st_ino, (runs / "checkpoint.pt").stat().st_ino,
+             (case / "sim").stat().st_ino)
+    assert after == before  # the same folder, the same files: nothing moved or copied
+    assert json.loads((case / "sim" / "simulation.json").read_text())["params"]["seed"] == 9
 
 
 def test_an_existing_output_still_needs_overwrite(case, capsys):
@@ -243,29 +259,47 @@ def test_an_existing_output_still_needs_overwrite(case, capsys):
     assert _tree(case / "sim") == before
 
 
-def test_atomic_folder_unit(tmp_path):
-    """The helper alone: a new folder appears whole, with the process's default permissions;
-    an exception removes the partial one; a symlinked target folder is replaced through
-    the link."""
-    from recon.atomic import atomic_folder
+def test_atomic_files_unit(tmp_path):
+    """The helper alone: a new folder gets the set whole, with the process's default
+    permissions; an exception removes the staging folder (and a folder it made); files of an
+    earlier set it owns are removed, the record is moved in last, others stay; a symlinked
+    folder is written through the link."""
+    from recon.atomic import atomic_files
 
-    with atomic_folder(tmp_path / "a") as tmp:
-        assert tmp.parent == tmp_path and tmp.name.startswith(f".a.partial-{os.getpid()}-")
+    with atomic_files(tmp_path / "a") as tmp:
+        assert tmp.parent == tmp_path / "a" and tmp.name.startswith(f".partial-{os.getpid()}-")
         (tmp / "x").write_text("1")
-        assert not (tmp_path / "a").exists()
-    assert (tmp_path / "a" / "x").read_text() == "1"
+        assert not (tmp_path / "a" / "x").exists()
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["x"]
     mask = os.umask(0)
     os.umask(mask)
     assert (tmp_path / "a").stat().st_mode & 0o777 == 0o777 & ~mask
-    with pytest.raises(RuntimeError), atomic_folder(tmp_path / "b") as tmp:
+    with pytest.raises(RuntimeError), atomic_files(tmp_path / "b") as tmp:
         (tmp / "x").write_text("1")
         raise RuntimeError("boom")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a"]
-    (tmp_path / "link").symlink_to(tmp_path / "a")
-    with atomic_folder(tmp_path / "link", owned=["x"]) as tmp:
+    with pytest.raises(RuntimeError), atomic_files(tmp_path / "a", owned=["x"]) as tmp:
         (tmp / "y").write_text("2")
+        raise RuntimeError("boom")
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["x"]  # as it was
+    (tmp_path / "a" / "mine").write_text("3")
+    (tmp_path / "link").symlink_to(tmp_path / "a")
+    order = []
+    real_replace = os.replace
+
+    def replace(src, dst):
+        order.append(os.path.basename(dst))
+        real_replace(src, dst)
+
+    import unittest.mock
+
+    with unittest.mock.patch("os.replace", replace), \
+            atomic_files(tmp_path / "link", owned=["x", "rec"], last=["rec"]) as tmp:
+        for name in ("rec", "y", "z"):
+            (tmp / name).write_text(name)
+    assert order == ["y", "z", "rec"]  # the record last
     assert (tmp_path / "link").is_symlink()
-    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["y"]
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["mine", "rec", "y", "z"]
 
 
 # --------------------------------------------------------------------------------------------

@@ -6,8 +6,8 @@
 (:func:`recon.simulate.simulate`); no separate simulation path.
 
 A scene of another shape than the sensor is resized to it (said on stderr and recorded in
-``simulation.json``); the output folder is written whole or not at all
-(:func:`recon.atomic.atomic_folder`).
+``simulation.json``); its files are written all or none, and nothing else in the output folder
+is touched (:func:`recon.atomic.atomic_files`).
 """
 
 from __future__ import annotations
@@ -246,13 +246,14 @@ def _write_files(folder: Path, files: dict[str, Any], meta: dict[str, Any]) -> N
 def run(args: argparse.Namespace) -> int:
     """Simulate and write meas.npy, mask.npy, truth.npy, psf.npy and simulation.json.
 
-    Everything is computed first; the folder is then written whole into a temporary sibling
-    and renamed into place (:func:`recon.atomic.atomic_folder`), so an error or Ctrl-C
-    during the save leaves no partial ``--out`` (and an existing one as it was).
+    Everything is computed first; the files are then staged in a hidden folder inside
+    ``--out`` and moved into place together (:func:`recon.atomic.atomic_files`), so an error
+    or Ctrl-C during the save leaves no partial set (and an existing one as it was); other
+    files in ``--out`` are not touched.
     """
     import numpy as np
 
-    from recon.atomic import atomic_folder, folder_swap_problem
+    from recon.atomic import atomic_files
     from recon.formats import FORMAT_VERSION, array_hash, provenance
     from recon.models import build_model
     from recon.simulate import simulate
@@ -260,8 +261,6 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     check_command_outputs(args, [out / f"{n}.npy" for n in OUTPUT_NAMES]
                           + [out / "simulation.json"])
-    # written whole where the folder can be swapped (else file by file, each atomically)
-    swap_problem = folder_swap_problem(out)
     psf = load_psf_spec(args.psf, args.downsample, parse_dark(args.dark))
     sensor = (int(psf.shape[-2]), int(psf.shape[-1]))
     extra = _model_inputs(args, sensor)
@@ -285,16 +284,10 @@ def run(args: argparse.Namespace) -> int:
             "scale": sim.scale, "saturated_pixels": sim.saturated,
             "hashes": {k: array_hash(v) for k, v in files.items()},
             "files": {k: f"{k}.npy" for k in files}, "notes": list(loaded.notes)}
-    if swap_problem is None:
-        # files an earlier simulate wrote here and this one does not (a shutter.npy of a
-        # video run) are dropped with the old folder; every other file in it is kept
-        with atomic_folder(out, owned=_written_before(out)) as tmp:
-            _write_files(tmp, files, meta)
-    else:
-        print(f"simulate: note: {swap_problem}: its files are replaced one by one, not the "
-              "folder whole", file=sys.stderr)
-        out.mkdir(parents=True, exist_ok=True)
-        _write_files(out, files, meta)
+    # files an earlier simulate wrote here and this one does not (a shutter.npy of a video
+    # run) are removed; every other entry of the folder is left as it is
+    with atomic_files(out, owned=_written_before(out), last=("simulation.json",)) as tmp:
+        _write_files(tmp, files, meta)
     print(json.dumps({"out": str(out), "model": args.model, "shape": list(sim.meas.shape),
                       "k": model.k, "erased": int((files["mask"] == 0).sum())}))
     measured = files["mask"] > 0
