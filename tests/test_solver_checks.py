@@ -235,3 +235,21 @@ def test_the_warning_and_the_plan_agree_on_a_budget_at_the_set_up_edge(capsys):
         err = capsys.readouterr().err
         setup = budget_room(k * spi, spi) <= 0
         assert ("does not even cover the set-up" in err) == setup, (k, err)
+
+
+def test_no_budget_warning_when_the_budget_is_not_what_limits_the_count(capsys):
+    """A trade's best setting of 30 iterations under a 1 s budget was warned about as "too few
+    to converge; give --budget 0.27s or more": a budget below the one given. The warning is
+    for counts the budget limits."""
+    import types
+
+    from app.commands.plan import warn_small_budget
+    from recon.plan.planner import min_useful_budget_s
+
+    spi = 0.004
+    need = min_useful_budget_s(spi)
+    for budget, warned in ((need * 0.5, True), (need * 2, False)):
+        plan = types.SimpleNamespace(method="fista-tv", budget_s=budget, iterations=30,
+                                     seconds_per_iter=spi, downsample=1)
+        warn_small_budget(plan)
+        assert ("too few" in capsys.readouterr().err) is warned, budget

@@ -391,8 +391,9 @@ def plan_from_trade(plan: Any, trade_csv: str, inputs: dict[str, Any] | None = N
     (:func:`load_inputs`), a trade measured on other data is warned about on stderr
     (:func:`trade_data_warning`); the plan still uses it.
 
-    Only settings the plan's run reproduces are candidates: full resolution; FISTA-TV and
-    ADMM-TV in the ``precision`` it will compute in (a plan records no solver precision:
+    Only settings the plan's run reproduces are candidates: full resolution; FISTA-TV (the
+    plan's solver; an ADMM-TV row is another image short of convergence) in the
+    ``precision`` it will compute in (a plan records no solver precision:
     ``recon auto`` runs it in float32, in float64 with ``--float64``); a UDN whose row records
     the network and run settings it measured (the plan carries them in ``udn``, its precision
     among them, and runs them). A better setting that is not a candidate is named in the
@@ -413,6 +414,12 @@ def plan_from_trade(plan: Any, trade_csv: str, inputs: dict[str, Any] | None = N
     def problem(r: Any) -> str | None:
         if r.method == "udn":
             return _udn_row_problem(r, plan)
+        if r.method != "fista":
+            # short of convergence (where a budget puts a trade's best rows) the two solvers
+            # give different images: an ADMM row run as FISTA-TV scored 17.99 dB, not its 18.20
+            return (f"is {r.method.upper()}-TV, which a plan does not run (its FISTA-TV at the "
+                    f"same tau and iterations is another image; recon {r.method} --tau "
+                    f"{r.tau:g} --iters {r.iterations} runs it)")
         if r.precision != precision:
             how = ("; recon auto --float64 chooses among the float64 ones"
                    if r.precision == "float64" else "")
@@ -428,11 +435,11 @@ def plan_from_trade(plan: Any, trade_csv: str, inputs: dict[str, Any] | None = N
         other = sorted({r.precision for r in full if r.method != "udn"} - {precision})
         also = (f" in {precision} (its {', '.join(other)} settings are not candidates: the "
                 f"plan runs in {precision})" if other else f" in {precision}")
-        udn_out = best_for_budgets([r for r in full if r.method == "udn"
-                                    and why_not[id(r)] is not None], [plan.budget_s],
-                                   key)[plan.budget_s]
-        if udn_out is not None:
-            also += f"; {udn_out.setting} fits but {why_not[id(udn_out)]}"
+        out = best_for_budgets([r for r in full if why_not[id(r)] is not None and (
+            r.method == "udn" or r.precision == precision)], [plan.budget_s],
+            key)[plan.budget_s]  # (rows of another precision are said above)
+        if out is not None:
+            also += f"; {out.setting} fits but {why_not[id(out)]}"
         raise ValueError(f"{trade_csv}: no measured setting fits the budget of "
                          f"{plan.budget_s:g} s{also}")
     method = "udn" if best.method == "udn" else "fista-tv"
@@ -444,8 +451,6 @@ def plan_from_trade(plan: Any, trade_csv: str, inputs: dict[str, Any] | None = N
     why = (f"from the trade ({trade_csv}): the best of {len(rows)} measured settings a "
            f"{precision} plan reproduces within {plan.budget_s:g} s was {best.setting} at "
            f"{best.iterations} iterations ({best.wall_s:.2f} s, {quality:.2f} dB {unit})")
-    if best.method == "admm":
-        why += "; run as FISTA-TV, which minimises the same objective"
     if method == "udn":
         why += f"; the plan runs the network it measured: {udn_text(best.udn_settings)}"
     top = best_for_budgets(full, [plan.budget_s], key)[plan.budget_s]
@@ -574,6 +579,10 @@ def warn_small_budget(plan: Any) -> None:
 
     if (plan.method != "fista-tv" or plan.budget_s is None or plan.iterations >= MIN_ITERS
             or not plan.seconds_per_iter):
+        return
+    if plan.budget_s >= min_useful_budget_s(plan.seconds_per_iter):
+        # the budget affords more: the count came from elsewhere (a trade's measured best,
+        # --set iterations=N), and "give --budget X" named an X below the budget given
         return
     n = plan.iterations
     setup = budget_room(plan.budget_s, plan.seconds_per_iter) <= 0  # as the plan's reason

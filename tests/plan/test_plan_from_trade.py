@@ -38,15 +38,37 @@ def test_plan_takes_the_best_setting_within_the_budget(tmp_path, capsys):
             "--trade", str(tmp_path / "trade.csv"), "--json", "--no-probe"]
     assert main([*base, "--budget", "1s"]) == 0
     plan = json.loads(capsys.readouterr().out)
-    assert plan["method"] == "fista-tv" and plan["tau"] == pytest.approx(3e-4)
-    assert plan["iterations"] == 200
-    assert "from the trade" in plan["reasons"]["method"] and "admm" in plan["reasons"]["method"]
+    # the ADMM row (34 dB) is better within 1 s, but a plan runs FISTA-TV, which at 200
+    # iterations is another image: it took that row's tau and count (and reason) before
+    assert plan["method"] == "fista-tv" and plan["tau"] == pytest.approx(1e-5)
+    assert plan["iterations"] == 50
+    why = plan["reasons"]["method"]
+    assert "from the trade" in why and "admm tau=0.0003 (34.00 dB) was better but" in why
+    assert "recon admm --tau 0.0003 --iters 200 runs it" in why
     assert plan["overridden"] == []  # measured, not set by the user: no [user] tag
     assert main([*base, "--budget", "10s"]) == 0
     plan = json.loads(capsys.readouterr().out)
     assert plan["tau"] == pytest.approx(1e-4) and plan["iterations"] == 500
     assert main([*base, "--budget", "0.01s"]) == 2
     assert "no measured setting fits" in capsys.readouterr().err
+    # only the ADMM row fits: refused, and the row named with why
+    assert main([*base, "--budget", "0.9s", "--trade", str(_only_admm(tmp_path))]) == 2
+    err = capsys.readouterr().err
+    assert "no measured setting fits the budget of 0.9 s" in err
+    assert "admm tau=0.0003 fits but is ADMM-TV, which a plan does not run" in err
+
+
+def _only_admm(tmp_path):
+    """A trade.csv whose one row within 0.9 s is ADMM-TV (the others take longer)."""
+    path = tmp_path / "admm.csv"
+    _write_trade(tmp_path / "all.csv")
+    with open(tmp_path / "all.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(r for r in rows if r["method"] == "admm" or float(r["wall_s"]) > 1)
+    return path
 
 
 def _save_pair(folder, shape, seed):
