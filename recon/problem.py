@@ -566,7 +566,9 @@ def prepare_truth(path: PathLike, scene_shape: Sequence[int], *, color: str = "g
     grid, or at sensor resolution: box-downsampled), one larger than the scene's cut to it.
     Refused in one line: a truth of a smaller field than the scene's (what a run scores, in
     its run record, ``jobs combine`` and a batch, is the whole array: ``lenslesscam metrics``
-    scores such a truth on its window), and a size that could be either field.
+    scores such a truth on its window), a size that could be either field, and a constant
+    truth (all zero or one value: no range to score against; ``lenslesscam metrics`` scores
+    a flat target with an explicit ``--data-range``).
     """
     from recon.truth import prepare_truth_like
 
@@ -583,6 +585,11 @@ def prepare_truth(path: PathLike, scene_shape: Sequence[int], *, color: str = "g
                          "around the truth is unknown; give a truth of the scene field, or "
                          "score the result with lenslesscam metrics (it scores the truth's "
                          "window)")
+    lo, hi = float(t.min()), float(t.max())
+    if lo == hi:  # scored at the end of the work: trade stopped after its first setting
+        raise ValueError(f"truth file {path} is constant (every value is {lo:g} on the "
+                         "reconstruction grid): nothing to score against (PSNR and SSIM need "
+                         "the truth's range); give the scene's truth, or no truth")
     return t
 
 

@@ -257,3 +257,19 @@ def test_a_float32_udn_setting_stays_a_candidate_under_float64(tmp_path):
     path = write_trade_csv(tmp_path / "trade.csv", rows, [])
     plan = plan_from_trade(base, path, None)
     assert plan.udn["config"]["precision"] == "bf16" and plan.udn == net16
+
+
+@pytest.mark.parametrize("value", [0.0, 0.5])
+def test_a_constant_truth_is_refused_before_any_setting_runs(pair, small_grid, tmp_path,
+                                                             capsys, value):
+    """`trade --truth` with an all-zero or constant truth ran its first setting, then stopped
+    with "ref is constant ... pass data_range explicitly" (no file named, an option trade does
+    not have), leaving trade.partial.jsonl and trade.lock; a UDN run scored it only at its end
+    ("not scored"). The problem loader refuses it, naming the file."""
+    np.save(tmp_path / "t.npy", np.full((24, 32), value, np.float32))
+    code, _, err = run_cli(capsys, "trade", *pair, "--truth", tmp_path / "t.npy", "--quick",
+                           "--no-udn", "--out", tmp_path / "out")
+    assert code == 2
+    assert f"truth file {tmp_path / 't.npy'} is constant (every value is {value:g}" in err
+    assert "data_range" not in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists()

@@ -620,17 +620,18 @@ def test_measurement_warnings_are_kept_in_the_run_record(tiny_data, tmp_path):
     assert record(tmp_path / "clean")["warnings"] == []
 
 
-def test_a_truth_that_cannot_score_leaves_a_finished_run(tiny_data, tmp_path):
+def test_a_truth_that_cannot_score_is_refused_before_the_run(tiny_data, tmp_path):
     """An all-zero truth (nothing to score against) made an overnight run end as failed,
-    exit 2, after its last iteration: its results count, the scores say why they are missing."""
+    exit 2, after its last iteration; then it ran to its end and said "not scored". The
+    problem loader now refuses it before the first iteration, naming the file, in the run's
+    record (the folder can be used again)."""
     np.save(tiny_data / "truth.npy", np.zeros_like(np.load(tiny_data / "truth.npy")))
     out = tmp_path / "run"
-    outcome = run_job(write_spec(tiny_data, stopping={"max_iter": 5}), out)
-    assert outcome.finish_reason == "completed"
+    with pytest.raises(ValueError, match=r"truth\.npy is constant \(every value is 0"):
+        run_job(write_spec(tiny_data, stopping={"max_iter": 5}), out)
     rec = record(out)
-    assert rec["status"] == "finished" and "scores" not in rec["results"]
-    assert rec["results"]["scores_note"].startswith("not scored: ref is constant")
-    assert (out / "best.tif").exists()
+    assert rec["finish_reason"] == "failed" and "truth.npy is constant" in rec["detail"]
+    assert not (out / "best.tif").exists() and not (out / "checkpoints").exists()
 
 
 def test_a_runs_own_job_toml_runs_again_with_its_relative_paths(tiny_data, tmp_path):
