@@ -461,7 +461,11 @@ class MainWindow(QMainWindow):
                            self.settings.psf_path, self.engine.settings.dark)
 
     def set_preview_tau(self, tau: float) -> None:
-        """Use ``tau`` in the preview (controls and engine)."""
+        """Use ``tau`` in the preview (controls and engine), the automatic tau switched off.
+
+        With *auto* on (the default) the engine kept its own estimate and the tau given was
+        put in the box and ignored; the status line says that *auto* went off.
+        """
         import dataclasses
 
         from app.gui.preview_engine import clamp_setting
@@ -469,10 +473,14 @@ class MainWindow(QMainWindow):
         if not math.isfinite(tau):
             self.show_error(f"tau {tau!r} is not a number; the preview keeps its tau")
             return
+        was_auto = self.preview_controls.settings().tau_auto
         s = dataclasses.replace(self.preview_controls.settings(),
-                                tau=clamp_setting("tau", float(tau)))
+                                tau=clamp_setting("tau", float(tau)), tau_auto=False)
         self.preview_controls.set_settings(s)
         self.set_preview_settings(s)
+        if was_auto:
+            self._status(f"preview tau {s.tau:.3g}: automatic tau off (tick auto to choose "
+                         "it from the frame again)")
 
     # -- states ----------------------------------------------------------------------------
 

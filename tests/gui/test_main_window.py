@@ -522,3 +522,18 @@ def test_the_devices_box_is_locked_while_a_workflow_drives_the_devices(live_wind
     assert all(x.isEnabled() for x in free)
     dp.set_light_connected(False)
     assert not dp.light_on.isEnabled() and dp.light_connect.isEnabled()
+
+
+def test_a_tau_applied_to_the_preview_is_the_tau_it_runs(live_window: Any, qtbot: Any) -> None:
+    """*Apply to preview* (the trade's suggestion) put its tau in the box and the settings
+    while *auto* (the default) stayed on, so the preview went on with its own estimate and
+    nothing said so. The applied tau now runs, *auto* is off and the status line says it."""
+    w = live_window
+    assert w.preview_controls.settings().tau_auto  # the default
+    seen: list[float] = []
+    w.preview_shown.connect(lambda res: seen.append(res.tau))
+    w.set_preview_tau(0.02)
+    assert not w.preview_controls.tau_auto.isChecked() and not w.engine.settings.tau_auto
+    assert "automatic tau off" in w.status_label.text()
+    qtbot.waitUntil(lambda: len(seen) >= 3, timeout=20_000)
+    assert seen[-1] == pytest.approx(0.02)
