@@ -1220,11 +1220,18 @@ def _dark_level(m: Measurement) -> float:
 
 
 def _plan_measurement(m: Measurement) -> Any:
-    """``recon.plan.make_plan`` on the dark-corrected frame and the PSF (no time budget)."""
-    from recon.plan import make_plan
+    """The plan ``lenslesscam plan`` makes of the dark-corrected frame and the PSF (no budget).
 
+    ``recon.plan.make_plan``, then, for FISTA-TV, tau and iterations chosen from held-out
+    pixels (:func:`recon.plan.auto_tau_plan`) as the command does when no tau is given: the
+    app's plan kept the fixed default tau (1e-3 where the command chose 1e-4).
+    """
+    from recon.plan import auto_tau_plan, make_plan
+
+    psf = np.asarray(m.psf, dtype=np.float32)
     meas = np.clip(np.asarray(m.frame.pixels, dtype=np.float32) - _dark_level(m), 0, None)
-    return make_plan(np.asarray(m.psf, dtype=np.float32), meas)
+    plan = make_plan(psf, meas)
+    return auto_tau_plan(plan, psf, meas) if plan.method == "fista-tv" else plan
 
 
 def _size_problem(frame: Any, psf: Any) -> str | None:

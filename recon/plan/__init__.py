@@ -5,7 +5,7 @@
 - :mod:`recon.plan.roi`: forward models on a region of the scene field.
 - :mod:`recon.plan.cost`: measured cost per iteration (cached) and the method for a budget.
 - :mod:`recon.plan.planner`: :class:`Plan` (with reasons, JSON, overrides),
-  :func:`make_plan`, :func:`execute`.
+  :func:`make_plan`, :func:`auto_tau_plan`, :func:`execute`.
 
 Torch is imported by these modules; import them only where torch is wanted.
 """
@@ -16,6 +16,7 @@ from recon.plan.planner import (
     Plan,
     PlanResult,
     SensorTimingLike,
+    auto_tau_plan,
     base_shutter,
     execute,
     make_plan,
@@ -30,6 +31,7 @@ __all__ = [
     "PlanResult",
     "Region",
     "SensorTimingLike",
+    "auto_tau_plan",
     "base_shutter",
     "build_region_model",
     "embed_region",

@@ -58,6 +58,7 @@ __all__ = [
     "Plan",
     "PlanResult",
     "SensorTimingLike",
+    "auto_tau_plan",
     "base_bin_lines",
     "base_shutter",
     "execute",
@@ -1325,3 +1326,72 @@ def _execute_udn(plan: Plan, model: ForwardModel, b: F32, t0: float,
     return PlanResult(np.asarray(res.best, dtype=np.float32), plan, plan.grid_region,
                       res.iterations, res.reason.value, time.perf_counter() - t0,
                       None, {"method": "udn", **cfg.to_dict(), "network": net.to_dict()})
+
+
+def auto_tau_plan(plan: Plan, psf: Any, meas: Any, *, shutter: Any = None,
+                  timing: Any = None, psf_stack: Any = None, mask: Any = None) -> Plan:
+    """The plan with tau and iterations chosen from held-out pixels on its own model.
+
+    What ``lenslesscam plan`` / ``recon auto`` and the app's planner do to a FISTA-TV plan whose
+    tau nobody set (the default tau is 1.5-6 dB from the best on unseen scenes).
+
+    The measurement is prepared by :func:`prepare`, as :func:`execute` runs it (scaled,
+    downsampled with the one mask rule); tau is searched on the solver's scale and stored per
+    full-resolution pixel as the plan defines it (x downsample; x K for a video's per-frame
+    weight).
+    """
+    from recon.autotau import AUTO_MAX_ITER, choose_tau
+
+    t0 = time.perf_counter()
+    prep = prepare(plan, psf, meas, shutter=shutter, timing=timing, psf_stack=psf_stack,
+                   mask=mask)
+    model, b_d = prep.model, prep.b
+    per_frame = plan.k if plan.model == "video" else 1
+    tv = plan_tv(plan, 1.0)[1]
+    limit = max(plan.iterations if plan.budget_s is not None else AUTO_MAX_ITER, 1)
+    # held-out errors after a handful of iterations rank nothing (at 1 iteration the search
+    # took the top of its range): below MIN_ITERS the taus are searched at MIN_ITERS, and the
+    # run keeps the budget's count
+    search_iter = max(limit, MIN_ITERS)
+    lo_rel, hi_rel = 1e-7 / per_frame, 1e-2 / per_frame
+    choice = choose_tau(model, torch.as_tensor(b_d, dtype=torch.float32), tv=tv,
+                        max_iter=search_iter, min_iter=min(100, search_iter),
+                        tau_range=(lo_rel, hi_rel))
+    unit = per_frame * plan.downsample  # the solver's tau -> the plan's (per full-res pixel)
+    tau = choice.tau * unit
+    iterations = min(choice.iterations, limit)
+    search_s = time.perf_counter() - t0  # the search and its preparation
+    spent = (f"{search_s:.1f} s, not counted in plan_s" + (
+        f" nor in the {plan.budget_s:g} s budget, which covers the reconstruction only"
+        if plan.budget_s is not None else ""))
+    scale = float(choice.settings.get("scale", 1.0))
+    lo, hi = lo_rel * scale * unit, hi_rel * scale * unit
+    edge = (" (the top of the range: a larger tau was not tried)" if tau >= hi * (1 - 1e-9)
+            else " (the bottom of the range)" if tau <= lo * (1 + 1e-9) else "")
+    searched = (f"{search_iter} iterations per tau" + (
+        f", not the budget's {limit}, which are too few to rank taus" if search_iter > limit
+        else ""))
+    tried = [t * unit for t, _e, _i in choice.curve]  # the values tried, not the range's ends
+    why = (f"chosen from held-out measured pixels ({choice.heldout_pixels} pixels, "
+           f"{len(choice.curve)} values of tau tried from {min(tried):.3g} to {max(tried):.3g}"
+           f" within {lo:.3g}-{hi:.3g} per full-resolution pixel{edge}, {searched}; "
+           f"recon.autotau); the search took {spent}")
+    new = plan.override(tau=tau, iterations=iterations)
+    its = f"{iterations} iteration{'s' if iterations != 1 else ''}"
+    verb = "were" if iterations != 1 else "was"
+    if plan.budget_s is not None and choice.iterations > limit:
+        chosen = (f"the budget's {its} {verb} kept (the held-out pixels chose "
+                  f"{choice.iterations}); tau was {why}")
+    elif plan.budget_s is not None:
+        chosen = f"within that limit {its} {verb} {why}"
+    else:
+        chosen = f"then {its} (at most {limit}) {verb} {why}"
+    reasons = {**new.reasons, "tau": why, "iterations": why,
+               "method": f"{new.reasons.get('method', '')}; {chosen}"}
+    evidence = {**new.evidence, "tau_search": {
+        "seconds": round(search_s, 3), "values_tried": len(choice.curve),
+        "heldout_pixels": choice.heldout_pixels, "max_iter": search_iter,
+        "tau_range": [lo, hi], "taus_tried": tried}}
+    # chosen by the planner, not set by the user
+    return dataclasses.replace(new, reasons=reasons, evidence=evidence,
+                               overridden=plan.overridden)

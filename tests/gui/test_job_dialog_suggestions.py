@@ -196,6 +196,38 @@ def test_the_real_planner_from_the_panel(panel: Any, qtbot: Any) -> None:
     assert not panel.new_job_dialog().suggestion_box.isEnabled()
 
 
+@pytest.mark.filterwarnings("ignore:PSF file .* looks saturated")  # the test's binary PSF
+def test_the_apps_planner_makes_the_plan_the_command_makes(panel: Any, qtbot: Any,
+                                                          tmp_path: Path,
+                                                          capsys: Any) -> None:
+    """The app's `Run planner` called make_plan alone and kept the fixed default tau (1e-3,
+    "the default TV weight"), while `lenslesscam plan` on the same frame chose tau and
+    iterations from held-out pixels (1e-4, 100): two plans for one measurement."""
+    import json
+
+    from app.cli import main
+    from app.gui.jobs_panel import _dark_level
+
+    dlg = panel.new_job_dialog()
+    qtbot.mouseClick(dlg.plan_button, _left())
+    qtbot.waitUntil(lambda: dlg.suggestion_box.isEnabled(), timeout=60_000)
+    (saved,) = panel.suggestion_dirs[0].glob("plan-*.json")
+    gui = json.loads(saved.read_text())
+    m = panel.state["m"]
+    meas = np.clip(m.frame.pixels.astype(np.float32) - _dark_level(m), 0, None)
+    np.save(tmp_path / "meas.npy", meas)
+    np.save(tmp_path / "psf.npy", m.psf)
+    capsys.readouterr()
+    assert main(["plan", "--psf", str(tmp_path / "psf.npy"), "--meas",
+                 str(tmp_path / "meas.npy"), "--json", "--no-probe"]) == 0
+    cli = json.loads(capsys.readouterr().out)
+    assert gui["method"] == cli["method"] == "fista-tv"
+    assert "held-out" in gui["reasons"]["tau"]
+    for key in ("model", "downsample", "region", "tau", "iterations"):
+        assert gui[key] == pytest.approx(cli[key]), key
+    dlg.close()
+
+
 def test_dialog_fits_1366x768(panel: Any) -> None:
     write_plan_suggestion(panel.suggestion_dirs[0], _plan(downsample=4),
                           _hashes(panel.state["m"]))
