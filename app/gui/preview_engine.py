@@ -756,8 +756,12 @@ class PreviewEngine:
         if self._mask is not None:
             b *= self._mask
         peak = float(b.max())
-        if peak > 0:
-            b *= np.float32(1.0 / peak)
+        if not peak > 0:  # black, and a residual over a zero norm (1e27 in the footer)
+            raise PreviewError(
+                f"the frame is all at or below the dark level {dark:g} (its brightest pixel: "
+                f"{float(frame.max()):g}): nothing to reconstruct; lower the dark level or "
+                "set it to auto, or open the shutter / light the scene")
+        b *= np.float32(1.0 / peak)
         return b
 
     def _display(self, x: Any) -> F32:

@@ -435,3 +435,17 @@ def test_a_frame_reports_the_tau_it_ran_with_when_the_estimate_ends_during_it(
     assert r.tau == 0.5 and "estimating" in r.tau_note, (r.tau, r.tau_note)
     r = eng.process(frame)  # the next frame takes the estimate, and says it
     assert r.tau != 0.5 and "heldout-blocks" in r.tau_note
+
+
+def test_a_frame_all_below_the_dark_level_is_refused_in_words(psf: np.ndarray) -> None:
+    """A dark level above every pixel left nothing after the subtraction: the preview showed
+    black and its footer a residual of 2.7e25 (a norm over zero), with no message. It is a
+    preview error naming the dark level and the frame's brightest pixel; auto dark works."""
+    frame = _frame(psf)
+    eng = PreviewEngine(psf, PreviewSettings(dark=float(frame.max()) + 1, downsample=1))
+    with pytest.raises(PreviewError, match=rf"all at or below the dark level {frame.max() + 1}"
+                       rf" \(its brightest pixel: {frame.max()}\)"):
+        eng.process(frame)
+    eng.set_settings(PreviewSettings(dark=None, downsample=1))
+    r = eng.process(frame)
+    assert np.isfinite(r.residual) and r.residual < 10 and float(r.image.max()) > 0
