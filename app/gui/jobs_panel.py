@@ -411,10 +411,12 @@ class NewJobDialog(QDialog):
         self._planner_queue.submit(work, name="plan", on_done=self._planned,
                                    on_error=self._plan_failed)
 
-    def _end_planner(self) -> None:
+    def _end_planner(self, wait: bool = True) -> None:
         q, self._planner_queue = self._planner_queue, None
-        if q is not None:
+        if q is not None and wait:
             q.shutdown()
+        elif q is not None:
+            q.abandon()
 
     def _planned(self, path: Path) -> None:
         self._end_planner()
@@ -478,8 +480,11 @@ class NewJobDialog(QDialog):
         return True
 
     def done(self, r: int) -> None:
-        """Close; a running planner is waited for (it takes seconds)."""
-        self._end_planner()
+        """Close at once; a running planner is left to end in the background, unwaited.
+
+        Waiting for it held the GUI thread for the plan's seconds (up to 10 s at 960x1280).
+        """
+        self._end_planner(wait=False)
         super().done(r)
 
     def sections(self) -> dict[str, dict[str, Any]]:

@@ -255,6 +255,19 @@ class TaskQueue(QObject):
             detach_thread(self._thread, self._runner)
         return ok
 
+    def abandon(self) -> None:
+        """Cancel every task and stop the thread without waiting: the GUI goes on at once.
+
+        A running task that has no cancellation point (a plan's analysis) ends in the
+        background; its callbacks are dropped. For work whose result is no longer wanted (a
+        dialog closed while it plans); :meth:`shutdown` waits.
+        """
+        self.cancel_all()
+        self._callbacks.clear()
+        self._thread.quit()
+        if not self._thread.isFinished():
+            detach_thread(self._thread, self._runner)
+
 
 class PreviewWorker(QObject):
     """Previews the newest frame on its own QThread; stale frames are dropped.

@@ -178,6 +178,37 @@ def test_run_planner_off_the_gui_thread_then_offer_its_plan(qtbot: Any, tmp_path
     assert len(list(tmp_path.glob("plan-*.json"))) == 1
 
 
+def test_closing_the_dialog_does_not_wait_for_its_planner(qtbot: Any, tmp_path: Path) -> None:
+    """Closing the job dialog while *Run planner* ran held the GUI thread until the plan
+    ended (up to 10 s at 960x1280). The dialog now closes at once; the planner ends in the
+    background, and its late result touches nothing."""
+    from app.gui.jobs_panel import NewJobDialog
+
+    m = _measurement(0)
+    started, release, finished = threading.Event(), threading.Event(), threading.Event()
+
+    def planner() -> Plan:
+        started.set()
+        release.wait(30)  # a plan's seconds: released 5 s after it starts (below)
+        finished.set()
+        return _plan(downsample=3, iterations=777)
+
+    dlg = NewJobDialog((48, 64), "test", hashes=_hashes(m), suggestion_dirs=[tmp_path],
+                       run_planner=planner, save_dir=tmp_path)
+    qtbot.addWidget(dlg)
+    qtbot.mouseClick(dlg.plan_button, _left())
+    assert started.wait(10)
+    threading.Timer(5.0, release.set).start()
+    dlg.reject()  # waited for the planner before, so it had finished when this returned
+    assert not finished.is_set() and not dlg.isVisible()
+    release.set()
+    from app.gui import workers
+
+    qtbot.waitUntil(lambda: not any(t.isRunning() for t, _ in workers._DETACHED),
+                    timeout=10_000)
+    assert dlg.max_iter.value() != 777  # the late plan was not applied to a closed dialog
+
+
 def test_the_real_planner_from_the_panel(panel: Any, qtbot: Any) -> None:
     """`Run planner` runs recon.plan.make_plan on the dark-corrected frame and saves it."""
     dlg = panel.new_job_dialog()
