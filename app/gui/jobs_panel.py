@@ -1217,11 +1217,9 @@ class JobsPanel(QWidget):
 
 def _dark_level(m: Measurement) -> float:
     """The measurement's dark level: the preview's, else the frame's 1st percentile."""
-    if m.dark is not None:
-        return float(m.dark)
-    flat = np.asarray(m.frame.pixels, dtype=np.float32).ravel()
-    k = flat.size // 100
-    return float(np.partition(flat, k)[k])
+    from app.gui.preview_engine import frame_dark_level
+
+    return frame_dark_level(m.frame.pixels, m.dark)
 
 
 def _plan_measurement(m: Measurement) -> Any:

@@ -62,6 +62,7 @@ __all__ = [
     "PreviewSettings",
     "PreviewStats",
     "clamp_setting",
+    "frame_dark_level",
     "frame_keywords",
     "run_one",
 ]
@@ -120,6 +121,17 @@ def _lower_priority(nice: int = 5) -> None:
     except (AttributeError, OSError):  # not Linux, or not permitted: run at normal priority
         pass
 
+
+def frame_dark_level(pixels: npt.ArrayLike, dark: float | None) -> float:
+    """The dark level of a frame for the app: ``dark``, or (None: auto) its 1st percentile.
+
+    The one rule of the preview, the job dialog's planner and the trade panel.
+    """
+    if dark is not None:
+        return float(dark)
+    flat = np.asarray(pixels, dtype=np.float32).ravel()
+    k = max(0, flat.size // 100)
+    return float(np.partition(flat, k)[k])
 
 class PreviewError(ValueError):
     """The frame cannot be previewed with this PSF and these settings (message says why)."""
@@ -736,12 +748,7 @@ class PreviewEngine:
         sensor: tuple[int, int],
     ) -> F32:
         f = frame.astype(np.float32)
-        if s.dark is None:
-            flat = f.ravel()
-            k = max(0, flat.size // 100)
-            dark = float(np.partition(flat, k)[k])
-        else:
-            dark = float(s.dark)
+        dark = frame_dark_level(f, s.dark)
         f -= np.float32(dark)
         np.maximum(f, np.float32(0.0), out=f)
         if roi is not None:
