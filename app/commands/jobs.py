@@ -226,13 +226,17 @@ def cmd_list(args: argparse.Namespace) -> int:
 
     root = Path(args.folder) if args.folder else _app_jobs_dir()
     if not root.is_dir():
+        if args.folder and root.exists():
+            raise ValueError(f"{root} is a file, not a folder: jobs list takes the folder that "
+                             "holds run folders (or a run folder)")
         if args.folder:
             raise ValueError(f"{root}: no such folder")
         print("[]" if args.json else f"no runs: the app's jobs folder {root} does not exist "
               "yet (give a folder to list another)")
         return 0
-    runs = sorted({p.parent for pattern in (f"*/{RECORD_FILE}", f"*/*/{RECORD_FILE}")
-                   for p in root.glob(pattern)})
+    # a run folder given itself is listed as itself (it listed nothing: "no runs")
+    runs = sorted({p.parent for pattern in (RECORD_FILE, f"*/{RECORD_FILE}",
+                                            f"*/*/{RECORD_FILE}") for p in root.glob(pattern)})
     rows: list[dict[str, Any]] = []
     for rd in runs:
         try:
@@ -250,6 +254,7 @@ def cmd_list(args: argparse.Namespace) -> int:
     print(f"{len(rows)} run(s) in {root}:")
     for r in rows:
         where = os.path.relpath(r["run_dir"], root)
+        where = Path(r["run_dir"]).name if where == "." else where  # the run folder given
         if "error" in r:
             print(f"  {where}  unreadable: {r['error']}")
             continue

@@ -341,3 +341,10 @@ def test_jobs_list_shows_each_run_and_names_a_damaged_one(two_runs, tmp_path, ca
     assert code == 0 and "does not exist yet" in out
     code, _, err = run_cli(capsys, "jobs", "list", tmp_path / "none")
     assert code == 2 and "no such folder" in err
+    # a file is said to be one (it was "no such folder"); a run folder lists itself (it was
+    # "no runs")
+    code, _, err = run_cli(capsys, "jobs", "list", root / "plain" / "run.json")
+    assert code == 2 and "is a file, not a folder" in err
+    code, out, _ = run_cli(capsys, "jobs", "list", root / "plain")
+    assert code == 0 and out.splitlines()[0] == f"1 run(s) in {root / 'plain'}:"
+    assert out.splitlines()[1].startswith("  plain  completed  iteration ")
