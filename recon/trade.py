@@ -46,6 +46,7 @@ from recon.models import build_model
 from recon.preprocess import box_downsample, downsample_masked
 
 __all__ = [
+    "TAU_MAX",
     "TRADE_FORMAT",
     "Case",
     "Config",
@@ -66,6 +67,9 @@ __all__ = [
 
 #: ``format`` of a ``trade.csv`` header (its ``format_version`` is :data:`FORMAT_VERSION`).
 TRADE_FORMAT = "lenslesscam.trade"
+#: the largest tau a ``trade.csv`` row may give: the TV weight on a max-1 measurement with a
+#: unit-sum PSF (the grids reach 1e-2; the app's preview takes 0..1)
+TAU_MAX = 1.0
 
 F32 = npt.NDArray[np.float32]
 
@@ -651,6 +655,9 @@ def read_trade(path: str | Path) -> TradeFile:
                                  "finite number")
         if kw["wall_s"] < 0 or kw["iterations"] < 0:
             raise ValueError(f"{path} line {line}: a negative wall time or iteration count")
+        if not 0.0 <= kw["tau"] <= TAU_MAX:  # -5 or 1e300 was applied to the preview as is
+            raise ValueError(f"{path} line {line}: column tau is {rec.get('tau')!r}, not in "
+                             f"0..{TAU_MAX:g} (the TV weight on a max-1 measurement)")
         rows.append(TradeRow(**kw))
     if not rows:
         raise ValueError(f"{path}: no rows (is it a trade.csv from lenslesscam trade?)")

@@ -41,6 +41,15 @@ def field_value(value: str | None) -> Any:
         raise ValueError(f"--field must be 'sensor', 'full' or HxW, got {value!r}") from None
 
 
+def add_dark_arguments(p: Any, dark_help: str = "dark level: a number, 'auto' or a "
+                       "dark-frame file") -> None:
+    """``--dark`` and ``--psf-dark``: one wording in every command the problem loader serves."""
+    p.add_argument("--dark", help=dark_help)
+    p.add_argument("--psf-dark", help="dark level of the PSF: a number, 'auto' or a dark-frame "
+                   "file (default: the --dark level; leave it out for a calibrated PSF file, "
+                   "which is dark-subtracted already, or give 0)")
+
+
 def dark_value(value: str | None, option: str = "--dark") -> Any:
     """``--dark`` (or ``option``): None, a number, 'auto' or an existing file (absolute)."""
     d = parse_dark(value, option)

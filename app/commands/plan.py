@@ -75,10 +75,9 @@ def add_plan_inputs(p: argparse.ArgumentParser) -> None:
                                    "(its full-resolution settings in the precision the run "
                                    "uses: float32, or float64 with recon auto --float64)")
     p.add_argument("--field", default="sensor", help="scene field: sensor, full (2x) or HxW")
-    p.add_argument("--dark", help="dark level: a number, 'auto' or a dark-frame file")
-    p.add_argument("--psf-dark", help="dark level of the PSF: a number, 'auto' or a dark-frame "
-                   "file (default: the --dark level; leave it out for a calibrated PSF file, "
-                   "which is dark-subtracted already, or give 0)")
+    from app.commands._inputs import add_dark_arguments
+
+    add_dark_arguments(p)
     p.add_argument("--rgb", action="store_true", help="colour measurement and PSF")
     p.add_argument("--tau", type=tau_type, default=None, metavar="TAU|auto",
                    help="TV weight of a FISTA-TV plan; 'auto' (default) chooses it and the "

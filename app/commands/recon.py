@@ -150,10 +150,9 @@ def add_input_arguments(p: argparse.ArgumentParser, *, float64: bool = True,
     p.add_argument("--filters",
                    help=hide or "spectral: filter cube (K, H, W) (.npy/.npz/.mat/.tif)")
     p.add_argument("--downsample", type=POSITIVE_INT, default=1, help="box downsampling factor")
-    p.add_argument("--dark", help="dark level: a number, 'auto' or a dark-frame file")
-    p.add_argument("--psf-dark", help="dark level of the PSF: a number, 'auto' or a dark-frame "
-                   "file (default: the --dark level; leave it out for a calibrated PSF file, "
-                   "which is dark-subtracted already, or give 0)")
+    from app.commands._inputs import add_dark_arguments
+
+    add_dark_arguments(p)
     p.add_argument("--rgb", action="store_true", help="reconstruct colour channels")
     p.add_argument("--field", default="sensor", help="scene field: sensor, full (2x) or HxW")
     if float64:

@@ -38,9 +38,9 @@ def register(sub: Any) -> None:
     p.add_argument("--psf", help="PSF file")
     p.add_argument("--mask", help="erasure mask (1 = measured)")
     p.add_argument("--truth", help="ground truth (C,1,H,W) or (H,W), if known")
-    p.add_argument("--dark", help="dark level of the measurement (and of a PSF file that is not "
-                   "a calibrated, dark-subtracted one)")
-    from app.commands._inputs import add_layout_arguments
+    from app.commands._inputs import add_dark_arguments, add_layout_arguments
+
+    add_dark_arguments(p)  # as plan and recon: the loader's refusals name --psf-dark
 
     add_layout_arguments(p)
     p.add_argument("--downsample", type=POSITIVE_INT, default=1,
@@ -379,7 +379,7 @@ def _write_outputs(args: argparse.Namespace, out: Path, rows: list[Any], cases: 
     earlier ones (a resumed trade), counted in the time trade.md gives.
     """
     from recon.atomic import atomic_write_bytes
-    from recon.trade import best_for_budgets, pareto_front, rank_correlation, write_trade_csv
+    from recon.trade import write_trade_csv
 
     argv = sys.argv[1:]
     command = " ".join(argv[argv.index("trade"):] if "trade" in argv else ["trade"])
@@ -403,8 +403,25 @@ def _write_outputs(args: argparse.Namespace, out: Path, rows: list[Any], cases: 
         took = earlier_s + this
         over = (f" over {sessions} sessions (resumed; an interrupted session counted up to its "
                 "last measured setting)" if sessions > 1 else "")
-    md = [f"# Speed/accuracy trade\n\nProduced by `lenslesscam {command}` "
-          f"in {took:.0f} s{over}, {threads.reason}. Wall time "
+    md = trade_markdown(rows, cases, budgets,
+                        f"Produced by `lenslesscam {command}` in {took:.0f} s{over}, "
+                        f"{threads.reason}.",
+                        "Every point is in `trade.csv`; the plot is `trade_pareto.png`.")
+    atomic_write_bytes(out / "trade.md", md.encode())
+    _plot(cases, rows, out / "trade_pareto.png")
+    print(md)
+
+
+def trade_markdown(rows: list[Any], cases: list[Any], budgets: list[float], produced: str,
+                   closing: str) -> str:
+    """``trade.md``: the best setting per budget and the Pareto front of each case.
+
+    ``produced`` says what made the trade (its first sentences), ``closing`` where the points
+    are. The one writer of the file: the command and the app's trade panel (*Save trade…*).
+    """
+    from recon.trade import best_for_budgets, pareto_front, rank_correlation
+
+    md = [f"# Speed/accuracy trade\n\n{produced} Wall time "
           "is the time to reach the iteration count (one run per setting, scored at several "
           "counts); peak memory is the run's peak resident memory above its start.\n"]
     for case in cases:
@@ -428,10 +445,8 @@ def _write_outputs(args: argparse.Namespace, out: Path, rows: list[Any], cases: 
             md.append(f"| {r.setting} | {r.iterations} | {r.wall_s:.2f} | {r.peak_mem_mb} | "
                       f"{r.heldout_psnr:.2f} | {r.residual:.4f} | "
                       + (f"{r.psnr:.2f} | {r.ssim:.3f} |" if r.psnr is not None else "- | - |"))
-    md.append("\nEvery point is in `trade.csv`; the plot is `trade_pareto.png`.\n")
-    atomic_write_bytes(out / "trade.md", "\n".join(md).encode())
-    _plot(cases, rows, out / "trade_pareto.png")
-    print("\n".join(md))
+    md.append(f"\n{closing}\n")
+    return "\n".join(md)
 
 
 def _plot(cases: list[Any], rows: list[Any], path: Path) -> None:

@@ -67,18 +67,21 @@ from app.gui.panels import (
     make_sidebar,
     set_status,
 )
-from app.gui.preview_engine import PreviewEngine, PreviewResult, PreviewSettings
+from app.gui.preview_engine import (
+    PreviewEngine,
+    PreviewResult,
+    PreviewSettings,
+    saturation_verdict,
+)
 from app.gui.settings import AppSettings, default_jobs_dir, save_settings
 from app.gui.trade_panel import TradePanel
 from app.gui.widgets import never_wider
 from app.gui.workers import PreviewWorker, TaskQueue
 
-__all__ = ["SATURATED_SKIP_FRACTION", "MainWindow", "WorkflowHandle", "load_psf_any"]
+__all__ = ["MainWindow", "WorkflowHandle", "load_psf_any"]
 
 _log = logging.getLogger(__name__)
 
-#: A frame with at least this fraction of its pixels at the top code is not reconstructed.
-SATURATED_SKIP_FRACTION = 0.5
 
 
 def _describe(exc: BaseException) -> str:
@@ -789,18 +792,15 @@ class MainWindow(QMainWindow):
         self._camera_rate.tick(frame.timestamp)
         self.frames_shown += 1
         if self.preview_controls.enabled.isChecked() and self.engine.has_psf:
-            n = frame.pixels.size
-            sat = self.raw_panel.saturated
-            if self.raw_panel.saturation_level is not None and n and (
-                    sat >= SATURATED_SKIP_FRACTION * n):
+            known = self.raw_panel.saturation_level is not None
+            refusal, warning = saturation_verdict(
+                self.raw_panel.saturated if known else 0, frame.pixels.size)
+            if refusal is not None:
                 self.frames_skipped_saturated += 1
-                self.preview_panel.set_message(
-                    f"frame saturated ({100.0 * sat / n:.0f} % of the pixels at full scale): "
-                    "not reconstructed – lower the exposure, gain or source intensity")
+                self.preview_panel.set_message(refusal)
             else:
-                if sat:
-                    self.preview_panel.set_message(
-                        f"warning: {sat} saturated pixel(s) in the frame")
+                if warning:
+                    self.preview_panel.set_message(warning)
                 elif self.preview_panel.message.text().startswith("warning:"):
                     self.preview_panel.set_message("")
                 self.preview_worker.submit(frame)

@@ -53,6 +53,7 @@ from recon.fista import Fista
 __all__ = [
     "MODELS",
     "RANGES",
+    "SATURATED_SKIP_FRACTION",
     "FrameSlot",
     "PreviewCancelled",
     "PreviewEngine",
@@ -65,6 +66,7 @@ __all__ = [
     "frame_dark_level",
     "frame_keywords",
     "run_one",
+    "saturation_verdict",
 ]
 
 F32 = npt.NDArray[np.float32]
@@ -121,6 +123,22 @@ def _lower_priority(nice: int = 5) -> None:
     except (AttributeError, OSError):  # not Linux, or not permitted: run at normal priority
         pass
 
+
+#: A frame with at least this fraction of its pixels at the top code is not reconstructed.
+SATURATED_SKIP_FRACTION = 0.5
+
+
+def saturation_verdict(saturated: int, n_pixels: int) -> tuple[str | None, str]:
+    """``(refusal, warning)`` for a frame with ``saturated`` of ``n_pixels`` at full scale.
+
+    The one rule of the live preview and the trade panel: at least
+    :data:`SATURATED_SKIP_FRACTION` of the pixels refuses the frame (the text says why and what
+    to change); fewer, but some, is a warning; none, ``(None, "")``.
+    """
+    if n_pixels and saturated >= SATURATED_SKIP_FRACTION * n_pixels:
+        return (f"frame saturated ({100.0 * saturated / n_pixels:.0f} % of the pixels at full "
+                "scale): not reconstructed – lower the exposure, gain or source intensity", "")
+    return None, (f"warning: {saturated} saturated pixel(s) in the frame" if saturated else "")
 
 def frame_dark_level(pixels: npt.ArrayLike, dark: float | None) -> float:
     """The dark level of a frame for the app: ``dark``, or (None: auto) its 1st percentile.
