@@ -6,9 +6,12 @@ record says ``done`` with the same item hash and an intact result, starts Ray (e
 the terminal) or joins a cluster (``address``), submits one task per remaining item, and
 collects them as they finish: a live progress bar, ``state.json`` rewritten about once a second
 (for ``lenslesscam batch status``), a ``CANCEL`` file polled (``lenslesscam batch cancel``), and
-at the end the summary tables. Ray's own retries handle lost workers and transient errors
-(``max_retries``); an item that still fails is recorded as failed with its error and the batch
-goes on.
+at the end the summary tables. Ray's own retries handle lost workers (``max_retries``); an
+exception an item raises is recorded by its task as failed at once (it would only happen again),
+and the batch goes on. Ray's reports of failed tasks and dead workers are kept off the terminal
+(the batch says what happened, one line per item), and SIGTERM / SIGHUP cancel the batch as
+Ctrl-C does (``ray.init`` installs a handler that aborted the driver). Whether Ray is installed
+and the cluster's address answers is checked before the batch folder is made.
 
 Joining a cluster at ``HOST:PORT`` first opens a plain TCP connection to that address, bounded
 by ``connect_timeout_s`` (``--connect-timeout``): ``ray.init`` itself retries an address where
@@ -42,12 +45,14 @@ from app.batch.state import (
     STATE_FORMAT,
     BatchLock,
     BatchPaths,
+    check_not_newer,
     now_utc,
     read_state,
     write_state,
 )
 from app.batch.summary import write_summary
 from app.batch.task import ITEM_FORMAT, run_item
+from app.commands._common import TerminateAsInterrupt
 
 __all__ = ["BatchOptions", "BatchReport", "run_batch", "start_ray"]
 
@@ -72,7 +77,7 @@ class BatchOptions:
     num_cpus: int | None = None  # embedded Ray's CPUs (None: all cores)
     cpus_per_item: int = 1  # CPUs (= torch threads) of a fista / auto / ... task
     udn_cpus: int = 1  # CPUs (= torch threads) of a udn task on a cluster without GPUs
-    max_retries: int = 2  # Ray retries of a task whose worker died or that raised
+    max_retries: int = 2  # Ray retries of a task whose worker died (not of an exception)
     progress: bool | None = None  # None: a progress bar when stderr is a terminal
     poll_s: float = 0.5
 
@@ -209,13 +214,58 @@ def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
                        f"connections but {not_ray}; give {port_hint}") from None
 
 
+_NEED_RAY = "lenslesscam batch needs Ray: pip install -c constraints.txt 'lenslesscam[batch]'"
+
+
+def check_ray_installed() -> None:
+    """Raise a one-line :class:`~app.cli.CliError` when Ray is not installed (no import)."""
+    import importlib.util
+
+    if importlib.util.find_spec("ray") is None:
+        from app.cli import CliError
+
+        raise CliError(_NEED_RAY)
+
+
+def _quiet_ray_reports() -> None:
+    """Keep Ray's own reports of failed and retried tasks off the terminal.
+
+    Ray prints them (``(raylet) Task run_item failed. There are 2 retries remaining ...``, a
+    dead worker's notice, each with a coloured traceback) on the driver's stdout from a
+    thread that ``log_to_driver=False`` does not stop, and it has no setting for that. The
+    batch says what happened to an item itself, in one line (its record, the summary, the
+    final lines); Ray's reports stay in its session logs. Its "Unhandled error" reports of
+    results never fetched (cancelled tasks) are off too (``RAY_IGNORE_UNHANDLED_ERRORS``).
+    """
+    os.environ.setdefault("RAY_IGNORE_UNHANDLED_ERRORS", "1")
+    try:
+        from ray._private import worker as ray_worker
+    except ImportError:  # another Ray layout: its reports stay
+        return
+    original = getattr(ray_worker, "print_to_stdstream", None)
+    if original is None or getattr(original, "lenslesscam_quiet", False):
+        return
+    log = logging.getLogger("app.batch.ray")
+
+    def quiet(data: dict[str, Any], ignore_prefix: bool) -> None:
+        if data.get("pid") == "raylet":  # the error reports, not a worker's own output
+            for line in data.get("lines") or ():
+                log.debug("%s", line)
+            return
+        original(data, ignore_prefix=ignore_prefix)
+
+    quiet.lenslesscam_quiet = True  # type: ignore[attr-defined]
+    ray_worker.print_to_stdstream = quiet
+
+
 def start_ray(address: str | None, num_cpus: int | None,
-              connect_timeout_s: float = CONNECT_TIMEOUT_S) -> bool:
+              connect_timeout_s: float = CONNECT_TIMEOUT_S, probe: bool = True) -> bool:
     """Start embedded Ray or join a cluster; True when this call started it (and owns it).
 
     A ``HOST:PORT`` address that does not accept a TCP connection within ``connect_timeout_s``,
     or then does not answer as a gRPC server (Ray's GCS) within it again, is a one-line
-    :class:`~app.cli.CliError` (see :func:`check_reachable`).
+    :class:`~app.cli.CliError` (see :func:`check_reachable`; ``probe=False``: the caller has
+    checked).
     """
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no usage reports, ever
     try:
@@ -223,13 +273,14 @@ def start_ray(address: str | None, num_cpus: int | None,
     except ImportError:
         from app.cli import CliError
 
-        raise CliError("lenslesscam batch needs Ray: pip install -c constraints.txt "
-                       "'lenslesscam[batch]'") from None
+        raise CliError(_NEED_RAY) from None
 
     if ray.is_initialized():
         return False
+    _quiet_ray_reports()
     if address:
-        check_reachable(address, connect_timeout_s)
+        if probe:
+            check_reachable(address, connect_timeout_s)
         try:
             given = address.strip()
             ray.init(address=given.lower() if given.lower() in ("auto", "local") else given,
@@ -261,8 +312,10 @@ def finished_record(paths: BatchPaths, item: Item, h: str) -> dict[str, Any] | N
         rec = json.loads(p.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
-    if (not isinstance(rec, dict) or rec.get("format") != ITEM_FORMAT
-            or rec.get("status") != "done" or rec.get("item_hash") != h):
+    if not isinstance(rec, dict) or rec.get("format") != ITEM_FORMAT:
+        return None
+    check_not_newer(rec, p)
+    if rec.get("status") != "done" or rec.get("item_hash") != h:
         return None
     out = paths.root / str(rec.get("output", ""))
     if not out.is_file() or file_hash(out) != rec.get("output_hash"):
@@ -317,10 +370,11 @@ class _Driver:
             return 0
 
     # -- the run -----------------------------------------------------------------------------
-    def plan(self) -> list[tuple[Item, str, dict[str, str | None]]]:
+    def plan(self, known: dict[str, dict[str, str | None]] | None = None
+             ) -> list[tuple[Item, str, dict[str, str | None]]]:
         todo = []
         for it in self.items:
-            hashes = input_hashes(it)
+            hashes = (known or {}).get(it.id) or input_hashes(it)
             h = item_hash(it, hashes)
             self.hashes[it.id] = h
             rec = finished_record(self.paths, it, h)
@@ -363,8 +417,10 @@ class _Driver:
             else:
                 cpus = self.opts.cpus_per_item
                 opts = {"num_cpus": cpus}
+            # Ray retries a task whose worker died; an exception is the item's own (the task
+            # records it as failed) and would only happen again
             ref = remote.options(**opts, max_retries=self.opts.max_retries,
-                                 retry_exceptions=True, name=f"batch:{it.id}").remote(
+                                 retry_exceptions=False, name=f"batch:{it.id}").remote(
                 it, str(self.paths.root), h, hashes, cpus)
             pending[ref] = (it, h)
         show = sys.stderr.isatty() if self.opts.progress is None else self.opts.progress
@@ -375,7 +431,7 @@ class _Driver:
         failed = 0
         try:
             while pending:
-                try:
+                try:  # Ctrl-C or SIGTERM anywhere in a round cancels the batch cleanly
                     ready, _ = ray.wait(list(pending), num_returns=len(pending),
                                         timeout=self.opts.poll_s)
                     for ref in ready:
@@ -401,21 +457,22 @@ class _Driver:
                         bar.update(1)
                     if not self.cancelling and self.paths.cancel_file.exists():
                         self.cancel(pending)
+                    if (self.cancel_deadline is not None
+                            and time.monotonic() > self.cancel_deadline):
+                        for ref in pending:
+                            ray.cancel(ref, force=True)
+                        self.cancel_deadline = None
+                    running = self.running_count()
+                    bar.set_postfix_str(f"running {running}, failed {failed}", refresh=False)
+                    if time.monotonic() - self._last_state > 1.0:
+                        eta = None
+                        if self.ran and pending:
+                            eta = (time.monotonic() - self.t0) / self.ran * len(pending)
+                        self.write_state("cancelling" if self.cancelling else "running", eta)
                 except KeyboardInterrupt:
                     if self.cancelling:
                         raise
                     self.cancel(pending)
-                if self.cancel_deadline is not None and time.monotonic() > self.cancel_deadline:
-                    for ref in pending:
-                        ray.cancel(ref, force=True)
-                    self.cancel_deadline = None
-                running = self.running_count()
-                bar.set_postfix_str(f"running {running}, failed {failed}", refresh=False)
-                if time.monotonic() - self._last_state > 1.0:
-                    eta = None
-                    if self.ran and pending:
-                        eta = (time.monotonic() - self.t0) / self.ran * len(pending)
-                    self.write_state("cancelling" if self.cancelling else "running", eta)
         finally:
             bar.close()
 
@@ -448,10 +505,14 @@ def _check_batch_folder(root: Path, manifest: Path) -> None:
     """
     if root.exists() and not root.is_dir():
         raise ValueError(f"{root} exists and is not a folder: --out names the batch's folder")
+    from recon.formats import NewerFormat
+
     damage = None
     try:
         st = read_state(root, missing_ok=True)
         lost = "missing"
+    except NewerFormat:  # not damaged: another release's batch, never overwritten
+        raise
     except ValueError as exc:  # damaged: the item records below still say what was done
         st, lost, damage = {}, "damaged", exc
     if st:
@@ -545,19 +606,29 @@ def run_batch(manifest: str | Path, out: str | Path,
             raise ValueError(f"{it.source}: item {it.id}'s {inside[0]} lies in the batch "
                              f"folder {root}, which the batch writes: move it out")
     paths = BatchPaths(root)
+    # what must run, and whether Ray can run it, before anything is written: a run that could
+    # not start (Ray missing, a cluster not there) left a half-made folder, "interrupted"
+    known = {it.id: input_hashes(it) for it in items}
+    if any(finished_record(paths, it, item_hash(it, known[it.id])) is None for it in items):
+        check_ray_installed()
+        if opts.address is not None:
+            check_reachable(opts.address, opts.connect_timeout_s)
     paths.make()
     lock = BatchLock(root).acquire()
     owns_ray = False
     drv = _Driver(manifest, root, items, opts)
     final = "failed"
+    signals = TerminateAsInterrupt()
     try:
+        signals.install()  # SIGTERM / SIGHUP stop the batch as Ctrl-C does
         paths.cancel_file.unlink(missing_ok=True)  # a request from an earlier run is spent
         for stale in paths.items_dir.glob("*.running"):
             stale.unlink(missing_ok=True)  # no worker of an earlier driver outlives it
+        _clean_temp_files(paths)
         for it in items:
             drv.status[it.id] = "pending"
         drv.write_state("starting")
-        todo = drv.plan()
+        todo = drv.plan(known)
         drv.write_state("running")
         if opts.progress is not False:  # one line, also in a log (the bar only on a terminal)
             where = (f"joining the Ray cluster at {opts.address}" if opts.address else
@@ -565,7 +636,9 @@ def run_batch(manifest: str | Path, out: str | Path,
             print(f"batch: {len(items)} items, {len(items) - len(todo)} already done, "
                   f"{len(todo)} to run; {where if todo else 'nothing to run'}", file=sys.stderr)
         if todo:
-            owns_ray = start_ray(opts.address, opts.num_cpus, opts.connect_timeout_s)
+            owns_ray = start_ray(opts.address, opts.num_cpus, opts.connect_timeout_s,
+                                 probe=False)
+            signals.install()  # ray.init put its own (fatal) SIGTERM handler in place
             drv.execute(todo)
         counts: dict[str, int] = {}
         for s in drv.status.values():
@@ -591,4 +664,22 @@ def run_batch(manifest: str | Path, out: str | Path,
             import ray
 
             ray.shutdown()
+        signals.restore()
         lock.release()
+
+
+def _clean_temp_files(paths: BatchPaths) -> list[Path]:
+    """Remove the temporary files of atomic writes a kill interrupted (the lock is held).
+
+    In the batch folder, ``items/`` and ``results/`` (``.x.tif.abc.tmp``; the targets are
+    intact). A UDN run folder in ``runs/`` cleans its own when its job starts or resumes.
+    """
+    from recon.atomic import temp_files
+
+    removed = []
+    for folder in (paths.root, *paths.folders()):
+        for p in temp_files(folder):
+            with contextlib.suppress(FileNotFoundError):
+                p.unlink()
+                removed.append(p)
+    return removed

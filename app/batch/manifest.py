@@ -23,7 +23,8 @@ TOML: ``[defaults]`` (columns every item gets unless it sets them) and ``[[item]
 Columns:
 
 - ``measurement`` (required): a file, or a glob (``*``, ``?``, ``[``) that expands to one item
-  per matching file, in sorted order. A glob that matches nothing is an error.
+  per matching file, in sorted order. A glob that matches nothing is an error; a file whose
+  name is the cell itself (``e[1]/a.npy``) is that file, not a glob.
 - ``method`` (required): a method of ``lenslesscam recon`` (``fista``, ``auto``, ``udn``, ...).
 - ``name``: the item's id (default: the measurement's stem and the method); with a glob, the
   stem is appended.
@@ -36,7 +37,9 @@ Columns:
   (``psf``, ``mask``, ``shutter``, ``filters``, ``dark``, ``downsample``, ``tau``, ``iters``,
   ``model``, ...); flags take ``true``/``false``. An empty CSV cell means "not set"; a TOML
   ``[defaults]`` key that an item's method does not take is left out for that item (the same
-  key written in the item is an error).
+  key written in the item is an error; a key that no method takes is an error). A default
+  replaces a ``spec``'s ``[data]`` keys, never its solver's (``iters``, ``seed``: only the
+  item's own columns replace ``max_iter`` and ``seed``).
 
 Relative paths are relative to the manifest's folder. Every item is checked when the manifest
 is read (with the very parser of ``lenslesscam recon METHOD``), so a bad row stops the batch
@@ -78,6 +81,9 @@ SPEC_COLUMNS: dict[str, tuple[str, str]] = {
     "channel_order": ("data", "channel_order"), "flip_rows": ("data", "flip_rows"),
 }
 _GLOB = re.compile(r"[*?\[]")
+#: the longest item id (bytes of UTF-8): its file names and their temporary names (about 30
+#: bytes more) stay within the 255 bytes of a file name
+MAX_ID_BYTES = 200
 #: characters an item id keeps (letters and digits of any script, . _ -); others become _
 _SAFE = re.compile(r"[^\w.-]+")
 
@@ -220,9 +226,31 @@ def _read_rows(path: Path) -> list[tuple[str, dict[str, Any], frozenset[str]]]:
         if not isinstance(defaults, dict) or not isinstance(items, list):
             raise ValueError(f"{path}: [defaults] must be a table and [[item]] an array of "
                              "tables")
+        _check_defaults(path, defaults)
         return [(f"{path.name}:item {i + 1}", {**defaults, **it},
                  frozenset(set(defaults) - set(it))) for i, it in enumerate(items)]
     raise ValueError(f"{path}: a manifest is a .csv or .toml file")
+
+
+def _check_defaults(path: Path, defaults: dict[str, Any]) -> None:
+    """Refuse a ``[defaults]`` key that no item could take (a typo: ``tua``), in one line.
+
+    A key that some method takes is left out of the items whose method does not; a key no
+    method takes was left out of every item without a word.
+    """
+    _, methods = _recon_parser()
+    known = set(BATCH_COLUMNS) | set(SPEC_COLUMNS) | {"rgb"}
+    for method in methods:
+        known |= option_names(method)
+    known -= {"out", "meas", "help"}
+    for key in defaults:
+        if key not in known:
+            import difflib
+
+            near = difflib.get_close_matches(key, sorted(known), n=1)
+            hint = f"; did you mean {near[0]!r}?" if near else ""
+            raise ValueError(f"{path.name}: [defaults]: {key!r} is not a column of any item (an "
+                             f"option of no method of 'lenslesscam recon'){hint}")
 
 
 def _resolve(base: Path, value: Any) -> str:
@@ -258,14 +286,23 @@ def _is_flag_text(value: Any) -> bool:
         "1", "true", "yes", "on", "0", "false", "no", "off")
 
 
-def _expand(base: Path, pattern: str, where: str) -> list[str]:
+def _expand(base: Path, pattern: str, where: str) -> tuple[list[str], bool]:
+    """The files of a ``measurement`` cell, and whether it was read as a glob.
+
+    A file of that very name wins over a glob (``e[1]/a.npy`` that exists is that file, not
+    ``e1/a.npy``); the manifest's folder is never part of the pattern (a folder named
+    ``scan[2024]`` holds its manifest's measurements like any other).
+    """
     full = _resolve(base, pattern)
-    if not _GLOB.search(pattern):
-        return [full]
-    matches = sorted(p for p in glob.glob(full) if Path(p).is_file())
+    if not _GLOB.search(pattern) or Path(full).is_file():
+        return [full], False
+    given = Path(pattern).expanduser()
+    spec = str(given) if given.is_absolute() else str(Path(glob.escape(str(base))) / given)
+    matches = sorted({str(Path(m).parent.resolve() / Path(m).name) for m in glob.glob(spec)
+                      if Path(m).is_file()})
     if not matches:
         raise ValueError(f"{where}: measurement glob {pattern!r} matches no file")
-    return matches
+    return matches, True
 
 
 def _item_from(row: dict[str, Any], meas: str, base: Path, where: str, name: str,
@@ -304,19 +341,18 @@ def _item_from(row: dict[str, Any], meas: str, base: Path, where: str, name: str
             if col == "rgb":
                 spec_data.append(("data", "color", "rgb" if _flag(value, where, col) else "gray"))
                 continue
+            if col in from_defaults and SPEC_COLUMNS.get(col, ("",))[0] != "data":
+                # a default for the other methods' items, or for their solver (FISTA's iters
+                # and seed are not the spec's max_iter and seed): only the item's own columns
+                # replace the spec's [stopping] and [optimizer] keys
+                continue
             if col not in SPEC_COLUMNS:
-                if col in from_defaults:
-                    continue  # a default for the other methods' items
                 raise ValueError(f"{where}: column {col!r} cannot change a job spec: set it in "
                                  f"the spec file (the columns that can: "
                                  f"{', '.join(sorted(SPEC_COLUMNS))}, rgb)")
             sec, key = SPEC_COLUMNS[col]
             if key in ("downsample", "max_iter", "seed"):
-                try:
-                    value = int(value)
-                except (TypeError, ValueError):
-                    raise ValueError(f"{where}: column {col!r} must be a whole number, got "
-                                     f"{value!r}") from None
+                value = _whole(value, col, where)
             if key == "flip_rows":
                 value = _flag(value, where, col)
             if col in MAYBE_PATH_COLUMNS and value != "auto" and not Path(value).is_absolute():
@@ -358,22 +394,62 @@ def _item_from(row: dict[str, Any], meas: str, base: Path, where: str, name: str
         argv += ["--truth", truth]
     item = Item(id=name, method=method, argv=tuple(argv), source=where, truth=truth, spec=spec,
                 spec_data=tuple(spec_data), inputs=tuple(sorted(inputs.items())))
-    _check(item)
-    return item
+    return _check(item)
 
 
-def _check(item: Item) -> None:
-    """Parse the item with the command's parser (and a udn item's spec) now, not in a task."""
+def _whole(value: Any, col: str, where: str) -> int:
+    """A whole-number cell for a job spec, read as ``lenslesscam recon udn`` reads the option.
+
+    ``iters = 1.9`` or ``downsample = true`` are refused as on the command line (they became
+    1).
+    """
+    action = _options("udn").get(col)
+    text = str(value).lower() if isinstance(value, bool) else str(value)
+    parse = getattr(action, "type", None) or int
+    try:
+        return int(parse(text))
+    except (argparse.ArgumentTypeError, TypeError, ValueError) as exc:
+        why = str(exc) if isinstance(exc, argparse.ArgumentTypeError) else (
+            f"must be an integer, got {text!r}")
+        raise ValueError(f"{where}: column {col!r} {why}") from None
+
+
+def _spec_inputs(spec: dict[str, Any], base: Path, source: str) -> dict[str, str]:
+    """The files a job spec's ``[data]`` names, made absolute as the spec loader makes them."""
+    from recon.udn.spec import SCHEMA, normalise_spec
+
+    out: dict[str, str] = {}
+    for key, value in normalise_spec(spec, base, source=source)["data"].items():
+        schema = SCHEMA["data"].get(key)
+        if key in ("dark", "psf_dark"):
+            if isinstance(value, str) and value != "auto":  # a dark-frame file, not a level
+                out[key] = value
+        elif schema is not None and schema.path and isinstance(value, list):
+            out.update({f"{key}.{i}": str(v) for i, v in enumerate(value)})  # PSF planes
+        elif schema is not None and schema.path and isinstance(value, str):
+            out[key] = value
+    return out
+
+
+def _check(item: Item) -> Item:
+    """Parse the item with the command's parser (and a udn item's spec) now, not in a task.
+
+    Returns the item with every file its job spec names among its inputs (a udn item with a
+    ``spec``: the spec's psf, dark, mask, ... are hashed as the columns' files are).
+    """
     out = ["--out", "x.tif"] if item.method != "udn" else ["--out", "run"]
     try:
         if item.spec is None:
             parse_recon_args(item.method, [*item.argv, *out])
-        else:
-            from app.batch.task import build_udn_spec
+            return item
+        from app.batch.task import build_udn_spec
 
-            build_udn_spec(item)
+        spec, base = build_udn_spec(item)
+        named = _spec_inputs(spec, base, item.spec)
     except (ValueError, FileNotFoundError) as exc:
         raise ValueError(f"{item.source}: {exc}") from None
+    inputs = {**dict(item.inputs), **named}
+    return dataclasses.replace(item, inputs=tuple(sorted(inputs.items())))
 
 
 def read_manifest(path: str | Path) -> list[Item]:
@@ -392,11 +468,11 @@ def read_manifest(path: str | Path) -> list[Item]:
                 raise ValueError(f"{where}: column {col!r} is missing or empty (a manifest "
                                  "needs at least measurement,psf,method)")
         pattern = str(row["measurement"])
-        files = _expand(base, pattern, where)
+        files, is_glob = _expand(base, pattern, where)
         for meas in files:
             stem = Path(meas).stem
             if row.get("name"):
-                given = str(row["name"]) + (f"-{stem}" if _GLOB.search(pattern) else "")
+                given = str(row["name"]) + (f"-{stem}" if is_glob else "")
                 name = _SAFE.sub("_", given)
                 if name in named:
                     same = "" if name == given else f" (as the file name {name!r})"
@@ -421,8 +497,28 @@ def read_manifest(path: str | Path) -> list[Item]:
                 name = f"{it.id}-{n}"
             taken.add(name)
             it = dataclasses.replace(it, id=name)
+        _check_id_length(it, given)
         unique.append(it)
     return unique
+
+
+def _check_id_length(item: Item, given: bool) -> None:
+    """Refuse an item id too long for the file names made from it, naming the column.
+
+    ``items/ID.json``, ``results/ID.tif``, ``runs/ID-HASH8`` and the temporary files of their
+    atomic writes (``.ID.tif.RANDOM.tmp``) must stay within the file system's 255 bytes: a
+    300-character name failed in the middle of the batch with "[Errno 36] File name too long".
+    """
+    n = len(item.id.encode("utf-8"))
+    if n <= MAX_ID_BYTES:
+        return
+    if given:
+        raise ValueError(f"{item.source}: column 'name' makes an item id of {n} bytes "
+                         f"({item.id[:24]}...): at most {MAX_ID_BYTES}, as it names the item's "
+                         "files; give a shorter name")
+    raise ValueError(f"{item.source}: column 'measurement': the file name gives an item id of "
+                     f"{n} bytes ({item.id[:24]}...): at most {MAX_ID_BYTES}, as it names the "
+                     "item's files; give the item a shorter 'name'")
 
 
 # --------------------------------------------------------------------------------------------

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["STATE_FORMAT", "BatchBusy", "BatchLock", "BatchPaths", "batch_status",
-           "format_status", "read_state", "request_cancel"]
+           "check_not_newer", "format_status", "read_state", "request_cancel"]
 
 STATE_FORMAT = "lenslesscam.batch_state"
 
@@ -135,7 +135,24 @@ def read_state(root: str | Path, missing_ok: bool = False) -> dict[str, Any]:
         raise ValueError(f"{p}: not valid JSON: {exc}") from None
     if not isinstance(st, dict) or st.get("format") != STATE_FORMAT:
         raise ValueError(f"{p} is not a batch state file (format {STATE_FORMAT})")
+    check_not_newer(st, p)
     return st
+
+
+def check_not_newer(doc: dict[str, Any], path: Path) -> None:
+    """Refuse (:class:`~recon.formats.NewerFormat`, one line) a file a newer release wrote.
+
+    It is neither read as if it were ours nor overwritten: the release that wrote it reads it.
+    """
+    from recon.formats import FORMAT_VERSION, NewerFormat
+
+    v = doc.get("format_version", 0)
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise ValueError(f"{path}: format_version {v!r} is not a version number")
+    if v > FORMAT_VERSION:
+        raise NewerFormat(f"{path}: format_version {v} was written by a newer lenslesscam "
+                          f"(this release reads {FORMAT_VERSION}): run the batch with that "
+                          "release; nothing was changed")
 
 
 def write_state(root: Path, state: dict[str, Any]) -> None:

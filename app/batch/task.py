@@ -7,9 +7,10 @@ and atomic writer), and ``udn`` items as jobs (:func:`recon.udn.jobs.run_job`, o
 after a lost worker continues from the last checkpoint). It then writes the item's record
 (``items/ID.json``, atomically) with the item's hash, and returns that record.
 
-Input errors (ValueError, FileNotFoundError: a bad file, a shape mismatch) are recorded as
-``failed`` at once (retrying cannot help); any other exception propagates so Ray retries the
-task (``max_retries``), and a worker that dies (killed, out of memory) is retried by Ray too.
+An exception the item raises (an input error, a shape mismatch, a numerical failure, a run
+folder another process holds) is recorded as ``failed`` at once, in one line: running the same
+item again gives the same error, so it is not retried. Ray retries only a task whose worker
+died (killed, out of memory, a machine lost; ``max_retries``).
 """
 
 from __future__ import annotations
@@ -66,6 +67,12 @@ def build_udn_spec(item: Item, threads: int | None = None) -> tuple[dict[str, An
     normalise_spec(spec, base, source=item.spec or "udn item")
     return spec, base
 
+
+
+def _one_line(exc: BaseException) -> str:
+    """The first line of an exception's message (at most 500 characters)."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    return (lines[0] if lines else type(exc).__name__)[:500]
 
 
 def _attempt(marker: Path) -> int:
@@ -222,8 +229,8 @@ def run_item(item: Item, out_dir: str, item_hash: str, hashes: dict[str, str | N
             scores = rec.pop("scores", None)  # a udn job scores its result itself
             if item.truth:
                 rec["metrics"] = _numbers(scores) if scores else _metrics(item, output)
-    except (ValueError, FileNotFoundError) as exc:  # bad input: a retry cannot help
-        rec.update(status="failed", error=f"{type(exc).__name__}: {exc}")
+    except Exception as exc:  # deterministic (bad input, NumericalError, ...): no retry
+        rec.update(status="failed", error=f"{type(exc).__name__}: {_one_line(exc)}")
     rec["time_s"] = round(time.perf_counter() - t0, 3)
     rec["finished_utc"] = now_utc()
     rec["provenance"] = provenance()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import re
 import sys
 from pathlib import Path
@@ -81,3 +82,52 @@ def fit_command_threads(args: Any, scene_shape: tuple[int, ...]) -> None:
     fitted = fit_threads(scene_shape)
     if fitted is not None:
         args.thread_choice = fitted
+
+
+class TerminateAsInterrupt:
+    """SIGTERM and SIGHUP raise KeyboardInterrupt, as Ctrl-C does (main thread only).
+
+    ``kill``, ``timeout`` or a closed terminal then stop a command through its Ctrl-C path:
+    ``calibrate`` switches the light off and stops its firmware; ``batch run`` cancels cleanly
+    (exit 130, UDN jobs stop with a final checkpoint), where Ray's handler, which ``ray.init``
+    installs, dumped a stack and aborted (exit 134) and left the state "running" (the batch
+    calls :meth:`install` again after ``ray.init``). A context manager too: installed within
+    the block, restored after it.
+    """
+
+    SIGNALS = ("SIGTERM", "SIGHUP")
+
+    def __init__(self) -> None:
+        self.saved: dict[int, Any] = {}
+
+    @staticmethod
+    def _interrupt(signum: int, _frame: Any) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    def install(self) -> None:
+        import signal
+        import threading
+
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for name in self.SIGNALS:
+            sig = getattr(signal, name, None)
+            if sig is None:
+                continue
+            previous = signal.signal(sig, self._interrupt)
+            self.saved.setdefault(sig, previous)
+
+    def restore(self) -> None:
+        import signal
+
+        for sig, handler in self.saved.items():
+            with contextlib.suppress(ValueError, TypeError):
+                signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        self.saved.clear()
+
+    def __enter__(self) -> TerminateAsInterrupt:
+        self.install()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.restore()

@@ -15,7 +15,17 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from app.commands._options import NONNEG_INT, POSITIVE, POSITIVE_INT, check_output_folders
+from app.commands._options import (
+    POSITIVE,
+    POSITIVE_INT,
+    check_output_folders,
+    integer,
+    refuse_run_folder_outputs,
+)
+
+#: the most Ray retries of a lost worker ``--max-retries`` takes (Ray keeps the count in a
+#: 32-bit integer: 2**31 was an OverflowError after Ray had started)
+MAX_RETRIES = 1000
 
 
 def register(sub: Any) -> None:
@@ -41,8 +51,10 @@ def register(sub: Any) -> None:
     r.add_argument("--udn-cpus", type=POSITIVE_INT, default=1,
                    help="CPUs (= torch threads) of a udn item when the cluster has no GPU "
                         "(default 1; with GPUs a udn item takes one GPU)")
-    r.add_argument("--max-retries", type=NONNEG_INT, default=2,
-                   help="Ray retries of an item whose worker died or that raised (default 2)")
+    r.add_argument("--max-retries", type=integer(0, MAX_RETRIES), default=2,
+                   help="Ray retries of an item whose worker died (killed, out of memory, a "
+                        f"machine lost; default 2, at most {MAX_RETRIES}); an item that "
+                        "raises an error is recorded as failed at once")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.add_argument("--json", action="store_true", help="print the outcome as JSON")
     r.set_defaults(func=run_batch_cmd)
@@ -63,7 +75,12 @@ def run_batch_cmd(args: argparse.Namespace) -> int:
                         num_cpus=args.num_cpus,
                         cpus_per_item=args.cpus_per_item, udn_cpus=args.udn_cpus,
                         max_retries=args.max_retries, progress=False if args.quiet else None)
-    check_output_folders([Path(args.out) / "batch.json"])  # a folder it cannot write: one line
+    state = Path(args.out) / "state.json"
+    try:  # a batch folder inside a UDN run folder: refused, as every writer refuses it
+        refuse_run_folder_outputs([state], "--out")
+    except ValueError as exc:
+        raise ValueError(str(exc).replace(str(state), str(args.out), 1)) from None
+    check_output_folders([state])  # a folder it cannot write: one line
     rep = run_batch(args.manifest, args.out, opts)
     c = rep.counts
     if args.json:

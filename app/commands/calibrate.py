@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from app.commands._common import ProgressBar, parse_duration_us
+from app.commands._common import ProgressBar, TerminateAsInterrupt, parse_duration_us
 from app.commands._options import (
     FINITE,
     NONNEG,
@@ -168,27 +168,6 @@ SIM_MIN_HW = (2, 1)
 
 
 @contextlib.contextmanager
-def _terminate_as_interrupt() -> Iterator[None]:
-    """Within the block, SIGTERM and SIGHUP raise KeyboardInterrupt (main thread only)."""
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def interrupt(signum: int, _frame: Any) -> None:
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    saved = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}
-    try:
-        yield
-    finally:
-        for sig, handler in saved.items():
-            signal.signal(sig, handler)
-
-
-@contextlib.contextmanager
 def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
     """Open the camera and the source (spawning the simulated firmware for ``sim``)."""
     import tempfile
@@ -199,7 +178,7 @@ def _devices(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
     with contextlib.ExitStack() as stack:
         # SIGTERM / SIGHUP (kill, timeout, a closed terminal) stop the command as Ctrl-C does,
         # so the clean-up below runs: light off, firmware stopped, temporary files removed
-        stack.enter_context(_terminate_as_interrupt())
+        stack.enter_context(TerminateAsInterrupt())
         src_spec: str | None = getattr(args, "source", None)
         if src_spec is not None and not src_spec.strip():
             raise ValueError("--source is empty: give sim or the point source's serial port")
