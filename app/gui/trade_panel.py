@@ -29,7 +29,6 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6.QtCore import QObject, QThread, QTimer, Signal
 from PySide6.QtWidgets import (
-    QComboBox,
     QFileDialog,
     QHBoxLayout,
     QLabel,
@@ -39,7 +38,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.gui.jobs_panel import Measurement
-from app.gui.widgets import DoubleSpinBox, SpinBox
+from app.gui.widgets import ComboBox, DoubleSpinBox, SpinBox
 from recon.trade import TradeRow, best_for_budgets, pareto_front, read_trade_csv
 
 COLOURS = {"fista": (31, 119, 180), "admm": (255, 127, 14), "udn": (44, 160, 44)}
@@ -158,7 +157,7 @@ class TradePanel(QWidget):
         self.save_button.setEnabled(False)
         self.save_button.setToolTip("Write the measured trade as trade.csv and trade.md (as "
                                     "lenslesscam trade does; plan --trade reads it)")
-        self.case_box = QComboBox()
+        self.case_box = ComboBox()  # the wheel only when focused, as every box
         self.case_box.setToolTip("The case shown: a trade.csv of several cases (trade "
                                  "--protocol) has a front and a suggestion per case")
         self.case_box.setVisible(False)
