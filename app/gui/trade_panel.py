@@ -117,6 +117,9 @@ class TradePanel(QWidget):
     """Plot of quality against wall time, with the Pareto front and a budget suggestion."""
 
     rows_changed = Signal()
+    #: True when a measurement starts, False when it has ended: the window holds its preview
+    #: meanwhile (its FISTA on the same cores doubled the wall times measured)
+    measuring = Signal(bool)
 
     def __init__(
         self,
@@ -419,6 +422,7 @@ class TradePanel(QWidget):
         self._worker.failed.connect(self._failed)
         self._worker.finished.connect(self._done)
         self._thread.start()
+        self.measuring.emit(True)
         self._update_buttons()
         self._source_timer.start()
 
@@ -455,6 +459,7 @@ class TradePanel(QWidget):
 
             detach_thread(self._thread, self._worker)
         self._thread = self._worker = None
+        self.measuring.emit(False)
         self._progress_text()
         self._show(self.rows)
 
@@ -486,6 +491,7 @@ class TradePanel(QWidget):
 
                 detach_thread(self._thread, self._worker)
             self._thread = self._worker = None
+            self.measuring.emit(False)
             self._run_id += 1  # its queued rows and signals are dropped
             self._progress_text()
         self._update_buttons()

@@ -537,3 +537,26 @@ def test_a_tau_applied_to_the_preview_is_the_tau_it_runs(live_window: Any, qtbot
     assert "automatic tau off" in w.status_label.text()
     qtbot.waitUntil(lambda: len(seen) >= 3, timeout=20_000)
     assert seen[-1] == pytest.approx(0.02)
+
+
+def test_the_preview_is_held_while_the_trade_measures(live_window: Any, qtbot: Any) -> None:
+    """A trade measured with the live preview running timed its settings on shared cores
+    (0.93 s against 0.46 s alone): the preview now waits for it, and says why."""
+    from recon.trade import Config
+
+    w = live_window
+    qtbot.waitUntil(lambda: w.previews_shown >= 2, timeout=20_000)
+    panel = w.trade_panel
+    panel.downsample.setValue(4)
+    panel.grid = [Config("fista", t, (10, 20)) for t in (1e-4, 1e-3, 1e-2, 3e-2)]
+    panel.measure_current()
+    assert panel.running, panel.suggestion.text()
+    assert "paused while the trade measures" in w.preview_panel.message.text()
+    # once the trade is under way (a preview frame in flight when it began has ended) no
+    # preview runs beside it, while the live view goes on
+    qtbot.waitUntil(lambda: len(panel.rows) >= 2 or not panel.running, timeout=60_000)
+    n, frames = w.previews_shown, w.frames_shown
+    qtbot.waitUntil(lambda: not panel.running, timeout=60_000)
+    assert w.previews_shown == n and w.frames_shown > frames
+    assert "paused" not in w.preview_panel.message.text()
+    qtbot.waitUntil(lambda: w.previews_shown > n + 2, timeout=20_000)  # back afterwards
