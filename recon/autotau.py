@@ -280,7 +280,7 @@ def choose_tau(
         decades.append(lo_e)
     worse = 0
     for e in decades:
-        if cancel is not None and cancel():
+        if cancel is not None and cancel() and scores:  # one tau at least: a result to return
             break
         s = score(e)
         worse = 0 if s <= min(v[0] for v in scores.values()) else worse + 1

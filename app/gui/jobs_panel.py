@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -105,18 +106,20 @@ class NewJobDialog(QDialog):
     def __init__(self, sensor: tuple[int, int], source: str, parent: QWidget | None = None,
                  name: str = "udn", *, hashes: dict[str, str] | None = None,
                  suggestion_dirs: list[Path] | None = None,
-                 run_planner: Callable[[], Any] | None = None,
+                 run_planner: Callable[[Callable[[], bool]], Any] | None = None,
                  save_dir: Path | None = None) -> None:
         """A dialog for a ``sensor``-sized measurement described by ``source``.
 
         ``hashes``: :func:`recon.suggest.input_hashes` of the measurement and PSF; plans and
-        trades for them are looked for in ``suggestion_dirs``. ``run_planner()`` makes a plan
-        (run off the GUI thread); it is saved in ``save_dir`` with the hashes.
+        trades for them are looked for in ``suggestion_dirs``. ``run_planner(cancelled)`` makes
+        a plan (run off the GUI thread; it may stop early once ``cancelled()`` is True, and its
+        plan is then discarded); it is saved in ``save_dir`` with the hashes.
         """
         super().__init__(parent)
         self._hashes = hashes
         self._suggestion_dirs = list(suggestion_dirs or [])
         self._run_planner = run_planner
+        self._planner_cancel = threading.Event()
         self._save_dir = save_dir
         self._planner_queue: TaskQueue | None = None
         self.suggestions_found: list[Any] = []
@@ -401,9 +404,13 @@ class NewJobDialog(QDialog):
         from recon.suggest import write_plan_suggestion
 
         planner, folder, hashes = self._run_planner, self._save_dir, dict(self._hashes)
+        cancelled = self._planner_cancel = threading.Event()
 
         def work() -> Path:
-            return write_plan_suggestion(folder, planner(), hashes)
+            plan = planner(cancelled.is_set)
+            if cancelled.is_set():  # the dialog closed: a search cut short is not a plan
+                raise RuntimeError("planner cancelled")
+            return write_plan_suggestion(folder, plan, hashes)
 
         self._planner_queue = TaskQueue("planner", self)
         self.plan_button.setEnabled(False)
@@ -412,6 +419,8 @@ class NewJobDialog(QDialog):
                                    on_error=self._plan_failed)
 
     def _end_planner(self, wait: bool = True) -> None:
+        if not wait:
+            self._planner_cancel.set()  # the tau search stops at its next check
         q, self._planner_queue = self._planner_queue, None
         if q is not None and wait:
             q.shutdown()
@@ -480,9 +489,11 @@ class NewJobDialog(QDialog):
         return True
 
     def done(self, r: int) -> None:
-        """Close at once; a running planner is left to end in the background, unwaited.
+        """Close at once; a running planner is cancelled and left to end in the background.
 
-        Waiting for it held the GUI thread for the plan's seconds (up to 10 s at 960x1280).
+        Waiting for it held the GUI thread for the plan's seconds (its tau search takes
+        seconds at 240x320, minutes at 960x1280); cancelled, the search stops at its next
+        check (between taus and FISTA iterations) and nothing is saved.
         """
         self._end_planner(wait=False)
         super().done(r)
@@ -1055,7 +1066,7 @@ class JobsPanel(QWidget):
             hashes = None
         dlg = NewJobDialog(frame.shape, src, self, hashes=hashes,
                            suggestion_dirs=self.suggestion_dirs,
-                           run_planner=lambda: _plan_measurement(m),
+                           run_planner=lambda cancelled: _plan_measurement(m, cancelled),
                            save_dir=self.suggestion_dirs[0])
         if self.last_job:  # the settings of the last job queued, not the defaults again
             dlg.restore(self.last_job)
@@ -1222,7 +1233,7 @@ def _dark_level(m: Measurement) -> float:
     return frame_dark_level(m.frame.pixels, m.dark)
 
 
-def _plan_measurement(m: Measurement) -> Any:
+def _plan_measurement(m: Measurement, cancelled: Callable[[], bool] | None = None) -> Any:
     """The plan ``lenslesscam plan`` makes of the dark-corrected frame and the PSF (no budget).
 
     ``recon.plan.make_plan``, then, for FISTA-TV, tau and iterations chosen from held-out
@@ -1234,7 +1245,8 @@ def _plan_measurement(m: Measurement) -> Any:
     psf = np.asarray(m.psf, dtype=np.float32)
     meas = np.clip(np.asarray(m.frame.pixels, dtype=np.float32) - _dark_level(m), 0, None)
     plan = make_plan(psf, meas)
-    return auto_tau_plan(plan, psf, meas) if plan.method == "fista-tv" else plan
+    return (auto_tau_plan(plan, psf, meas, cancel=cancelled) if plan.method == "fista-tv"
+            else plan)
 
 
 def _size_problem(frame: Any, psf: Any) -> str | None:

@@ -227,7 +227,7 @@ class TaskQueue(QObject):
         _, on_error, _ = self._take(task)
         if on_error is not None:
             on_error(exc)
-        else:
+        elif not task.cancelled:  # an abandoned task's end is nobody's error
             _log.error("%s: task %s failed: %s", self.name, task.name, exc)
 
     @Slot(object, object)

@@ -1329,7 +1329,8 @@ def _execute_udn(plan: Plan, model: ForwardModel, b: F32, t0: float,
 
 
 def auto_tau_plan(plan: Plan, psf: Any, meas: Any, *, shutter: Any = None,
-                  timing: Any = None, psf_stack: Any = None, mask: Any = None) -> Plan:
+                  timing: Any = None, psf_stack: Any = None, mask: Any = None,
+                  cancel: Callable[[], bool] | None = None) -> Plan:
     """The plan with tau and iterations chosen from held-out pixels on its own model.
 
     What ``lenslesscam plan`` / ``recon auto`` and the app's planner do to a FISTA-TV plan whose
@@ -1338,7 +1339,8 @@ def auto_tau_plan(plan: Plan, psf: Any, meas: Any, *, shutter: Any = None,
     The measurement is prepared by :func:`prepare`, as :func:`execute` runs it (scaled,
     downsampled with the one mask rule); tau is searched on the solver's scale and stored per
     full-resolution pixel as the plan defines it (x downsample; x K for a video's per-frame
-    weight).
+    weight). ``cancel``: the search stops at its next check once it returns True and the plan
+    holds the values tried so far (a caller that cancels discards it).
     """
     from recon.autotau import AUTO_MAX_ITER, choose_tau
 
@@ -1356,7 +1358,7 @@ def auto_tau_plan(plan: Plan, psf: Any, meas: Any, *, shutter: Any = None,
     lo_rel, hi_rel = 1e-7 / per_frame, 1e-2 / per_frame
     choice = choose_tau(model, torch.as_tensor(b_d, dtype=torch.float32), tv=tv,
                         max_iter=search_iter, min_iter=min(100, search_iter),
-                        tau_range=(lo_rel, hi_rel))
+                        tau_range=(lo_rel, hi_rel), cancel=cancel)
     unit = per_frame * plan.downsample  # the solver's tau -> the plan's (per full-res pixel)
     tau = choice.tau * unit
     iterations = min(choice.iterations, limit)

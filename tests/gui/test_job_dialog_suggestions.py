@@ -161,8 +161,9 @@ def test_run_planner_off_the_gui_thread_then_offer_its_plan(qtbot: Any, tmp_path
     gui_thread = threading.get_ident()
     ran_on: list[int] = []
 
-    def planner() -> Plan:
+    def planner(cancelled: Any) -> Plan:
         ran_on.append(threading.get_ident())
+        assert not cancelled()
         return _plan(downsample=3, iterations=777)
 
     dlg = NewJobDialog((48, 64), "test", hashes=_hashes(m), suggestion_dirs=[tmp_path],
@@ -180,16 +181,20 @@ def test_run_planner_off_the_gui_thread_then_offer_its_plan(qtbot: Any, tmp_path
 
 def test_closing_the_dialog_does_not_wait_for_its_planner(qtbot: Any, tmp_path: Path) -> None:
     """Closing the job dialog while *Run planner* ran held the GUI thread until the plan
-    ended (up to 10 s at 960x1280). The dialog now closes at once; the planner ends in the
-    background, and its late result touches nothing."""
+    ended (its tau search: minutes at 960x1280). The dialog now closes at once and the planner
+    is told to stop; it ends in the background, and its result is neither applied nor saved."""
     from app.gui.jobs_panel import NewJobDialog
 
     m = _measurement(0)
     started, release, finished = threading.Event(), threading.Event(), threading.Event()
+    seen_cancel = threading.Event()
 
-    def planner() -> Plan:
+    def planner(cancelled: Any) -> Plan:
         started.set()
-        release.wait(30)  # a plan's seconds: released 5 s after it starts (below)
+        while not release.wait(0.05):  # a plan's seconds: released 5 s after it starts
+            if cancelled():  # as the tau search checks between iterations
+                seen_cancel.set()
+                break
         finished.set()
         return _plan(downsample=3, iterations=777)
 
@@ -201,12 +206,14 @@ def test_closing_the_dialog_does_not_wait_for_its_planner(qtbot: Any, tmp_path: 
     threading.Timer(5.0, release.set).start()
     dlg.reject()  # waited for the planner before, so it had finished when this returned
     assert not finished.is_set() and not dlg.isVisible()
-    release.set()
+    assert finished.wait(4)  # it stops at its next check, before the 5 s release
     from app.gui import workers
 
     qtbot.waitUntil(lambda: not any(t.isRunning() for t, _ in workers._DETACHED),
                     timeout=10_000)
+    assert seen_cancel.is_set()  # the planner was told to stop (a tau search took minutes)
     assert dlg.max_iter.value() != 777  # the late plan was not applied to a closed dialog
+    assert not list(tmp_path.glob("plan-*.json"))  # nor saved: a search cut short
 
 
 def test_the_real_planner_from_the_panel(panel: Any, qtbot: Any) -> None:

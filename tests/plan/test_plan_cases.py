@@ -95,3 +95,20 @@ def test_a_small_sensor_keeps_enough_rows_for_the_time_analysis():
     assert plan.evidence["time"]["grid"] == {"factor": 1, "shape": [32, 40]}
     assert plan.model == "2d" and not plan.evidence["time"]["motion"], plan.reasons["model"]
     assert plan.downsample == 2  # the reconstruction grid still follows the PSF
+
+
+def test_the_tau_search_of_a_plan_can_be_cancelled() -> None:
+    """The app's planner runs auto_tau_plan off the GUI thread; closing its dialog must stop
+    a search that takes minutes at full size. Cancelled at once, it tries one tau at most."""
+    import numpy as np
+
+    from recon.plan import auto_tau_plan, make_plan
+    from recon.simulate import synthetic_psf
+
+    psf = synthetic_psf((48, 64), seed=3)
+    meas = np.random.default_rng(3).random((48, 64)).astype(np.float32)
+    plan = make_plan(psf, meas, probe=False)
+    full = auto_tau_plan(plan, psf, meas)
+    cut = auto_tau_plan(plan, psf, meas, cancel=lambda: True)
+    assert len(full.evidence["tau_search"]["taus_tried"]) > 3
+    assert len(cut.evidence["tau_search"]["taus_tried"]) <= 1
