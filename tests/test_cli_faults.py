@@ -944,3 +944,34 @@ def test_a_bad_dark_names_its_option(sim, tmp_path, capsys, option, value, words
     code, _, err = _run(capsys, *_fista(sim, tmp_path / "r.tif", option, value))
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert words in err and not (tmp_path / "r.tif").exists()
+
+
+def test_terminate_as_interrupt_keeps_a_signal_nohup_ignores():
+    """SIGTERM and SIGHUP stop a command as Ctrl-C does; but `nohup lenslesscam batch run`
+    (SIGHUP ignored) was cancelled when its terminal closed, also after `ray.init` replaced the
+    handler. An ignored signal stays ignored; everything is restored afterwards."""
+    import signal
+
+    from app.commands._common import TerminateAsInterrupt
+
+    before = {s: signal.getsignal(s) for s in (signal.SIGHUP, signal.SIGTERM)}
+    try:
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)  # as nohup starts the process
+        guard = TerminateAsInterrupt()
+        guard.install()
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+        assert signal.getsignal(signal.SIGTERM) == guard._interrupt
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)  # a library's handler (ray.init's)
+        guard.install()  # installed again after it
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGTERM)
+        guard.restore()
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+        assert signal.getsignal(signal.SIGTERM) == before[signal.SIGTERM]
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)  # a plain start: SIGHUP interrupts
+        with TerminateAsInterrupt(), pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGHUP)
+    finally:
+        for s, h in before.items():
+            signal.signal(s, h)

@@ -91,8 +91,9 @@ class TerminateAsInterrupt:
     ``calibrate`` switches the light off and stops its firmware; ``batch run`` cancels cleanly
     (exit 130, UDN jobs stop with a final checkpoint), where Ray's handler, which ``ray.init``
     installs, dumped a stack and aborted (exit 134) and left the state "running" (the batch
-    calls :meth:`install` again after ``ray.init``). A context manager too: installed within
-    the block, restored after it.
+    calls :meth:`install` again after ``ray.init``). A signal ignored when first installed
+    (SIGHUP under ``nohup``) stays ignored, also after ``ray.init``. A context manager too:
+    installed within the block, restored after it.
     """
 
     SIGNALS = ("SIGTERM", "SIGHUP")
@@ -114,7 +115,11 @@ class TerminateAsInterrupt:
             sig = getattr(signal, name, None)
             if sig is None:
                 continue
-            previous = signal.signal(sig, self._interrupt)
+            original = self.saved.get(sig, signal.getsignal(sig))
+            # a signal the process was started to ignore (`nohup` ignores SIGHUP, so a batch
+            # outlives its terminal) stays ignored: that is what the user asked for
+            previous = signal.signal(sig, signal.SIG_IGN if original is signal.SIG_IGN
+                                     else self._interrupt)
             self.saved.setdefault(sig, previous)
 
     def restore(self) -> None:
