@@ -150,6 +150,7 @@ class TradePanel(QWidget):
         self._settings_done = 0
         self._cancelled = False
         self._warning = ""
+        self._failure = ""  # why the last measurement failed ("": it did not)
         self.measure_button = QPushButton("Measure on current frame")
         self.cancel_button = QPushButton("Cancel")
         self.cancel_button.setEnabled(False)
@@ -261,6 +262,7 @@ class TradePanel(QWidget):
         if self.running:
             self.stop()
         self._case, self._measured_on, self._measured_meta = None, None, {}
+        self._warning = self._failure = ""  # the measurement's, not the file's
         self._source_timer.stop()
         self.progress.setText("")
         self._show(rows)
@@ -323,6 +325,10 @@ class TradePanel(QWidget):
                                     "first (a loaded trade.csv is a file already)")
             return None
         path = Path(path)
+        if path.suffix.lower() != ".csv":  # "x.md" wrote the CSV, then trade.md over it
+            self.suggestion.setText(f"cannot save {path}: a trade is saved as a .csv file "
+                                    "(its trade.md is written beside it)")
+            return None
         meta = self._measured_meta
         try:
             write_trade_csv(path, self.rows, [self._case], command=meta.get("command"),
@@ -409,6 +415,7 @@ class TradePanel(QWidget):
                                           f"downsampled by {case.source.get('downsample')}",
                                "threads": torch.get_num_threads()}
         self._grid_size, self._settings_done, self._cancelled = len(grid), 0, False
+        self._failure = ""
         self._show([])
         self.suggestion.setText("measuring…" + (f" ({self._warning})" if self._warning else ""))
         self._progress_text()
@@ -441,6 +448,8 @@ class TradePanel(QWidget):
         what = f"{self._settings_done} of {self._grid_size} settings"
         if self.running:
             text = f"cancelling: {what} measured" if self._cancelled else what
+        elif self._failure:
+            text = f"failed after {what}"
         else:
             text = f"cancelled after {what}" if self._cancelled else f"measured {what}"
         self.progress.setText(text)
@@ -448,7 +457,11 @@ class TradePanel(QWidget):
     def _failed(self, run_id: int, msg: str) -> None:
         if run_id == self._run_id:
             self.suggestion.setText(f"trade failed: {msg}")
-            self._warning = f"trade failed: {msg}"
+            self._warning = self._failure = f"trade failed: {msg}"
+            # what a saved trade.csv / trade.md says of how it was made
+            self._measured_meta["command"] = (
+                f"{self._measured_meta.get('command')}; it failed after "
+                f"{self._settings_done} of {self._grid_size} settings ({msg})")
 
     def _done(self, run_id: int) -> None:
         if run_id != self._run_id or self._thread is None:

@@ -316,3 +316,42 @@ def test_rows_of_another_camera_are_not_applied(panel_for: Any, qtbot: Any) -> N
     panel.apply_suggestion()
     assert applied == []
     assert "not applied" in panel.suggestion.text()
+
+
+def test_a_failed_measurement_says_so_and_its_notes_do_not_follow_a_loaded_file(
+        panel_for: Any, qtbot: Any, tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """(diff review) A failure after one setting showed "measured 1 of 3 settings" and saved
+    without a word of it; a file loaded afterwards kept "(trade failed: ...)" (or a saturation
+    warning) in its suggestion."""
+    import recon.trade as rt
+    from recon.trade import read_trade
+
+    panel, _fake, _, _ = panel_for(_frame(_scene()))
+
+    def boom(case: Any, grid: Any, *, cancel: Any = None, finished: Any = None,
+             **_k: Any) -> Any:
+        yield rt.TradeRow(case.name, "fista tau=0.0001", "fista", 1e-4, "float32", 1, 0, 10,
+                          0.1, 1.0, 30.0, 0.01)
+        finished("fista tau=0.0001")
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(rt, "run_trade", boom)
+    panel.measure_current()
+    qtbot.waitUntil(lambda: not panel.running, timeout=10_000)
+    assert panel.progress.text().startswith("failed after 1 of ")
+    saved = panel.save(tmp_path / "t.csv")
+    assert saved is not None and "failed after 1 of" in read_trade(saved).meta["command"]
+    assert "failed after 1 of" in (tmp_path / "t.md").read_text()
+    panel.load_csv(_protocol_csv(tmp_path / "trade.csv"))
+    assert "boom" not in panel.suggestion.text() and "failed" not in panel.suggestion.text()
+
+
+def test_a_trade_is_saved_under_a_csv_name_only(panel_for: Any, qtbot: Any,
+                                                tmp_path: Any) -> None:
+    """(diff review) Saving as results.md wrote the CSV there, then trade.md over it."""
+    panel, fake, _, _ = panel_for(_frame(_scene()))
+    panel.measure_current()
+    _finish(panel, fake, qtbot)
+    assert panel.save(tmp_path / "results.md") is None
+    assert "saved as a .csv file" in panel.suggestion.text()
+    assert list(tmp_path.iterdir()) == []
