@@ -88,41 +88,55 @@ def atomic_files(path: str | os.PathLike[str], *, owned: Iterable[str] = (),
     block ends normally each staged file is moved onto its name in ``path`` (one rename each,
     within one file system), the names in ``owned`` that this set does not write (the files of
     an earlier set, listed by its record) are removed, and the names in ``last`` (that record)
-    are moved in after all the others. On any exception (``KeyboardInterrupt`` included) the
-    staging folder is removed and ``path`` is as it was (removed again when this call made it).
+    are moved in after all the others. What would make a rename fail is checked before the
+    first one: a staged entry that is not a file, a name of the set that is a folder in
+    ``path`` (a folder is never replaced; an owned name that is a folder is left). On any
+    exception before the renames (``KeyboardInterrupt`` included) the staging folder is
+    removed and ``path`` is as it was (removed again, with the parents this call made, when
+    it made them and they are empty).
 
     Entries of ``path`` outside the set (a reconstruction saved beside a simulation, a run
     folder another process is writing into) are never moved, copied or deleted: an earlier
     version swapped the whole folder for a new one, and files other processes wrote into it
     while it was swapped were lost. It also needs no writable parent and works on the current
-    folder or a mount point. A kill during the final renames (a few system calls) can leave
-    some files new and others old, the record last; a kill earlier leaves the staging folder
-    (its name starts with ``.partial-``), never a partial file.
+    folder or a mount point. A kill (or an I/O error) during the final renames, a few system
+    calls, can leave some files new and others old, the record last (so it still describes
+    the old set); a kill earlier leaves the staging folder (its name starts with
+    ``.partial-``), never a partial file.
     """
     given = Path(path)
     target = Path(os.path.realpath(given))  # a symlinked folder is written through the link
-    made = not target.exists()
+    made = [a for a in (target, *target.parents) if not a.exists()]  # deepest first
     target.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".partial-{os.getpid()}-", dir=target))
     try:
         yield stage
         staged = sorted(p.name for p in stage.iterdir())
+        for name in staged:
+            if not (stage / name).is_file() or (stage / name).is_symlink():
+                raise ValueError(f"{stage / name} is not a file: only files are written as a "
+                                 "set")
+            if (target / name).is_dir() and not (target / name).is_symlink():
+                raise IsADirectoryError(errno.EISDIR, "a folder of that name is in the way "
+                                        "(it is never replaced by a file)", str(target / name))
         records = [n for n in staged if n in set(last)]
         for name in staged:
             if name not in records:
                 os.replace(stage / name, target / name)
         for stale in sorted(set(owned) - set(staged)):
-            with contextlib.suppress(FileNotFoundError):
-                (target / stale).unlink()
+            old = target / stale
+            if not old.is_dir() or old.is_symlink():  # a folder of that name is not ours
+                with contextlib.suppress(FileNotFoundError):
+                    old.unlink()
         for name in records:
             os.replace(stage / name, target / name)
         stage.rmdir()
         fsync_dir(target)
     except BaseException as exc:
         shutil.rmtree(stage, ignore_errors=True)
-        if made:
+        for folder in made:  # only when empty: nothing else is ever removed
             with contextlib.suppress(OSError):
-                target.rmdir()  # only when empty: nothing else is ever removed
+                folder.rmdir()
         full = _short_write(exc, given)
         if full is not None:
             raise full from exc

@@ -340,3 +340,36 @@ def test_dark_with_the_bundled_psf_is_refused(tmp_path, capsys):
                         "sample:im65", "--dark", "1e9", "--out", tmp_path / "sim")
     assert code == 2 and "has its dark level (34.08) removed already" in err
     assert not (tmp_path / "sim").exists()
+
+
+def test_atomic_files_checks_before_the_first_rename(tmp_path):
+    """(diff review) A staged file onto a folder, or a staged folder, failed in the middle of
+    the renames: some files new, the record old, the rest of the set deleted. Both are now
+    refused before any rename, the folder as it was; parents made for a failed set go too."""
+    from recon.atomic import atomic_files
+
+    out = tmp_path / "sim"
+    with atomic_files(out, last=["rec"]) as tmp:
+        for name in ("a", "b", "rec"):
+            (tmp / name).write_text("old")
+    (out / "b").unlink()
+    (out / "b").mkdir()  # a folder where the set writes a file
+    before = sorted(p.name for p in out.iterdir())
+    with pytest.raises(IsADirectoryError, match="never replaced"), \
+            atomic_files(out, last=["rec"]) as tmp:
+        for name in ("a", "b", "rec"):
+            (tmp / name).write_text("new")
+    assert sorted(p.name for p in out.iterdir()) == before
+    assert (out / "a").read_text() == "old" and (out / "rec").read_text() == "old"
+    with pytest.raises(ValueError, match="not a file"), atomic_files(out) as tmp:
+        (tmp / "a").write_text("new")
+        (tmp / "sub").mkdir()
+    assert (out / "a").read_text() == "old"
+    # an owned name that is a folder is left, not an error
+    with atomic_files(out, owned=["b"], last=["rec"]) as tmp:
+        (tmp / "rec").write_text("new")
+    assert (out / "b").is_dir() and (out / "rec").read_text() == "new"
+    deep = tmp_path / "x" / "y" / "z"
+    with pytest.raises(RuntimeError), atomic_files(deep) as tmp:
+        raise RuntimeError("boom")
+    assert not (tmp_path / "x").exists()
