@@ -228,16 +228,20 @@ def check_ray_installed() -> None:
 
 
 def _quiet_ray_reports() -> None:
-    """Keep Ray's own reports of failed and retried tasks off the terminal.
+    """Keep Ray's own reports of failed and retried tasks off the terminal, for the batch.
 
     Ray prints them (``(raylet) Task run_item failed. There are 2 retries remaining ...``, a
     dead worker's notice, each with a coloured traceback) on the driver's stdout from a
     thread that ``log_to_driver=False`` does not stop, and it has no setting for that. The
     batch says what happened to an item itself, in one line (its record, the summary, the
-    final lines); Ray's reports stay in its session logs. Its "Unhandled error" reports of
-    results never fetched (cancelled tasks) are off too (``RAY_IGNORE_UNHANDLED_ERRORS``).
+    final lines); Ray's reports stay in its session logs, but a line about memory (the OOM
+    killer's notice of why a worker died) is logged as a warning, which the CLI prints as one
+    line. Its "Unhandled error" reports of results never fetched (cancelled tasks) are off too
+    (``RAY_IGNORE_UNHANDLED_ERRORS``). :func:`_loud_ray_reports` undoes both.
     """
-    os.environ.setdefault("RAY_IGNORE_UNHANDLED_ERRORS", "1")
+    if "RAY_IGNORE_UNHANDLED_ERRORS" not in os.environ:
+        os.environ["RAY_IGNORE_UNHANDLED_ERRORS"] = "1"
+        _RAY_PATCH["env"] = True
     try:
         from ray._private import worker as ray_worker
     except ImportError:  # another Ray layout: its reports stay
@@ -250,12 +254,31 @@ def _quiet_ray_reports() -> None:
     def quiet(data: dict[str, Any], ignore_prefix: bool) -> None:
         if data.get("pid") == "raylet":  # the error reports, not a worker's own output
             for line in data.get("lines") or ():
-                log.debug("%s", line)
+                memory = any(w in str(line).lower() for w in ("memory", "oom"))
+                log.log(logging.WARNING if memory else logging.DEBUG, "ray: %s",
+                        str(line).strip())
             return
         original(data, ignore_prefix=ignore_prefix)
 
     quiet.lenslesscam_quiet = True  # type: ignore[attr-defined]
     ray_worker.print_to_stdstream = quiet
+    _RAY_PATCH["original"] = original
+
+
+#: what :func:`_quiet_ray_reports` changed, for :func:`_loud_ray_reports`
+_RAY_PATCH: dict[str, Any] = {}
+
+
+def _loud_ray_reports() -> None:
+    """Undo :func:`_quiet_ray_reports` (the batch ended; Ray may be used again otherwise)."""
+    original = _RAY_PATCH.pop("original", None)
+    if original is not None:
+        with contextlib.suppress(ImportError):
+            from ray._private import worker as ray_worker
+
+            ray_worker.print_to_stdstream = original
+    if _RAY_PATCH.pop("env", False):
+        os.environ.pop("RAY_IGNORE_UNHANDLED_ERRORS", None)
 
 
 def start_ray(address: str | None, num_cpus: int | None,
@@ -314,7 +337,14 @@ def finished_record(paths: BatchPaths, item: Item, h: str) -> dict[str, Any] | N
         return None
     if not isinstance(rec, dict) or rec.get("format") != ITEM_FORMAT:
         return None
-    check_not_newer(rec, p)
+    from recon.formats import NewerFormat
+
+    try:
+        check_not_newer(rec, p)
+    except NewerFormat:  # another release's record: never overwritten
+        raise
+    except ValueError:  # a damaged version ("1", a hand edit): not finished, run again
+        return None
     if rec.get("status") != "done" or rec.get("item_hash") != h:
         return None
     out = paths.root / str(rec.get("output", ""))
@@ -664,6 +694,7 @@ def run_batch(manifest: str | Path, out: str | Path,
             import ray
 
             ray.shutdown()
+        _loud_ray_reports()
         signals.restore()
         lock.release()
 

@@ -308,6 +308,14 @@ def test_temp_files_of_killed_writes_go_and_newer_files_are_refused(data: Path, 
         in_process.run_batch(data / "m.csv", out)
     assert main(["batch", "status", str(out)]) == 2
     assert json.loads((out / "state.json").read_text())["format_version"] == 99
+    # a damaged version (a string, a hand edit) is damage, not a newer release: the item
+    # runs again, as for any damaged record (it refused the whole batch)
+    st["format_version"] = 1
+    (out / "state.json").write_text(json.dumps(st))
+    rec["format_version"] = "1"
+    rec_path.write_text(json.dumps(rec))
+    rep = in_process.run_batch(data / "m.csv", out)
+    assert rep.ran == 1 and json.loads(rec_path.read_text())["format_version"] == 1
 
 
 # -- 13. runs that cannot start leave no folder ----------------------------------------------------
@@ -338,3 +346,39 @@ def test_a_run_that_cannot_start_leaves_no_folder(data: Path, tmp_path: Path,
     with pytest.raises(ValueError, match=r"o\.csv:2: column 'measurement': the file name gives "
                                          r"an item id of 256 bytes"):
         read_manifest(data / "o.csv")
+
+
+def test_rays_reports_are_quiet_for_the_batch_only_and_memory_notices_stay(
+        caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    """(diff review) The patch of Ray's report printer stayed for the rest of the process and
+    dropped the OOM killer's notice of why a worker died with the tracebacks."""
+    import logging
+
+    pytest.importorskip("ray")
+    from ray._private import worker as ray_worker
+
+    from app.batch.driver import _loud_ray_reports, _quiet_ray_reports
+
+    monkeypatch.delenv("RAY_IGNORE_UNHANDLED_ERRORS", raising=False)
+    printed: list[dict] = []
+
+    def printer(data: dict, ignore_prefix: bool) -> None:
+        printed.append(data)
+
+    monkeypatch.setattr(ray_worker, "print_to_stdstream", printer)
+    _quiet_ray_reports()
+    try:
+        assert ray_worker.print_to_stdstream is not printer
+        with caplog.at_level(logging.DEBUG, logger="app.batch.ray"):
+            ray_worker.print_to_stdstream({"pid": "raylet", "lines": [
+                "Task run_item failed. Traceback ...",
+                "1 Workers killed due to memory pressure (OOM)"]}, ignore_prefix=False)
+            ray_worker.print_to_stdstream({"pid": 123, "lines": ["a worker's own"]},
+                                          ignore_prefix=False)
+        warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        assert warned == ["ray: 1 Workers killed due to memory pressure (OOM)"]
+        assert [d["pid"] for d in printed] == [123]  # a worker's output still reaches it
+    finally:
+        _loud_ray_reports()
+    assert ray_worker.print_to_stdstream is printer
+    assert "RAY_IGNORE_UNHANDLED_ERRORS" not in os.environ
