@@ -300,7 +300,6 @@ def start_ray(address: str | None, num_cpus: int | None,
 
     if ray.is_initialized():
         return False
-    _quiet_ray_reports()
     if address:
         if probe:
             check_reachable(address, connect_timeout_s)
@@ -666,6 +665,7 @@ def run_batch(manifest: str | Path, out: str | Path,
             print(f"batch: {len(items)} items, {len(items) - len(todo)} already done, "
                   f"{len(todo)} to run; {where if todo else 'nothing to run'}", file=sys.stderr)
         if todo:
+            _quiet_ray_reports()  # also for a Ray the caller started (undone at the end)
             owns_ray = start_ray(opts.address, opts.num_cpus, opts.connect_timeout_s,
                                  probe=False)
             signals.install()  # ray.init put its own (fatal) SIGTERM handler in place
