@@ -537,8 +537,22 @@ class NewJobDialog(QDialog):
         """Whether the settings make a job that can run (the estimate could be made)."""
         return self.refusal is None
 
+    def keyPressEvent(self, event: Any) -> None:
+        """Enter ends the edit of a box and queues nothing; Escape still closes.
+
+        Queueing (up to 16 seeds, hours each) is a click: Enter in Iterations queued the job
+        at once, with the other fields as they were (the button box makes Queue job the
+        default button when it is shown).
+        """
+        from PySide6.QtCore import Qt
+
+        if event.key() in (Qt.Key.Key_Return, Qt.Key.Key_Enter):
+            event.accept()
+            return
+        super().keyPressEvent(event)
+
     def accept(self) -> None:
-        """Queue only a job that can run (Enter as well as the button)."""
+        """Queue only a job that can run (the button; Enter in the dialog queues nothing)."""
         if self.refusal is not None:
             return
         super().accept()

@@ -420,3 +420,25 @@ def test_a_frame_of_another_size_than_the_psf_is_refused_before_the_dialog(panel
     assert panel.new_job_dialog() is None
     msg = panel.message.text()
     assert "the frame (24x32) and the PSF (48x64) differ in size (HxW)" in msg, msg
+
+
+def test_enter_in_a_box_ends_the_edit_and_queues_nothing(panel: Any, qtbot: Any) -> None:
+    """Typing 20000 in Iterations and pressing Return queued the job at once (Queue job was
+    the default button), with the other fields as they were; with Seeds set, up to 16 jobs."""
+    from PySide6.QtCore import Qt
+    from PySide6.QtWidgets import QDialog
+
+    dlg = panel.new_job_dialog()
+    dlg.show()
+    qtbot.waitExposed(dlg)
+    box = dlg.max_iter
+    box.setFocus()
+    box.lineEdit().selectAll()
+    qtbot.keyClicks(box, "20000")
+    qtbot.keyClick(box, Qt.Key.Key_Return)
+    assert box.value() == 20000  # the edit ended
+    assert dlg.isVisible() and dlg.result() != QDialog.DialogCode.Accepted
+    qtbot.keyClick(dlg, Qt.Key.Key_Enter)
+    assert dlg.isVisible()
+    qtbot.mouseClick(dlg.ok_button, _left())  # the button queues
+    assert dlg.result() == QDialog.DialogCode.Accepted
