@@ -94,11 +94,16 @@ def _any_notation(box: QAbstractSpinBox, qt_result: Any, text: str, pos: int) ->
 
 
 def _whole(box: QAbstractSpinBox, text: str) -> int | None:
-    """The whole number nearest to the number ``text`` holds in any notation, else None."""
+    """The whole number nearest to the number ``text`` holds in any notation, else None.
+
+    Beyond :data:`INT_LIMIT` it is that limit (with the sign), which the box then corrects to
+    its bound: 1e30 typed into Iterations became the box's minimum, 1 (None made Qt fall back
+    to its own parse), where 99999999999 became its maximum.
+    """
     value = _number(box, text, float)
-    if value is None or abs(value) > INT_LIMIT:
+    if value is None:
         return None
-    return math.floor(value + 0.5)
+    return math.floor(max(-INT_LIMIT, min(INT_LIMIT, value)) + 0.5)
 
 
 def _nearest_text(box: QAbstractSpinBox, text: str, kind: type) -> str:

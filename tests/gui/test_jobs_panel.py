@@ -217,7 +217,10 @@ def test_job_dialog_defaults_come_from_the_spec(live_window: Any, tmp_path: Any)
                              # while "0.000" showed); 1e-5 h is "none"
                              (dlg.holdout, "4e-4", 0.0), (dlg.time_limit, "1e-5", 0.0),
                              # whole-number boxes: '1e4' became 14, '2.5' 25
-                             (dlg.max_iter, "1e4", 10_000), (dlg.patience, "2.5", 3)):
+                             (dlg.max_iter, "1e4", 10_000), (dlg.patience, "2.5", 3),
+                             # beyond any integer: the nearest bound ('1e30' became 1)
+                             (dlg.max_iter, "1e30", dlg.max_iter.maximum()),
+                             (dlg.max_iter, "-1e30", dlg.max_iter.minimum())):
         box.lineEdit().selectAll()
         QTest.keyClicks(box.lineEdit(), typed)
         QTest.keyClick(box.lineEdit(), Qt.Key.Key_Return)
