@@ -4,6 +4,7 @@ Each job the app creates is a folder under the jobs folder::
 
     <jobs dir>/<YYYYmmdd-HHMMSS>-<name>/
         app-job.json     the app's entry: name, device, queue state, launches, memory estimate
+        app-job.lock     the claim (an OS lock) a window holds while it launches the job
         job.toml         the UDN job spec (recon.udn.spec), paths relative to this folder
         inputs/          measurement.npy (raw codes), measurement.json (frame metadata),
                          psf.npy (unit sum, float32), shutter.npy (video)
@@ -15,8 +16,8 @@ The job runs in its own process (``python -m app jobs run job.toml --out run``),
 new session by :func:`spawn_job_process`, so closing the window (or the app crashing) leaves it
 running; its progress is read back from the run folder. :class:`JobQueue` starts queued jobs
 one at a time per device (a second job for a busy device waits), and :func:`discover_jobs`
-finds every job again after a restart: running, interrupted (process gone: resume continues
-from the last checkpoint), finished.
+finds every job again after a restart: running (a process holds the run's lock),
+interrupted (none does: resume continues from the last checkpoint), finished.
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ __all__ = [
     "combine_refusal",
     "create_job",
     "default_sections",
+    "device_key",
     "discover_jobs",
     "estimate_job_memory",
     "job_view",
@@ -65,6 +67,8 @@ APP_JOB_VERSION = 1
 RUN_DIR = "run"
 SPEC = "job.toml"
 LOG = "job.log"
+#: the claim a window holds (an OS lock) while it launches the job
+CLAIM = "app-job.lock"
 
 #: Processes this app process started (pid -> Popen), reaped by :meth:`JobQueue.poll` so a
 #: finished child never lingers as a zombie that looks alive. Process-wide on purpose: a job
@@ -100,10 +104,24 @@ def _write_entry(folder: Path, entry: Mapping[str, Any]) -> None:
 
 
 def resolve_device_name(name: str) -> str:
-    """``auto`` -> the device a job would use (``cuda``, ``mps`` or ``cpu``); others as given."""
+    """The device a job would use, as :func:`device_key` names it (``auto``: ``cuda:0``...)."""
     from recon.udn.runner import resolve_device
 
-    return str(resolve_device(name))
+    return device_key(str(resolve_device(name)))
+
+
+def device_key(name: str) -> str:
+    """One name per device, the queue's key (``cuda`` is ``cuda:0``).
+
+    ``cuda`` is where a job's process puts it, ``cuda:0``; ``auto`` the device it resolves
+    to; others as given. The queue keyed on the raw text, so an ``auto`` job (stored as
+    ``cuda``) and a ``cuda:0`` job ran at once on one GPU.
+    """
+    if name == "auto":
+        return resolve_device_name(name)
+    if name == "cuda":
+        return "cuda:0"
+    return name
 
 
 def default_sections() -> dict[str, dict[str, Any]]:
@@ -255,13 +273,39 @@ def create_job(
     return folder
 
 
-def _pid_alive(pid: int) -> bool:
+def _pid_alive(pid: int, launched_utc: object = None) -> bool:
+    """Whether the process ``pid`` (launched at ``launched_utc``, when given) still runs.
+
+    A process that started after its launch was recorded is another one with a reused pid
+    (after a reboot): not alive. Only for a launch's pid; whether a run is alive is its
+    lock's to say (:func:`recon.udn.jobs.job_status`).
+    """
     child = _CHILDREN.get(pid)
     if child is not None:  # our own child: poll() also reaps it (kill(pid, 0) sees zombies)
         return child.poll() is None
     from recon.udn.jobs import pid_alive
 
-    return pid_alive(pid)
+    if not pid_alive(pid):
+        return False
+    started = _process_start(pid)
+    try:
+        when = _dt.datetime.fromisoformat(str(launched_utc)).timestamp()
+    except ValueError:
+        return True
+    # the launch is stamped (to the second) after the process was started
+    return started is None or started <= when + 3.0
+
+
+def _process_start(pid: int) -> float | None:
+    """When process ``pid`` started (Unix time), from /proc; None where that cannot be read."""
+    try:
+        with open("/proc/stat", encoding="ascii") as fh:
+            boot = next(float(line.split()[1]) for line in fh if line.startswith("btime "))
+        with open(f"/proc/{pid}/stat", encoding="utf-8", errors="replace") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        return boot + int(fields[19]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
 
 
 def spawn_job_process(args: list[str], cwd: Path, env: dict[str, str],
@@ -275,7 +319,7 @@ def spawn_job_process(args: list[str], cwd: Path, env: dict[str, str],
 
 
 def _launch(folder: Path, action: str, max_iter: int | None = None,
-            spawn: Spawner = spawn_job_process) -> Any:
+            spawn: Spawner = spawn_job_process, time_limit_s: float | None = None) -> Any:
     """Start ``jobs run`` / ``jobs resume`` for ``folder`` through ``spawn``."""
     if action == "run":
         args = ["jobs", "run", str(folder / SPEC), "--out", str(folder / RUN_DIR), "--quiet"]
@@ -283,6 +327,8 @@ def _launch(folder: Path, action: str, max_iter: int | None = None,
         args = ["jobs", "resume", str(folder / RUN_DIR), "--quiet"]
         if max_iter is not None:
             args += ["--max-iter", str(int(max_iter))]
+        if time_limit_s is not None:
+            args += ["--time-limit", repr(float(time_limit_s))]
     env = dict(os.environ)
     root = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
@@ -352,13 +398,28 @@ class JobView:
     memory: dict[str, Any] = field(default_factory=dict)
     created_utc: str = ""
     still_improving: bool = False
+    #: the run's wall-time limit (seconds of iterations), if it has one
+    time_limit_s: float | None = None
+    #: the limit a completed run reached: ``max_iter`` or ``time_limit`` (None: neither)
+    limit_reached: str | None = None
+    #: a resume would begin again from iteration 0: the run stopped before its first
+    #: checkpoint (``jobs resume`` does that, with a note)
+    from_start: bool = False
 
     @property
     def fraction(self) -> float:
-        """Fraction of the iteration limit done."""
-        if not self.max_iter:
-            return 0.0
-        return min(1.0, self.iteration / self.max_iter)
+        """Fraction of the run done: the larger of the iteration and time fractions.
+
+        1 for a run that completed or stopped early (a time-limited run read 1 % throughout
+        and after it ended, its iteration limit far away).
+        """
+        if self.state is AppJobState.FINISHED and self.finish_reason in (
+                "completed", "stopped_early"):
+            return 1.0
+        done = self.iteration / self.max_iter if self.max_iter else 0.0
+        if self.time_limit_s and self.elapsed_s is not None:
+            done = max(done, self.elapsed_s / self.time_limit_s)
+        return min(1.0, max(0.0, done))
 
     @property
     def active(self) -> bool:
@@ -372,17 +433,38 @@ class JobView:
 
     @property
     def can_resume(self) -> bool:
-        """Whether the run can continue.
+        """Whether the run can continue (or the job be queued again).
 
-        An interrupted or cancelled run (with iterations left), and one that reached its limit
-        still improving (with twice the iterations, :attr:`resume_max_iter`).
+        What ``jobs resume`` takes: an interrupted or cancelled run, a failed one (from its
+        checkpoint, or from iteration 0 when it stopped before its first one, a full disk
+        say), one that reached its limit still improving (to twice the iterations,
+        :attr:`resume_max_iter`, or the time, :attr:`resume_time_limit_s`); and a job
+        withdrawn from the queue (queued again).
         """
-        if self.state is AppJobState.INTERRUPTED:
+        if self.state in (AppJobState.INTERRUPTED, AppJobState.WITHDRAWN):
             return True
-        return (self.state is AppJobState.FINISHED
-                and (self.finish_reason in ("cancelled", "failed")
-                     or (self.finish_reason == "completed" and self.still_improving))
-                and (self.run_dir / "checkpoint.pt").is_file())
+        if self.state is not AppJobState.FINISHED:
+            return False
+        has_checkpoint = (self.run_dir / "checkpoint.pt").is_file()
+        if self.finish_reason == "failed":
+            return has_checkpoint or self.from_start
+        return has_checkpoint and (self.finish_reason == "cancelled" or (
+            self.finish_reason == "completed" and self.still_improving))
+
+    @property
+    def resume_time_limit_s(self) -> float | None:
+        """The time limit a resume passes (``--time-limit``, seconds), or None.
+
+        None unless the run completed at its time limit, then twice what it used (at least
+        its limit), as its detail advises. Without it ``jobs resume`` refused ("pass a
+        larger --time-limit").
+        """
+        if (self.finish_reason != "completed" or self.limit_reached != "time_limit"
+                or not self.time_limit_s):
+            return None
+        from recon.udn.jobs import _seconds_arg
+
+        return float(_seconds_arg(2 * max(self.time_limit_s, self.elapsed_s or 0.0)))
 
     @property
     def resume_max_iter(self) -> int | None:
@@ -391,7 +473,8 @@ class JobView:
         None (the run's own), or twice it for a run that reached it still improving (what its
         detail line suggests).
         """
-        if self.finish_reason == "completed" and self.max_iter:
+        if (self.finish_reason == "completed" and self.max_iter
+                and self.limit_reached != "time_limit"):
             return 2 * int(self.max_iter)
         return None
 
@@ -407,6 +490,10 @@ def _entry_problem(entry: dict[str, Any]) -> str | None:
     mi = entry.get("max_iter")
     if mi is not None and (not isinstance(mi, int) or isinstance(mi, bool) or mi < 1):
         return f"max_iter {mi!r} is not a whole number >= 1"
+    tl = entry.get("time_limit_s")
+    if tl is not None and (not isinstance(tl, int | float) or isinstance(tl, bool)
+                           or not 0 < tl < float("inf")):
+        return f"time_limit_s {tl!r} is not a number of seconds > 0"
     launches = entry.get("launches", [])
     if not isinstance(launches, list) or not all(isinstance(x, dict) for x in launches):
         return "launches is not a list of launches"
@@ -455,36 +542,44 @@ def job_view(folder: str | Path) -> JobView | None:
         v.eta_s, v.elapsed_s, v.pid = st.eta_s, st.elapsed_s, st.pid
         v.finish_reason, v.detail = st.finish_reason, st.detail
         v.last_preview = Path(st.last_preview) if st.last_preview else None
+        rec = _read_json(record) or {}
+        res = rec.get("results")
+        results: dict[str, Any] = res if isinstance(res, dict) else {}
+        _limits_of(v, rec, results)
         if v.state is not AppJobState.QUEUED:
+            # running or interrupted: the run's lock said (job_status), not a pid that may be
+            # stale or another process's since (a reboot)
             v.state = AppJobState.read(st.state)
-            if (v.state is AppJobState.RUNNING and st.pid is not None
-                    and not _pid_alive(st.pid)):
-                v.state = AppJobState.INTERRUPTED
             # a resume launched but not yet re-registered in the record
             if (st.state != AppJobState.RUNNING and last is not None
-                    and last.get("action") == "resume" and _pid_alive(int(last["pid"]))):
+                    and last.get("action") == "resume"
+                    and _pid_alive(int(last["pid"]), last.get("utc"))):
                 v.state = AppJobState.STARTING
-                _resuming(v, last.get("max_iter"))
+                _resuming(v, last.get("max_iter"), last.get("time_limit_s"))
         elif entry.get("action") == "resume":  # a resume waits its turn in the queue
-            _resuming(v, entry.get("max_iter"))
-        rec = _read_json(record) or {}
+            _resuming(v, entry.get("max_iter"), entry.get("time_limit_s"))
         sessions = [str(s.get("started_utc", "")) for s in rec.get("sessions") or []
                     if isinstance(s, dict)]
         if (v.state is not AppJobState.QUEUED and last is not None
-                and last.get("action") == "resume" and not _pid_alive(int(last["pid"]))
+                and last.get("action") == "resume"
+                and not _pid_alive(int(last["pid"]), last.get("utc"))
                 and max(sessions, default="") < str(last.get("utc", ""))):
             if _cancelled_while_starting(entry, last):  # the run is as it was
                 v.detail = "the resume was cancelled while starting; the run is as it was"
-            else:  # a refused resume leaves the record as it was: only its log says why
-                v.state = AppJobState.FAILED_TO_START
-                v.detail = f"the resume did not start: {_log_tail(f)}"
-        v.still_improving = bool((rec.get("results") or {}).get("still_improving"))
+            else:  # a refused resume leaves the run as it was (its state and results stand):
+                # only its log says why
+                v.detail = f"the resume did not start: {_log_tail(f) or 'see job.log'}"
+        v.still_improving = bool(results.get("still_improving"))
+        note = results.get("with_fista_note")
+        if isinstance(note, str) and note and v.state is AppJobState.FINISHED:
+            # a cancel during the FISTA-TV at the end: "completed" without with_fista.tif
+            v.detail = f"{v.detail}; {note}" if v.detail else note
         for which in ("final", "best", "mean", "with_fista"):
-            r = (rec.get("results") or {}).get(which)
+            r = results.get(which)
             if isinstance(r, str) and (f / RUN_DIR / r).is_file():
                 v.results[which] = f / RUN_DIR / r
         return v
-    if last is not None and _pid_alive(int(last["pid"])):
+    if last is not None and _pid_alive(int(last["pid"]), last.get("utc")):
         v.state = AppJobState.STARTING
     elif last is not None and _cancelled_while_starting(entry, last):
         v.state = AppJobState.WITHDRAWN
@@ -495,24 +590,55 @@ def job_view(folder: str | Path) -> JobView | None:
     return v
 
 
-def _resuming(v: JobView, max_iter: Any) -> None:
+def _limits_of(v: JobView, rec: dict[str, Any], results: dict[str, Any]) -> None:
+    """The run's time limit, the limit it reached, and whether a resume starts from 0."""
+    stopping = (rec.get("spec") or {}).get("stopping") or {}
+    tl = stopping.get("time_limit_s") if isinstance(stopping, dict) else None
+    v.time_limit_s = float(tl) if isinstance(tl, int | float) and tl > 0 else None
+    reached = results.get("limit_reached")
+    if reached is None and v.finish_reason == "completed":  # a record from before the field
+        from recon.udn.jobs import _DETAIL
+
+        for key in ("max_iter", "time_limit"):
+            if str(v.detail or "").startswith(_DETAIL[key]):
+                reached = key
+    v.limit_reached = reached if reached in ("max_iter", "time_limit") else None
+    rd = v.run_dir
+    v.from_start = (rec.get("spec") is not None and not isinstance(rec.get("checkpoint"), dict)
+                    and not (rd / "checkpoint.pt").exists()
+                    and not (rd / "checkpoint.prev.pt").exists())
+
+
+def _resuming(v: JobView, max_iter: Any, time_limit_s: Any = None) -> None:
     """Show a resume queued or starting as such.
 
     The run's last detail (cancelled, reached the limit ...) is no longer news, and its bar
-    counts to the new limit.
+    counts to the new limits.
     """
+    from recon.udn.jobs import format_hms
+
     v.detail = (f"resuming from iteration {v.iteration}"
                 + (f" to {int(max_iter)}" if isinstance(max_iter, int) else ""))
+    if isinstance(time_limit_s, int | float) and time_limit_s > 0:
+        v.detail += f" (time limit {format_hms(float(time_limit_s))})"
+        v.time_limit_s = float(time_limit_s)
     v.finish_reason = None
     if isinstance(max_iter, int) and max_iter > 0:
         v.max_iter = max_iter
 
 
 def _log_tail(folder: Path, n: int = 3) -> str:
+    """The last ``n`` lines the job's last launch wrote to its log (after its ``---`` line).
+
+    Not an earlier launch's: a refused resume showed the previous run's JSON summary.
+    """
     try:
         lines = (folder / LOG).read_text(encoding="utf-8", errors="replace").splitlines()
     except OSError:
         return ""
+    starts = [i for i, line in enumerate(lines) if line.startswith("--- ")]
+    if starts:
+        lines = lines[starts[-1] + 1:]
     return " | ".join(line for line in lines[-n:] if line.strip())
 
 
@@ -553,7 +679,8 @@ def combine_refusal(views: list[JobView], with_fista: bool = False) -> str | Non
     return None
 
 
-def combine_jobs(views: list[JobView], jobs_dir: str | Path, with_fista: bool = False) -> Any:
+def combine_jobs(views: list[JobView], jobs_dir: str | Path, with_fista: bool = False,
+                 threads: int | None = None) -> Any:
     """Average the estimates of finished jobs of one measurement (an ensemble).
 
     Their best estimates; with ``with_fista`` their iterate means where every job has one
@@ -565,7 +692,15 @@ def combine_jobs(views: list[JobView], jobs_dir: str | Path, with_fista: bool = 
     ``with_fista``: that average half and half with FISTA-TV (automatic tau) of the jobs' own
     inputs; one job is then enough. It takes seconds to a minute (the tau search): the panel
     runs it off the GUI thread.
+
+    Torch runs it with the thread count of ``lenslesscam jobs combine``
+    (:func:`recon.threads.choose_threads` of ``threads``; None: from the machine's cores and
+    load), set in the calling thread and given back after: at torch's default count the
+    app's FISTA-TV took 30-67 s where the command took 1.7 s on a loaded machine.
     """
+    import torch
+
+    from recon.threads import choose_threads
     from recon.udn.ensemble import combine_runs
 
     refusal = combine_refusal(views, with_fista)
@@ -581,7 +716,12 @@ def combine_jobs(views: list[JobView], jobs_dir: str | Path, with_fista: bool = 
     while out.exists():
         n += 1
         out = out_dir / f"{stamp}-{_slug(name)}-x{len(views)}{tag}-{n}.tif"
-    return combine_runs([v.run_dir for v in views], out, with_fista=with_fista)
+    before = torch.get_num_threads()
+    torch.set_num_threads(choose_threads(threads).threads)
+    try:
+        return combine_runs([v.run_dir for v in views], out, with_fista=with_fista)
+    finally:
+        torch.set_num_threads(before)
 
 
 def read_loss(folder: str | Path) -> tuple[Any, ...]:
@@ -663,14 +803,35 @@ def _cancelled_while_starting(entry: dict[str, Any], last: dict[str, Any]) -> bo
             and c.get("utc") == last.get("utc"))
 
 
-def queue_resume(folder: str | Path, max_iter: int | None = None) -> None:
-    """Queue a resume of an interrupted or cancelled run (continues from its checkpoint)."""
+def queue_resume(folder: str | Path, max_iter: int | None = None,
+                 time_limit_s: float | None = None) -> None:
+    """Queue a resume of a run (continues from its checkpoint), or a withdrawn job again.
+
+    ``time_limit_s`` None: the job's :attr:`JobView.resume_time_limit_s` (a run that completed
+    at its time limit still improving is continued with twice the time its detail advises;
+    ``jobs resume`` refuses it without). A job withdrawn before its run began is queued to run.
+    """
     f = Path(folder)
     entry = _read_json(f / APP_JOB_FILE)
     if entry is None:
         raise FileNotFoundError(f"{f}: not an app job")
-    entry.update(state="queued", action="resume", max_iter=max_iter)
+    if not (f / RUN_DIR / "run.json").is_file():  # withdrawn before it ran: run it
+        entry.update(state="queued", action="run", max_iter=None, time_limit_s=None)
+        _write_entry(f, entry)
+        return
+    if time_limit_s is None:
+        view = job_view(f)
+        time_limit_s = None if view is None else view.resume_time_limit_s
+    entry.update(state="queued", action="resume", max_iter=max_iter, time_limit_s=time_limit_s)
     _write_entry(f, entry)
+
+
+def _key(device: str) -> str:
+    """The queue's key of a job's device (:func:`device_key`; the text when it is unknown)."""
+    try:
+        return device_key(device)
+    except (ValueError, RuntimeError):
+        return device
 
 
 class JobQueue:
@@ -689,28 +850,67 @@ class JobQueue:
             if proc.poll() is not None:
                 del _CHILDREN[pid]
         views = discover_jobs(self.jobs_dir)
-        busy = {v.device for v in views if v.active}
+        busy = {_key(v.device) for v in views if v.active}
         for v in views:
-            if v.state is not AppJobState.QUEUED or v.device in busy:
+            if v.state is not AppJobState.QUEUED or _key(v.device) in busy:
                 continue
-            entry = _read_json(v.folder / APP_JOB_FILE) or {}
-            action = str(entry.get("action", "run"))
-            try:
-                proc = _launch(v.folder, action, entry.get("max_iter"), self.spawn)
-            except OSError as exc:
-                entry["state"] = AppJobState.FAILED_TO_START.value
-                entry["error"] = str(exc)
-                _write_entry(v.folder, entry)
+            launched = self._launch_claimed(v.folder)
+            if launched is None:
                 continue
-            entry["state"] = AppJobState.LAUNCHED.value
-            entry.setdefault("launches", []).append(
-                {"pid": proc.pid, "action": action, "utc": _now()})
-            _write_entry(v.folder, entry)
-            busy.add(v.device)
+            if launched:
+                busy.add(_key(v.device))
             nv = job_view(v.folder)
             if nv is not None:
                 views[views.index(v)] = nv
         return views
+
+    def _launch_claimed(self, folder: Path) -> bool | None:
+        """Launch a queued job holding its claim (an OS lock on ``app-job.lock``).
+
+        Two windows on one jobs folder both read a job queued and both launched it: the one
+        that holds the claim reads the entry again and launches only if it is still queued.
+        Returns whether a process was started, or None when another window holds the claim or
+        launched it meanwhile (the view is then left as read).
+        """
+        import fcntl
+
+        try:
+            fd = os.open(folder / CLAIM, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        except FileNotFoundError:  # the folder was deleted meanwhile
+            return None
+        except OSError as exc:  # not ours to write: it cannot start (as its log could not)
+            entry = _read_json(folder / APP_JOB_FILE) or {}
+            entry.update(state=AppJobState.FAILED_TO_START.value, error=str(exc))
+            _write_entry(folder, entry)
+            return False
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                return None  # another window is launching it
+            entry = _read_json(folder / APP_JOB_FILE) or {}
+            if entry.get("state") != AppJobState.QUEUED or _entry_problem(entry) is not None:
+                return None
+            action = str(entry.get("action", "run"))
+            tl = entry.get("time_limit_s") if action == "resume" else None
+            try:
+                proc = _launch(folder, action, entry.get("max_iter"), self.spawn, tl)
+            except OSError as exc:
+                entry["state"] = AppJobState.FAILED_TO_START.value
+                entry["error"] = str(exc)
+                _write_entry(folder, entry)
+                return False
+            entry["state"] = AppJobState.LAUNCHED.value
+            launch: dict[str, Any] = {"pid": proc.pid, "action": action, "utc": _now()}
+            if action == "resume" and entry.get("max_iter") is not None:
+                launch["max_iter"] = entry["max_iter"]
+            if tl is not None:
+                launch["time_limit_s"] = tl
+            entry.setdefault("launches", []).append(launch)
+            _write_entry(folder, entry)
+            return True
+        finally:
+            os.close(fd)  # releases the claim
 
     @staticmethod
     def children() -> list[int]:

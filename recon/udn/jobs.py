@@ -84,6 +84,7 @@ from recon.udn.rundir import (
     DiskFull,
     JobError,
     RunFolderBusy,
+    RunFolderGone,
     RunLock,
     clean_temp_files,
     is_disk_full,
@@ -113,6 +114,7 @@ __all__ = [
     "JobState",
     "JobStatus",
     "RunFolderBusy",
+    "RunFolderGone",
     "cancel_on_signals",
     "format_status",
     "is_run_folder",
@@ -497,12 +499,32 @@ class _Job:
         self._session_start = time.monotonic()
 
     # -- files ---------------------------------------------------------------------------------
+    def folder_intact(self) -> bool:
+        """Whether the run folder is still there, with this session's lock file in it."""
+        if self.lock is not None and self.lock.held:
+            return self.lock.intact()
+        return self.run_dir.is_dir()
+
+    def check_folder(self) -> None:
+        """Raise :class:`RunFolderGone` when the run folder was deleted or moved.
+
+        Called before every write: an atomic write makes missing parent folders, so a run
+        whose folder was deleted went on writing a new one that no one saw (the app's queue
+        then started the next job beside it).
+        """
+        if not self.folder_intact():
+            raise RunFolderGone(f"the run folder {self.run_dir} (or its {LOCK_FILE}) was deleted "
+                                "or moved while the run wrote it: the run stops and writes "
+                                "nothing more; start it again in a new folder")
+
     def write_record(self) -> None:
+        self.check_folder()
         atomic_write_json(self.run_dir / RECORD_FILE, self.record)
 
     def write_csv(self) -> None:
         from recon.csvmeta import format_table
 
+        self.check_folder()
         meta = [("spec_hash", _spec_hash(self.spec)), ("written_utc", _now())]
         text = format_table(LOSS_FORMAT, FORMAT_VERSION, meta, _CSV_FIELDS, self.rows)
         atomic_write_bytes(self.run_dir / LOSS_FILE, text.encode())
@@ -656,6 +678,7 @@ class _Job:
             self._progress_record(s)
             if s.preview is not None:
                 name = f"{PREVIEW_DIR}/iter_{s.iteration:07d}.png"
+                self.check_folder()
                 _write_png(self.run_dir / name, preview_image(s.preview))
                 self.record["progress"]["last_preview"] = name
             if self.progress is not None:
@@ -705,6 +728,7 @@ class _Job:
                                           f"{xf.shape}, the run's estimate is {x_udn.shape}")
             return
         x = np.asarray(average_with_fista(x_udn, xf), dtype=np.float32)
+        self.check_folder()
         meta = {**base_meta, "method": "udn+fista-tv", "estimate": "with_fista",
                 "udn_estimate": which, "fista": fmeta}
         paths = save_reconstruction(self.run_dir / "with_fista.tif", x, meta, kind=kind)
@@ -741,6 +765,7 @@ class _Job:
                     "mean_count": runner.mean_count,
                     "mean_last_iteration": runner.mean_last_iteration}
         for which, x in estimates:
+            self.check_folder()
             paths = save_reconstruction(self.run_dir / f"{which}.tif", x,
                                         {**base_meta, "estimate": which,
                                          **(averaged if which == "mean" else {})}, kind=kind)
@@ -757,6 +782,7 @@ class _Job:
             self._with_fista(results, hashes, estimates, base_meta, kind)
         if reason in ("max_iter", "time_limit"):
             results["still_improving"] = runner.still_improving()
+            results["limit_reached"] = reason  # which limit (a resume raises that one)
         if problem.truth is not None:
             from recon.metrics import metrics_report
 
@@ -896,6 +922,10 @@ def _session(job: _Job, max_memory: int | None, resume_state: dict[str, Any] | N
             detail = _limit_detail(job, reason, detail)
         rec.update(status=JobState.FINISHED, finish_reason=finish, detail=detail)
     except BaseException as exc:
+        if not job.folder_intact():  # deleted or moved: write nothing (it would be made again)
+            if isinstance(exc, RunFolderGone):
+                raise
+            job.check_folder()
         err: BaseException = exc
         if is_disk_full(exc):
             err = _as_disk_full(exc, job)
@@ -1314,7 +1344,16 @@ def job_status(run_dir: str | Path) -> JobStatus:
     pid = rec.get("pid")
     state: JobState
     if status in (JobState.RUNNING, JobState.STARTING):
-        alive = isinstance(pid, int) and pid_alive(pid, rec.get("host"))
+        if rec.get("host") in (None, platform.node()):
+            # the run's lock says whether a process works on it (docs/udn.md): the record's
+            # pid may be stale (a reboot) or another process's since; the pid shown is the
+            # lock holder's own
+            holder = lock_holder(rd)
+            alive = holder is not None
+            if holder is not None and holder[0] is not None:
+                pid = holder[0]
+        else:  # another host's run: not known here
+            alive = False
         state = JobState.RUNNING if alive else JobState.INTERRUPTED
     else:
         state = JobState.FINISHED

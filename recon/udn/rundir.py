@@ -48,6 +48,7 @@ __all__ = [
     "DiskFull",
     "JobError",
     "RunFolderBusy",
+    "RunFolderGone",
     "RunLock",
     "clean_temp_files",
     "is_disk_full",
@@ -83,6 +84,14 @@ class RunFolderBusy(JobError):
     """
 
     holder: str = ""
+
+
+class RunFolderGone(JobError):
+    """The run folder (or its lock file) was deleted or moved while the run wrote it.
+
+    The run stops without writing anything more: its atomic writes would make the folder
+    again (they create missing parent folders), a run nobody sees.
+    """
 
 
 class CheckpointError(JobError):
@@ -121,6 +130,26 @@ _BUSY = (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
 HOLDER_WAIT_S = 1.0
 """How long a refused process waits for the holder's line (the holder writes it right after
 taking the lock; an empty file means it is starting or releasing just then)."""
+
+
+PROBE_GRACE_S = 0.25
+"""How long a refused process tries the lock again before it reads the holder's line: a
+status probe (:func:`lock_is_held`, which ``jobs status`` and the app's jobs panel call at
+every poll) holds it for microseconds, and the line then read may be a dead holder's."""
+
+
+def _retry_lock(fd: int, seconds: float) -> bool:
+    """Try the exclusive lock again for up to ``seconds``; whether it was taken."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        time.sleep(0.01)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except OSError as exc:
+            if exc.errno not in _BUSY:
+                raise
+    return False
 
 
 def _wait_for_holder(fd: int) -> bytes | None:
@@ -170,8 +199,9 @@ def lock_holder(run_dir: str | Path) -> tuple[int | None, str] | None:
 def lock_is_held(run_dir: str | Path) -> bool:
     """Whether some process holds the run folder's lock now.
 
-    A momentary probe: it takes the lock and gives it back at once, so call it only on a
-    user's action, never in a loop.
+    A momentary probe: it takes a shared lock and gives it back at once. A writer that
+    starts just then tries again for :data:`PROBE_GRACE_S` before it is refused, so a status
+    poll (``jobs status``, the app's jobs panel) never turns a start away.
     """
     path = Path(run_dir) / LOCK_FILE
     try:
@@ -221,7 +251,7 @@ class RunLock:
             except OSError as exc:
                 if exc.errno not in _BUSY:
                     raise
-                holder = _wait_for_holder(fd)
+                holder = None if _retry_lock(fd, PROBE_GRACE_S) else _wait_for_holder(fd)
                 if holder is not None:
                     who = holder.decode("utf-8", "replace").strip() or "another process"
                     busy = RunFolderBusy(
@@ -242,6 +272,21 @@ class RunLock:
             os.ftruncate(fd, len(self._holder))
             os.posix_fallocate(fd, 0, RESERVE_BYTES)
         return self
+
+    def intact(self) -> bool:
+        """Whether the lock file is still in its folder, the file this lock holds.
+
+        False once the run folder was deleted (the file unlinked), moved or replaced: the
+        writer must stop (:class:`RunFolderGone`). Two ``stat`` calls; True when not held.
+        """
+        if self._fd is None:
+            return True
+        try:
+            held = os.fstat(self._fd)
+            now = os.stat(self.path)
+        except OSError:
+            return False
+        return held.st_nlink > 0 and (held.st_dev, held.st_ino) == (now.st_dev, now.st_ino)
 
     def release_reserve(self) -> None:
         """Give the reserved space back to the file system (on a full disk)."""
