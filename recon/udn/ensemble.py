@@ -75,9 +75,9 @@ def _member(run_dir: Path, estimate: Estimate) -> tuple[dict[str, Any], F32, dic
         from recon.udn.jobs import job_status
 
         if job_status(run_dir).state == JobState.INTERRUPTED:  # killed: nobody to wait for
-            raise ValueError(f"{run_dir}: the run was interrupted (its process "
-                             f"{rec.get('pid')} is gone): its {estimate} estimate is not its "
-                             f"last; resume it ('lenslesscam jobs resume {run_dir}') first")
+            raise ValueError(f"{run_dir}: the run was interrupted (no process holds its "
+                             f"folder): its {estimate} estimate is not its last; resume it "
+                             f"('lenslesscam jobs resume {run_dir}') first")
         raise ValueError(f"{run_dir}: the run has not finished (status {status}): its "
                          f"{estimate} estimate is not its last; wait for it, or cancel it "
                          f"first ('lenslesscam jobs cancel {run_dir}')")

@@ -1398,8 +1398,8 @@ def format_status(st: JobStatus) -> str:
     if st.state == "running":
         state = f"running (pid {st.pid})"
     elif st.state == "interrupted":
-        state = (f"interrupted: process {st.pid} is gone; continue with "
-                 f"'lenslesscam jobs resume {st.run_dir}'")
+        state = (f"interrupted: no process holds the run folder (its last, pid {st.pid}, "
+                 f"ended); continue with 'lenslesscam jobs resume {st.run_dir}'")
     else:
         state = f"finished: {st.finish_reason}"
         if st.detail:

@@ -94,13 +94,17 @@ def test_combine_refuses_what_is_not_one_problem(three_runs, tiny_data, tmp_path
     del rec["results"]
     rec["status"], rec["finish_reason"] = "running", None
     (runs[1] / "run.json").write_text(json.dumps(rec))
-    with pytest.raises(ValueError, match="has not finished"):
-        combine_runs([runs[0], runs[1]], out)
+    from recon.udn.rundir import RunLock
+
+    with RunLock(runs[1]), pytest.raises(ValueError, match="has not finished"):
+        combine_runs([runs[0], runs[1]], out)  # running: its process holds the run folder
+    with pytest.raises(ValueError, match="was interrupted"):
+        combine_runs([runs[0], runs[1]], out)  # nothing holds it: killed
     with pytest.raises(FileNotFoundError, match="no UDN run here"):
         combine_runs([runs[0], tmp_path], out)
     assert not out.exists()
     assert cli_main(["jobs", "combine", str(runs[0]), str(runs[1]), "--out", str(out)]) != 0
-    assert "has not finished" in capsys.readouterr().err
+    assert "was interrupted" in capsys.readouterr().err
 
 
 def test_combine_never_writes_into_a_member_nor_trusts_a_replaced_result(three_runs, tmp_path):
@@ -144,19 +148,16 @@ def test_combine_never_writes_over_a_members_input_nor_takes_an_unfinished_run(
     rec = json.loads(rec_path.read_text())
     rec["status"] = "running"  # as a live run, or one killed by the system, leaves it
     rec_path.write_text(json.dumps(rec))
-    with pytest.raises(ValueError, match=r"the run has not finished \(status running\)"):
+    from recon.udn.rundir import RunLock
+
+    with RunLock(runs[1]), pytest.raises(  # running: its process holds the run folder
+            ValueError, match=r"the run has not finished \(status running\)"):
         combine_runs(runs[:2], tmp_path / "ens.tif")
     assert not (tmp_path / "ens.tif").exists()
-    # killed (its process gone): not "wait for it" (jobs status said interrupted meanwhile)
-    import subprocess
-    import sys
-
-    gone = subprocess.Popen([sys.executable, "-c", "pass"])
-    gone.wait()
-    rec["pid"] = gone.pid
-    rec_path.write_text(json.dumps(rec))
-    with pytest.raises(ValueError, match=r"the run was interrupted \(its process \d+ is gone\)"
-                       r".*resume it \('lenslesscam jobs resume "):
+    # killed (nothing holds its folder, whatever its recorded pid is now): not "wait for it"
+    # (jobs status said interrupted meanwhile)
+    with pytest.raises(ValueError, match=r"the run was interrupted \(no process holds its "
+                       r"folder\).*resume it \('lenslesscam jobs resume "):
         combine_runs(runs[:2], tmp_path / "ens.tif")
 
 
