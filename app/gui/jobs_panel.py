@@ -1209,14 +1209,20 @@ class JobsPanel(QWidget):
         v = self.selected()
         if v is None:
             return
-        more = v.resume_max_iter
+        more, longer = v.resume_max_iter, v.resume_time_limit_s
+        again = not (v.folder / RUN_DIR / "run.json").is_file()  # withdrawn before it ran
         try:
             queue_resume(v.folder, max_iter=more)
         except Exception as exc:
             self.message.setText(f"cannot resume: {exc}")
             return
-        self.message.setText(f"resume of {v.name} queued"
-                             + (f" (to {more} iterations)" if more else ""), about=v.folder)
+        if again:
+            said = f"{v.name} queued again (it was withdrawn before it ran)"
+        else:
+            said = f"resume of {v.name} queued" + (
+                f" (to {more} iterations)" if more else
+                f" (with a time limit of {longer / 3600:.3g} h)" if longer else "")
+        self.message.setText(said, about=v.folder)
         self.refresh()
 
     def open_selected(self) -> ResultDialog | None:

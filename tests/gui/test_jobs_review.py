@@ -297,3 +297,23 @@ def test_two_windows_launch_a_queued_job_once(tmp_path, monkeypatch):
     assert len(spawn_a.launched) + len(spawn_b.launched) == 1
     entry = json.loads((tmp_path / "q" / APP_JOB_FILE).read_text())
     assert entry["state"] == "launched" and len(entry["launches"]) == 1
+
+
+def test_the_panel_says_a_withdrawn_job_is_queued_again(tmp_path, qtbot):
+    """The panel's message for Resume of a withdrawn job said "resume of w queued" (nothing
+    resumed: it runs from the start), and a resume with more time named no time."""
+    from app.gui.jobs_panel import JobsPanel
+
+    _entry(tmp_path / "w", state="withdrawn")
+    spawn = _Spawner()
+    panel = JobsPanel(tmp_path, lambda: None, poll_ms=60_000, spawn=spawn)
+    qtbot.addWidget(panel)
+    try:
+        panel.refresh()
+        panel.table.selectRow(0)
+        panel.resume_selected()
+        assert "w queued again (it was withdrawn before it ran)" in panel.message.text()
+        (_, args), = spawn.launched  # queued, then launched to run from the start
+        assert args[:2] == ["jobs", "run"]
+    finally:
+        panel.stop()
