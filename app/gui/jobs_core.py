@@ -695,8 +695,9 @@ def combine_jobs(views: list[JobView], jobs_dir: str | Path, with_fista: bool = 
 
     Torch runs it with the thread count of ``lenslesscam jobs combine``
     (:func:`recon.threads.choose_threads` of ``threads``; None: from the machine's cores and
-    load), set in the calling thread and given back after: at torch's default count the
-    app's FISTA-TV took 30-67 s where the command took 1.7 s on a loaded machine.
+    load), set while it runs and given back after (torch's count is the process's: the live
+    preview shares it meanwhile): at torch's default count the app's FISTA-TV took 30-67 s
+    where the command took 1.7 s on a loaded machine.
     """
     import torch
 
