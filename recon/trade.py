@@ -46,6 +46,7 @@ from recon.models import build_model
 from recon.preprocess import box_downsample, downsample_masked
 
 __all__ = [
+    "QUALITY_LABEL",
     "TAU_MAX",
     "TRADE_FORMAT",
     "Case",
@@ -61,6 +62,7 @@ __all__ = [
     "read_trade",
     "read_trade_csv",
     "run_trade",
+    "trade_markdown",
     "udn_settings",
     "write_trade_csv",
 ]
@@ -667,3 +669,42 @@ def read_trade(path: str | Path) -> TradeFile:
 def read_trade_csv(path: str | Path) -> list[TradeRow]:
     """Rows of a ``trade.csv`` written by ``lenslesscam trade`` (:func:`read_trade`)."""
     return read_trade(path).rows
+
+
+#: the quality a trade is ranked by, as its tables and plots name it
+QUALITY_LABEL = {"psnr": "PSNR vs truth (dB)", "heldout_psnr": "held-out prediction (dB)"}
+
+
+def trade_markdown(rows: list[TradeRow], cases: list[Any], budgets: list[float],
+                   produced: str, closing: str) -> str:
+    """``trade.md``: the best setting per budget and the Pareto front of each case.
+
+    ``produced`` says what made the trade (its first sentences), ``closing`` where the points
+    are. The one writer of the file: the command and the app's trade panel (*Save trade…*).
+    """
+    md = [f"# Speed/accuracy trade\n\n{produced} Wall time "
+          "is the time to reach the iteration count (one run per setting, scored at several "
+          "counts); peak memory is the run's peak resident memory above its start.\n"]
+    for case in cases:
+        cr = [r for r in rows if r.case == case.name]
+        key = "psnr" if case.truth is not None else "heldout_psnr"
+        md.append(f"\n## {case.name}\n")
+        if case.truth is not None:
+            rho = rank_correlation([r.heldout_psnr for r in cr], [r.psnr or 0.0 for r in cr])
+            md.append(f"Held-out proxy vs true PSNR over all {len(cr)} points: Spearman rank "
+                      f"correlation **{rho:.3f}**.\n")
+        md.append(f"\nBest setting per time budget (by {QUALITY_LABEL[key]}):\n\n"
+                  "| budget (s) | setting | iterations | wall (s) | quality (dB) |\n"
+                  "|---|---|---|---|---|")
+        for b, r in best_for_budgets(cr, budgets, key).items():
+            md.append(f"| {b:g} | " + (f"{r.setting} | {r.iterations} | {r.wall_s:.2f} | "
+                                        f"{getattr(r, key):.2f} |" if r else "none fits | | | |"))
+        md.append("\nPareto front (no other point is both faster and better):\n\n"
+                  "| setting | iterations | wall (s) | peak MB | held-out (dB) | residual | "
+                  "PSNR (dB) | SSIM |\n|---|---|---|---|---|---|---|---|")
+        for r in pareto_front(cr, key):
+            md.append(f"| {r.setting} | {r.iterations} | {r.wall_s:.2f} | {r.peak_mem_mb} | "
+                      f"{r.heldout_psnr:.2f} | {r.residual:.4f} | "
+                      + (f"{r.psnr:.2f} | {r.ssim:.3f} |" if r.psnr is not None else "- | - |"))
+    md.append(f"\n{closing}\n")
+    return "\n".join(md)

@@ -17,7 +17,6 @@ from app.commands._options import (
 
 PROTOCOL_SCENES = ("im408", "im740", "im65")
 PROTOCOL_ERASURES = (0.9, 0.99)
-QUALITY_LABEL = {"psnr": "PSNR vs truth (dB)", "heldout_psnr": "held-out prediction (dB)"}
 
 
 #: What ``trade`` writes into ``--out``.
@@ -403,6 +402,8 @@ def _write_outputs(args: argparse.Namespace, out: Path, rows: list[Any], cases: 
         took = earlier_s + this
         over = (f" over {sessions} sessions (resumed; an interrupted session counted up to its "
                 "last measured setting)" if sessions > 1 else "")
+    from recon.trade import trade_markdown
+
     md = trade_markdown(rows, cases, budgets,
                         f"Produced by `lenslesscam {command}` in {took:.0f} s{over}, "
                         f"{threads.reason}.",
@@ -412,43 +413,6 @@ def _write_outputs(args: argparse.Namespace, out: Path, rows: list[Any], cases: 
     print(md)
 
 
-def trade_markdown(rows: list[Any], cases: list[Any], budgets: list[float], produced: str,
-                   closing: str) -> str:
-    """``trade.md``: the best setting per budget and the Pareto front of each case.
-
-    ``produced`` says what made the trade (its first sentences), ``closing`` where the points
-    are. The one writer of the file: the command and the app's trade panel (*Save trade…*).
-    """
-    from recon.trade import best_for_budgets, pareto_front, rank_correlation
-
-    md = [f"# Speed/accuracy trade\n\n{produced} Wall time "
-          "is the time to reach the iteration count (one run per setting, scored at several "
-          "counts); peak memory is the run's peak resident memory above its start.\n"]
-    for case in cases:
-        cr = [r for r in rows if r.case == case.name]
-        key = "psnr" if case.truth is not None else "heldout_psnr"
-        md.append(f"\n## {case.name}\n")
-        if case.truth is not None:
-            rho = rank_correlation([r.heldout_psnr for r in cr], [r.psnr or 0.0 for r in cr])
-            md.append(f"Held-out proxy vs true PSNR over all {len(cr)} points: Spearman rank "
-                      f"correlation **{rho:.3f}**.\n")
-        md.append(f"\nBest setting per time budget (by {QUALITY_LABEL[key]}):\n\n"
-                  "| budget (s) | setting | iterations | wall (s) | quality (dB) |\n"
-                  "|---|---|---|---|---|")
-        for b, r in best_for_budgets(cr, budgets, key).items():
-            md.append(f"| {b:g} | " + (f"{r.setting} | {r.iterations} | {r.wall_s:.2f} | "
-                                        f"{getattr(r, key):.2f} |" if r else "none fits | | | |"))
-        md.append("\nPareto front (no other point is both faster and better):\n\n"
-                  "| setting | iterations | wall (s) | peak MB | held-out (dB) | residual | "
-                  "PSNR (dB) | SSIM |\n|---|---|---|---|---|---|---|---|")
-        for r in pareto_front(cr, key):
-            md.append(f"| {r.setting} | {r.iterations} | {r.wall_s:.2f} | {r.peak_mem_mb} | "
-                      f"{r.heldout_psnr:.2f} | {r.residual:.4f} | "
-                      + (f"{r.psnr:.2f} | {r.ssim:.3f} |" if r.psnr is not None else "- | - |"))
-    md.append(f"\n{closing}\n")
-    return "\n".join(md)
-
-
 def _plot(cases: list[Any], rows: list[Any], path: Path) -> None:
     import matplotlib
 
@@ -456,7 +420,7 @@ def _plot(cases: list[Any], rows: list[Any], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     from recon.atomic import atomic_write
-    from recon.trade import pareto_front
+    from recon.trade import QUALITY_LABEL, pareto_front
 
     n = len(cases)
     cols = min(n, 4)

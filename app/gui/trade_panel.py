@@ -309,12 +309,11 @@ class TradePanel(QWidget):
 
         The writers of ``lenslesscam trade`` (:func:`recon.trade.write_trade_csv`, atomic, its
         header with the format version and the case's data; ``trade.md`` from
-        :func:`app.commands.trade.trade_markdown` with the panel's budget). Returns the CSV's
+        the command's :func:`recon.trade.trade_markdown` with the panel's budget). Returns the CSV's
         path, or None (the reason on the suggestion line).
         """
-        from app.commands.trade import trade_markdown
         from recon.atomic import atomic_write_bytes
-        from recon.trade import write_trade_csv
+        from recon.trade import trade_markdown, write_trade_csv
 
         if self.running:
             self.suggestion.setText("cannot save while the trade is being measured: wait for "
