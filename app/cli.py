@@ -146,7 +146,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except BrokenPipeError as exc:
         if not _stdout_gone():  # a pipe of the work itself (a worker, a subprocess) broke
-            print(f"lenslesscam {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+            print(f"lenslesscam {args.command}: error: {one_line(exc)}", file=sys.stderr)
             return 2
         # the reader of our output went away (``lenslesscam metrics ... | head``): not an error
         # of ours; stop quietly, as a shell tool does, and keep Python from printing another
@@ -156,20 +156,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 141
     except FloatingPointError as exc:
         # recon.stepwise.NumericalError: a solver met NaN/inf; its message says where
-        print(f"lenslesscam {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        print(f"lenslesscam {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return 2
     except MemoryError as exc:
         # recon.memory.ProblemTooLarge (the estimate says it will not fit) or a real failure
-        print(f"lenslesscam {args.command}: error: {_one_line(exc) or 'out of memory'}",
+        print(f"lenslesscam {args.command}: error: {one_line(exc) or 'out of memory'}",
               file=sys.stderr)
         return 2
     except RuntimeError as exc:
         if _device_error(exc):  # a camera or point source refused or failed: its message
-            print(f"lenslesscam {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+            print(f"lenslesscam {args.command}: error: {one_line(exc)}", file=sys.stderr)
             return 2
         if not is_allocation_failure(exc):
             raise
-        print(f"lenslesscam {args.command}: error: out of memory: {_one_line(exc)} (the "
+        print(f"lenslesscam {args.command}: error: out of memory: {one_line(exc)} (the "
               "estimate said it would fit; downsample, use a smaller --field or float32)",
               file=sys.stderr)
         return 2
@@ -264,8 +264,8 @@ def is_allocation_failure(exc: BaseException) -> bool:
     return any(t.lower() in text.lower() for t in ALLOCATION_FAILURE_TEXTS)
 
 
-def _one_line(exc: BaseException) -> str:
-    """The first non-empty line of an exception's message."""
+def one_line(exc: BaseException) -> str:
+    """The first non-empty line of an exception's message (the CLI's one-line errors)."""
     return next((ln.strip() for ln in str(exc).splitlines() if ln.strip()), "")
 
 

@@ -69,12 +69,6 @@ def build_udn_spec(item: Item, threads: int | None = None) -> tuple[dict[str, An
 
 
 
-def _one_line(exc: BaseException) -> str:
-    """The first line of an exception's message (at most 500 characters)."""
-    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-    return (lines[0] if lines else type(exc).__name__)[:500]
-
-
 def _attempt(marker: Path) -> int:
     """1 + the attempt recorded by a previous (lost) worker's running marker."""
     try:
@@ -230,7 +224,10 @@ def run_item(item: Item, out_dir: str, item_hash: str, hashes: dict[str, str | N
             if item.truth:
                 rec["metrics"] = _numbers(scores) if scores else _metrics(item, output)
     except Exception as exc:  # deterministic (bad input, NumericalError, ...): no retry
-        rec.update(status="failed", error=f"{type(exc).__name__}: {_one_line(exc)}")
+        from app.cli import one_line  # the CLI's one-line errors, at most 500 characters
+
+        rec.update(status="failed",
+                   error=f"{type(exc).__name__}: {one_line(exc)[:500] or type(exc).__name__}")
     rec["time_s"] = round(time.perf_counter() - t0, 3)
     rec["finished_utc"] = now_utc()
     rec["provenance"] = provenance()
