@@ -70,6 +70,7 @@ __all__ = [
     "StreamStats",
     "TriggerMode",
     "bit_depth_of",
+    "check_black_level",
     "protocol_members",
     "read_frame_metadata",
 ]
@@ -86,8 +87,8 @@ def read_frame_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The metadata of a saved frame (a TIFF whose description is :meth:`Frame.metadata`).
 
     ``sensor`` is checked ([rows, columns] of positive integers) and None where a frame saved
-    before the sensor size was recorded has none. Raises ValueError naming the file when it is
-    not such a frame.
+    before the sensor size was recorded has none; ``black_level`` likewise (a number >= 0, or
+    None). Raises ValueError naming the file when it is not such a frame.
     """
     import json
 
@@ -108,7 +109,26 @@ def read_frame_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
             meta["sensor"] = list(_check_sensor(meta["sensor"]))
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from None
+    if meta.get("black_level") is None:  # unknown, or saved before it was recorded
+        meta["black_level"] = None
+    else:
+        try:
+            meta["black_level"] = check_black_level(meta["black_level"])
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
     return meta
+
+
+def check_black_level(value: Any) -> float:
+    """A black level as a float: a finite number >= 0 (ValueError naming the value otherwise)."""
+    try:
+        level = float(value)
+    except (TypeError, ValueError):
+        level = math.nan
+    if isinstance(value, bool) or not (math.isfinite(level) and level >= 0):
+        raise ValueError(f"black level must be a finite number >= 0 (camera codes), got "
+                         f"{value!r}")
+    return level
 
 
 def _check_sensor(value: Any) -> tuple[int, int]:
@@ -326,6 +346,9 @@ class Frame:
     ``sensor`` is (rows, columns) of the whole sensor the frame came from, in unbinned pixels
     (the backends fill it from :meth:`Camera.capabilities`); ``None`` when unknown. It tells
     a region of interest from a frame of another, smaller sensor; ``roi`` must lie inside it.
+    ``black_level`` is the code a pixel reads with no light (the readout's offset, in the
+    frame's codes) where the backend knows it (the simulated camera's ``dark_offset_adu``),
+    else ``None``: the app's automatic dark level takes it before estimating one.
     """
 
     pixels: np.ndarray
@@ -342,9 +365,12 @@ class Frame:
     camera_id: str
     extra: Mapping[str, Any] = field(default_factory=dict)
     sensor: tuple[int, int] | None = None
+    black_level: float | None = None
 
     def __post_init__(self) -> None:
         arr = self.pixels
+        if self.black_level is not None:
+            object.__setattr__(self, "black_level", check_black_level(self.black_level))
         if not isinstance(arr, np.ndarray):
             raise TypeError(f"Frame.pixels must be a numpy array, got {type(arr).__name__}")
         if self.sensor is not None:
@@ -386,6 +412,7 @@ class Frame:
             "timing": None if self.timing is None else self.timing.to_dict(),
             "backend": self.backend,
             "camera_id": self.camera_id,
+            "black_level": self.black_level,
             "extra": _jsonable(self.extra),
         }
 
@@ -1163,6 +1190,14 @@ class CameraBase:
     def _do_set_gain(self, value: float) -> None:
         raise self._unavailable(Feature.GAIN)
 
+    def _black_level(self) -> float | None:
+        """The code a pixel reads with no light, for :attr:`Frame.black_level` (None: unknown).
+
+        A backend overrides it only where the value is known in the frame's codes (GenICam's
+        ``BlackLevel`` is in device units, not necessarily codes: not used).
+        """
+        return None
+
     def _get_roi(self) -> Roi:
         raise self._unavailable(Feature.ROI)
 
@@ -1417,4 +1452,5 @@ class CameraBase:
             camera_id=self.camera_id,
             extra=dict(extra or {}),
             sensor=sensor,
+            black_level=self._optional(self._black_level),
         )

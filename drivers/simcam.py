@@ -534,6 +534,10 @@ class SimulatedCamera(CameraBase):
         with self._lock:  # validated against capabilities() by the base class
             self._exposure_req_us = value
 
+    def _black_level(self) -> float | None:
+        """The dark offset in codes (what an unlit pixel reads on average, before clipping)."""
+        return float(min(self.dark_offset_adu, (1 << self.bit_depth) - 1))
+
     def _get_gain(self) -> float:
         """Linear gain factor (1 maps the full well to the top code)."""
         return self._gain

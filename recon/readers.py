@@ -34,8 +34,9 @@ from recon.preprocess import (
 )
 from recon.textfmt import percent
 
-__all__ = ["FILTER_KEYS", "DarkSpec", "EmptyPsfError", "PathLike", "load_image",
-           "load_measurement", "load_psf", "load_psf_any", "load_psf_stack"]
+__all__ = ["FILTER_KEYS", "FRAME_FORMAT", "DarkSpec", "EmptyPsfError", "PathLike", "load_image",
+           "load_measurement", "load_psf", "load_psf_any", "load_psf_stack",
+           "recorded_black_level"]
 
 PathLike = str | os.PathLike[str]
 Array = npt.NDArray[Any]
@@ -122,6 +123,28 @@ def _load_image(path: PathLike, *, key: str | None, prefer: Sequence[str]) -> Ar
         f"{p}: unknown image file extension {p.suffix!r} (expected one of "
         f"{', '.join(_TIFF_EXT + _CV_EXT + ('.npy', '.npz', '.mat'))})"
     )
+
+
+#: The format name of a frame the drivers save (``drivers.camera.FRAME_FORMAT``: recon does
+#: not import drivers; a test keeps the two equal).
+FRAME_FORMAT = "lenslesscam-frame"
+
+
+def recorded_black_level(path: PathLike) -> float | None:
+    """The camera's black level a saved frame records (``Frame.black_level``), else None.
+
+    What ``dark='auto'`` subtracts from such a frame instead of estimating a level from its
+    corner: the code an unlit pixel reads, as the camera reported it. None for any other file,
+    a frame saved before the level was recorded, or a camera that does not report one.
+    """
+    meta = _our_metadata(Path(path))
+    if not meta or meta.get("format") != FRAME_FORMAT:
+        return None
+    value = meta.get("black_level")
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    level = float(value)
+    return level if np.isfinite(level) and level >= 0 else None
 
 
 def _our_metadata(p: Path) -> dict[str, Any] | None:
@@ -410,7 +433,8 @@ def _dark_for(
     if dark is None:
         return None
     if isinstance(dark, str) and dark == "auto":
-        return "auto"
+        recorded = recorded_black_level(p)  # the camera's own level beats an estimate
+        return "auto" if recorded is None else recorded
     if isinstance(dark, str | os.PathLike):
         dp = Path(dark)
         d = _load_image(dp, key=key, prefer=_DARK_KEYS)
@@ -662,8 +686,10 @@ def load_psf(
 
     Args:
         path: image file (see :func:`load_image`).
-        dark: ``None``, a level, a dark frame (array or file) or ``'auto'`` (corner patch
-            ``[5:15, 5:15]`` as in the DiffuserCam tutorial); subtracted at full resolution.
+        dark: ``None``, a level, a dark frame (array or file) or ``'auto'`` (the camera's
+            black level a saved frame records, :func:`recorded_black_level`, else the corner
+            patch ``[5:15, 5:15]`` as in the DiffuserCam tutorial); subtracted at full
+            resolution.
         downsample: box-filter factor over rows and columns.
         channels: ``'gray'`` (luma, ``C = 1``) or ``'rgb'`` (``C = 3``).
         normalise: ``'sum'`` (unit total, default), ``'max'``, ``'l2'`` or ``None``; one

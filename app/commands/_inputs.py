@@ -41,8 +41,9 @@ def field_value(value: str | None) -> Any:
         raise ValueError(f"--field must be 'sensor', 'full' or HxW, got {value!r}") from None
 
 
-def add_dark_arguments(p: Any, dark_help: str = "dark level: a number, 'auto' or a "
-                       "dark-frame file") -> None:
+def add_dark_arguments(p: Any, dark_help: str = "dark level: a number, a dark-frame file or "
+                       "'auto' (the black level a frame saved by lenslesscam records, else the "
+                       "mean of the corner patch [5:15, 5:15])") -> None:
     """``--dark`` and ``--psf-dark``: one wording in every command the problem loader serves."""
     p.add_argument("--dark", help=dark_help)
     p.add_argument("--psf-dark", help="dark level of the PSF: a number, 'auto' or a dark-frame "

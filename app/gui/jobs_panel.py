@@ -82,7 +82,8 @@ _COLUMNS = ("Job", "Device", "State", "Progress", "ETA", "Iteration", "Loss")
 class Measurement:
     """What a new job (or a trade) starts from: the newest frame and the preview's PSF.
 
-    ``dark``: the preview's dark level (None: auto, the 1st percentile of the frame).
+    ``dark``: the preview's dark level (None: auto, the camera's black level or the frame's 1st
+    percentile).
     """
 
     frame: Any
@@ -1247,10 +1248,10 @@ class JobsPanel(QWidget):
 
 
 def _dark_level(m: Measurement) -> float:
-    """The measurement's dark level: the preview's, else the frame's 1st percentile."""
+    """The measurement's dark level: the preview's rule (:func:`frame_dark_level`)."""
     from app.gui.preview_engine import frame_dark_level
 
-    return frame_dark_level(m.frame.pixels, m.dark)
+    return frame_dark_level(m.frame.pixels, m.dark, getattr(m.frame, "black_level", None))
 
 
 def _plan_measurement(m: Measurement, cancelled: Callable[[], bool] | None = None) -> Any:

@@ -1051,7 +1051,8 @@ class MainWindow(QMainWindow):
         self._last_preview_info = (f"{res.shape[1]}x{res.shape[0]} · {res.iterations} it/frame"
                                    f"{' (rate-limited)' if res.note else ''} · residual "
                                    f"{res.residual:.3f}"
-                                   f"{' · ' + res.tau_note if res.tau_note else ''}")
+                                   f"{' · ' + res.tau_note if res.tau_note else ''}"
+                                   f"{' · ' + res.dark_note if res.dark_note else ''}")
         self.previews_shown += 1
         self.preview_shown.emit(res)
 

@@ -485,7 +485,8 @@ class PreviewControls(QGroupBox):
         self.dark.setDecimals(0)
         self.dark.setSpecialValueText("auto")
         self.dark.setKeyboardTracking(False)
-        self.dark.setToolTip("Dark level in camera codes (auto: the 1st percentile of the frame)")
+        self.dark.setToolTip("Dark level in camera codes (auto: the camera's black level where "
+                             "it reports one, else the 1st percentile of the frame)")
         self.bins = SpinBox()
         self.bins.setRange(*(int(v) for v in RANGES["video_bins"]))
         self.bins.setKeyboardTracking(False)

@@ -2,8 +2,8 @@
 
 :class:`PreviewEngine` turns one camera frame into a quick FISTA-TV estimate:
 
-1. the frame's pixels minus a dark level (a number, or ``auto``: a low percentile of the
-   frame), clipped at 0;
+1. the frame's pixels minus a dark level (a number, or ``auto``: the camera's black level
+   where the frame carries one, else a low percentile of the frame), clipped at 0;
 2. when the frame is a region of the sensor (``frame.roi`` smaller than the PSF), it is placed
    into a sensor-sized array and the pixels outside the ROI are masked out of the data term, so
    the model stays exact (a ROI is an erasure mask, not a smaller PSF); when the frame says
@@ -140,13 +140,21 @@ def saturation_verdict(saturated: int, n_pixels: int) -> tuple[str | None, str]:
                 "scale): not reconstructed – lower the exposure, gain or source intensity", "")
     return None, (f"warning: {saturated} saturated pixel(s) in the frame" if saturated else "")
 
-def frame_dark_level(pixels: npt.ArrayLike, dark: float | None) -> float:
-    """The dark level of a frame for the app: ``dark``, or (None: auto) its 1st percentile.
+def frame_dark_level(pixels: npt.ArrayLike, dark: float | None,
+                     black_level: float | None = None) -> float:
+    """The dark level of a frame for the app: ``dark``, else (None: auto) the camera's.
 
-    The one rule of the preview, the job dialog's planner and the trade panel.
+    Auto is the frame's ``black_level`` (:attr:`drivers.camera.Frame.black_level`, the code an
+    unlit pixel reads, where the camera reports it), else the frame's 1st percentile. The
+    percentile is an estimate that errs high on a lensless frame: every pixel sees scene light
+    (152 codes on the simulated bench, whose black level is 100: the preview lost 1.1 dB to it
+    at a fixed tau, 2.5 dB with the automatic tau; ``tests/test_camera_black_level.py``).
+    The one rule of the preview, the jobs launched from it and the trade panel.
     """
     if dark is not None:
         return float(dark)
+    if black_level is not None:
+        return float(black_level)
     flat = np.asarray(pixels, dtype=np.float32).ravel()
     k = max(0, flat.size // 100)
     return float(np.partition(flat, k)[k])
@@ -173,7 +181,7 @@ class PreviewSettings:
             ``target_fps`` is set.
         downsample: box-downsampling factor of frame and PSF.
         prox_iters: inner TV-prox iterations per FISTA step.
-        dark: dark level in camera codes, or ``None`` for auto (the 1st percentile).
+        dark: dark level in camera codes, or ``None`` for auto (:func:`frame_dark_level`).
         video_bins: number of time bins of the ``video`` model.
         threads: torch intra-op threads (process-wide); 0 (the default) lets the thread
             policy (:mod:`recon.threads`) choose from the free cores, once when the preview
@@ -294,6 +302,7 @@ class PreviewResult:
     timestamp to the end of the computation; ``compute_s`` is the engine's own time.
     ``iterations`` is what this frame ran: fewer than ``settings.iters_per_frame`` when the
     display rate (``settings.target_fps``) could not hold them; ``note`` then says so.
+    ``dark`` is the dark level subtracted; ``dark_note`` says where an automatic one came from.
     """
 
     image: F32
@@ -313,6 +322,8 @@ class PreviewResult:
     threads: str = ""
     tau: float = math.nan
     tau_note: str = ""
+    dark: float = math.nan
+    dark_note: str = ""
 
 
 @dataclass(frozen=True)
@@ -503,6 +514,7 @@ class PreviewEngine:
         binning: int = 1,
         timing: Any = None,
         sensor: tuple[int, int] | None = None,
+        black_level: float | None = None,
     ) -> PreviewResult:
         """Preview one frame.
 
@@ -517,6 +529,8 @@ class PreviewEngine:
             timing: the frame's :class:`~drivers.timing.SensorTiming` (``video`` model only).
             sensor: (rows, columns) of the camera's whole sensor in unbinned pixels, or None
                 when unknown; the PSF (at ``binning``) must be that size.
+            black_level: the camera's black level in codes (None: unknown), the automatic
+                dark level when it is known (:func:`frame_dark_level`).
 
         """
         t0 = time.perf_counter()
@@ -577,7 +591,7 @@ class PreviewEngine:
             self._build(geo, sensor_psf, binning, timing)
             build_s = time.perf_counter() - t_build
             self._check_cancel()
-        b = self._measurement(frame, s, roi, binning, (ph, pw))
+        b, dark = self._measurement(frame, s, roi, binning, (ph, pw), black_level)
         bt = torch.from_numpy(b)[None]
         solver = self._solver
         # tau and its note read together: the estimate may finish while this frame runs
@@ -646,6 +660,10 @@ class PreviewEngine:
             threads=self._threads_reason,
             tau=tau,
             tau_note=tau_note,
+            dark=dark,
+            dark_note=("" if s.dark is not None else
+                       f"dark {dark:g} (camera)" if black_level is not None else
+                       f"dark {dark:g} (1st percentile)"),
         )
 
     # -- tau auto ------------------------------------------------------------------------------
@@ -764,9 +782,10 @@ class PreviewEngine:
         roi: tuple[int, int, int, int] | None,
         binning: int,
         sensor: tuple[int, int],
-    ) -> F32:
+        black_level: float | None,
+    ) -> tuple[F32, float]:
         f = frame.astype(np.float32)
-        dark = frame_dark_level(f, s.dark)
+        dark = frame_dark_level(f, s.dark, black_level)
         f -= np.float32(dark)
         np.maximum(f, np.float32(0.0), out=f)
         if roi is not None:
@@ -787,7 +806,7 @@ class PreviewEngine:
                 f"{float(frame.max()):g}): nothing to reconstruct; lower the dark level or "
                 "set it to auto, or open the shutter / light the scene")
         b *= np.float32(1.0 / peak)
-        return b
+        return b, dark
 
     def _display(self, x: Any) -> F32:
         arr = x.detach().numpy()[0]  # (K, H, W)
@@ -817,7 +836,8 @@ def frame_keywords(frame: Any) -> dict[str, Any]:
     roi = frame.roi
     return {"frame_id": frame.frame_id, "timestamp": frame.timestamp,
             "roi": (roi.x, roi.y, roi.width, roi.height), "binning": frame.binning,
-            "timing": frame.timing, "sensor": getattr(frame, "sensor", None)}
+            "timing": frame.timing, "sensor": getattr(frame, "sensor", None),
+            "black_level": getattr(frame, "black_level", None)}
 
 
 class FrameSlot:

@@ -374,7 +374,7 @@ class TradePanel(QWidget):
         refusal, self._warning = saturation_verdict(sat, pixels.size)
         if refusal is not None:
             return refusal
-        dark = frame_dark_level(pixels, m.dark)
+        dark = frame_dark_level(pixels, m.dark, getattr(frame, "black_level", None))
         meas = np.clip(pixels - dark, 0, None)
         top = float(meas.max())
         if top <= 0:

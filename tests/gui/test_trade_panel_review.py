@@ -230,6 +230,22 @@ def test_the_preview_dark_level_is_subtracted(panel_for: Any, qtbot: Any) -> Non
     assert fake.cases[-1].meas.min() < 0.3
 
 
+def test_auto_takes_the_cameras_black_level_as_the_preview_does(panel_for: Any,
+                                                                 qtbot: Any) -> None:
+    """Auto was the frame's 1st percentile even where the camera reports its black level: on
+    a lensless frame that is scene light (tests/test_camera_black_level.py)."""
+    from dataclasses import replace
+
+    from app.gui.jobs_panel import _dark_level
+
+    frame = replace(_frame(_scene()), black_level=900.0)
+    panel, fake, _, state = panel_for(frame, dark=None)
+    panel.measure_current()
+    _finish(panel, fake, qtbot)
+    assert fake.cases[-1].source["dark"] == _dark_level(state["m"]) == 900.0
+    assert fake.cases[-1].meas.min() > 0.0  # 100 of at most 1100 codes kept everywhere
+
+
 def test_a_saturated_frame_is_not_measured(panel_for: Any, qtbot: Any) -> None:
     """A 64 %-saturated frame (which the preview refuses) was measured and suggested on."""
     px = _scene()
