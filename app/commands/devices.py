@@ -243,18 +243,7 @@ def _describe_camera(cam: Any) -> str:
 
 
 def _save_frame(out: str, frame: Any) -> str:
-    import tifffile
+    """The frame as the app saves a snapshot (one writer), without the JSON beside it."""
+    from app.gui.snapshots import save_frame
 
-    from recon.atomic import atomic_write
-    from recon.formats import provenance
-
-    meta = frame.metadata()
-    meta["provenance"] = provenance()
-    description = json.dumps(meta)
-
-    def writer(tmp: Any) -> None:
-        tifffile.imwrite(
-            tmp, frame.pixels, photometric="minisblack", description=description, metadata=None
-        )
-
-    return str(atomic_write(out, writer))
+    return str(save_frame(frame, out, sidecar=False)[0])  # a .tif name: checked up front

@@ -25,10 +25,12 @@ def frame_filename(frame: Any, prefix: str = "snap") -> str:
     return f"{prefix}-{stamp}-f{frame.frame_id:06d}.tif"
 
 
-def save_frame(frame: Any, path: str | Path, extra: Mapping[str, Any] | None = None) -> list[Path]:
+def save_frame(frame: Any, path: str | Path, extra: Mapping[str, Any] | None = None,
+               *, sidecar: bool = True) -> list[Path]:
     """Save ``frame`` to ``path`` (a ``.tif``; a folder gets :func:`frame_filename`).
 
-    Returns ``[tiff, json]``.
+    The one writer of frames (the app's snapshots, ``lenslesscam snap``). Returns ``[tiff,
+    json]``, or ``[tiff]`` without the ``sidecar`` JSON.
     """
     import numpy as np
     import tifffile
@@ -53,5 +55,6 @@ def save_frame(frame: Any, path: str | Path, extra: Mapping[str, Any] | None = N
                          metadata=None)
 
     tif = atomic_write(target, _write)
-    sidecar = atomic_write_json(target.with_suffix(".json"), meta)
-    return [tif, sidecar]
+    if not sidecar:
+        return [tif]
+    return [tif, atomic_write_json(target.with_suffix(".json"), meta)]

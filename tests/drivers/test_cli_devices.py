@@ -57,6 +57,7 @@ def test_snap_sim_saves_frame_and_metadata(
     assert meta["format"] == "lenslesscam-frame" and meta["exposure_us"] == 10_000.0
     assert meta["backend"] == "sim" and meta["timing"]["exposure_lines"] == 1000
     assert meta["sensor"] == [64, 80]  # the whole sensor, rows first
+    assert meta["black_level"] == 100.0  # the simulated camera's dark offset: --dark auto's
     assert "provenance" in meta
     assert not [p for p in tmp_path.iterdir() if p.name != "f.tif"]  # no temp file left
 
