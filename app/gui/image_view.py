@@ -86,6 +86,10 @@ class ImagePanel(QWidget):
         self.saturated = 0
 
         self.title = QLabel(f"<b>{title}</b>")
+        # the title may be cut where the window is narrow: its full width in every panel made
+        # the main window 1042 px wide at least, wider than a 1024 px screen
+        self.title.setMinimumWidth(24)
+        self.title.setToolTip(title)
         self.autoscale_button = QPushButton("Autoscale")
         self.autoscale_button.setToolTip("Set the display levels from the current image")
         self.autoscale_button.clicked.connect(self.autoscale)

@@ -31,9 +31,10 @@ def test_window_fits_a_1366x768_screen_with_every_panel_shown(live_window: Any,
     assert "ROI mean" in w.raw_panel.footer.text()
     QApplication.processEvents()
     hint = w.minimumSizeHint()
-    assert hint.width() <= 1366 and hint.height() <= 768, hint
+    # a 1024 px wide screen too: the panels' bold titles held the window at 1042 px
+    assert hint.width() <= 1024 and hint.height() <= 768, hint
     lay = w.layout().minimumSize()
-    assert lay.width() <= 1366 and lay.height() <= 768, lay
+    assert lay.width() <= 1024 and lay.height() <= 768, lay
     w.resize(1366, 740)
     qtbot.waitUntil(lambda: w.width() <= 1366, timeout=5_000)
     assert w.width() <= 1366 and w.height() <= 768
