@@ -82,8 +82,8 @@ _COLUMNS = ("Job", "Device", "State", "Progress", "ETA", "Iteration", "Loss")
 class Measurement:
     """What a new job (or a trade) starts from: the newest frame and the preview's PSF.
 
-    ``dark``: the preview's dark level (None: auto, the camera's black level or the frame's 1st
-    percentile).
+    ``dark``: the preview's dark level (None: auto, the camera's black level or the frame's
+    corner estimate: ``preview_engine.frame_dark_level``).
     """
 
     frame: Any

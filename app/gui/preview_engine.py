@@ -3,7 +3,8 @@
 :class:`PreviewEngine` turns one camera frame into a quick FISTA-TV estimate:
 
 1. the frame's pixels minus a dark level (a number, or ``auto``: the camera's black level
-   where the frame carries one, else a low percentile of the frame), clipped at 0;
+   where the frame carries one, else the mean of its corner patch, as ``--dark auto``),
+   clipped at 0;
 2. when the frame is a region of the sensor (``frame.roi`` smaller than the PSF), it is placed
    into a sensor-sized array and the pixels outside the ROI are masked out of the data term, so
    the model stays exact (a ROI is an erasure mask, not a smaller PSF); when the frame says
@@ -144,20 +145,25 @@ def frame_dark_level(pixels: npt.ArrayLike, dark: float | None,
                      black_level: float | None = None) -> float:
     """The dark level of a frame for the app: ``dark``, else (None: auto) the camera's.
 
-    Auto is the frame's ``black_level`` (:attr:`drivers.camera.Frame.black_level`, the code an
-    unlit pixel reads, where the camera reports it), else the frame's 1st percentile. The
-    percentile is an estimate that errs high on a lensless frame: every pixel sees scene light
-    (152 codes on the simulated bench, whose black level is 100: the preview lost 1.1 dB to it
-    at a fixed tau, 2.5 dB with the automatic tau; ``tests/test_camera_black_level.py``).
-    The one rule of the preview, the jobs launched from it and the trade panel.
+    Auto is ``--dark auto``'s rule (:func:`recon.readers.load_measurement`): the frame's
+    ``black_level`` (:attr:`drivers.camera.Frame.black_level`, the code an unlit pixel reads,
+    where the camera reports it), else the mean of the corner patch ``[5:15, 5:15]``
+    (:func:`recon.preprocess.auto_dark_level`). An estimate from the frame errs high on a
+    lensless frame, whose every pixel sees scene light: on the simulated bench (black level
+    100) the corner reads 330 and the 1st percentile, the app's estimate before, 152, which
+    cost the preview 1.1 dB at a fixed tau and 2.5 dB with the automatic tau
+    (``tests/test_camera_black_level.py``). The one rule of the preview, the jobs launched
+    from it and the trade panel. Raises ValueError for a frame under 15x15 pixels with no
+    black level.
     """
     if dark is not None:
         return float(dark)
     if black_level is not None:
         return float(black_level)
-    flat = np.asarray(pixels, dtype=np.float32).ravel()
-    k = max(0, flat.size // 100)
-    return float(np.partition(flat, k)[k])
+    from recon.preprocess import auto_dark_level
+
+    return float(np.asarray(auto_dark_level(np.asarray(pixels))).item())
+
 
 class PreviewError(ValueError):
     """The frame cannot be previewed with this PSF and these settings (message says why)."""
@@ -663,7 +669,7 @@ class PreviewEngine:
             dark=dark,
             dark_note=("" if s.dark is not None else
                        f"dark {dark:g} (camera)" if black_level is not None else
-                       f"dark {dark:g} (1st percentile)"),
+                       f"dark {dark:g} (corner estimate)"),
         )
 
     # -- tau auto ------------------------------------------------------------------------------
@@ -785,7 +791,10 @@ class PreviewEngine:
         black_level: float | None,
     ) -> tuple[F32, float]:
         f = frame.astype(np.float32)
-        dark = frame_dark_level(f, s.dark, black_level)
+        try:
+            dark = frame_dark_level(f, s.dark, black_level)
+        except ValueError as exc:  # a frame too small for the corner estimate
+            raise PreviewError(f"{exc}: set the dark level") from None
         f -= np.float32(dark)
         np.maximum(f, np.float32(0.0), out=f)
         if roi is not None:

@@ -22,6 +22,7 @@ class _Frame:
     pixels: np.ndarray
     frame_id: int = 7
     backend: str = "test"
+    black_level: float | None = 100.0  # the offset _measurement puts the frame on
 
     @property
     def shape(self) -> tuple[int, int]:

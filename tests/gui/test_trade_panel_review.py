@@ -232,7 +232,7 @@ def test_the_preview_dark_level_is_subtracted(panel_for: Any, qtbot: Any) -> Non
 
 def test_auto_takes_the_cameras_black_level_as_the_preview_does(panel_for: Any,
                                                                  qtbot: Any) -> None:
-    """Auto was the frame's 1st percentile even where the camera reports its black level: on
+    """Auto was an estimate from the frame even where the camera reports its black level: on
     a lensless frame that is scene light (tests/test_camera_black_level.py)."""
     from dataclasses import replace
 
