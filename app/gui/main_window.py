@@ -1052,7 +1052,8 @@ class MainWindow(QMainWindow):
                                    f"{' (rate-limited)' if res.note else ''} · residual "
                                    f"{res.residual:.3f}"
                                    f"{' · ' + res.tau_note if res.tau_note else ''}"
-                                   f"{' · ' + res.dark_note if res.dark_note else ''}")
+                                   f"{' · ' + res.dark_note if res.dark_note else ''}"
+                                   f"{' · ' + res.model_note if res.model_note else ''}")
         self.previews_shown += 1
         self.preview_shown.emit(res)
 

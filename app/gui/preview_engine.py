@@ -309,6 +309,8 @@ class PreviewResult:
     ``iterations`` is what this frame ran: fewer than ``settings.iters_per_frame`` when the
     display rate (``settings.target_fps``) could not hold them; ``note`` then says so.
     ``dark`` is the dark level subtracted; ``dark_note`` says where an automatic one came from.
+    ``model_note``: the video model's bins (how many, of how many lines; fewer than asked when
+    the lines do not divide; identical under a global shutter).
     """
 
     image: F32
@@ -330,6 +332,7 @@ class PreviewResult:
     tau_note: str = ""
     dark: float = math.nan
     dark_note: str = ""
+    model_note: str = ""
 
 
 @dataclass(frozen=True)
@@ -340,6 +343,14 @@ class _Geometry:
     downsample: int
     video_bins: int
     timing_key: tuple[Any, ...] | None
+    shutter_row0: int = 0  # the PSF's first sensor row (a PSF calibrated at a ROI: its y)
+
+
+def _preview_tv(model: str) -> Any:
+    """The preview's TV: the video model weighs differences in time by half."""
+    from recon.tv import TV
+
+    return TV(weight_k=0.5) if model == "video" else TV()
 
 
 def _box(a: npt.NDArray[Any], f: int) -> F32:
@@ -373,6 +384,8 @@ class PreviewEngine:
         self._model: Any = None
         self._lipschitz = 0.0
         self._mask: Any = None
+        self._sensor_mask: Any = None
+        self._model_note = ""
         self._x: Any = None
         self._solver: Fista | None = None
         self._solver_key: tuple[float, int] | None = None
@@ -568,12 +581,15 @@ class PreviewEngine:
                     f"{binning}): it belongs to another camera; calibrate a PSF for this one")
         # roi is (x, y, width, height); the PSF (rows, columns)
         full_roi = roi is None or (roi[3] // binning, roi[2] // binning) == (ph, pw)
+        row0 = 0
         if full_roi:
             if frame.shape != (ph, pw):
                 raise PreviewError(
                     f"frame {frame.shape[0]}x{frame.shape[1]} does not match the PSF "
                     f"{ph}x{pw} (binning {binning}); calibrate a PSF for this sensor size"
                 )
+            if roi is not None:  # a PSF of this region: its rows are the region's rows
+                row0 = int(roi[1])
             roi = None
         else:
             assert roi is not None
@@ -589,7 +605,8 @@ class PreviewEngine:
             timing_key = (timing.rows, timing.line_time_us, timing.exposure_lines,
                           str(timing.pattern), timing.trigger_delay_us)
         geo = _Geometry(s.model, (int(frame.shape[0]), int(frame.shape[1])), roi,
-                        int(s.downsample), int(s.video_bins), timing_key)
+                        int(s.downsample), int(s.video_bins), timing_key,
+                        row0 if s.model == "video" else 0)
         warm = geo == self._geometry and self._x is not None
         build_s = 0.0  # a one-off model build does not count against the display rate
         if geo != self._geometry:
@@ -606,9 +623,7 @@ class PreviewEngine:
         if warm and solver is not None and self._solver_key == key:
             solver.set_measurement(bt)  # keep the iterate, the momentum and the TV dual
         else:
-            from recon.tv import TV
-
-            tv = TV(weight_k=0.5) if s.model == "video" else TV()
+            tv = _preview_tv(s.model)
             # plain steps: a solver that never ends and is fed new frames would never leave
             # the preconditioned first phase (its end rules need one measurement), whose
             # fixed point is biased (recon/fista.py)
@@ -666,6 +681,7 @@ class PreviewEngine:
             threads=self._threads_reason,
             tau=tau,
             tau_note=tau_note,
+            model_note=self._model_note,
             dark=dark,
             dark_note=("" if s.dark is not None else
                        f"dark {dark:g} (camera)" if black_level is not None else
@@ -704,11 +720,14 @@ class PreviewEngine:
         _lower_priority()  # the live preview comes first: this estimate gets the spare CPU
         try:
             model = build_model(recipe[0], **recipe[1])
+            # the solver's TV (the video model's time weight): tau for the objective solved
             choice = choose_tau(model, torch.from_numpy(b)[None], max_iter=AUTO_ITERS,
                                 min_iter=30, patience=30, prox_iters=prox_iters,
+                                tv=_preview_tv(recipe[0]),
                                 cancel=lambda: gen != self._auto_gen)
             tau, note = choice.tau, f"{choice.describe()} (re-estimated on a scene change)"
-        except (ValueError, RuntimeError) as exc:  # too few pixels, ...: keep the given tau
+        except Exception as exc:  # too few pixels, memory refused, ...: keep the given tau
+            # (a MemoryError left "tau auto: estimating" in the footer for good)
             tau, note = None, f"tau auto failed ({exc}); using the tau setting"
         with self._lock:
             if gen == self._auto_gen:  # not for an older geometry or PSF
@@ -738,14 +757,17 @@ class PreviewEngine:
         if total <= 0:
             raise PreviewError("the downsampled PSF is empty")
         psf_d = psf_d / np.float32(total)
-        mask = None
+        mask = sensor_mask = None
         if geo.roi is not None:
+            from recon.preprocess import downsample_mask
+
             x, y, w, h = geo.roi
-            m = np.zeros(psf.shape, dtype=np.float32)
+            sensor_mask = np.zeros(psf.shape, dtype=np.float32)
             b = binning
-            m[y // b : (y + h) // b, x // b : (x + w) // b] = 1.0
-            mask = _box(m, d)
-            mask = (mask > 0.999).astype(np.float32)
+            sensor_mask[y // b : (y + h) // b, x // b : (x + w) // b] = 1.0
+            # the mask rule of every command: a coarse pixel is measured when any of its
+            # sensor pixels is (the preview kept only whole blocks: 5.9 % off the CLI)
+            mask = downsample_mask(sensor_mask, d)
             if not mask.any():
                 raise PreviewError(f"the ROI {geo.roi} is too small for downsampling by {d}")
         if geo.model == "video":
@@ -757,13 +779,32 @@ class PreviewEngine:
             factor = max(1, -(-int(timing.frame_lines) // geo.video_bins))
             m_k = shutter_function(timing, factor)
             self._check_cancel()
+            # the rows the PSF covers (Frame: shutter_function(...)[:, roi.y : roi.y + h]):
+            # a PSF calibrated at a ROI took the top rows' times, reversed on a lower half
+            r0 = geo.shutter_row0
+            m_k = m_k[:, r0 : r0 + psf.shape[0] * binning]
             if binning > 1:
                 m_k = downsample_rows(m_k, binning)
             m_k = downsample_rows(m_k, d)[:, : psf_d.shape[0]]
+            from recon.checks import check_shutter, check_shutter_frames
+
+            try:  # the rules recon applies to a shutter file
+                check_shutter_frames(m_k.shape[0], m_k.shape[1], "the video model",
+                                     downsample=d)
+                check_shutter(m_k, "the video model", rows_warning=False)
+            except ValueError as exc:
+                raise PreviewError(f"{exc} (the preview's video bins)") from None
+            k = m_k.shape[0]
+            asked = f" ({geo.video_bins} asked)" if k != geo.video_bins else ""
+            model_note = f"{k} bins of {factor} lines{asked}"
+            if m_k.shape[0] > 1 and np.allclose(m_k, m_k[:1]):
+                model_note += (": every bin sees the same rows (a global shutter), so they "
+                               "are not told apart; use the 2D model")
             recipe: tuple[str, dict[str, Any]] = (
                 "video", {"psf": psf_d, "shutter": m_k.astype(np.float32), "mask": mask})
         else:
             recipe = ("2d", {"psf": psf_d, "mask": mask})
+            model_note = ""
         self._check_cancel()
         model = build_model(recipe[0], **recipe[1])
         self._check_cancel()
@@ -775,6 +816,8 @@ class PreviewEngine:
             self._auto_note = ""
         self._model = model
         self._mask = mask
+        self._sensor_mask = sensor_mask
+        self._model_note = model_note
         with torch.no_grad():
             self._lipschitz = float(model.op.lipschitz())
         self._x = None
@@ -805,9 +848,12 @@ class PreviewEngine:
                 : sensor[0] - y0, : sensor[1] - x0
             ]
             f = full
-        b = _box(f, s.downsample)
-        if self._mask is not None:
-            b *= self._mask
+        if self._sensor_mask is not None:
+            from recon.preprocess import downsample_masked
+
+            b = downsample_masked(f[None], self._sensor_mask, s.downsample)[0][0]
+        else:
+            b = _box(f, s.downsample)
         peak = float(b.max())
         if not peak > 0:  # black, and a residual over a zero norm (1e27 in the footer)
             raise PreviewError(
