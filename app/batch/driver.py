@@ -162,6 +162,31 @@ def _not_grpc(sock: socket.socket, timeout_s: float) -> str | None:
     return "answered with something that is not an HTTP/2 (gRPC) frame"
 
 
+def _auto_address(address: str) -> tuple[str, int] | None:
+    """The cluster ``auto`` finds on this machine, as Ray reads it, or a one-line CliError.
+
+    None where Ray's (private) reading is not available: Ray then decides when it starts.
+    """
+    try:
+        from ray._private.services import canonicalize_bootstrap_address
+    except Exception:
+        return None
+    try:
+        found = canonicalize_bootstrap_address("auto")
+    except ConnectionError as exc:
+        from app.cli import CliError
+
+        why = _first_line(exc).split(". ")[0].rstrip(".")  # not its advice about flags
+        raise CliError(f"cannot join the Ray cluster at {address}: {why}; start one on this "
+                       "machine with 'ray start --head', or give HOST:PORT") from None
+    except Exception:
+        return None
+    try:
+        return split_address(found) if found else None
+    except ValueError:
+        return None
+
+
 def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
     """Raise a one-line :class:`~app.cli.CliError` unless ``address`` is a gRPC server.
 
@@ -173,6 +198,8 @@ def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
     (a loopback host becomes this machine's IP) when it can give one.
     """
     hp = split_address(address)
+    if hp is None and address.strip().lower() == "auto":
+        hp = _auto_address(address)  # a half-made folder, "interrupted", was left otherwise
     if hp is None:
         return
     host, port = hp

@@ -331,6 +331,21 @@ def test_a_run_that_cannot_start_leaves_no_folder(data: Path, tmp_path: Path,
         run_batch(data / "m.csv", tmp_path / "b1",
                   BatchOptions(address="127.0.0.1:1", connect_timeout_s=2))
     assert not (tmp_path / "b1").exists()
+    # `auto` with no cluster on this machine (the README's example): refused before the folder
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    monkeypatch.setenv("RAY_TMPDIR", str(tmp_path / "no-ray"))  # no cluster file to find
+    from ray._private.services import canonicalize_bootstrap_address
+
+    try:
+        canonicalize_bootstrap_address("auto")
+        pytest.skip("a Ray cluster runs on this machine: `auto` finds it")
+    except ConnectionError:
+        pass
+    with pytest.raises(CliError) as refused:
+        run_batch(data / "m.csv", tmp_path / "b0", BatchOptions(address="auto"))
+    assert not (tmp_path / "b0").exists()
+    assert str(refused.value).startswith("cannot join the Ray cluster at auto: Could not find "
+                                         "any running Ray instance; start one")
     with monkeypatch.context() as m:
         m.setitem(sys.modules, "ray", None)  # as if Ray were not installed
         with pytest.raises(CliError, match="lenslesscam batch needs Ray"):
