@@ -30,7 +30,7 @@ MAX_PROX_ITERS = 1000
 
 def register(sub: Any) -> None:
     """Add ``recon`` and its methods."""
-    p = sub.add_parser("recon", help="reconstruct a measurement (FISTA-TV or UDN)")
+    p = sub.add_parser("recon", help="reconstruct a measurement (fista, admm, udn or auto)")
     methods = p.add_subparsers(dest="method", metavar="METHOD", required=True)
     f = methods.add_parser("fista", help="FISTA with total variation and non-negativity")
     _add_tv_solver_arguments(
