@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, cast
 
 import torch
@@ -141,15 +141,22 @@ class LinearOperator:
                 f"expected {self.in_shape}"
             )
 
-    def norm(self, iters: int = 50, seed: int = 0, tol: float = 1e-6) -> float:
-        """Spectral norm ||A|| by power iteration on A^T A (cached per operator)."""
+    def norm(self, iters: int = 50, seed: int = 0, tol: float = 1e-6,
+             step: Callable[[], None] | None = None) -> float:
+        """Spectral norm ||A|| by power iteration on A^T A (cached per operator).
+
+        ``step``: called before every iteration; it may raise to stop (nothing is cached).
+        """
         if self._norm is None:
-            self._norm = power_norm(self, iters=iters, seed=seed, tol=tol)
+            self._norm = power_norm(self, iters=iters, seed=seed, tol=tol, step=step)
         return self._norm
 
-    def lipschitz(self) -> float:
-        """Lipschitz constant of the gradient of 0.5||Ax - b||^2, with a 2% safety margin."""
-        return 1.02 * self.norm() ** 2
+    def lipschitz(self, step: Callable[[], None] | None = None) -> float:
+        """Lipschitz constant of the gradient of 0.5||Ax - b||^2, with a 2% safety margin.
+
+        ``step``: as :meth:`norm`'s (a cancellation point per power iteration).
+        """
+        return 1.02 * self.norm(step=step) ** 2
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.in_shape} -> {self.out_shape}, {self.dtype})"
@@ -472,11 +479,14 @@ class SumK(LinearOperator):
         return y.unsqueeze(1).expand(self.in_shape).contiguous()
 
 
-def power_norm(op: LinearOperator, iters: int = 50, seed: int = 0, tol: float = 1e-6) -> float:
+def power_norm(op: LinearOperator, iters: int = 50, seed: int = 0, tol: float = 1e-6,
+               step: Callable[[], None] | None = None) -> float:
     """Estimate ||A|| (largest singular value) by power iteration on A^T A.
 
     Stops early when the estimate changes by less than ``tol`` (relative). The result is a lower
-    bound that converges from below; callers add a small margin (see ``lipschitz``).
+    bound that converges from below; callers add a small margin (see ``lipschitz``). ``step``
+    is called before every iteration and may raise to stop (a cancel: a large video model
+    takes seconds to minutes here).
     """
     gen = torch.Generator(device="cpu").manual_seed(seed)
     x = torch.rand(op.in_shape, generator=gen, dtype=torch.float64).to(op.dtype).to(op.device)
@@ -484,6 +494,8 @@ def power_norm(op: LinearOperator, iters: int = 50, seed: int = 0, tol: float = 
     est = 0.0
     with torch.no_grad():
         for _ in range(iters):
+            if step is not None:
+                step()
             y = op.adjoint(op.apply(x))
             n = float(torch.linalg.vector_norm(y))
             if not math.isfinite(n):

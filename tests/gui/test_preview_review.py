@@ -149,3 +149,35 @@ def test_video_bins_are_said_and_checked(psf: np.ndarray) -> None:
     assert "global shutter" in r.model_note and "2D model" in r.model_note
     r2 = PreviewEngine(psf, _settings()).process(frame)
     assert r2.model_note == ""
+
+
+def test_the_video_models_norm_is_a_cancellation_point(psf: np.ndarray,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """The power iteration of a video model's Lipschitz constant ran to its end after a cancel
+    (17 s at 512x512 with 32 bins: closing the window detached the thread)."""
+    import recon.operators as ops
+    from app.gui.preview_engine import PreviewCancelled
+
+    eng = PreviewEngine(psf, _settings(model="video", video_bins=4, downsample=1))
+    ran: list[int] = []
+    real = ops.power_norm
+
+    def cancel_then_run(op: object, *a: object, step: object = None, **k: object) -> float:
+        eng.cancel()  # as the GUI does from another thread while the model is built
+
+        def counted() -> None:
+            ran.append(1)
+            step()  # type: ignore[operator]
+
+        return real(op, *a, step=counted, **k)
+
+    monkeypatch.setattr(ops, "power_norm", cancel_then_run)
+    with pytest.raises(PreviewCancelled):
+        eng.process(_codes(psf), timing=SensorTiming(rows=48, line_time_us=10.0,
+                                                     exposure_lines=8))
+    assert ran == [1]  # stopped at the first power iteration, not after 50
+    monkeypatch.setattr(ops, "power_norm", real)
+    eng.resume()
+    r = eng.process(_codes(psf), timing=SensorTiming(rows=48, line_time_us=10.0,
+                                                     exposure_lines=8))
+    assert r.shape[0] == 48 and np.isfinite(r.image).all()  # built whole the next time
