@@ -7,7 +7,8 @@ events, wrapped in :class:`~calibration.workflow.Workflow` for cancellation), sh
 
 - :mod:`calibration.psf`: :func:`capture_psf`, :func:`capture_depth_stack`, quality report.
 - :mod:`calibration.darks`: dark frames, hot/dead pixel maps (the erasure mask), repair.
-- :mod:`calibration.shutter`: shutter function from timing, and measured by strobing.
+- :mod:`calibration.shutter`: shutter function from timing, and measured by strobing
+  (:func:`calibrate_shutter`: the one path of the CLI and the wizard).
 - :mod:`calibration.filters`: hyperspectral filter cubes.
 """
 
@@ -25,8 +26,10 @@ from calibration.shutter import (
     ShutterFunction,
     ShutterMeasurement,
     ShutterSettings,
+    calibrate_shutter,
     measure_shutter,
     shutter_from_timing,
+    strobe_time,
 )
 from calibration.workflow import CalibrationCancelled, CalibrationError, Progress, Workflow
 
@@ -45,6 +48,7 @@ __all__ = [
     "ShutterSettings",
     "Workflow",
     "calibrate_pixel_maps",
+    "calibrate_shutter",
     "capture_darks",
     "capture_depth_stack",
     "capture_psf",
@@ -52,4 +56,5 @@ __all__ = [
     "measure_shutter",
     "pixel_maps",
     "shutter_from_timing",
+    "strobe_time",
 ]

@@ -1,5 +1,11 @@
 """Rolling-shutter functions: from the sensor timing, and measured with a strobed point source.
 
+One path for every front end: :func:`calibrate_shutter` (the CLI's ``calibrate shutter`` and
+the GUI wizard) snaps a frame, chooses the time bins with :func:`shutter_model` (the finest the
+rows resolve unless a width is given; more bins than rows refused before anything is
+captured or written), then returns the timing model's function or measures one, with the
+camera (and source) in the metadata. :func:`strobe_time` is the point source's time rule.
+
 From timing: :func:`shutter_from_timing` evaluates the drivers' timing model
 (:func:`drivers.timing.shutter_function`) with time bins of ``bin_lines`` lines, cuts the ROI
 rows, applies the camera's binning and an extra row downsampling (to match a measurement that
@@ -58,9 +64,12 @@ __all__ = [
     "ShutterMeasurement",
     "ShutterSettings",
     "analyse_strobe_scan",
+    "calibrate_shutter",
     "measure_shutter",
     "shutter_for_frame",
     "shutter_from_timing",
+    "shutter_model",
+    "strobe_time",
 ]
 
 
@@ -82,6 +91,8 @@ class ShutterFunction:
     method: str = "timing"
     measurement: ShutterMeasurement | None = None
     path: Path | None = None
+    camera: dict[str, Any] | None = None
+    source: str | None = None
 
     @property
     def bin_us(self) -> float:
@@ -101,6 +112,10 @@ class ShutterFunction:
         }
         if self.measurement is not None:
             md["measurement"] = self.measurement.report()
+        if self.camera is not None:
+            md["camera"] = self.camera
+        if self.source is not None:
+            md["source"] = self.source
         return md
 
     def save(
@@ -451,7 +466,9 @@ def measure_shutter(
 
     The result's ``measurement`` holds the scan, the fit and the comparison with the camera's
     timing model; its ``shutter`` comes from the measured timing (same ROI rows, binning and
-    ``row_factor`` as the frames). The camera's exposure and readout pattern are used as set.
+    ``row_factor`` as the frames); its ``camera`` and ``source`` say what measured it (saved
+    or not). The camera's exposure and readout pattern are used as set. Front ends call
+    :func:`calibrate_shutter`, which chooses ``bin_lines`` first.
     """
     s = settings or ShutterSettings()
     strobing = False
@@ -606,14 +623,108 @@ def measure_shutter(
             binning=frame.binning,
             row_factor=row_factor,
         )
-        sf = replace(sf, method="measured", measurement=meas)
+        sf = replace(sf, method="measured", measurement=meas,
+                     camera=camera_description(camera, frame), source=identity)
         yield Progress("fit", meas.summary(), 0.97, data=meas.report())
         if out is not None:
             yield Progress("save", f"saving {out}", 0.98)
-            path = sf.save(out, {"camera": camera_description(camera, frame), "source": identity})
-            sf = replace(sf, path=path)
+            sf = replace(sf, path=sf.save(out))
         yield Progress("done", "shutter measured: " + meas.summary(), 1.0)
         return sf
     finally:
         if strobing:
             source_off_quietly(source)
+
+
+# --------------------------------------------------------------------------------------------
+# the one path of the front ends (CLI and GUI)
+
+
+def strobe_time(value_us: float, what: str) -> tuple[float, str | None]:
+    """A strobe pulse or delay step as the point source sends it: ``(sent_us, warning)``.
+
+    The source times its strobes in steps of ``TIME_RESOLUTION_US`` (0.1 us: the driver sends
+    one decimal). A value that rounds below one step is refused (ValueError, one line: it
+    would go out as 0 and the firmware's refusal would blame the hardware); a value off the
+    grid is rounded to what is sent, and ``warning`` says so (None when nothing changed).
+    ``what`` names the value in the messages (``"--pulse 0.26us"``, ``"strobe pulse 0.26 us"``).
+    """
+    from drivers.lightsource import TIME_RESOLUTION_US
+
+    value = float(value_us)
+    sent = round(value / TIME_RESOLUTION_US) * TIME_RESOLUTION_US
+    if not math.isfinite(value) or sent < TIME_RESOLUTION_US:
+        raise ValueError(f"{what}: the point source times its pulses in steps of "
+                         f"{TIME_RESOLUTION_US:g} us; use {TIME_RESOLUTION_US:g}us or more")
+    sent = round(sent, 1)
+    if abs(sent - value) > 1e-9:
+        return sent, (f"{what} is rounded to {sent:g} us, the point source's "
+                      f"{TIME_RESOLUTION_US:g} us resolution")
+    return sent, None
+
+
+def shutter_model(frame: Frame, *, bin_lines: int | None = None,
+                  row_factor: int = 1) -> ShutterFunction:
+    """The frame's shutter function at ``bin_lines``, or at the finest bins the rows resolve.
+
+    Without ``bin_lines`` (None): at least ``row_factor`` lines wide, wider until the bins are
+    no more than the rows (a rolling shutter resolves at most as many frames as rows: 1-line
+    bins on 3-line rows, or a long exposure, made a file that recon and simulate refused).
+    The result's ``bin_lines`` is the width used. More bins than rows are refused
+    (ValueError, one line, in recon's words) before anything is captured or written.
+    """
+    from recon.checks import check_shutter_frames
+
+    if (bin_lines is not None and int(bin_lines) < 1) or int(row_factor) < 1:
+        raise ValueError(f"the time bin ({bin_lines} lines) and the row downsampling "
+                         f"({row_factor}) must be 1 or more")
+
+    def model(width: int) -> ShutterFunction:
+        return shutter_for_frame(frame, bin_lines=width, row_factor=row_factor)
+
+    if bin_lines is None:
+        width = int(row_factor)
+        sf = model(width)
+        k, rows = sf.shutter.shape
+        if k > rows:  # about k * width lines of time: start near the width that fits
+            width = max(width + 1, -(-k * width // rows))
+            sf = model(width)
+            while sf.shutter.shape[0] > sf.shutter.shape[1]:
+                width += 1
+                sf = model(width)
+    else:
+        sf = model(int(bin_lines))
+    check_shutter_frames(*sf.shutter.shape, "the shutter function", downsample=row_factor)
+    return sf
+
+
+def calibrate_shutter(
+    camera: Camera,
+    source: LightSource | None,
+    settings: ShutterSettings | None = None,
+    *,
+    bin_lines: int | None = None,
+    row_factor: int = 1,
+    out: str | os.PathLike[str] | None = None,
+    timeout_s: float = 5.0,
+) -> Steps[ShutterFunction]:
+    """The shutter function of ``calibrate shutter`` and the GUI wizard (saved to ``out``).
+
+    Snaps one frame (``timeout_s``); its timing model chooses the bins (:func:`shutter_model`:
+    ``bin_lines`` None is the finest the rows resolve), so a setting that gives more bins than
+    rows is refused before any scan. Without a ``source`` the result is the timing model's
+    function; with one it is measured (:func:`measure_shutter`, ``settings``) at the same
+    bin width. Either way the result holds the camera (and the source) for its metadata.
+    """
+    yield Progress("timing", "reading the camera's timing model", 0.0)
+    frame = camera.snap(timeout_s)
+    sf = shutter_model(frame, bin_lines=bin_lines, row_factor=row_factor)
+    if source is not None:
+        return (yield from measure_shutter(camera, source, settings, bin_lines=sf.bin_lines,
+                                           row_factor=row_factor, out=out))
+    sf = replace(sf, camera=camera_description(camera, frame))
+    if out is not None:
+        yield Progress("save", f"saving {out}", 0.9)
+        sf = replace(sf, path=sf.save(out))
+    yield Progress("done", f"{sf.shutter.shape[0]} time bins of {sf.bin_lines} lines", 1.0)
+    return sf

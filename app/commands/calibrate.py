@@ -500,9 +500,14 @@ def run_darks(args: argparse.Namespace) -> int:
 
 
 def run_shutter(args: argparse.Namespace) -> int:
-    """Shutter function from the camera's timing, or measured by strobing the source."""
+    """Shutter function from the camera's timing, or measured by strobing the source.
+
+    :func:`calibration.shutter.calibrate_shutter`, the wizard's path too: the frame's model
+    chooses the bins (the finest the rows resolve without ``--bin-lines``) and refuses more
+    bins than rows before the scan and before anything is written.
+    """
     _check_outputs(args, "shutter")
-    from calibration.shutter import ShutterSettings, measure_shutter
+    from calibration.shutter import ShutterSettings, calibrate_shutter
     from calibration.workflow import Workflow
 
     if (args.bin_lines is not None and args.bin_lines < 1) or args.downsample < 1:
@@ -510,17 +515,6 @@ def run_shutter(args: argparse.Namespace) -> int:
     pulse_us = _strobe_time(args.pulse, "--pulse") if args.pulse else None
     step_us = _strobe_time(args.step, "--step") if args.step else None
     with _devices(args) as (camera, source):
-        frame = camera.snap(args.timeout)
-        # the frame's model says how many bins a file will hold: refused before the scan and
-        # before anything is written when more than the rows (recon and simulate refuse it)
-        sf = _shutter_model(frame, args)
-        if source is None:
-            from calibration.sources import camera_description
-
-            path = sf.save(args.out, {"camera": camera_description(camera, frame)})
-            print(f"wrote {path}: shutter {sf.shutter.shape[0]} bins x {sf.shutter.shape[1]} rows")
-            print(f"timing {sf.timing.to_dict()}")
-            return 0
         settings = ShutterSettings(
             pulse_us=pulse_us,
             step_us=step_us,
@@ -531,71 +525,36 @@ def run_shutter(args: argparse.Namespace) -> int:
             settle_frames=args.settle,
         )
         wf = Workflow(
-            measure_shutter(
+            calibrate_shutter(
                 camera,
                 source,
                 settings,
                 bin_lines=args.bin_lines,
                 row_factor=args.downsample,
                 out=args.out,
+                timeout_s=args.timeout,
             ),
-            "shutter measurement",
+            "shutter" if source is None else "shutter measurement",
         )
         sf = _drive(wf, "shutter")
-    assert sf.measurement is not None
     print(f"wrote {sf.path}: shutter {sf.shutter.shape[0]} bins x {sf.shutter.shape[1]} rows")
-    print(sf.measurement.summary())
+    if sf.measurement is None:
+        print(f"timing {sf.timing.to_dict()}")
+    else:
+        print(sf.measurement.summary())
     return 0
 
 
-def _shutter_model(frame: Any, args: argparse.Namespace) -> Any:
-    """The frame's shutter function at ``--bin-lines``, or at the finest bins the rows resolve.
-
-    Without ``--bin-lines``: at least the --downsample factor wide, wider until the bins are
-    no more than the rows (a rolling shutter resolves at most as many frames as rows: 1-line
-    bins on 3-line rows, or a long exposure, made a file that recon and simulate refused).
-    Sets ``args.bin_lines`` to the width used; refuses more bins than rows in recon's words.
-    """
-    from calibration.shutter import shutter_for_frame
-    from recon.checks import check_shutter_frames
-
-    def model(width: int) -> Any:
-        return shutter_for_frame(frame, bin_lines=width, row_factor=args.downsample)
-
-    if args.bin_lines is None:
-        width = args.downsample
-        sf = model(width)
-        k, rows = sf.shutter.shape
-        if k > rows:  # about k * width lines of time: start near the width that fits
-            width = max(width + 1, -(-k * width // rows))
-            sf = model(width)
-            while sf.shutter.shape[0] > sf.shutter.shape[1]:
-                width += 1
-                sf = model(width)
-        args.bin_lines = width
-    else:
-        sf = model(args.bin_lines)
-    check_shutter_frames(*sf.shutter.shape, "the shutter function", downsample=args.downsample)
-    return sf
-
-
 def _strobe_time(text: str, option: str) -> float:
-    """A strobe time at the point source's resolution (0.1 us: the driver sends one decimal).
+    """``--pulse`` / ``--step`` as the point source sends it (:func:`calibration.strobe_time`).
 
-    Shorter is refused (it would go out as 0 and the firmware's refusal would blame the
-    hardware); a finer value is rounded to what is sent, with a warning saying so.
+    Shorter than its 0.1 us step is refused; a finer value is rounded, with a warning.
     """
-    from drivers.lightsource import TIME_RESOLUTION_US
+    from calibration.shutter import strobe_time
 
-    value = parse_duration_us(text)
-    sent = round(value / TIME_RESOLUTION_US) * TIME_RESOLUTION_US
-    if sent < TIME_RESOLUTION_US:
-        raise ValueError(f"{option} {text}: the point source times its pulses in steps of "
-                         f"{TIME_RESOLUTION_US:g} us; use {TIME_RESOLUTION_US:g}us or more")
-    sent = round(sent, 1)
-    if abs(sent - value) > 1e-9:
-        _warn([f"{option} {text} is rounded to {sent:g} us, the point source's "
-               f"{TIME_RESOLUTION_US:g} us resolution"])
+    sent, warning = strobe_time(parse_duration_us(text), f"{option} {text}")
+    if warning is not None:
+        _warn([warning])
     return sent
 
 

@@ -7,7 +7,15 @@ updates a progress bar, a stage line and the latest frame; Cancel takes effect a
 event (the workflow switches the source off and saves nothing). When a capture ends the
 quality report (formatted lines) and the PSF (auto-levelled: the darks shown during the
 capture set no levels) are shown, and Save writes the calibration file (atomically, through
-:mod:`recon.calibfile`). On Finish the new PSF can become the live preview's PSF.
+:mod:`recon.calibfile`) under a name no file has (:func:`save_as_new`: nothing is ever
+replaced). On Finish the saved PSF can become the live preview's PSF.
+
+The shutter function takes the CLI's path (:func:`calibration.calibrate_shutter`): the same
+default bins (the finest the rows resolve), checks, metadata and strobe-time rule.
+
+While a capture runs its page is incomplete and Back is disabled; closing the wizard (or
+Finish) cancels it. The main window keeps one wizard: reopened, it shows the run still
+winding down, or its first page with what was typed.
 
 With the simulated bench the scene is hidden while the wizard captures (a PSF is taken with
 the point source alone, as at the bench with the object removed) and restored afterwards.
@@ -15,7 +23,12 @@ the point source alone, as at the bench with the object removed) and restored af
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import os
+import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -24,6 +37,7 @@ import pyqtgraph as pg
 from PySide6.QtCore import QRectF, Qt
 from PySide6.QtGui import QFontDatabase
 from PySide6.QtWidgets import (
+    QAbstractSpinBox,
     QCheckBox,
     QFileDialog,
     QFormLayout,
@@ -46,26 +60,114 @@ from app.gui.widgets import ComboBox, DoubleSpinBox, SpinBox
 if TYPE_CHECKING:
     from app.gui.main_window import MainWindow
 
-__all__ = ["CalibrationWizard"]
+__all__ = ["CalibrationWizard", "output_folder_problem", "save_as_new"]
+
+#: the smallest source intensity the wizard captures with (at 0 a PSF capture can only fail)
+MIN_INTENSITY = 0.01
 
 
 def _stamp() -> str:
     return time.strftime("%Y%m%d-%H%M%S")
 
-def _save_result(page: Any, prefix: str, suffix: str) -> Path | None:
-    """Save ``page.result`` as ``<out>/<prefix>-<time><suffix>``; show the outcome on the page."""
-    if page.result is None:
-        return None
-    path = page.setup.out_path() / f"{prefix}-{_stamp()}{suffix}"
-    try:
-        page.saved_path = page.result.save(path)
-    except Exception as exc:  # shown in the wizard (disk full, permissions...), never a crash
-        page.box.saved.setText(f"not saved: {exc}")
-        return None
-    page.box.saved.setText(f"saved {page.saved_path}")
-    page.box.save.setEnabled(False)
-    return Path(page.saved_path)
 
+def _one_line(exc: BaseException) -> str:
+    """An error as one line for people (an OSError as "file: reason", not "[Errno 13] ...")."""
+    if isinstance(exc, OSError) and exc.strerror:
+        where = exc.filename if exc.filename is not None else ""
+        return f"{where}: {exc.strerror}" if where else str(exc.strerror)
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def _claim(tmp: Path, target: Path) -> bool:
+    """Give the finished file ``tmp`` the name ``target`` unless a file has it (then False).
+
+    A hard link refuses an existing name atomically. Where the file system has no hard links,
+    the name is reserved by an exclusive create and the file moved onto that placeholder
+    (which is ours: nothing of anyone else's is replaced).
+    """
+    try:
+        os.link(tmp, target)
+    except FileExistsError:
+        return False
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK,
+                             errno.ENOSYS):
+            raise
+        try:
+            fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:
+            return False
+        os.close(fd)
+        os.replace(tmp, target)
+        return True
+    tmp.unlink()
+    return True
+
+
+def save_as_new(save: Callable[[Path], Any], folder: Path, stem: str, suffix: str) -> Path:
+    """Write a file with ``save(path)`` as ``folder/stem+suffix`` (or ``stem-2``, ``-3``...).
+
+    Never replaces a file (another save in the same second, another window or bench writing
+    to the folder, the preview's PSF): the file is written whole under a temporary name, then
+    given the first name that no file has, by an operation that refuses an existing name.
+    Returns the path written.
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(prefix=f".{stem}.", suffix=f".tmp{suffix}", dir=folder)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        save(tmp)
+        n = 1
+        while True:
+            target = folder / (f"{stem}{suffix}" if n == 1 else f"{stem}-{n}{suffix}")
+            if _claim(tmp, target):
+                from recon.atomic import fsync_dir
+
+                fsync_dir(folder)
+                return target
+            n += 1
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+
+
+def output_folder_problem(text: str, *, probe: bool = False) -> str | None:
+    """What is wrong with ``text`` as the output folder (one line), or None.
+
+    Empty, a file (or a file where a parent folder should be), or not writable (the nearest
+    folder that exists: the folder is made on the first save). ``probe``: also create and
+    remove a file there, which finds what permissions do not say (a read-only file system).
+    """
+    if not text.strip():
+        return "name an output folder"
+    folder = Path(text.strip()).expanduser().absolute()
+    for place in (folder, *folder.parents):
+        if not place.exists():
+            continue
+        if not place.is_dir():
+            if place == folder:
+                return f"output folder {folder} is a file, not a folder"
+            return f"output folder {folder}: {place} is a file, not a folder"
+        if not os.access(place, os.W_OK | os.X_OK):
+            return f"output folder {folder} is not writable ({place})"
+        if probe:
+            try:
+                with tempfile.TemporaryFile(dir=place):
+                    pass
+            except OSError as exc:
+                reason = exc.strerror or str(exc)
+                return f"output folder {folder} is not writable ({place}: {reason})"
+        return None
+    return f"output folder {folder}: no part of it exists"
+
+
+def _is_cancel(exc: BaseException) -> bool:
+    """Whether a run ended by a cancel (the workflow's, or the worker's at shutdown)."""
+    from app.gui.workers import Cancelled
+    from calibration import CalibrationCancelled
+
+    return isinstance(exc, CalibrationCancelled | Cancelled)
 
 
 class _RunBox(QWidget):
@@ -176,17 +278,24 @@ class SetupPage(QWizardPage):
         self.auto_exposure = QCheckBox("auto-exposure (peak at 75% of full scale)")
         self.auto_exposure.setChecked(True)
         self.intensity = DoubleSpinBox()
-        self.intensity.setRange(0.0, 1.0)
+        self.intensity.setRange(MIN_INTENSITY, 1.0)
         self.intensity.setSingleStep(0.1)
         self.intensity.setValue(1.0)
+        # emptied or junk: the value before (the nearest bound is kept for a number out of range)
+        self.intensity.setCorrectionMode(QAbstractSpinBox.CorrectionMode.CorrectToPreviousValue)
         self.hide_scene = QCheckBox("simulated bench: hide the scene while calibrating")
         self.hide_scene.setChecked(True)
+        self.out_error = QLabel("")
+        self.out_error.setWordWrap(True)
+        self.out_error.setStyleSheet("color: #b00020")
+        self.out_dir.textChanged.connect(self._out_changed)
         form = QFormLayout(self)
         form.addRow(self.devices)
         row = QHBoxLayout()
         row.addWidget(self.out_dir, 1)
         row.addWidget(browse)
         form.addRow("Output folder", row)
+        form.addRow(self.out_error)
         form.addRow("PSF frames", self.n_frames)
         form.addRow("Dark frames", self.n_darks)
         form.addRow(self.auto_exposure)
@@ -202,6 +311,10 @@ class SetupPage(QWizardPage):
 
     def initializePage(self) -> None:
         self._refresh()
+
+    def _out_changed(self) -> None:
+        self.out_error.setText(output_folder_problem(self.out_dir.text()) or "")
+        self.completeChanged.emit()
 
     def _refresh(self) -> None:
         w = self.window_
@@ -220,32 +333,152 @@ class SetupPage(QWizardPage):
     def isComplete(self) -> bool:
         w = self.window_
         return (w.bench.camera is not None and w.camera_state.ready
-                and w.light_state is LightState.CONNECTED)
+                and w.light_state is LightState.CONNECTED
+                and output_folder_problem(self.out_dir.text()) is None)
+
+    def validatePage(self) -> bool:
+        """Check the output folder before any capture (one line when it cannot be used)."""
+        problem = output_folder_problem(self.out_dir.text(), probe=True)
+        self.out_error.setText(problem or "")
+        if problem is not None:
+            return False
+        self.out_dir.setText(str(self.out_path()))  # absolute: it outlives this folder
+        self.window_.settings.calibration_dir = str(self.out_path())
+        return True
 
     def out_path(self) -> Path:
-        """The chosen output folder."""
-        return Path(self.out_dir.text()).expanduser()
+        """The chosen output folder, absolute (a relative one is lost in the next session)."""
+        return Path(self.out_dir.text().strip()).expanduser().absolute()
 
 
-class PsfPage(QWizardPage):
-    """Capture the PSF, show the quality report and the PSF, save it."""
+class _RunPage(QWizardPage):
+    """A page that runs one workflow at a time, shows it in a :class:`_RunBox` and saves it.
+
+    ``result`` is the newest result (saved or not); ``saved_result`` and ``saved_path`` the
+    last one saved, kept until a newer one is saved (a cancelled or refused re-capture keeps
+    it). While a run goes the page is incomplete and cannot be left (:meth:`validatePage`).
+    """
+
+    prefix = ""
+    suffix = ""
+    title = ""
 
     def __init__(self, window: MainWindow, setup: SetupPage) -> None:
         super().__init__()
         self.window_ = window
         self.setup = setup
-        self.setTitle("PSF capture")
-        self.setSubTitle("Darks with the source off, auto-exposure with it on, averaged PSF "
-                         "frames, dark subtraction and hot-pixel repair, quality checks.")
-        self.box = _RunBox("PSF capture")
-        QVBoxLayout(self).addWidget(self.box)
+        self.box = _RunBox(self.title)
         self.box.start.clicked.connect(self.start)
         self.box.cancel.clicked.connect(self.cancel)
         self.box.save.clicked.connect(self.save)
         self.result: Any = None
+        self.saved_result: Any = None
         self.saved_path: Path | None = None
         self.error = ""
         self._handle: Any = None
+        self._running = False
+
+    @property
+    def running(self) -> bool:
+        """Whether a run of this page has not ended yet."""
+        return self._running
+
+    def start(self) -> None:  # pragma: no cover - each page has its own
+        raise NotImplementedError
+
+    def _run(self, make_steps: Any, *, name: str, hide_scene: bool) -> None:
+        self.result = None  # the pending result only: the saved one stays until replaced
+        self.error = ""
+        self._running = True
+        self.box.running(True)
+        self.box.report.setPlainText("")
+        self.completeChanged.emit()
+        self._handle = self.window_.run_camera_workflow(
+            make_steps, name=name, hide_scene=hide_scene, on_progress=self.box.show_progress,
+            on_done=self._finished, on_error=self._failed)
+
+    def cancel(self) -> None:
+        """Cancel at the next progress point."""
+        if self._handle is not None and self._running:
+            self._handle.cancel()
+
+    def _finished(self, result: Any) -> None:
+        self._running = False
+        self.result = result
+        self.box.running(False)
+        self.box.save.setEnabled(True)
+        self._show(result)
+        self._show_saved()
+        self.completeChanged.emit()
+
+    def _show(self, result: Any) -> None:  # pragma: no cover - each page has its own
+        raise NotImplementedError
+
+    def _failed(self, exc: BaseException) -> None:
+        self._running = False
+        self.box.running(False)
+        self.error = _one_line(exc)
+        kind = "cancelled" if _is_cancel(exc) else "refused / failed"
+        self.box.stage.setText(f"{kind}: {self.error}")
+        self.box.report.setPlainText(str(exc))
+        self._show_saved()
+        self.completeChanged.emit()
+
+    def _show_saved(self) -> None:
+        if self.saved_path is not None:
+            self.box.saved.setText(f"saved before: {self.saved_path}")
+
+    def save(self) -> Path | None:
+        """Save the newest result into the output folder under a new name; None if not saved."""
+        if self.result is None:
+            return None
+        problem = output_folder_problem(self.setup.out_dir.text())  # (typed since Next)
+        folder = self.setup.out_path()
+        try:
+            if problem is not None:
+                raise ValueError(problem)
+            path = save_as_new(self.result.save, folder, f"{self.prefix}-{_stamp()}",
+                               self.suffix)
+        except Exception as exc:  # shown in the wizard (disk full, permissions...), never a crash
+            self.box.saved.setText(f"not saved: {_one_line(exc)}")
+            return None
+        self.saved_path = path
+        self.saved_result = self.result
+        self.box.saved.setText(f"saved {path}")
+        self.box.save.setEnabled(False)
+        self.window_.settings.calibration_dir = str(folder)
+        self.completeChanged.emit()
+        return path
+
+    def reset(self) -> None:
+        """Forget the results (a new session of the wizard); the settings stay as typed."""
+        self.result = self.saved_result = self.saved_path = None
+        self.error = ""
+        self._handle = None
+        self.box.running(False)
+        self.box.progress.setValue(0)
+        self.box.stage.setText("not started")
+        self.box.report.setPlainText("")
+        self.box.saved.setText("")
+        self.completeChanged.emit()
+
+    def validatePage(self) -> bool:
+        return not self._running
+
+
+class PsfPage(_RunPage):
+    """Capture the PSF, show the quality report and the PSF, save it."""
+
+    prefix = "psf"
+    suffix = ".tif"
+    title = "PSF capture"
+
+    def __init__(self, window: MainWindow, setup: SetupPage) -> None:
+        super().__init__(window, setup)
+        self.setTitle("PSF capture")
+        self.setSubTitle("Darks with the source off, auto-exposure with it on, averaged PSF "
+                         "frames, dark subtraction and hot-pixel repair, quality checks.")
+        QVBoxLayout(self).addWidget(self.box)
 
     def start(self) -> None:
         """Run :func:`calibration.capture_psf` on the camera's worker."""
@@ -255,64 +488,33 @@ class PsfPage(QWizardPage):
                         n_darks=self.setup.n_darks.value(),
                         auto_exposure=self.setup.auto_exposure.isChecked(),
                         intensity=float(self.setup.intensity.value()))
-        self.result = None
-        self.saved_path = None
-        self.error = ""
-        self.box.running(True)
-        self.box.report.setPlainText("")
-        self.completeChanged.emit()
-        self._handle = self.window_.run_camera_workflow(
-            lambda cam, light: capture_psf(cam, light, s),
-            name="PSF capture",
-            hide_scene=self.setup.hide_scene.isChecked(),
-            on_progress=self.box.show_progress,
-            on_done=self._done,
-            on_error=self._failed,
-        )
+        self._run(lambda cam, light: capture_psf(cam, light, s), name="PSF capture",
+                  hide_scene=self.setup.hide_scene.isChecked())
 
-    def cancel(self) -> None:
-        """Cancel at the next progress point."""
-        if self._handle is not None:
-            self._handle.cancel()
-
-    def _done(self, result: Any) -> None:
-        self.result = result
-        self.box.running(False)
-        self.box.save.setEnabled(True)
+    def _show(self, result: Any) -> None:
         self.box.report.setPlainText(psf_report(result))
         self.box.show_result_image(result.psf)
         self.box.stage.setText("done: review the PSF and the report, then Save")
-        self.completeChanged.emit()
-
-    def _failed(self, exc: BaseException) -> None:
-        self.box.running(False)
-        self.error = str(exc)
-        from calibration import CalibrationCancelled
-
-        kind = "cancelled" if isinstance(exc, CalibrationCancelled) else "refused / failed"
-        self.box.stage.setText(f"{kind}: {exc}")
-        self.box.report.setPlainText(str(exc))
-        self.completeChanged.emit()
-
-    def save(self) -> Path | None:
-        """Save the captured PSF into the output folder."""
-        if _save_result(self, "psf", ".tif") is None:
-            return None
-        self.window_.settings.calibration_dir = str(self.setup.out_path())
-        self.completeChanged.emit()
-        return self.saved_path
 
     def isComplete(self) -> bool:
-        return self.saved_path is not None
+        return not self.running and self.saved_path is not None
 
 
-class ShutterPage(QWizardPage):
-    """Shutter function from the timing model, or measured by a strobe scan; save."""
+class ShutterPage(_RunPage):
+    """Shutter function from the timing model, or measured by a strobe scan; save.
+
+    The CLI's path and defaults (:func:`calibration.calibrate_shutter`): time bins "auto"
+    (the finest the rows resolve), pulse and step "auto" or on the source's 0.1 µs grid.
+    """
+
+    prefix = "shutter"
+    suffix = ".npz"
+    title = "shutter"
 
     def __init__(self, window: MainWindow, setup: SetupPage) -> None:
-        super().__init__()
-        self.window_ = window
-        self.setup = setup
+        super().__init__(window, setup)
+        from drivers.lightsource import TIME_RESOLUTION_US
+
         self.setTitle("Shutter function")
         self.setSubTitle("From the camera's timing model (instant), or measured by strobing "
                          "the point source at increasing delays. Optional: Next skips it.")
@@ -320,80 +522,70 @@ class ShutterPage(QWizardPage):
         self.method.addItem("from the timing model", "timing")
         self.method.addItem("measured (strobe scan)", "measured")
         self.bin_lines = SpinBox()
-        self.bin_lines.setRange(1, 100_000)
-        self.bin_lines.setValue(100)
-        self.bin_lines.setToolTip("Width of one time bin in line times")
-        self.pulse = DoubleSpinBox()
-        self.pulse.setRange(0.0, 1e6)
-        self.pulse.setSpecialValueText("auto")
-        self.pulse.setSuffix(" µs")
-        self.step = DoubleSpinBox()
-        self.step.setRange(0.0, 1e6)
-        self.step.setSpecialValueText("auto")
-        self.step.setSuffix(" µs")
+        self.bin_lines.setRange(0, 100_000)
+        self.bin_lines.setSpecialValueText("auto")
+        self.bin_lines.setValue(0)
+        self.bin_lines.setToolTip("Width of one time bin in line times (auto: the finest the "
+                                  "rows resolve; more bins than rows are refused)")
+        self.pulse = self._strobe_box()
+        self.step = self._strobe_box()
+        self.pulse.setToolTip(f"auto: one line time; the source's step is "
+                              f"{TIME_RESOLUTION_US:g} µs")
+        self.step.setToolTip("auto: half the pulse")
         form = QFormLayout()
         form.addRow("Method", self.method)
         form.addRow("Time bin", self.bin_lines)
         form.addRow("Strobe pulse", self.pulse)
         form.addRow("Delay step", self.step)
-        self.box = _RunBox("shutter")
         lay = QVBoxLayout(self)
         lay.addLayout(form)
         lay.addWidget(self.box, 1)
-        self.box.start.clicked.connect(self.start)
-        self.box.cancel.clicked.connect(self.cancel)
-        self.box.save.clicked.connect(self.save)
-        self.result: Any = None
-        self.saved_path: Path | None = None
-        self._handle: Any = None
+
+    @staticmethod
+    def _strobe_box() -> DoubleSpinBox:
+        """0 is "auto"; otherwise the source's time grid (0.1 µs), as the CLI takes it."""
+        from drivers.lightsource import MAX_TIME_US, TIME_RESOLUTION_US
+
+        box = DoubleSpinBox()
+        box.setDecimals(1)
+        box.setRange(0.0, MAX_TIME_US)
+        box.setSingleStep(TIME_RESOLUTION_US)
+        box.setSpecialValueText("auto")
+        box.setSuffix(" µs")
+        return box
+
+    def shutter_settings(self) -> Any:
+        """The strobe scan's settings (the CLI's defaults; strobe times by its rule)."""
+        from calibration import ShutterSettings, strobe_time
+
+        def strobe(box: DoubleSpinBox, what: str) -> float | None:
+            value = float(box.value())
+            return None if value <= 0 else strobe_time(value, f"{what} {value:g} us")[0]
+
+        return ShutterSettings(pulse_us=strobe(self.pulse, "strobe pulse"),
+                               step_us=strobe(self.step, "delay step"),
+                               intensity=float(self.setup.intensity.value()))
 
     def start(self) -> None:
         """Compute or measure the shutter function on the camera's worker."""
-        from calibration import ShutterSettings, measure_shutter, shutter_from_timing
-        from calibration.workflow import Progress
+        from calibration import calibrate_shutter
 
-        bin_lines = int(self.bin_lines.value())
-        self.result = None
-        self.saved_path = None
-        self.box.running(True)
-        if self.method.currentData() == "timing":
-            def steps(cam: Any, light: Any) -> Any:
-                yield Progress("timing", "reading the camera's timing model", 0.5)
-                timing = cam.timing
-                if timing is None:
-                    from calibration import CalibrationError
+        bin_lines = int(self.bin_lines.value()) or None
+        measured = self.method.currentData() == "measured"
+        try:
+            settings = self.shutter_settings()
+        except ValueError as exc:
+            self._failed(exc)
+            return
 
-                    raise CalibrationError("the camera has no timing model",
-                                           "Measure the shutter with the strobe scan")
-                roi = cam.roi
-                sf = shutter_from_timing(timing, bin_lines=bin_lines,
-                                         roi_rows=(roi.y, roi.height), binning=cam.binning)
-                yield Progress("done", f"{sf.shutter.shape[0]} time bins", 1.0)
-                return sf
+        def steps(cam: Any, light: Any) -> Any:
+            return calibrate_shutter(cam, light if measured else None, settings,
+                                     bin_lines=bin_lines, timeout_s=settings.frame_timeout_s)
 
-            hide = False
-        else:
-            ss = ShutterSettings(pulse_us=self.pulse.value() or None,
-                                 step_us=self.step.value() or None,
-                                 intensity=float(self.setup.intensity.value()))
+        self._run(steps, name="shutter",
+                  hide_scene=measured and self.setup.hide_scene.isChecked())
 
-            def steps(cam: Any, light: Any) -> Any:
-                return measure_shutter(cam, light, ss, bin_lines=bin_lines)
-
-            hide = self.setup.hide_scene.isChecked()
-        self._handle = self.window_.run_camera_workflow(
-            steps, name="shutter", hide_scene=hide, on_progress=self.box.show_progress,
-            on_done=self._done, on_error=self._failed)
-
-    def cancel(self) -> None:
-        """Cancel at the next progress point."""
-        if self._handle is not None:
-            self._handle.cancel()
-
-    def _done(self, sf: Any) -> None:
-        self.result = sf
-        self.box.running(False)
-        self.box.save.setEnabled(True)
+    def _show(self, sf: Any) -> None:
         m = np.asarray(sf.shutter, dtype=np.float32)
         k, rows = m.shape
         self.box.show_axes_image(m.T.copy(), x=(0.0, k * float(sf.bin_us)), y=(0.0, float(rows)),
@@ -401,14 +593,8 @@ class ShutterPage(QWizardPage):
         self.box.report.setPlainText(shutter_report(sf))
         self.box.stage.setText("done: review, then Save (rows down, time across)")
 
-    def _failed(self, exc: BaseException) -> None:
-        self.box.running(False)
-        self.box.stage.setText(f"failed: {exc}")
-        self.box.report.setPlainText(str(exc))
-
-    def save(self) -> Path | None:
-        """Save the shutter function into the output folder."""
-        return _save_result(self, "shutter", ".npz")
+    def isComplete(self) -> bool:
+        return not self.running
 
 
 class FinishPage(QWizardPage):
@@ -433,14 +619,18 @@ class FinishPage(QWizardPage):
         lines = []
         if self.psf_page.saved_path is not None:
             lines.append(f"PSF: {self.psf_page.saved_path}")
-            lines.append(f"  {self.psf_page.result.quality.summary()}")
+            lines.append(f"  {self.psf_page.saved_result.quality.summary()}")
         if self.shutter_page.saved_path is not None:
             lines.append(f"Shutter function: {self.shutter_page.saved_path}")
         self.summary.setText("\n".join(lines) or "nothing saved")
 
 
 class CalibrationWizard(QWizard):
-    """The calibration wizard of a :class:`MainWindow` (non-modal)."""
+    """The calibration wizard of a :class:`MainWindow` (non-modal, one per window).
+
+    Closing it (Cancel, the window's close button) or Finish cancels a run still going;
+    :meth:`reopen` shows it again.
+    """
 
     def __init__(self, window: MainWindow) -> None:
         super().__init__(window)
@@ -455,19 +645,54 @@ class CalibrationWizard(QWizard):
         self.finish_page = FinishPage(self.psf_page, self.shutter_page)
         for p in (self.setup_page, self.psf_page, self.shutter_page, self.finish_page):
             self.addPage(p)
+        for p in (self.setup_page, self.psf_page, self.shutter_page, self.finish_page):
+            # after QWizard's own update of every button (connected by addPage, on any page's
+            # completeChanged): Back off while running
+            p.completeChanged.connect(self._sync_back)
+        self.currentIdChanged.connect(lambda _id: self._sync_back())
         self.accepted.connect(self._finish)
-        self.rejected.connect(self._cancel_running)
+
+    def run_pages(self) -> tuple[_RunPage, ...]:
+        """The pages that run workflows."""
+        return (self.psf_page, self.shutter_page)
+
+    @property
+    def running(self) -> bool:
+        """Whether a capture of this wizard has not ended yet."""
+        return any(p.running for p in self.run_pages())
+
+    def _sync_back(self) -> None:
+        if self.running:
+            self.button(QWizard.WizardButton.BackButton).setEnabled(False)
+
+    def back(self) -> None:
+        """The previous page, except while a capture runs (its page is where to cancel it)."""
+        if not self.running:
+            super().back()
+
+    def done(self, result: int) -> None:
+        """Close (Finish, Cancel): a capture still running is cancelled, never left orphaned."""
+        self._cancel_running()
+        super().done(result)
+
+    def reopen(self) -> None:
+        """Shown again: a run still ending as it is, else page one with what was typed."""
+        if self.running:
+            return
+        for p in self.run_pages():
+            p.reset()
+        self.restart()
 
     def _cancel_running(self) -> None:
-        self.psf_page.cancel()
-        self.shutter_page.cancel()
+        for p in self.run_pages():
+            p.cancel()
 
     def _finish(self) -> None:
         page = self.psf_page
-        if self.finish_page.use_psf.isChecked() and page.result is not None:
-            name = page.saved_path.name if page.saved_path else "captured"
-            self.window_.use_psf(page.result.normalised(), f"calibration {name}",
-                                 str(page.saved_path or ""))
+        if self.finish_page.use_psf.isChecked() and page.saved_result is not None:
+            assert page.saved_path is not None
+            self.window_.use_psf(page.saved_result.normalised(),
+                                 f"calibration {page.saved_path.name}", str(page.saved_path))
 
 
 def psf_report(result: Any) -> str:

@@ -448,13 +448,19 @@ class MainWindow(QMainWindow):
         return dock
 
     def open_calibration_wizard(self) -> Any:
-        """Show the (single, non-modal) calibration wizard."""
+        """Show the calibration wizard: one per window (non-modal), made on first use.
+
+        Reopened, it is the same wizard: a run still ending is shown as it is (so it stays
+        reachable), else its first page with what was typed this session.
+        """
         from app.gui.calibration_wizard import CalibrationWizard
 
         wiz = self.calibration_wizard
-        if wiz is None or not wiz.isVisible():
+        if wiz is None:
             wiz = CalibrationWizard(self)
             self.calibration_wizard = wiz
+        elif not wiz.isVisible():
+            wiz.reopen()
         wiz.show()
         wiz.raise_()
         return wiz

@@ -221,3 +221,32 @@ def test_the_grid_keeps_the_pulse_within_half_the_exposure_and_the_scan_within_i
     list(wf)
     d = wf.result.measurement.delays_us
     assert d.size <= limit and np.diff(d)[0] == pytest.approx(6.7)
+
+
+def test_the_front_ends_path_chooses_the_bins_and_records_camera_and_source(
+        make_camera, source, tmp_path):
+    """The wizard measured without ``out`` and its file had no camera or source; it chose its
+    own bins (100 lines: one bin on 64 rows) and saved 1-line bins recon refuses. The CLI
+    and the wizard now take one path, :func:`calibrate_shutter`."""
+    from calibration.shutter import calibrate_shutter, shutter_model
+    from recon.checks import check_shutter_frames
+
+    cam = make_camera(line_time_us=12.5, trigger_delay_us=30.0, exposure_us=160.0)
+    settings = ShutterSettings(intensity=1.0, n_darks=2, settle_frames=0)
+    wf = Workflow(measure_shutter(cam, source, settings, bin_lines=4), "shutter")
+    list(wf)
+    md = wf.result.metadata()  # measured, not saved: what it was measured with all the same
+    assert md["camera"]["backend"] == cam.backend and md["source"] == source.identify()
+
+    timing = Workflow(calibrate_shutter(cam, None, out=tmp_path / "t.npz"), "shutter")
+    list(timing)
+    sf = timing.result
+    assert sf.bin_lines == shutter_model(cam.snap()).bin_lines  # the finest the rows resolve
+    check_shutter_frames(*sf.shutter.shape)
+    k, rows = sf.shutter.shape
+    assert rows // 2 < k <= rows
+    assert load_shutter(sf.path)[1]["camera"]["backend"] == cam.backend
+    with pytest.raises(ValueError, match="time bins for"):
+        list(Workflow(calibrate_shutter(cam, source, settings, bin_lines=1, row_factor=8,
+                                        out=tmp_path / "m.npz"), "shutter"))
+    assert not (tmp_path / "m.npz").exists()
