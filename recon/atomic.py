@@ -35,6 +35,7 @@ __all__ = [
     "fsync_dir",
     "is_temp_name",
     "temp_files",
+    "write_new",
 ]
 
 
@@ -285,3 +286,55 @@ def check_outputs(
         if out.exists() and not overwrite:
             raise FileExistsError(
                 f"{out} exists: pass --overwrite to replace it, or choose another output")
+
+
+def _claim(tmp: Path, target: Path) -> bool:
+    """Give the finished file ``tmp`` the name ``target`` unless a file has it (then False).
+
+    A hard link refuses an existing name atomically. Where the file system has no hard links,
+    the name is reserved by an exclusive create and the file moved onto that placeholder
+    (which is ours: nothing of anyone else's is replaced).
+    """
+    try:
+        os.link(tmp, target)
+    except FileExistsError:
+        return False
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK,
+                             errno.ENOSYS):
+            raise
+        try:
+            fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:
+            return False
+        os.close(fd)
+        os.replace(tmp, target)
+        return True
+    tmp.unlink()
+    return True
+
+
+def write_new(save: Callable[[Path], Any], folder: Path, stem: str, suffix: str) -> Path:
+    """Write a file with ``save(path)`` as ``folder/stem+suffix`` (or ``stem-2``, ``-3``...).
+
+    Never replaces a file (another save in the same second, another window or bench writing
+    to the folder, the preview's PSF): the file is written whole under a temporary name, then
+    given the first name that no file has, by an operation that refuses an existing name.
+    Returns the path written.
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(prefix=f".{stem}.", suffix=f".tmp{suffix}", dir=folder)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        save(tmp)
+        n = 1
+        while True:
+            target = folder / (f"{stem}{suffix}" if n == 1 else f"{stem}-{n}{suffix}")
+            if _claim(tmp, target):
+                fsync_dir(folder)
+                return target
+            n += 1
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()

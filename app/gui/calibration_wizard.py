@@ -7,7 +7,7 @@ updates a progress bar, a stage line and the latest frame; Cancel takes effect a
 event (the workflow switches the source off and saves nothing). When a capture ends the
 quality report (formatted lines) and the PSF (auto-levelled: the darks shown during the
 capture set no levels) are shown, and Save writes the calibration file (atomically, through
-:mod:`recon.calibfile`) under a name no file has (:func:`save_as_new`: nothing is ever
+:mod:`recon.calibfile`) under a name no file has (:func:`recon.atomic.write_new`: nothing is ever
 replaced). On Finish the saved PSF can become the live preview's PSF.
 
 The shutter function takes the CLI's path (:func:`calibration.calibrate_shutter`): the same
@@ -23,12 +23,9 @@ the point source alone, as at the bench with the object removed) and restored af
 
 from __future__ import annotations
 
-import contextlib
-import errno
 import os
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -60,7 +57,7 @@ from app.gui.widgets import ComboBox, DoubleSpinBox, SpinBox
 if TYPE_CHECKING:
     from app.gui.main_window import MainWindow
 
-__all__ = ["CalibrationWizard", "output_folder_problem", "save_as_new"]
+__all__ = ["CalibrationWizard", "output_folder_problem"]
 
 #: the smallest source intensity the wizard captures with (at 0 a PSF capture can only fail)
 MIN_INTENSITY = 0.01
@@ -76,60 +73,6 @@ def _one_line(exc: BaseException) -> str:
         where = exc.filename if exc.filename is not None else ""
         return f"{where}: {exc.strerror}" if where else str(exc.strerror)
     return " ".join(str(exc).split()) or type(exc).__name__
-
-
-def _claim(tmp: Path, target: Path) -> bool:
-    """Give the finished file ``tmp`` the name ``target`` unless a file has it (then False).
-
-    A hard link refuses an existing name atomically. Where the file system has no hard links,
-    the name is reserved by an exclusive create and the file moved onto that placeholder
-    (which is ours: nothing of anyone else's is replaced).
-    """
-    try:
-        os.link(tmp, target)
-    except FileExistsError:
-        return False
-    except OSError as exc:
-        if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK,
-                             errno.ENOSYS):
-            raise
-        try:
-            fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        except FileExistsError:
-            return False
-        os.close(fd)
-        os.replace(tmp, target)
-        return True
-    tmp.unlink()
-    return True
-
-
-def save_as_new(save: Callable[[Path], Any], folder: Path, stem: str, suffix: str) -> Path:
-    """Write a file with ``save(path)`` as ``folder/stem+suffix`` (or ``stem-2``, ``-3``...).
-
-    Never replaces a file (another save in the same second, another window or bench writing
-    to the folder, the preview's PSF): the file is written whole under a temporary name, then
-    given the first name that no file has, by an operation that refuses an existing name.
-    Returns the path written.
-    """
-    folder.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{stem}.", suffix=f".tmp{suffix}", dir=folder)
-    os.close(fd)
-    tmp = Path(name)
-    try:
-        save(tmp)
-        n = 1
-        while True:
-            target = folder / (f"{stem}{suffix}" if n == 1 else f"{stem}-{n}{suffix}")
-            if _claim(tmp, target):
-                from recon.atomic import fsync_dir
-
-                fsync_dir(folder)
-                return target
-            n += 1
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
 
 
 def output_folder_problem(text: str, *, probe: bool = False) -> str | None:
@@ -437,8 +380,9 @@ class _RunPage(QWizardPage):
         try:
             if problem is not None:
                 raise ValueError(problem)
-            path = save_as_new(self.result.save, folder, f"{self.prefix}-{_stamp()}",
-                               self.suffix)
+            from recon.atomic import write_new
+
+            path = write_new(self.result.save, folder, f"{self.prefix}-{_stamp()}", self.suffix)
         except Exception as exc:  # shown in the wizard (disk full, permissions...), never a crash
             self.box.saved.setText(f"not saved: {_one_line(exc)}")
             return None

@@ -116,10 +116,10 @@ def test_saves_never_replace_a_file(bench_window: Any, qtbot: Any, tmp_path: Pat
                                                                             saved)])
 
 
-def test_save_as_new_claims_a_free_name_with_or_without_hard_links(
+def test_write_new_claims_a_free_name_with_or_without_hard_links(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The preview's PSF (or any file) under the chosen name is never the one written."""
-    from app.gui.calibration_wizard import save_as_new
+    from recon.atomic import write_new
 
     def save(path: Path) -> Path:
         path.write_bytes(b"new")
@@ -127,13 +127,13 @@ def test_save_as_new_claims_a_free_name_with_or_without_hard_links(
 
     preview_psf = tmp_path / "psf-1.tif"
     preview_psf.write_bytes(b"the preview's PSF")
-    assert save_as_new(save, tmp_path, "psf-1", ".tif") == tmp_path / "psf-1-2.tif"
+    assert write_new(save, tmp_path, "psf-1", ".tif") == tmp_path / "psf-1-2.tif"
 
     def no_links(src: Any, dst: Any) -> None:
         raise OSError(errno.EPERM, "Operation not permitted")
 
     monkeypatch.setattr(os, "link", no_links)  # a file system without hard links
-    assert save_as_new(save, tmp_path, "psf-1", ".tif") == tmp_path / "psf-1-3.tif"
+    assert write_new(save, tmp_path, "psf-1", ".tif") == tmp_path / "psf-1-3.tif"
     assert preview_psf.read_bytes() == b"the preview's PSF"
     assert (tmp_path / "psf-1-2.tif").read_bytes() == (tmp_path / "psf-1-3.tif").read_bytes()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["psf-1-2.tif", "psf-1-3.tif",
