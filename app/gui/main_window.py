@@ -357,7 +357,7 @@ class MainWindow(QMainWindow):
         self.device_panel.set_ports([SIM_PORT_CHOICE], self.settings.light_port)
         self._restore_geometry()
         if self.settings.psf_path:
-            self._load_psf(self.settings.psf_path, quiet=True)
+            self._load_psf(self.settings.psf_path, at_start=True)
         if autoconnect:
             self.connect_camera(self.settings.camera or SIM_CAMERA)
             if self.settings.connect_light and self.settings.light_port:
@@ -1073,8 +1073,15 @@ class MainWindow(QMainWindow):
         if path:
             self._load_psf(path)
 
-    def _load_psf(self, path: str, *, quiet: bool = False) -> bool:
-        """Use the PSF in ``path`` for the preview (a calibration file or an image)."""
+    def _load_psf(self, path: str, *, at_start: bool = False) -> bool:
+        """Use the PSF in ``path`` for the preview (a calibration file or an image).
+
+        A PSF that cannot serve the running camera's frames (another sensor size) is refused
+        and the preview keeps its PSF: it replaced it and was remembered, so every frame failed,
+        after a restart too. ``at_start``: the last session's PSF; when it cannot be loaded the
+        banner says so and the preview takes the bench's default (it showed "PSF: none").
+        """
+        from app.gui.preview_engine import psf_sensor_problem
         from recon.inputwarnings import collect_input_warnings
 
         try:
@@ -1085,21 +1092,34 @@ class MainWindow(QMainWindow):
             planes = psf.shape[0] if psf.ndim == 3 and psf.shape[0] > 1 else 0
             if planes:
                 raise ValueError(_stack_message(planes))
+            frame = self.last_frame
+            sensor = getattr(frame, "sensor", None) if frame is not None else None
+            if sensor is not None:
+                roi = frame.roi
+                problem = psf_sensor_problem(psf.shape, sensor=sensor, binning=frame.binning,
+                                             roi=(roi.x, roi.y, roi.width, roi.height))
+                if problem is not None:
+                    raise ValueError(f"{problem} (not loaded: the preview keeps its PSF)")
             self.engine.set_psf(psf)
         except Exception as exc:
             planes = _psf_stack_planes(path) if isinstance(exc, ValueError) else 0
             text = _stack_message(planes) if planes else _describe(exc)
-            if not quiet:
-                self.show_error(f"PSF {path}: {text}")
             _log.warning("PSF %s: %s", path, exc)
+            if at_start:  # not the bench's default kept silently behind a remembered path
+                self.settings.psf_path = ""
+                self.show_error(f"PSF {path} of the last session: {text}; not used (Load "
+                                "PSF… to choose one)", "psf")
+            else:
+                self.show_error(f"PSF {path}: {text}", "psf")
             return False
+        self.clear_error("psf")  # an earlier load's refusal is not this PSF's
         self.settings.psf_path = str(path)
         self.psf_source = f"{Path(path).name} ({psf.shape[-2]}x{psf.shape[-1]})"
         self._show_psf_label()
         for d in doubts:
             _log.warning("PSF %s: %s", path, d)
-        if doubts and not quiet:  # loaded, but the user should know (it went to stderr only)
-            self.show_error(f"PSF {Path(path).name} loaded, but: {'; '.join(doubts)}")
+        if doubts:  # loaded, but the user should know (it went to stderr only)
+            self.show_error(f"PSF {Path(path).name} loaded, but: {'; '.join(doubts)}", "psf")
         return True
 
     def use_psf(self, psf: Any, source: str, path: str = "") -> None:

@@ -66,6 +66,7 @@ __all__ = [
     "clamp_setting",
     "frame_dark_level",
     "frame_keywords",
+    "psf_sensor_problem",
     "run_one",
     "saturation_verdict",
 ]
@@ -140,6 +141,26 @@ def saturation_verdict(saturated: int, n_pixels: int) -> tuple[str | None, str]:
         return (f"frame saturated ({100.0 * saturated / n_pixels:.0f} % of the pixels at full "
                 "scale): not reconstructed – lower the exposure, gain or source intensity", "")
     return None, (f"warning: {saturated} saturated pixel(s) in the frame" if saturated else "")
+
+def psf_sensor_problem(psf_shape: tuple[int, ...], *, sensor: tuple[int, int],
+                       roi: tuple[int, int, int, int] | None = None, binning: int = 1
+                       ) -> str | None:
+    """Why a PSF of ``psf_shape`` (rows, columns, unbinned) cannot serve frames of ``sensor``.
+
+    The PSF must be the sensor's, or the frame's region's (a PSF calibrated at the ROI); at
+    ``binning`` both are box-downsampled. None when it fits. The one rule of the preview's
+    frames and of loading a PSF while a camera runs.
+    """
+    b = int(binning)
+    ph, pw = int(psf_shape[-2]) // b, int(psf_shape[-1]) // b
+    sh, sw = (int(v) for v in sensor)
+    region = (ph, pw) if roi is None else (int(roi[3]) // b, int(roi[2]) // b)
+    if (ph, pw) in ((sh // b, sw // b), region):
+        return None
+    return (f"the PSF is {psf_shape[-2]}x{psf_shape[-1]} but this camera's sensor is {sh}x{sw} "
+            f"and the frame's region {region[0] * b}x{region[1] * b} (binning {b}): it "
+            "belongs to another camera; calibrate a PSF for this one")
+
 
 def frame_dark_level(pixels: npt.ArrayLike, dark: float | None,
                      black_level: float | None = None) -> float:
@@ -570,15 +591,10 @@ class PreviewEngine:
         sensor_psf = self._psf_at_binning(binning)
         ph, pw = sensor_psf.shape
         if sensor is not None:
-            # the PSF must be this sensor's, or this region's (a PSF calibrated at the ROI)
-            sh, sw = (int(v) for v in sensor)
-            region = (ph, pw) if roi is None else (roi[3] // binning, roi[2] // binning)
-            if (ph, pw) not in ((sh // binning, sw // binning), region):
-                psf_h, psf_w = self._psf.shape
-                raise PreviewError(
-                    f"the PSF is {psf_h}x{psf_w} but this camera's sensor is {sh}x{sw} and the "
-                    f"frame's region {region[0] * binning}x{region[1] * binning} (binning "
-                    f"{binning}): it belongs to another camera; calibrate a PSF for this one")
+            problem = psf_sensor_problem(self._psf.shape, sensor=sensor, roi=roi,
+                                         binning=binning)
+            if problem is not None:
+                raise PreviewError(problem)
         # roi is (x, y, width, height); the PSF (rows, columns)
         full_roi = roi is None or (roi[3] // binning, roi[2] // binning) == (ph, pw)
         row0 = 0

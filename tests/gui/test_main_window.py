@@ -560,3 +560,34 @@ def test_the_preview_is_held_while_the_trade_measures(live_window: Any, qtbot: A
     assert w.previews_shown == n and w.frames_shown > frames
     assert "paused" not in w.preview_panel.message.text()
     qtbot.waitUntil(lambda: w.previews_shown > n + 2, timeout=20_000)  # back afterwards
+
+
+def test_a_psf_of_another_sensor_is_refused_and_the_last_sessions_is_said(
+        live_window: Any, make_window: Any, qtbot: Any, tmp_path: Path) -> None:
+    """A PSF of another sensor size replaced the working one and was remembered: every frame
+    failed, after a restart too; an earlier refusal stayed in the banner after a good load;
+    a remembered PSF that no longer loads left the preview on "PSF: none" without a word."""
+    import numpy as np
+
+    from app.gui.settings import AppSettings
+
+    w = live_window
+    good = w.bench.sim_psf
+    before = w.engine.psf.copy()
+    np.save(tmp_path / "other.npy", np.ones((64, 80), np.float32))
+    assert not w._load_psf(str(tmp_path / "other.npy"))
+    text = w.banner.text()
+    assert "belongs to another camera" in text and "not loaded" in text, text
+    np.testing.assert_array_equal(w.engine.psf, before)  # the preview keeps its PSF
+    assert w.settings.psf_path != str(tmp_path / "other.npy")
+    np.save(tmp_path / "good.npy", good)
+    assert w._load_psf(str(tmp_path / "good.npy"))
+    assert not w.banner.isVisible()  # the refusal was of the other file
+    # the last session's PSF is gone: said, and the bench's PSF is used
+    w2 = make_window(AppSettings(frame_rate_hz=10.0, connect_light=False,
+                                 psf_path=str(tmp_path / "moved-away.npy")))
+    assert "moved-away.npy of the last session" in w2.banner.text()
+    assert w2.settings.psf_path == ""
+    qtbot.waitUntil(lambda: w2.camera_state == "live", timeout=20_000)
+    qtbot.waitUntil(lambda: w2.engine.has_psf, timeout=10_000)
+    assert "simulated bench" in w2.psf_source
