@@ -793,7 +793,9 @@ class MainWindow(QMainWindow):
             self._show_frame(frame)
 
     def _show_frame(self, frame: Any) -> None:
-        self.last_frame = frame
+        prev, self.last_frame = self.last_frame, frame
+        if prev is None or (prev.camera_id, prev.shape) != (frame.camera_id, frame.shape):
+            self.trade_panel.notice_source()  # a trade measured on the other no longer holds
         self.raw_panel.set_image(frame.pixels)
         now = time.time()
         self._latency_ms.append((now - frame.timestamp) * 1000.0)

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtCore import QObject, QThread, QTimer, Signal
+from PySide6.QtCore import QObject, QThread, Signal
 from PySide6.QtWidgets import (
     QFileDialog,
     QHBoxLayout,
@@ -223,11 +223,6 @@ class TradePanel(QWidget):
         self.budget.valueChanged.connect(self._suggest)
         self.apply_button.clicked.connect(self.apply_suggestion)
         self._suggested: TradeRow | None = None
-        # a measured trade holds for its camera and frame size: a switch (seen here, the
-        # window does not tell the panel) takes Apply away within a second
-        self._source_timer = QTimer(self)
-        self._source_timer.setInterval(1000)
-        self._source_timer.timeout.connect(self._check_source)
 
     # -- data ----------------------------------------------------------------------------------
 
@@ -263,7 +258,6 @@ class TradePanel(QWidget):
             self.stop()
         self._case, self._measured_on, self._measured_meta = None, None, {}
         self._warning = self._failure = ""  # the measurement's, not the file's
-        self._source_timer.stop()
         self.progress.setText("")
         self._show(rows)
 
@@ -430,7 +424,6 @@ class TradePanel(QWidget):
         self._thread.start()
         self.measuring.emit(True)
         self._update_buttons()
-        self._source_timer.start()
 
     def _add_row(self, run_id: int, row: TradeRow) -> None:
         if run_id != self._run_id or not self.running:  # a stopped measurement's late row
@@ -548,11 +541,14 @@ class TradePanel(QWidget):
         return (f"measured on {_describe(self._measured_on)}; the camera is now "
                 f"{_describe(now)}: measure again")
 
-    def _check_source(self) -> None:
-        if self._measured_on is None:
-            self._source_timer.stop()
-            return
-        if not self.running and self.apply_button.isEnabled() and self._stale():
+    def notice_source(self) -> None:
+        """The camera or its frame size changed: the window says so at its first frame.
+
+        A measured trade holds for its camera and frame size only, so Apply goes at once (the
+        panel looked for a change once a second).
+        """
+        if (self._measured_on is not None and not self.running
+                and self.apply_button.isEnabled() and self._stale()):
             self._suggest()
 
     def _suggest(self) -> None:

@@ -334,6 +334,33 @@ def test_rows_of_another_camera_are_not_applied(panel_for: Any, qtbot: Any) -> N
     assert "not applied" in panel.suggestion.text()
 
 
+def test_the_window_tells_the_panel_of_another_camera_at_its_first_frame(
+        live_window: Any, qtbot: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The panel found a camera switch by looking once a second: Apply stayed on that long."""
+    from dataclasses import replace
+
+    w = live_window
+    told: list[int] = []
+    monkeypatch.setattr(w.trade_panel, "notice_source", lambda: told.append(1))
+    frame = w.last_frame
+    w._show_frame(replace(frame, frame_id=frame.frame_id + 1))  # the same camera and size
+    assert told == []
+    w._show_frame(replace(frame, camera_id="another camera"))
+    assert told == [1]
+
+
+def test_notice_source_takes_apply_away_at_once(panel_for: Any, qtbot: Any) -> None:
+    from app.gui.jobs_panel import Measurement
+
+    panel, fake, _applied, state = panel_for(_frame(_scene(), camera="A"))
+    panel.measure_current()
+    _finish(panel, fake, qtbot)
+    assert panel.apply_button.isEnabled()
+    state["m"] = Measurement(_frame(_scene(24, 30), camera="B"), _psf(24, 30))
+    panel.notice_source()
+    assert not panel.apply_button.isEnabled() and "measure again" in panel.suggestion.text()
+
+
 def test_a_failed_measurement_says_so_and_its_notes_do_not_follow_a_loaded_file(
         panel_for: Any, qtbot: Any, tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     """(diff review) A failure after one setting showed "measured 1 of 3 settings" and saved
