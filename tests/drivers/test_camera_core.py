@@ -116,6 +116,11 @@ def test_streamer_overflow_and_validation() -> None:
 
     s = FrameStreamer(grab, mode=StreamMode.ACQUISITION, device="d", queue_size=2)
     s.start()
+    # the grab thread needs a third frame to overflow: on a loaded machine a stop at once
+    # could come first (the test then failed with no overflow)
+    deadline = time.monotonic() + 10.0
+    while s.stats().error is None and time.monotonic() < deadline:
+        time.sleep(0.005)
     s.stop()
     with pytest.raises(AcquisitionOverflow, match="queue of 2 frames overflowed"):
         s.pop(1.0)
