@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["data_dir", "default_demo_dir", "default_snaps_dir"]
+__all__ = ["data_dir", "default_demo_dir", "default_jobs_dir", "default_snaps_dir"]
 
 
 def data_dir() -> Path:
@@ -30,3 +30,15 @@ def default_demo_dir() -> Path:
 def default_snaps_dir() -> Path:
     """Snapshots go here unless the user chose a folder."""
     return data_dir() / "snaps"
+
+
+def default_jobs_dir() -> Path:
+    """Where UDN jobs go unless the user chose another folder.
+
+    ``$LENSLESSCAM_JOBS_DIR``, else the data folder's ``jobs`` (it ignored
+    ``$LENSLESSCAM_DATA_DIR``, which moved the demo and the snapshots but not the jobs).
+    """
+    env = os.environ.get("LENSLESSCAM_JOBS_DIR")
+    if env:
+        return Path(env).expanduser()
+    return data_dir() / "jobs"

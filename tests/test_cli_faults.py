@@ -386,9 +386,22 @@ def test_demo_writes_under_the_data_folder_and_says_so(tmp_path, monkeypatch, ca
     code, _, err = _run(capsys, "demo", "--iters", "2")  # a second run keeps the first
     assert code == 2 and "exists: pass --overwrite" in err
 
-    from app.locations import default_snaps_dir
+    from app.locations import default_jobs_dir, default_snaps_dir
 
     assert default_snaps_dir() == tmp_path / "data" / "lenslesscam" / "snaps"
+    # one data folder: LENSLESSCAM_DATA_DIR moved the demo and the snapshots, not the jobs
+    monkeypatch.delenv("LENSLESSCAM_JOBS_DIR", raising=False)
+    assert default_jobs_dir() == tmp_path / "data" / "lenslesscam" / "jobs"
+    monkeypatch.setenv("LENSLESSCAM_DATA_DIR", str(tmp_path / "mine"))
+    assert default_jobs_dir() == tmp_path / "mine" / "jobs"
+    assert default_snaps_dir() == tmp_path / "mine" / "snaps"
+    monkeypatch.setenv("LENSLESSCAM_JOBS_DIR", str(tmp_path / "jobs-here"))
+    assert default_jobs_dir() == tmp_path / "jobs-here"
+    from recon.plan.cost import cache_path
+
+    monkeypatch.delenv("LENSLESSCAM_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    assert cache_path() == tmp_path / "cache" / "lenslesscam" / "plan_costs.json"
 
 
 # ------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from app.locations import default_jobs_dir
 from recon.formats import whole_version
 
 __all__ = [
@@ -48,15 +49,6 @@ def config_dir() -> Path:
 def settings_path() -> Path:
     """Path of the settings file."""
     return config_dir() / "app-settings.json"
-
-
-def default_jobs_dir() -> Path:
-    """Where UDN jobs go unless the user chose another folder."""
-    env = os.environ.get("LENSLESSCAM_JOBS_DIR")
-    if env:
-        return Path(env)
-    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
-    return Path(base) / "lenslesscam" / "jobs"
 
 
 @dataclass

@@ -5,7 +5,8 @@ planned forward model it times a few FISTA-TV iterations on a random measurement
 warm-up steps, median of the rest) and caches the seconds per iteration in a JSON file keyed by
 everything that changes it (model kind and sizes, FFT grid, dtype, device, torch threads, torch
 version, host). The cache lives in ``$LENSLESSCAM_CACHE_DIR`` (default
-``~/.cache/lenslesscam``), file ``plan_costs.json``; entries older than a week are re-measured.
+``$XDG_CACHE_HOME/lenslesscam``, ``~/.cache/lenslesscam``), file ``plan_costs.json``; entries
+older than a week are re-measured.
 
 :func:`method_for_budget` turns a budget into a method and an iteration count:
 
@@ -68,7 +69,8 @@ _MAX_AGE_S = 7 * 24 * 3600.0
 def cache_path() -> Path:
     """The cost cache file (``$LENSLESSCAM_CACHE_DIR/plan_costs.json``)."""
     root = os.environ.get("LENSLESSCAM_CACHE_DIR")
-    base = Path(root) if root else Path.home() / ".cache" / "lenslesscam"
+    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    base = Path(root).expanduser() if root else Path(xdg) / "lenslesscam"
     return base / "plan_costs.json"
 
 
