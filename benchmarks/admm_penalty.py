@@ -26,7 +26,20 @@ import time
 from typing import Any
 
 from app.commands._options import FRACTION, POSITIVE_INT, add_overwrite_option
-from benchmarks._cli import append_jsonl, check_outputs, print_and_write, read_jsonl
+from benchmarks._cli import (
+    append_jsonl,
+    bench_threads,
+    check_outputs,
+    machine_text,
+    print_and_write,
+    read_records,
+    tagged,
+)
+
+#: version of the records of ``--results`` (format ``lenslesscam.bench.admm-penalty``)
+RESULTS_VERSION = 1
+#: the keys every record of ``--results`` has
+REQUIRED = ("case", "erasure", "tau", "penalty", "reference", "fista", "admm_auto", "admm_fixed")
 
 #: iterations at which each run is scored
 MARKS = (100, 200, 500)
@@ -40,9 +53,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="real DiffuserCam pairs and/or the simulation protocol (both)")
     p.add_argument("--erasures", nargs="+", type=FRACTION, default=[0.0, 0.5, 0.9, 0.95, 0.99],
                    help="erasure levels (0 0.5 0.9 0.95 0.99)")
-    p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
+    p.add_argument("--threads", type=POSITIVE_INT, default=None,
+                   help="torch threads (default: the global --threads, else the thread "
+                   "policy, recon.threads)")
     p.add_argument("--data", default=None, help="the dlmd folder (default: the shared one)")
-    p.add_argument("--results", default=None, help="also append each case as JSON lines here")
+    p.add_argument("--results", default=None,
+                   help="also append each case as JSON lines here; the cases it already holds "
+                   "(same settings) are not run again")
     p.add_argument("--out", default=None, help="write the Markdown table here")
     p.add_argument("--table-only", action="store_true",
                    help="run nothing: make the table from the cases in --results")
@@ -122,7 +139,7 @@ def table(rows: list[dict[str, Any]]) -> str:
         f"{name}, {m} it: gap / PSNR" for name in ("FISTA-TV", "ADMM auto", "ADMM fixed 1")
         for m in MARKS[1:]]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
-    rows = [rereference(r) for r in rows]
+    rows = [rereference(r) for r in {r["case"]: r for r in rows}.values()]  # a case once
     for r in rows:
         cells = [cell(r, key, i) for key in RUNS
                  for i in range(1, len(MARKS))]
@@ -147,37 +164,52 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run the cases and print the table."""
-    from benchmarks.tau_rules import _cases
-    from recon.threads import apply_threads
+    from benchmarks.tau_rules import _cases, labels, resumed
 
     if args.table_only:
         if not args.results:
-            raise SystemExit("--table-only needs --results (the cases to tabulate)")
+            raise ValueError("--table-only needs --results (the cases to tabulate)")
+        if args.threads is not None:
+            raise ValueError("--table-only makes the table of the cases in --results as they "
+                             "ran: --threads cannot apply to them")
         check_outputs(args, {"--out": args.out}, inputs={"--results": args.results})
-        rows = read_jsonl(args.results, "--results")
+        wanted = set(labels(args))  # --cases and --erasures choose the cases of the table
+        rows = [r for r in read_records(args.results, "--results", "admm-penalty",
+                                        RESULTS_VERSION, REQUIRED) if r["case"] in wanted]
+        if not rows:
+            print(f"lenslesscam bench: error: no results in {args.results} for these --cases "
+                  "and --erasures", file=sys.stderr)
+            return 1
         text = (f"ADMM-TV's penalty scale, automatic (recon.admm.penalty_scale) against the "
                 f"former fixed 1; the cases of {args.results}\n\n" + table(rows))
         print_and_write(text, args.out)
         return 0
     check_outputs(args, {"--out": args.out}, appended={"--results": args.results},
                   inputs={"--data": args.data})
-    choice = apply_threads(args.threads)
-    rows = []
+    choice = bench_threads(args)
+    settings = {"reference_iters": REFERENCE_ITERS, "marks": list(MARKS),
+                "threads": choice.threads}
+    wanted = labels(args)
+    done = {k: v for k, v in resumed(args, "admm-penalty", REQUIRED, settings,
+                                          RESULTS_VERSION).items()
+            if k in wanted}
     t0 = time.perf_counter()
-    for label, model, b, truth in _cases(args):
+    for label, model, b, truth in _cases(args, skip=set(done)):
         erasure = float(label.split("%")[0].split()[-1]) / 100
-        row = {"case": label, "erasure": erasure, **run_case(model, b, truth)}
-        rows.append(row)
+        row = {"case": label, "erasure": erasure, **run_case(model, b, truth),
+               "settings": settings}
+        done[label] = row
         print(f"{label}: tau {row['tau']:.2g}, penalty {row['penalty']:.3g}; PSNR at "
               f"{MARKS[-1]}: FISTA {row['fista']['psnr'][-1]:.2f}, ADMM auto "
               f"{row['admm_auto']['psnr'][-1]:.2f}, fixed {row['admm_fixed']['psnr'][-1]:.2f} dB",
               file=sys.stderr, flush=True)
-        append_jsonl(args.results, row)
+        append_jsonl(args.results, tagged("admm-penalty", RESULTS_VERSION, row))
+    rows = [done[k] for k in wanted if k in done]
     text = (f"ADMM-TV's penalty scale, automatic (recon.admm.penalty_scale) against the former "
             f"fixed 1; tau from the automatic search; the minimum from FISTA-TV at "
             f"{REFERENCE_ITERS} iterations or the lowest objective a run reached; "
-            f"{choice.reason}; "
-            f"{time.perf_counter() - t0:.0f} s\n\n" + table(rows))
+            f"{time.perf_counter() - t0:.0f} s ({len(rows)} cases). "
+            f"{machine_text(choice)}\n\n" + table(rows))
     print_and_write(text, args.out)
     return 0
 

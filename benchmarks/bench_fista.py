@@ -27,20 +27,24 @@ from contextlib import contextmanager
 from typing import Any
 
 from app.commands._options import POSITIVE_INT, add_overwrite_option, integer
-from benchmarks._cli import check_outputs
+from benchmarks._cli import bench_metadata, bench_threads, check_outputs, int_list
 
 #: Padded FFT sizes of the 2D cases (the sensor and the PSF are half of it).
 SIZES = (256, 512, 1024, 2048)
 METHODS = ("fista", "admm")
 
 
-def _sizes(text: str) -> list[int]:
-    """``--sizes``: comma-separated padded FFT sizes, each at least 16."""
-    parse = integer(16)
-    sizes = [parse(s.strip()) for s in text.split(",") if s.strip()]
-    if not sizes:
-        raise argparse.ArgumentTypeError(f"must list at least one size, got {text!r}")
-    return sizes
+def _even(text: str) -> int:
+    """One padded FFT size: even (the sensor and the PSF are half of it), at least 16."""
+    n = integer(16)(text)
+    if n % 2:
+        raise argparse.ArgumentTypeError(f"must be even, got {n}")
+    return n
+
+
+_even.range_text = "an even integer >= 16"  # type: ignore[attr-defined]
+#: ``--sizes``: comma-separated padded FFT sizes, each even and at least 16, each once
+_sizes = int_list(_even)
 
 
 def _methods(text: str) -> list[str]:
@@ -308,19 +312,35 @@ def threads_check(chosen: int, rounds: int) -> dict[str, Any]:
             **ratio_stats(times[str(chosen)], times["1"])}
 
 
+def check_memory(sizes: list[int], methods: list[str]) -> None:
+    """Refuse, before any allocation, a size whose case would not fit in memory (one line,
+    :class:`recon.memory.ProblemTooLarge`), as the reconstruction commands do; and say the
+    padded FFT grid of a size the solver pads to another (fast) size."""
+    import warnings
+
+    from recon.memory import check_fits, estimate_solver_memory
+
+    for size in sizes:
+        n = size // 2
+        for method in methods:
+            est = estimate_solver_memory((n, n), method=method)
+            check_fits(est)
+        if tuple(est.pad) != (size, size):
+            warnings.warn(f"--sizes {size}: a {n}x{n} sensor and PSF are padded to "
+                          f"{est.pad[0]}x{est.pad[1]} (the pad column)", stacklevel=2)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the cases and print the table."""
-    from recon.threads import apply_threads
 
     baseline = getattr(args, "admm_baseline", None)
     check_outputs(args, {"--json": args.json}, inputs={"--admm-baseline": baseline})
     if baseline is not None:
         _load_admm(baseline)  # a bad file stops here, before any timing
-    choice = getattr(args, "thread_choice", None)  # set by the global --threads
-    if args.threads is not None or choice is None:
-        choice = apply_threads(args.threads)
     methods = args.methods
     sizes = args.sizes
+    check_memory(sizes, methods)  # before anything is built: a large size is one line
+    choice = bench_threads(args)
     clock_name = ("CPU time of the one torch thread" if work_clock() is time.thread_time
                   else "wall time")
     load0 = os.getloadavg()[0]
@@ -356,8 +376,9 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         from recon.atomic import atomic_write_json
 
-        atomic_write_json(args.json, {"format": "lenslesscam.bench_fista", "version": 2,
-                                      "threads": choice.threads, "threads_reason": choice.reason,
+        atomic_write_json(args.json, {**bench_metadata("fista", 3, choice),
+                                      "sizes": sizes, "methods": methods,
+                                      "prox_iters": args.prox_iters, "video": args.video,
                                       "load": [load0, load1], "rounds": args.rounds,
                                       "rows": rows, "threads_check": check})
     return 0

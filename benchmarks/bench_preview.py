@@ -37,7 +37,7 @@ from contextlib import contextmanager
 from typing import Any
 
 from app.commands._options import NONNEG, NONNEG_INT, POSITIVE, POSITIVE_INT, add_overwrite_option
-from benchmarks._cli import check_outputs, int_list
+from benchmarks._cli import bench_metadata, bench_threads, check_outputs, int_list
 
 TARGET_RATE = 15.0
 TARGET_LATENCY_MS = 150.0
@@ -202,10 +202,17 @@ def measure_saturated(frames: list[Any], psf: Any, settings: Any, seconds: float
     return {"saturated_per_s": n / wall, "saturated_ms_median": statistics.median(comp)}
 
 
+#: the busy process: spins a CPU while its parent lives (it ends itself when the parent dies,
+#: even by SIGKILL, where no clean-up of the parent runs)
+BUSY_CODE = "import os\nparent = {ppid}\nwhile os.getppid() == parent:\n    pass\n"
+
+
 @contextmanager
 def busy_processes(n: int) -> Iterator[list[int]]:
-    """``n`` processes spinning a CPU each (an artificial load), ended on exit (by their pid)."""
-    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+    """``n`` processes spinning a CPU each (an artificial load), ended on exit (by their pid)
+    and ending themselves if this process dies (:data:`BUSY_CODE`)."""
+    code = BUSY_CODE.format(ppid=os.getpid())
+    procs = [subprocess.Popen([sys.executable, "-c", code]) for _ in range(n)]
     try:
         yield [p.pid for p in procs]
     finally:
@@ -219,12 +226,8 @@ def run(args: argparse.Namespace) -> int:
     """Measure every setting and print the table."""
     from app.gui.devices import SimConfig, make_sim_camera
     from app.gui.preview_engine import PreviewSettings
-    from recon.threads import apply_threads
-
     check_outputs(args, {"--json": args.json})
-    choice = getattr(args, "thread_choice", None)  # set by the global --threads
-    if args.threads is not None or choice is None:
-        choice = apply_threads(args.threads)
+    choice = bench_threads(args)
     loads, configs = args.loads, args.configs
     psf = _psf256()
     cam = make_sim_camera(SimConfig(psf=psf, scene="im65", frame_rate_hz=args.fps))
@@ -284,9 +287,11 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         from recon.atomic import atomic_write_json
 
-        atomic_write_json(args.json, {"format": "lenslesscam.bench_preview", "version": 2,
-                                      "threads": choice.threads, "threads_reason": choice.reason,
-                                      "fps": args.fps, "target_fps": args.target_fps,
+        atomic_write_json(args.json, {**bench_metadata("preview", 3, choice),
+                                      "seconds": args.seconds, "warmup": args.warmup,
+                                      "tau": args.tau, "configs": args.configs,
+                                      "loads": args.loads, "fps": args.fps,
+                                      "target_fps": args.target_fps,
                                       "rows": rows})
     return 0 if ok else 1
 

@@ -30,8 +30,13 @@ from pathlib import Path
 from typing import Any
 
 from app.commands._options import NONNEG_INT, POSITIVE_INT, add_overwrite_option
-from benchmarks._cli import check_outputs
+from benchmarks._cli import bench_metadata, bench_threads, check_outputs
 from recon.udn import COMPILE_MODES
+
+#: the default run's time (``--help``; the bench review measured it, docs/udn.md: about 105 s
+#: to compile each of the 6 compiled rows)
+DURATION = ("long: more than 15 minutes on a 2-core CPU (12 processes, 6 of them compiling "
+            "for about 105 s each, docs/udn.md)")
 
 CASES: dict[str, dict[str, Any]] = {
     "2d-75x100": {"model": "2d", "shape": (75, 100), "k": 1, "variant": "2d"},
@@ -66,9 +71,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    choices=COMPILE_MODES,
                    help="torch.compile's mode for the compiled rows (default; reduce-overhead: "
                    "CUDA graphs)")
-    p.add_argument("--threads", type=NONNEG_INT, default=0,
-                   help="torch threads (0, the default: chosen by the thread policy, "
-                   "recon.threads, from the free cores and the load)")
+    p.add_argument("--threads", type=NONNEG_INT, default=None,
+                   help="torch threads (default or 0: the global --threads, else the thread "
+                   "policy, recon.threads, chosen once and used by every row's process)")
     p.add_argument("--grad-checkpoint", action="store_true", help="gradient checkpointing")
     p.add_argument("--profile", action="store_true",
                    help="on a GPU: run the timed iterations twice more and report per "
@@ -123,12 +128,11 @@ def run_one(name: str, precision: str, compiled: bool, args: argparse.Namespace)
     """Time one configuration in this process."""
     import torch
 
-    from recon.threads import apply_threads
     from recon.udn.memory import estimate_udn_memory
     from recon.udn.network import NetworkConfig
     from recon.udn.runner import UDNConfig, UDNRunner, resolve_device
 
-    apply_threads(args.threads)  # 0: the thread policy chooses
+    bench_threads(args)
     device = resolve_device(args.device)
     case = CASES[name]
     _load_kernels(precision, device)  # library code pages count in the baseline, not the run
@@ -350,11 +354,10 @@ def run_ratio(args: argparse.Namespace) -> int:
 
     import torch
 
-    from recon.threads import apply_threads
     from recon.udn.network import NetworkConfig
     from recon.udn.runner import UDNConfig, UDNRunner, resolve_device
 
-    choice = apply_threads(args.threads)
+    choice = bench_threads(args)
     device = resolve_device(args.device)
     if device.type != "cpu":
         print("--ratio times CPU steps (thread CPU time); use the matrix on a GPU",
@@ -420,6 +423,7 @@ def run_udn_benchmark(args: argparse.Namespace) -> int:
 
     from recon.udn.runner import describe_device, resolve_device
 
+    choice = bench_threads(args)  # one count for every row: passed to each row's process
     device = resolve_device(args.device)
     cases = list(args.cases) + (["video3d-128x128x16"] if args.with_3d else [])
     rows = []
@@ -438,7 +442,8 @@ def run_udn_benchmark(args: argparse.Namespace) -> int:
                     torch.cuda.empty_cache() if device.type == "cuda" else None
                 rows.append(row)
                 print(_line(row), file=sys.stderr)
-    threads = next((r["threads"] for r in rows if "threads" in r), torch.get_num_threads())
+    counts = sorted({r["threads"] for r in rows if "threads" in r}) or [choice.threads]
+    threads = counts[0] if len(counts) == 1 else "/".join(map(str, counts))
     dev_name = describe_device(device)
     print(f"\nUDN iteration time on {dev_name}, {threads} torch threads, "
           f"{args.scales} scales x {args.channels} channels, skip 4, "
@@ -457,7 +462,11 @@ def run_udn_benchmark(args: argparse.Namespace) -> int:
     if args.json:
         from recon.atomic import atomic_write_json
 
-        atomic_write_json(args.json, {"rows": rows, "threads": threads, "device": dev_name})
+        atomic_write_json(args.json, {**bench_metadata("udn", 1, choice), "rows": rows,
+                                      "device": dev_name,
+                                      "settings": {k: getattr(args, k) for k in (
+                                          "cases", "precision", "compile", "channels", "scales",
+                                          "iters", "warmup", "compile_mode", "grad_checkpoint")}})
     return 0
 
 

@@ -335,7 +335,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", type=hxw(32), default="96x128",
                    help="sensor HxW, both sides >= 32 (default 96x128)")
     p.add_argument("--iters", type=POSITIVE_INT, default=300, help="FISTA iteration limit (300)")
-    p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (default 1)")
+    p.add_argument("--threads", type=POSITIVE_INT, default=None,
+                   help="torch threads (default: the global --threads, else the thread "
+                   "policy, recon.threads)")
     p.add_argument("--seed", type=NONNEG_INT, default=0, help="camera noise and CV seed")
     p.add_argument("--cases", type=_case_list, default=",".join(CASES),
                    help=f"comma-separated cases (default all: {','.join(CASES)})")
@@ -371,11 +373,10 @@ def _table(rows: list[dict[str, Any]], markdown: bool) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run every case and print the table."""
-
-    from recon.threads import apply_threads
+    from benchmarks._cli import bench_metadata, bench_threads
 
     check_outputs(args, {"--json": args.json})
-    apply_threads(args.threads)
+    choice = bench_threads(args)
     h, w = args.size
     t0 = time.perf_counter()
     rows = run_all(h, w, args.iters, args.seed, tuple(args.cases))
@@ -384,10 +385,10 @@ def run(args: argparse.Namespace) -> int:
     print(_table(rows, args.markdown))
     if args.json:
         from recon.atomic import atomic_write_json
-        from recon.formats import provenance
 
-        atomic_write_json(args.json, {"rows": rows, "size": [h, w], "threads": args.threads,
-                                      "iters": args.iters, "provenance": provenance()})
+        atomic_write_json(args.json, {**bench_metadata("plan", 1, choice), "rows": rows,
+                                      "size": [h, w], "iters": args.iters, "seed": args.seed,
+                                      "cases": list(args.cases)})
     bad = [r["case"] for r in rows if not math.isfinite(r["psnr"])]
     if bad:
         print(json.dumps({"non_finite": bad}))

@@ -28,6 +28,9 @@ error against the truth is (by band of scale, and after removing a shading learn
 other pairs: :func:`error_analysis`), from the images each case keeps.
 
     lenslesscam bench real-pairs --downsample 4 --udn-iters 500 --out docs/real-pairs.md
+
+Each results record carries the format ``lenslesscam.bench.real-pairs`` (version
+:data:`RESULTS_VERSION`) and its provenance; a file of another benchmark is refused.
 """
 
 from __future__ import annotations
@@ -36,7 +39,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import sys
 import time
 from collections import deque
@@ -52,7 +54,22 @@ from app.commands._options import (
     POSITIVE_INT,
     add_overwrite_option,
 )
-from benchmarks._cli import check_outputs, read_jsonl
+from benchmarks._cli import (
+    append_jsonl,
+    bench_threads,
+    check_outputs,
+    command_line,
+    machine_text,
+    read_records,
+    tagged,
+)
+
+#: version of the records of ``--results`` (format ``lenslesscam.bench.real-pairs``)
+RESULTS_VERSION = 1
+#: the default run's time (``--help``; docs/udn.md: 2.5-3.5 minutes of UDN per case at 1/4
+#: resolution, 1 thread; 1 h 19 min for the 20 cases)
+DURATION = ("long: hours on a 2-core CPU (20 cases, docs/udn.md: 2.5-3.5 minutes of UDN per "
+            "case on 1 thread)")
 
 PAIRS = ("im65", "im408", "im740", "im1000")
 ERASURES = (0.0, 0.5, 0.9, 0.95, 0.99)
@@ -80,10 +97,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options."""
     p.add_argument("--downsample", type=int, choices=[1, 2, 4], default=4,
                    help="4: 67x120, 2: 135x240, 1: the dataset's 270x480 (4)")
-    p.add_argument("--pairs", nargs="+", default=list(PAIRS), choices=list(PAIRS),
-                   help="which dlmd pairs to run (default all)")
-    p.add_argument("--erasures", nargs="+", type=FRACTION, default=list(ERASURES),
-                   help="erasure fractions to test")
+    p.add_argument("--pairs", nargs="+", default=None, choices=list(PAIRS),
+                   help="which dlmd pairs to run (default all; with --table-only: the cases "
+                   "of the table)")
+    p.add_argument("--erasures", nargs="+", type=FRACTION, default=None,
+                   help="erasure fractions to test (default 0 0.5 0.9 0.95 0.99; with "
+                   "--table-only: the cases of the table)")
     p.add_argument("--fista-iters", type=POSITIVE_INT, default=max(FISTA_CHECKPOINTS),
                    help="FISTA iteration limit")
     # UDN settings: None = the default of recon.udn (NetworkConfig / UDNConfig), filled in
@@ -117,7 +136,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "automatic-tau FISTA-TV result of the fitted pixels as the first channels of "
                    "its input (none)")
     p.add_argument("--no-udn", action="store_true", help="FISTA and ADMM only")
-    p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
+    p.add_argument("--threads", type=POSITIVE_INT, default=None,
+                   help="torch threads (default: the global --threads, else the thread "
+                   "policy, recon.threads); a results file holds one count")
     p.add_argument("--device", default="cpu",
                    help="where FISTA, ADMM and the UDN run: cpu, cuda, cuda:N, mps or auto "
                    "(cpu; the scores are computed on the CPU either way)")
@@ -172,7 +193,9 @@ def data_dir(path: str | None = None) -> Path:
 
     base = shared_data_dir()
     if base is None:
-        raise SystemExit("no shared data folder (../shared/data) found: pass --data")
+        raise FileNotFoundError("no shared data folder found (LENSLESSCAM_SHARED_DATA, "
+                                "shared/data or ../shared/data): set LENSLESSCAM_SHARED_DATA "
+                                "or pass --data")
     return base / "dlmd"
 
 
@@ -750,13 +773,24 @@ METHODS = (("fista_auto", "FISTA-TV auto tau"), ("fista_oracle", "FISTA-TV oracl
                                    "the truth (bound)"))
 
 
+#: the keys every case has (and, in each method's record, ``psnr``; in FISTA's, ``tau``)
+REQUIRED = ("pair", "erasure", "fista_auto", "fista_oracle")
+
+
 def read_results(path: str) -> list[dict[str, Any]]:
-    """The rows of a results file; a later row of the same case replaces an earlier one."""
+    """The rows of a results file; a later row of the same case replaces an earlier one.
+
+    A file of another benchmark, or a record without what the tables read, is a ValueError in
+    one line naming the file and what is missing (:func:`benchmarks._cli.read_records`).
+    """
     rows: dict[tuple[str, float], dict[str, Any]] = {}
-    for r in read_jsonl(path, "--results"):
-        if "pair" not in r or "erasure" not in r:
-            raise ValueError(f"--results {path} is not a results file of bench real-pairs (a "
-                             "line without pair and erasure): choose another file")
+    for r in read_records(path, "--results", "real-pairs", RESULTS_VERSION, REQUIRED):
+        case = f"{r['pair']} at {r['erasure']}"
+        for k, _label in METHODS:
+            need = ("psnr", "tau") if k.startswith("fista") else ("psnr",)
+            if k in r and not (isinstance(r[k], dict) and all(n in r[k] for n in need)):
+                raise ValueError(f"--results {path}: the case {case} has no "
+                                 f"{' and '.join(need)} for {k}: choose another file")
         if "udn_oracle_stop" not in r and r.get("udn_curve"):  # rows of older runs
             r["udn_oracle_stop"] = _oracle_stop(r["udn_curve"])
         rows[(r["pair"], r["erasure"])] = r
@@ -1157,6 +1191,45 @@ def _settings(args: argparse.Namespace) -> dict[str, Any]:
     return {k: getattr(args, k) for k in (*SETTING_KEYS, "threads", "device")}
 
 
+#: ``--results`` settings key -> option, for the one command that runs a file's cases
+SETTING_OPTIONS = {k: "--" + k.replace("_", "-") for k in (*SETTING_KEYS, "threads", "device")}
+SETTING_OPTIONS["skip"] = "--skip"
+
+
+def one_go(rows: list[dict[str, Any]], out: str | None, figure: str | None) -> str:
+    """The one command that runs every case of ``rows`` (from their stored settings), or a
+    sentence saying why there is none (cases of several runs that one command cannot make)."""
+    s = rows[0].get("settings", {})
+    threads = {r.get("settings", {}).get("threads") for r in rows}
+    udn = {"udn" in r for r in rows}
+    if len(udn) > 1:
+        return ("There is no one command for all of these cases: some ran with the UDN and "
+                "some with `--no-udn`.")
+    values: dict[str, Any] = {k: s[k] for k in (*SETTING_KEYS, "device") if k in s}
+    values["threads"] = next(iter(threads)) if len(threads) == 1 else None
+    values.update(pairs=[p for p in PAIRS if any(r["pair"] == p for r in rows)],
+                  erasures=sorted({r["erasure"] for r in rows}), no_udn=udn == {False},
+                  out=out, figure=figure or "FIGURE.png", overwrite=True)
+    cmd = command_line("real-pairs", values, add_arguments)
+    return f"In one go: `{cmd}`."
+
+
+#: options that ``--table-only`` cannot apply (the cases ran as their records say)
+RUN_ONLY = (*SETTING_KEYS, "threads", "no_udn", "time_threads")
+
+
+def _table_only_refusals(args: argparse.Namespace) -> None:
+    """``--table-only`` with an option it cannot honour (a run setting) is refused."""
+    from benchmarks._cli import option_defaults
+
+    given = [a.option_strings[-1] for a in option_defaults(add_arguments)
+             if a.dest in RUN_ONLY and getattr(args, a.dest, a.default) not in (a.default, None)]
+    if given:
+        raise ValueError(f"--table-only makes the table of the cases in --results as they ran: "
+                         f"{', '.join(given)} cannot apply to them (--pairs and --erasures "
+                         "choose the cases)")
+
+
 def fill_defaults(args: argparse.Namespace) -> None:
     """Replace the UDN settings left at None by recon.udn's defaults."""
     from recon.udn.network import NetworkConfig
@@ -1171,13 +1244,35 @@ def fill_defaults(args: argparse.Namespace) -> None:
             setattr(args, name, value)
 
 
+#: what the wall column of each row of the summary includes (item 9 of the bench review)
+WALL_TEXT = (
+    "The wall (s) column is each method's own time per case, not alike across rows: *FISTA-TV "
+    "oracle tau* is one run at the chosen tau up to its checkpoint (the 7-tau grid that makes "
+    "it the oracle excluded); *FISTA-TV auto tau* is the automatic search plus the final run; "
+    "*ADMM-TV* one run at the oracle tau; the UDN rows the UDN's whole run (every seed). Both "
+    "FISTA rows give the peak memory of the whole tau grid.")
+
+
+def _software_of(rows: list[dict[str, Any]]) -> str:
+    """The machines and software the cases were run with (their records' provenance)."""
+    def said(get: Any) -> str:
+        return ", ".join(sorted({str(get(r.get("provenance") or {}) or "not recorded")
+                                 for r in rows}))
+
+    return (f"The cases ran on {said(lambda p: p.get('cpu', {}).get('model'))} with "
+            f"lenslesscam {said(lambda p: p.get('versions', {}).get('lenslesscam'))} (commit "
+            f"{said(lambda p: p.get('commit'))}, torch "
+            f"{said(lambda p: p.get('versions', {}).get('torch'))}).")
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the cases not yet in ``--results`` (unless --table-only), then write the table."""
-    import torch
 
     from app.commands._options import check_output_folders
 
     runs = not (args.table_only or args.time_threads)
+    if args.table_only:
+        _table_only_refusals(args)
     check_outputs(args, {"--out": args.out, "--figure": args.figure},
                   appended={"--results": args.results} if runs else None,
                   inputs={"--data": args.data, **({} if runs else {"--results": args.results})})
@@ -1185,12 +1280,17 @@ def run(args: argparse.Namespace) -> int:
         read_results(args.results)  # a JSON-lines file of another benchmark stops here
     if runs:
         check_output_folders([images_folder(args.results) / "x.npz"])
+    # the cases: each once (a repeat would run the same case twice), in the order given
+    chosen_pairs = list(dict.fromkeys(args.pairs or PAIRS))
+    chosen_erasures = list(dict.fromkeys(ERASURES if args.erasures is None else args.erasures))
+    if not args.table_only:
+        args.pairs, args.erasures = chosen_pairs, chosen_erasures
 
-    torch.set_num_threads(args.threads)
+    choice = bench_threads(args)
     fill_defaults(args)
     if not 0 < args.holdout < 0.5:
         raise SystemExit(f"--holdout must be in (0, 0.5), got {args.holdout}")
-    for e in args.erasures:
+    for e in chosen_erasures:
         if not 0 <= e < 1:
             raise SystemExit(f"--erasures must be in [0, 1), got {e}")
     from recon.udn.runner import resolve_device
@@ -1208,14 +1308,15 @@ def run(args: argparse.Namespace) -> int:
         previous = read_results(args.results)
         settings = _settings(args)
         for r in previous:
-            diff = sorted(k for k in SETTING_KEYS
+            # one thread count per file: the wall column compares the cases
+            diff = sorted(k for k in (*SETTING_KEYS, "threads")
                           if k in r.get("settings", {}) and r["settings"][k] != settings[k])
             if diff:
                 raise SystemExit(
                     f"{args.results} holds a case run with other settings ({r['pair']} at "
                     f"{r['erasure']:.0%}: " + ", ".join(
                         f"{k} {r['settings'][k]} not {settings[k]}" for k in diff)
-                    + "): give another --results file")
+                    + "): give another --results file (or those settings)")
         done = {(r["pair"], r["erasure"]) for r in previous if args.no_udn or "udn" in r}
         for e in args.erasures:
             for name in args.pairs:
@@ -1226,16 +1327,26 @@ def run(args: argparse.Namespace) -> int:
                 row = run_case(pair, e, args, keep)
                 row["load"] = os.getloadavg()
                 row["settings"] = _settings(args)
-                with open(args.results, "a") as fh:
-                    fh.write(json.dumps(row) + "\n")
+                # the images first: a case in the file always has them (figure, error analysis)
                 _save_images(args.results, name, e, keep)
+                append_jsonl(args.results, tagged("real-pairs", RESULTS_VERSION, row))
+                done.add((name, e))
                 print(f"{name} {e:.0%}: " + ", ".join(
                     f"{k} {row[k]['psnr']:.2f}" for k, _ in METHODS if k in row),
                     file=sys.stderr, flush=True)
     rows = read_results(args.results)
+    if args.table_only:  # --pairs and --erasures choose the cases of the table
+        rows = [r for r in rows if r["pair"] in chosen_pairs and r["erasure"] in chosen_erasures]
     if not rows:
-        print("no results yet", file=sys.stderr)
+        print(f"lenslesscam bench: error: no results in {args.results}"
+              + (" for these --pairs and --erasures" if args.table_only else ""),
+              file=sys.stderr)
         return 1
+    counts = sorted({r["settings"]["threads"] for r in rows if "threads" in r.get("settings", {})})
+    if len(counts) > 1:
+        raise ValueError(f"--results {args.results} holds cases run on {counts} torch threads: "
+                         "their walls do not compare in one table; choose the cases with "
+                         "--pairs / --erasures, or rerun them on one count")
     summary, cases = make_tables(rows), case_table(rows)
     print(summary)
     print(cases)
@@ -1252,6 +1363,12 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         from recon.atomic import atomic_write_bytes
 
+        old = next((r for r in rows if "settings" not in r or "shape" not in r), None)
+        if old is not None:
+            raise ValueError(f"--out: the case {old['pair']} at {old['erasure']:.0%} in "
+                             f"{args.results} has no stored settings or shape (a case of an "
+                             "older run), which the Markdown states: make the table without "
+                             "--out, or rerun the case")
         s = rows[0]["settings"]
         h, w = rows[0]["shape"][1:]
         loads = [r["load"][0] for r in rows if "load" in r]
@@ -1263,15 +1380,17 @@ def run(args: argparse.Namespace) -> int:
                    "FISTA-TV with the automatic tau and the UDN (held-out stop); rows: the "
                    "erasure levels run, top to bottom in increasing order (an empty cell: "
                    "not run). Each image scaled to its own 99.5th percentile.\n\n")
-        cmd = "lenslesscam bench real-pairs " + " ".join(sys.argv[3:] if sys.argv[1:3] == [
-            "bench", "real-pairs"] else sys.argv[1:])
+        cmd = command_line("real-pairs", args, add_arguments,
+                           leave_out=RUN_ONLY if args.table_only else ())
         devices = sorted({r.get("device", "cpu") for r in rows})
         load = (f"load average {min(loads, default=0):.1f}-{max(loads, default=0):.1f} during "
                 "the runs")
-        where = (f"{s['threads']} torch thread(s); machine {platform.machine()}, {load} "
-                 "(shared 2-core VM)." if devices == ["cpu"] else
+        threads = f"{counts[0]} torch thread(s)" if counts else "torch threads not recorded"
+        where = (f"{threads}; {load}." if devices == ["cpu"] else
                  f"FISTA-TV, ADMM-TV and the UDN on {', '.join(devices)}; host {load} (the "
                  "walls are of processes that may have shared the device: see the command).")
+        where += " " + _software_of(rows) + " The table: " + machine_text(
+            None if args.table_only else choice)
         n_udn = sum("udn" in r for r in rows)
         others = " (the others: FISTA and ADMM only, `--no-udn`)" if n_udn < len(rows) else ""
         text = (
@@ -1304,16 +1423,14 @@ def run(args: argparse.Namespace) -> int:
             + (f", warm start {s['warm_start']} iterations" if s.get("warm_start") else "")
             + ". "
             + where + "\n\n"
-            "Mean over the pairs:\n\n" + summary + "\n\nPSNR (dB) per case:\n\n" + cases +
+            "Mean over the pairs:\n\n" + summary + "\n\n" + WALL_TEXT
+            + "\n\nPSNR (dB) per case:\n\n" + cases +
             "\n\n" + (ERROR_TEXT.format(
                 fine=round(1 / FINE_FRACTION), den=round(1 / SHADING_FRACTION)) + errors + "\n\n"
                       if errors else "") + fig +
             f"Produced by `{cmd}` (the runs appended to the results file; "
-            "this table and figure from all of them). In one go: `lenslesscam bench "
-            f"real-pairs --downsample {s['downsample']} --udn-iters {s['udn_iters']}"
-            + (f" --seeds {s['seeds']}" if s.get("seeds", 1) > 1 else "")
-            + (f" --warm-start {s['warm_start']}" if s.get("warm_start") else "")
-            + f" --out {args.out} --figure {args.figure or 'FIGURE.png'} --overwrite`.\n"
+            "this table and figure from all of them). "
+            + one_go(rows, args.out, args.figure) + "\n"
         )
         atomic_write_bytes(args.out, text.encode())
     print(f"total {time.perf_counter() - t_all:.0f} s", file=sys.stderr)

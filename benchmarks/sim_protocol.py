@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import math
 import sys
 import time
@@ -42,7 +41,20 @@ from pathlib import Path
 from typing import Any
 
 from app.commands._options import POSITIVE_INT, add_overwrite_option
-from benchmarks._cli import check_outputs, read_jsonl
+from benchmarks._cli import (
+    append_jsonl,
+    bench_threads,
+    check_outputs,
+    command_line,
+    machine_text,
+    read_records,
+    tagged,
+)
+
+#: version of the records of ``--cache`` (format ``lenslesscam.bench.protocol``)
+RESULTS_VERSION = 1
+#: the keys every record of ``--cache`` has
+REQUIRED = ("scene", "erasure", "noise", "iters", "auto", "oracle")
 
 CASE_VERSION = 3  # cached cases of another version (solver defaults, columns) are not reused
 ORACLE_TAUS = (1e-8, 3e-8, 1e-7, 3e-7, 1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4)
@@ -53,7 +65,9 @@ NOISES = (0.0, 0.01)
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of ``lenslesscam bench protocol``."""
     p.add_argument("--iters", type=POSITIVE_INT, default=500, help="iteration limit per run (500)")
-    p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (default 1)")
+    p.add_argument("--threads", type=POSITIVE_INT, default=None,
+                   help="torch threads (default: the global --threads, else the thread "
+                   "policy, recon.threads); cached cases of another count are run again")
     p.add_argument("--out", default=None, help="write the Markdown tables here")
     p.add_argument("--cache", default="protocol-cases.jsonl",
                    help="JSON lines of finished cases (resumed; default protocol-cases.jsonl)")
@@ -509,48 +523,39 @@ def run(args: argparse.Namespace) -> int:
     check_outputs(args, {"--out": args.out},
                   appended=None if tables_only else {"--cache": args.cache})
     if args.restart_check:
-        from recon.threads import apply_threads
-
-        apply_threads(args.threads)
+        bench_threads(args)
         print(restart_table(args.iters))
         return 0
     if args.hand:
-        from recon.threads import apply_threads
-
-        apply_threads(args.threads)
+        bench_threads(args)
         print(hand_table(args.iters))
         return 0
     if args.momentum_check:
-        from recon.threads import apply_threads
-
-        apply_threads(args.threads)
+        bench_threads(args)
         print(momentum_table(args.iters))
         return 0
     if args.prox_check:
-        from recon.threads import apply_threads
-
-        apply_threads(args.threads)
+        bench_threads(args)
         print(prox_table(args.iters))
         return 0
     if args.convergence_check:
-        from recon.threads import apply_threads
-
-        apply_threads(args.threads)
+        bench_threads(args)
         print(convergence_table())
         return 0
 
     from recon import samples
-    from recon.threads import apply_threads
 
-    apply_threads(args.threads)
+    choice = bench_threads(args)
     psf = samples.tutorial_psf()
     scenes = {n: samples.lensed_scene(n) for n in samples.lensed_scene_names()}
     erasures = (0.0, 0.9) if args.quick else ERASURES
     noises = (0.01,) if args.quick else NOISES
     cache = Path(args.cache)
     done: dict[tuple[str, float, float], dict[str, Any]] = {}
-    for c in read_jsonl(cache, "--cache"):
-        if c.get("iters") == args.iters and c.get("version") == CASE_VERSION:
+    for c in read_records(cache, "--cache", "protocol", RESULTS_VERSION, REQUIRED):
+        # a case of another thread count is run again: the 'search s' column compares them
+        if (c.get("iters") == args.iters and c.get("version") == CASE_VERSION
+                and c.get("threads") == choice.threads):
             done[(c["scene"], c["erasure"], c["noise"])] = c
     t_all = time.perf_counter()
     for noise in sorted(noises, reverse=True):  # noisy cases first: they stop early
@@ -566,19 +571,19 @@ def run(args: argparse.Namespace) -> int:
                         c["auto"] = run_auto(case, args.iters)
                     if not (args.no_reference or "reference" in c):
                         c.update(run_reference(case, c["oracle"]["tau"], args.iters))
-                    with cache.open("a") as fh:  # the later line wins when read back
-                        fh.write(json.dumps(c) + "\n")
+                    # the later line wins when read back
+                    append_jsonl(cache, tagged("protocol", RESULTS_VERSION, c))
                     continue
                 t0 = time.perf_counter()
                 res = run_case(psf, scene, er, noise, args.iters,
                                reference=not args.no_reference)
                 c = {"scene": name, "erasure": er, "noise": noise, "iters": args.iters,
                      "version": CASE_VERSION,
-                     "threads": args.threads, "wall_s": time.perf_counter() - t0,
+                     "threads": choice.threads, "wall_s": time.perf_counter() - t0,
                      "load": os.getloadavg()[0], **res}
                 done[(name, er, noise)] = c
-                with cache.open("a") as fh:  # one line per finished case (append only)
-                    fh.write(json.dumps(c) + "\n")
+                # one line per finished case (append only)
+                append_jsonl(cache, tagged("protocol", RESULTS_VERSION, c))
                 print(f"noise {noise:g} erasure {er:.0%} {name}: auto "
                       f"{res['auto']['psnr_ssim'][0]:.2f} dB (tau {res['auto']['tau']:.2g}, "
                       f"{res['auto']['iterations']} it), oracle "
@@ -599,11 +604,11 @@ def run(args: argparse.Namespace) -> int:
             "held-out measured pixels, `recon/autotau.py`, then FISTA-TV from all measured\n"
             f"pixels); **oracle** the best PSNR over tau in {', '.join(map(str, ORACLE_TAUS))}\n"
             f"at {args.iters} iterations. PSNR/SSIM after a least-squares gain fit. 'search s'\n"
-            "is the automatic choice's own time per case (the reconstruction excluded), on\n"
-            f"{args.threads} torch thread(s) on a shared, loaded 2-core machine.\n\n"
-            f"Produced by `lenslesscam bench protocol --threads {args.threads} --out "
-            f"docs/simulation-protocol.md --overwrite` ({time.perf_counter() - t_all:.0f} s in "
-            "the last "
+            f"is the automatic choice's own time per case (the reconstruction excluded), on\n"
+            f"{choice.threads} torch thread(s) (every case of the table).\n"
+            f"{machine_text(choice)}\n\n"
+            f"Produced by `{command_line('protocol', args, add_arguments)}` "
+            f"({time.perf_counter() - t_all:.0f} s in the last "
             "session; finished cases are cached in the JSON-lines file `--cache`).\n\n"
         )
         atomic_write_bytes(args.out, (header + table + "\n").encode())

@@ -29,7 +29,20 @@ from collections.abc import Iterator
 from typing import Any
 
 from app.commands._options import FRACTION, POSITIVE_INT, add_overwrite_option
-from benchmarks._cli import append_jsonl, check_outputs, print_and_write
+from benchmarks._cli import (
+    append_jsonl,
+    bench_threads,
+    check_outputs,
+    machine_text,
+    print_and_write,
+    read_records,
+    tagged,
+)
+
+#: version of the records of ``--results`` (format ``lenslesscam.bench.tau-rules``)
+RESULTS_VERSION = 1
+#: the keys every record of ``--results`` has
+REQUIRED = ("case", "min", "1se", "oracle", "block", "settings")
 
 GRID = (1e-7, 1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3)
 
@@ -47,9 +60,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "on sensors of 32 to 159 px, 1/32 of the shorter side above; 1: single "
                    "pixels, the search before blocks); at most the side at which the held-out "
                    "10 %% of the pixels span 2 blocks (38 px on sim's 150x200)")
-    p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (1)")
+    p.add_argument("--threads", type=POSITIVE_INT, default=None,
+                   help="torch threads (default: the global --threads, else the thread "
+                   "policy, recon.threads)")
     p.add_argument("--data", default=None, help="the dlmd folder (default: the shared one)")
-    p.add_argument("--results", default=None, help="also append each case as JSON lines here")
+    p.add_argument("--results", default=None,
+                   help="also append each case as JSON lines here; the cases it already holds "
+                   "(same settings) are not run again")
     p.add_argument("--out", default=None, help="write the Markdown table here")
     add_overwrite_option(p)
 
@@ -95,21 +112,46 @@ def check_block(block: int | None, shapes: dict[str, tuple[int, int]]) -> None:
                 f"most {limit} px (the held-out 10 % of the pixels must span 2 blocks or more)")
 
 
-def _cases(args: argparse.Namespace) -> Iterator[tuple[str, Any, Any, Any]]:
-    """(label, model, measurement, truth) of every case."""
+def erasures(args: argparse.Namespace) -> list[float]:
+    """``--erasures``, each once (a repeat would run, and count, the same cases twice)."""
+    return list(dict.fromkeys(args.erasures))
+
+
+def labels(args: argparse.Namespace) -> list[str]:
+    """The labels of the cases :func:`_cases` yields, in its order (nothing is loaded)."""
+    from benchmarks.real_pairs import PAIRS
+    from recon import samples
+
+    out = []
+    if "real" in args.cases:
+        out += [f"real {name} {er:.0%}" for name in PAIRS for er in erasures(args)]
+    if "sim" in args.cases:
+        out += [f"sim {name} {er:.0%} noise {noise:g}" for noise in (0.0, 0.01)
+                for er in erasures(args) for name in samples.lensed_scene_names()]
+    return out
+
+
+def _cases(args: argparse.Namespace, skip: frozenset[str] | set[str] = frozenset()
+           ) -> Iterator[tuple[str, Any, Any, Any]]:
+    """(label, model, measurement, truth) of every case but those labelled in ``skip``."""
     import numpy as np
     import torch
 
     from recon.models import build_model
 
-    if "real" in args.cases:
+    if "real" in args.cases and any(x.startswith("real ") and x not in skip
+                                    for x in labels(args)):
         from benchmarks import real_pairs as rp
 
         folder = rp.data_dir(args.data)
         for name in rp.PAIRS:
+            if all(f"real {name} {er:.0%}" in skip for er in erasures(args)):
+                continue
             pair = rp.load_pair(name, rp.pair_files(name, folder), 4)
             h, w = pair.truth.shape[1:]
-            for er in args.erasures:
+            for er in erasures(args):
+                if f"real {name} {er:.0%}" in skip:
+                    continue
                 mask = rp.sensor_mask(pair, er)
                 b = (pair.meas * mask).astype(np.float32)
                 yield (f"real {name} {er:.0%}", build_model("2d", pair.psf, mask=mask,
@@ -121,8 +163,10 @@ def _cases(args: argparse.Namespace) -> Iterator[tuple[str, Any, Any, Any]]:
 
         psf = samples.tutorial_psf()
         for noise in (0.0, 0.01):
-            for er in args.erasures:
+            for er in erasures(args):
                 for name in samples.lensed_scene_names():
+                    if f"sim {name} {er:.0%} noise {noise:g}" in skip:
+                        continue
                     sim = simulate(build_model("2d", psf), samples.lensed_scene(name),
                                    erasure=er, noise=noise, seed=0)
                     yield (f"sim {name} {er:.0%} noise {noise:g}",
@@ -192,28 +236,58 @@ def table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run the cases and print the table."""
-    from recon.threads import apply_threads
+def resumed(args: argparse.Namespace, name: str, required: tuple[str, ...],
+            settings: dict[str, Any], version: int = RESULTS_VERSION
+            ) -> dict[str, dict[str, Any]]:
+    """The finished cases of ``--results`` by label (a later record of a case wins).
 
+    A record of other ``settings`` (or of none: an older run) is refused in one line: it
+    would be skipped as done, and mixed into the table.
+    """
+    if not args.results:
+        return {}
+    done: dict[str, dict[str, Any]] = {}
+    for r in read_records(args.results, "--results", name, version, required):
+        if r.get("settings") != settings:
+            diff = ", ".join(f"{k} {r['settings'].get(k)} not {v}" for k, v in settings.items()
+                             if r["settings"].get(k) != v) if isinstance(
+                r.get("settings"), dict) else "no settings"
+            raise ValueError(f"--results {args.results} holds a case run with other settings "
+                             f"({r['case']}: {diff}): give another --results file (or those "
+                             "settings)")
+        done[r["case"]] = r
+    return done
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the cases not yet in ``--results`` and print the table of them all."""
     check_outputs(args, {"--out": args.out}, appended={"--results": args.results},
                   inputs={"--data": args.data})
     check_block(args.block, _sensor_shapes(args))
-    choice = apply_threads(args.threads)
-    rows = []
+    choice = bench_threads(args)
+    settings = {"iters": args.iters, "block": args.block, "threads": choice.threads}
+    wanted = labels(args)
+    done = {k: v for k, v in resumed(args, "tau-rules", REQUIRED, settings).items()
+            if k in wanted}
     t0 = time.perf_counter()
-    for label, model, b, truth in _cases(args):
-        row = {"case": label, **run_case(model, b, truth, args.iters, args.block)}
-        rows.append(row)
+    n_new = 0
+    for label, model, b, truth in _cases(args, skip=set(done)):
+        row = {"case": label, **run_case(model, b, truth, args.iters, args.block),
+               "settings": settings}
         print(f"{label}: min {row['min']['psnr']:.2f}, 1se {row['1se']['psnr']:.2f}, oracle "
               f"{row['oracle']['psnr']:.2f} dB", file=sys.stderr, flush=True)
-        append_jsonl(args.results, row)
+        append_jsonl(args.results, tagged("tau-rules", RESULTS_VERSION, row))
+        done[label] = row
+        n_new += 1
+    rows = [done[k] for k in wanted if k in done]
     text = (f"Automatic tau, smallest held-out error (min) against one standard error (1se); "
             f"{args.iters} iterations, held-out blocks of "
             f"{'the default side (recon.holdout)' if args.block is None else f'{args.block} px'}"
             f" (side used: {sorted({r['block'] for r in rows})} px), "
             f"oracle grid {', '.join(f'{t:g}' for t in GRID)}; "
-            f"{choice.reason}; {time.perf_counter() - t0:.0f} s\n\n" + table(rows))
+            f"{time.perf_counter() - t0:.0f} s ({len(rows)} cases"
+            f"{f', {len(rows) - n_new} from --results' if len(rows) > n_new else ''}). "
+            f"{machine_text(choice)}\n\n" + table(rows))
     print_and_write(text, args.out)
     return 0
 

@@ -39,7 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--iters", type=POSITIVE_INT, default=500, help="iterations per method")
     p.add_argument("--every", type=POSITIVE_INT, default=10, help="score every N iterations")
     p.add_argument("--scene", default="im408", help="lensed scene (im408, im740, im65)")
-    p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads (default 1)")
+    p.add_argument("--threads", type=POSITIVE_INT, default=None,
+                   help="torch threads (default: the global --threads, else the thread "
+                   "policy, recon.threads)")
 
 
 def _trace(step: Callable[[], None], estimate: Callable[[], Any], score: Callable[[Any], float],
@@ -87,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
 
     import torch
 
+    from benchmarks._cli import bench_threads, machine_text
     from recon import samples
     from recon.admm import Admm
     from recon.autotau import choose_tau
@@ -94,18 +97,25 @@ def run(args: argparse.Namespace) -> int:
     from recon.metrics import gain_fit, psnr
     from recon.models import build_model
     from recon.simulate import simulate
-    from recon.threads import apply_threads
 
-    apply_threads(args.threads)
+    choice = bench_threads(args)
     psf = samples.tutorial_psf()
     scene = samples.lensed_scene(args.scene)
+    lensless_version = "unknown"
     try:
-        import lensless  # noqa: F401
+        import lensless
 
         lensless_why = ""
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            lensless_version = version("lensless")
+        except PackageNotFoundError:
+            lensless_version = str(getattr(lensless, "__version__", "unknown"))
     except ImportError as exc:
         lensless_why = f"LenslessPiCam not importable ({exc}); `pip install --no-deps lensless`"
-    lines = []
+    lines = [machine_text(choice) + (f" LenslessPiCam (lensless) {lensless_version}, driven "
+                                     "through its private API." if not lensless_why else "")]
     for er in ERASURES:
         sim = simulate(build_model("2d", psf), scene, erasure=er, noise=0.01, seed=0)
         model = build_model("2d", psf, mask=sim.mask)

@@ -21,7 +21,6 @@ PSNR per frame after one least-squares gain for the whole video; mean, min and m
 from __future__ import annotations
 
 import argparse
-import platform
 import sys
 import time
 from typing import Any
@@ -35,7 +34,7 @@ from app.commands._options import (
     add_overwrite_option,
     integer,
 )
-from benchmarks._cli import check_outputs
+from benchmarks._cli import bench_threads, check_outputs, command_line, machine_text
 
 TAUS = (1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3)
 WEIGHT_K = 1.0
@@ -63,7 +62,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="UDN early-stopping patience (300)")
     p.add_argument("--fista-iters", type=POSITIVE_INT, default=500,
                    help="FISTA iterations per tau (500)")
-    p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads per process (1)")
+    p.add_argument("--threads", type=POSITIVE_INT, default=None,
+                   help="torch threads per process (default: the global --threads, else the "
+                   "thread policy, recon.threads, chosen once here for every process)")
     p.add_argument("--device", default="cpu", help="torch device of the UDN runs (auto, cpu, cuda)")
     p.add_argument("--scenes", nargs="+", default=None, help="subset of the lensed scenes")
     p.add_argument("--out", default=None, help="write the Markdown here")
@@ -201,10 +202,8 @@ def run(args: argparse.Namespace) -> int:
     """Simulate, reconstruct with the three methods, print / write the table."""
     import numpy as np
 
-    from recon.threads import apply_threads
-
     check_outputs(args, {"--out": args.out})
-    apply_threads(args.threads)
+    choice = bench_threads(args)
     t_all = time.perf_counter()
     psf, shutter, sims, timing = make_cases(args.scale, args.frames, tuple(args.motion),
                                             args.noise, args.scenes)
@@ -240,9 +239,7 @@ def run(args: argparse.Namespace) -> int:
         from recon.atomic import atomic_write_bytes
 
         h, w = psf.shape
-        argv = sys.argv[1:]
-        argv = argv[argv.index("udn-video") + 1:] if "udn-video" in argv else argv
-        cmd = "python -m benchmarks.udn_video " + " ".join(argv)
+        cmd = command_line("udn-video", args, add_arguments)
         text = (
             "# UDN video: a moving scene under a dual rolling shutter\n\n"
             f"Tutorial PSF at 1/{args.scale} scale ({h}x{w}); the lensed scenes "
@@ -267,8 +264,7 @@ def run(args: argparse.Namespace) -> int:
             "estimate the held-out pixels select ('best at' its iteration; the stop reason).\n"
             "- 'constant image': each frame's mean, the floor every method must beat.\n\n"
             f"{table}\n\n"
-            f"Machine: {platform.machine()}, {args.device}, {args.threads} torch thread(s) on a "
-            f"shared 2-core VM. Total {total:.0f} s.\n\n"
+            f"Device {args.device}. {machine_text(choice)} Total {total:.0f} s.\n\n"
             f"Produced by `{cmd}`.\n"
         )
         atomic_write_bytes(args.out, text.encode())

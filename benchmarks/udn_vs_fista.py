@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -42,7 +41,11 @@ from app.commands._options import (
     POSITIVE_INT,
     add_overwrite_option,
 )
-from benchmarks._cli import check_outputs
+from benchmarks._cli import bench_threads, check_outputs, command_line, machine_text
+
+#: the default run's time (``--help``; docs/udn.md: 13 CPU minutes per scene, 4 x 3000 iterations)
+DURATION = ("long: docs/udn.md gives 13 CPU minutes per scene for 4 seeds x 3000 iterations; "
+            "the default runs 3 scenes")
 
 TAUS = (1e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3)
 FISTA_CHECKPOINTS = (50, 100, 200, 300, 500)
@@ -72,7 +75,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fista-iters", type=POSITIVE_INT, default=500,
                    help="FISTA iterations per tau (500); scored at the checkpoints "
                    f"{', '.join(map(str, FISTA_CHECKPOINTS))} below it and at the last")
-    p.add_argument("--threads", type=POSITIVE_INT, default=1, help="torch threads per process (1)")
+    p.add_argument("--threads", type=POSITIVE_INT, default=None,
+                   help="torch threads per process (default: the global --threads, else the "
+                   "thread policy, recon.threads, chosen once here for every process)")
     jobs = min(2, os.cpu_count() or 1)
     p.add_argument("--jobs", type=POSITIVE_INT, default=jobs,
                    help=f"UDN runs in parallel processes (default min(2, CPU count): {jobs} here)")
@@ -244,9 +249,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0 < args.holdout < 1:
         raise SystemExit(f"--holdout must be in (0, 1) (the held-out choice needs held-out "
                          f"pixels), got {args.holdout}")
-    from recon.threads import apply_threads
-
-    apply_threads(args.threads)
+    choice = bench_threads(args)  # one count, passed to every worker process
     t_all = time.perf_counter()
     psf, sims = make_data(args.scale, args.scenes, args.erasure, args.noise)
     fista = run_fista(psf, sims, args.fista_iters)
@@ -301,7 +304,7 @@ def run(args: argparse.Namespace) -> int:
 
         u0 = udn[names[0]]
         per_iter = u0["wall"] / max(u0["iterations"] * args.seeds, 1)
-        cmd = "python -m benchmarks.udn_vs_fista " + " ".join(sys.argv[1:])
+        cmd = command_line("udn-vs-fista", args, add_arguments)
         text = (
             "# UDN vs FISTA-TV on the simulation protocol\n\n"
             f"Tutorial PSF at 1/{args.scale} scale ({h}x{w}), the lensed scenes "
@@ -333,8 +336,8 @@ def run(args: argparse.Namespace) -> int:
             f"{table}\n\n**{verdicts[0]}**  \n**{verdicts[1]}**  \n{verdicts[2]}\n\n"
             "The ensemble's PSNR against the iterations per seed:\n\n"
             f"{curve}\n\n"
-            f"Machine: {platform.machine()}, {args.device}, {args.threads} torch thread(s) per "
-            f"process (shared 2-core VM); UDN {per_iter * 1000:.0f} ms per iteration and seed. "
+            f"Device {args.device}, {args.threads} torch thread(s) per process; UDN "
+            f"{per_iter * 1000:.0f} ms per iteration and seed. {machine_text(choice)} "
             f"Total {time.perf_counter() - t_all:.0f} s.\n\n"
             f"Produced by `{cmd}`.\n"
         )

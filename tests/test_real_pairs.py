@@ -164,10 +164,12 @@ def test_a_results_file_of_other_settings_is_refused(tmp_path) -> None:
     rp.add_arguments(parser)
     results = tmp_path / "r.jsonl"
     args = parser.parse_args(["--udn-iters", "3000", "--seeds", "2", "--results", str(results),
-                              "--data", str(tmp_path)])
+                              "--data", str(tmp_path), "--threads", "1"])
     rp.fill_defaults(args)
     old = dict(rp._settings(args), udn_iters=300, seeds=1)
-    results.write_text(json.dumps({"pair": "im65", "erasure": 0.9, "udn": {},
+    fista = {"psnr": 20.0, "tau": 1e-4}
+    results.write_text(json.dumps({"pair": "im65", "erasure": 0.9, "udn": {"psnr": 21.0},
+                                   "fista_auto": fista, "fista_oracle": fista,
                                    "settings": old}) + "\n")
     with pytest.raises(SystemExit, match=r"other settings .*seeds 1 not 2, udn_iters 300 not 3000"):
         rp.run(args)
