@@ -1289,16 +1289,16 @@ def run(args: argparse.Namespace) -> int:
     choice = bench_threads(args)
     fill_defaults(args)
     if not 0 < args.holdout < 0.5:
-        raise SystemExit(f"--holdout must be in (0, 0.5), got {args.holdout}")
+        raise ValueError(f"--holdout must be in (0, 0.5), got {args.holdout}")
     for e in chosen_erasures:
         if not 0 <= e < 1:
-            raise SystemExit(f"--erasures must be in [0, 1), got {e}")
+            raise ValueError(f"--erasures must be in [0, 1), got {e}")
     from recon.udn.runner import resolve_device
 
     try:
         args.device = str(resolve_device(args.device))
     except (ValueError, RuntimeError) as exc:
-        raise SystemExit(f"--device: {exc}") from None
+        raise ValueError(f"--device: {exc}") from None
     t_all = time.perf_counter()
     if args.time_threads:
         print(json.dumps(time_threads(args)))
@@ -1312,7 +1312,7 @@ def run(args: argparse.Namespace) -> int:
             diff = sorted(k for k in (*SETTING_KEYS, "threads")
                           if k in r.get("settings", {}) and r["settings"][k] != settings[k])
             if diff:
-                raise SystemExit(
+                raise ValueError(
                     f"{args.results} holds a case run with other settings ({r['pair']} at "
                     f"{r['erasure']:.0%}: " + ", ".join(
                         f"{k} {r['settings'][k]} not {settings[k]}" for k in diff)
@@ -1354,7 +1354,7 @@ def run(args: argparse.Namespace) -> int:
     if args.error_analysis:
         erows = error_analysis(_load_images(args.results))
         if not erows:
-            raise SystemExit(f"--error-analysis: {args.results} has no level with the images "
+            raise ValueError(f"--error-analysis: {args.results} has no level with the images "
                              "of two pairs or more")
         errors = error_table(erows)
         print(errors)

@@ -247,7 +247,7 @@ def run(args: argparse.Namespace) -> int:
     """Run both methods on the scenes and print / write the table."""
     check_outputs(args, {"--out": args.out})
     if not 0 < args.holdout < 1:
-        raise SystemExit(f"--holdout must be in (0, 1) (the held-out choice needs held-out "
+        raise ValueError(f"--holdout must be in (0, 1) (the held-out choice needs held-out "
                          f"pixels), got {args.holdout}")
     choice = bench_threads(args)  # one count, passed to every worker process
     t_all = time.perf_counter()

@@ -171,7 +171,7 @@ def test_a_results_file_of_other_settings_is_refused(tmp_path) -> None:
     results.write_text(json.dumps({"pair": "im65", "erasure": 0.9, "udn": {"psnr": 21.0},
                                    "fista_auto": fista, "fista_oracle": fista,
                                    "settings": old}) + "\n")
-    with pytest.raises(SystemExit, match=r"other settings .*seeds 1 not 2, udn_iters 300 not 3000"):
+    with pytest.raises(ValueError, match=r"other settings .*seeds 1 not 2, udn_iters 300 not 3000"):
         rp.run(args)
 
 
@@ -307,7 +307,7 @@ def test_an_unknown_device_is_one_line(tmp_path) -> None:
     parser = argparse.ArgumentParser()
     rp.add_arguments(parser)
     args = parser.parse_args(["--device", "tpu", "--data", str(tmp_path), "--downsample", "1"])
-    with pytest.raises(SystemExit, match=r"--device: unknown device 'tpu'"):
+    with pytest.raises(ValueError, match=r"--device: unknown device 'tpu'"):
         rp.run(args)
 
 
