@@ -166,6 +166,10 @@ class Admm(StepwiseSolver):
         # the penalties, their inverses, the denominator (up to 9 mu2) and the threshold
         # tau / mu2 must all be numbers of the dtype
         fi = torch.finfo(dt)
+        if fi.tiny <= self.mu2 <= fi.max / 16 and not self.tau / self.mu2 <= fi.max:
+            raise ValueError(  # the penalty is in range: tau is what is out of it
+                f"tau {self.tau:g} over ADMM's penalty {self.mu2:.3g} is outside the range of "
+                f"{dt}: give a tau of at most 1 (the measurement is scaled to max 1)")
         if not (fi.tiny <= self.mu2 <= fi.max / 16 and self.tau / self.mu2 <= fi.max):
             raise ValueError(
                 f"rho {rho:g} (penalty scale {scale:g}) puts ADMM's penalty (scale x rho "
@@ -188,6 +192,8 @@ class Admm(StepwiseSolver):
         g1 = (self.mu2 * self.inv_denom)[..., None]
         self._g1_ri = g1.expand(*g1.shape[:-1], 2).contiguous()
         self._thr = self.tau / self.mu2
+        if self._thr < torch.finfo(dt).tiny:  # rounds to 0 in the dtype: 1 - thr / 0 was NaN
+            self._thr = 0.0  # (--tau 1e-300); no shrink below the smallest normal number
         # work buffers, reused every step
         self.psi_v = torch.zeros((2, *grid), dtype=dt, device=dev)  # Psi v of the current v
         self._psi_next = torch.empty_like(self.psi_v)

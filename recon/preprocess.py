@@ -56,10 +56,17 @@ LUMA_WEIGHTS: tuple[float, float, float] = (0.299, 0.587, 0.114)
 
 
 def _as_float(a: Array) -> Array:
-    """Float view/copy of ``a``: float arrays keep their dtype, others become float32."""
+    """Float view/copy of ``a``: float arrays keep their dtype, others become float32.
+
+    32- and 64-bit integers become float64, which holds them (float32 keeps 24 bits: a 0..200
+    signal on a 1e9 pedestal kept 4 levels); the loaders cast to float32 after the dark level
+    is subtracted.
+    """
     arr = np.asarray(a)
     if arr.dtype.kind == "f":
         return arr
+    if arr.dtype.kind in "iu" and arr.dtype.itemsize >= 4:
+        return arr.astype(np.float64)
     return arr.astype(np.float32)
 
 

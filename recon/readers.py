@@ -578,10 +578,12 @@ def _prepare(
             _check_black_level(raw, p)
         if unmasked:
             _check_unmasked_zeros(chw, p)
-    arr = _as_float(chw).astype(np.float32, copy=False)
-    d = _dark_for(dark, key, arr, channels, what, p, order)
-    if d is not None:
-        arr = _subtract_dark(arr, d, p, what)
+    d = _dark_for(dark, key, chw, channels, what, p, order)
+    if d is not None:  # in float64 for data float32 cannot hold (a 0..200 signal on a 1e9
+        # pedestal kept 4 levels when the pedestal was subtracted after the cast)
+        arr = _subtract_dark(_as_float(chw), d, p, what)
+    else:
+        arr = _as_float(chw).astype(np.float32, copy=False)
     _check_negative(arr, p, dark, measured, what)
     out = clip_nonneg(box_downsample(arr, downsample)).astype(np.float32, copy=False)
     return out, p

@@ -222,8 +222,13 @@ class TVProx:
 
     def __call__(self, z: torch.Tensor, gamma: float, iters: int = 5,
                  out: torch.Tensor | None = None) -> torch.Tensor:
-        """Return argmin_x 0.5 ||x - z||^2 + gamma TV(x) (+ x >= 0) (into ``out`` if given)."""
-        if gamma <= 0:
+        """Return argmin_x 0.5 ||x - z||^2 + gamma TV(x) (+ x >= 0) (into ``out`` if given).
+
+        A ``gamma`` so small that the dual step ``1 / (gamma L)`` overflows ``z``'s dtype is 0:
+        every change it could make is below the dtype's smallest normal number (``--tau
+        1e-300`` crashed, 1e-40 ended in NaN).
+        """
+        if gamma <= 0 or gamma * self.tv.lipschitz * torch.finfo(z.dtype).max < 1.0:
             if out is None:
                 return z.clamp(min=0.0) if self.nonneg else z.clone()
             return torch.clamp(z, min=0.0, out=out) if self.nonneg else out.copy_(z)
