@@ -273,3 +273,25 @@ def test_a_constant_truth_is_refused_before_any_setting_runs(pair, small_grid, t
     assert f"truth file {tmp_path / 't.npy'} is constant (every value is {value:g}" in err
     assert "data_range" not in err and err.count("\n") == 1, err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_trade_that_measured_nothing_leaves_nothing(pair, small_grid, tmp_path, capsys):
+    """A trade refused at its first setting (4 measured pixels: "the held-out proxy needs at
+    least 20") left trade.partial.jsonl and trade.lock in the folder it made; the next trade of
+    other data into that folder was refused as "the partial result of another trade"."""
+    np.save(tmp_path / "p2.npy", np.random.default_rng(0).random((2, 2)).astype(np.float32))
+    np.save(tmp_path / "m2.npy", np.random.default_rng(1).random((2, 2)).astype(np.float32))
+    tiny = ["--psf", tmp_path / "p2.npy", "--meas", tmp_path / "m2.npy", "--quick", "--no-udn"]
+    code, _, err = run_cli(capsys, "trade", *tiny, "--out", tmp_path / "new")
+    assert code == 2 and "held-out proxy needs at least 20" in err
+    assert not (tmp_path / "new").exists()  # the folder it made, gone with it
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    code, _, err = run_cli(capsys, "trade", *tiny, "--out", tmp_path / "mine")
+    assert code == 2
+    assert not (tmp_path / "mine" / "trade.partial.jsonl").exists()
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"
+    code, _, err = run_cli(capsys, "trade", *pair, "--quick", "--no-udn", "--out",
+                           tmp_path / "mine")
+    assert code == 0, err
+    assert (tmp_path / "mine" / "trade.csv").is_file()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -157,6 +158,8 @@ def run(args: argparse.Namespace) -> int:
     t_all = time.perf_counter()
     rows = []
     cases = _cases(args)
+    made = not out.exists()
+    journal: _Journal | None = None
     try:
         # one trade writes a folder at a time; its own lock file, so that a UDN job's or a
         # batch's run.lock is never taken for a trade's (the file stays, as every RunLock's)
@@ -188,6 +191,18 @@ def run(args: argparse.Namespace) -> int:
         _write_outputs(args, out, rows, cases, threads, budgets, t_all,
                        earlier_s=journal.earlier_s(), sessions=journal.sessions())
         journal.remove()
+    except BaseException:
+        # a trade that measured nothing leaves nothing: its empty journal refused the next
+        # trade of other data into the folder ("the partial result of another trade")
+        if journal is not None and not journal.entries and journal.path.is_file() \
+                and len(journal.path.read_text(encoding="utf-8").splitlines()) <= 1:
+            journal.remove()
+            if made:
+                lock.release()
+                (out / LOCK_FILE).unlink(missing_ok=True)
+                with contextlib.suppress(OSError):
+                    out.rmdir()  # only when empty
+        raise
     finally:
         lock.release()
     return 0
