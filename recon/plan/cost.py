@@ -191,7 +191,7 @@ def method_for_budget(cost: CostEstimate | None, budget_s: float | None, *,
     if udn_available() and budget_s >= udn_floor:
         where = "a GPU" if on_gpu else "a CPU"
         return MethodChoice("udn", 0, budget_s,
-                            f"{budget_s:.0f} s on {where} is at least {udn_floor:.0f} s: long "
+                            f"{budget_s:.6g} s on {where} is at least {udn_floor:.0f} s: long "
                             "untrained-network runs beat FISTA-TV (ARCHITECTURE.md); the run "
                             "stops at the budget or on its held-out early stop")
     if spi is None:
