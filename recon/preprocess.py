@@ -32,6 +32,7 @@ __all__ = [
     "downsample_mask",
     "downsample_masked",
     "downsample_rows",
+    "measurement_dark_level",
     "normalise",
     "normalise_factor",
     "subtract_dark",
@@ -84,6 +85,30 @@ def auto_dark_level(a: Array) -> Array:
         )
     patch = arr[(..., *AUTO_DARK_PATCH)].astype(np.float64)
     return np.asarray(patch.mean(axis=(-2, -1), keepdims=True))
+
+
+def measurement_dark_level(a: Array, measured: Array | None = None) -> Array:
+    """Dark level of a lensless measurement estimated from itself: its 1st percentile.
+
+    Every pixel of a lensless frame sees scene light (a caustic covers the sensor), so no patch
+    is dark and any estimate from the frame errs high; its darkest pixels err least (on the
+    simulated bench, black level 100: 1st percentile 152, corner patch mean 330; the app's
+    preview 28.2 against 23.9 dB). One level per leading index (colour channel), shape
+    ``(..., 1, 1)``, over the ``measured`` pixels (an (H, W) mask, nonzero = measured) when given.
+    The one rule of ``--dark auto`` on a measurement without a recorded black level and of the
+    app's automatic dark level; a PSF's is :func:`auto_dark_level` (its corner is unlit).
+    """
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim < 2:
+        raise ValueError(f"cannot estimate the dark level of an image of shape {arr.shape}")
+    flat = arr.reshape(*arr.shape[:-2], -1)
+    if measured is not None and np.shape(measured) == arr.shape[-2:]:
+        keep = np.asarray(measured).reshape(-1) > 0
+        if keep.any():
+            flat = flat[..., keep]
+    k = flat.shape[-1] // 100
+    level = np.partition(flat, k, axis=-1)[..., k]
+    return np.asarray(level)[..., None, None]
 
 
 def subtract_dark(a: Array, dark: float | Array | Literal["auto"]) -> Array:

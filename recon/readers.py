@@ -423,6 +423,7 @@ def _dark_for(
     what: str,
     p: Path,
     order: ChannelOrder = "rgb",
+    measured: Array | None = None,
 ) -> float | Array | Literal["auto"] | None:
     """Turn a ``dark`` argument into what :func:`subtract_dark` takes, matched to ``image``.
 
@@ -434,7 +435,14 @@ def _dark_for(
         return None
     if isinstance(dark, str) and dark == "auto":
         recorded = recorded_black_level(p)  # the camera's own level beats an estimate
-        return "auto" if recorded is None else recorded
+        if recorded is not None:
+            return recorded
+        if what == "measurement":  # no unlit corner on a lensless frame: its darkest pixels
+            from recon.preprocess import measurement_dark_level
+
+            level = measurement_dark_level(image, measured)
+            return np.broadcast_to(level, np.shape(image))
+        return "auto"  # a PSF: its corner patch, unlit around the caustic
     if isinstance(dark, str | os.PathLike):
         dp = Path(dark)
         d = _load_image(dp, key=key, prefer=_DARK_KEYS)
@@ -578,7 +586,7 @@ def _prepare(
             _check_black_level(raw, p)
         if unmasked:
             _check_unmasked_zeros(chw, p)
-    d = _dark_for(dark, key, chw, channels, what, p, order)
+    d = _dark_for(dark, key, chw, channels, what, p, order, measured)
     if d is not None:  # in float64 for data float32 cannot hold (a 0..200 signal on a 1e9
         # pedestal kept 4 levels when the pedestal was subtracted after the cast)
         arr = _subtract_dark(_as_float(chw), d, p, what)

@@ -6,9 +6,10 @@ caustic sees some light). The preview subtracted 52 codes of the scene: 28.2 aga
 (gain-fitted, tau 1e-4, 300 iterations), and with the automatic tau, which the clipped frame
 also misled (1e-4 against 3e-5), 28.2 against 30.7 dB. The jobs launched from the app and the
 trade panel took the same level, and ``--dark auto`` on the same frame took another estimate
-(the corner patch's mean, 330). A frame now carries the camera's black level
+(the corner patch's mean, 330: 23.9 dB). A frame now carries the camera's black level
 (``Frame.black_level``: the simulated camera's dark offset; GenICam and V4L2 report none), and
-*auto* is one rule in the app and the CLI: that level, else the corner estimate.
+*auto* on a measurement is one rule in the app and the CLI: that level, else the frame's 1st
+percentile (``recon.preprocess.measurement_dark_level``); a PSF's stays its corner patch.
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ def test_a_black_level_must_be_a_code(bad):
 def test_the_preview_subtracts_the_cameras_level_and_sees_the_scene_better(bench):
     cfg, cam, frame = bench
     truth = np.asarray(cam.scene.image)
-    corner = float(np.asarray(frame.pixels)[5:15, 5:15].astype(np.float64).mean())
+    low = float(np.percentile(np.asarray(frame.pixels), 1, method="lower"))
     psnr = {}
     for label, black in (("camera", frame.black_level), ("estimate", None)):
         # a fixed tau and no display rate: the automatic tau is chosen in the background and
@@ -77,29 +78,51 @@ def test_the_preview_subtracts_the_cameras_level_and_sees_the_scene_better(bench
         if black is not None:
             assert res.dark == 100.0 and res.dark_note == "dark 100 (camera)"
         else:  # --dark auto's estimate, not a second one of the app's
-            assert res.dark == pytest.approx(corner, rel=1e-6) and corner > 140.0
-            assert res.dark_note.endswith("(corner estimate)")
-    # 29.3 against 28.2 dB with the old 1st percentile (300 iterations), more with the corner;
-    # the margin leaves room for other BLAS kernels (the noise draws are seeded)
+            assert res.dark == pytest.approx(low, rel=1e-6) and low > 140.0
+            assert res.dark_note.endswith("(1st percentile)")
+    # 29.3 against 28.2 dB (300 iterations; the corner patch's 330: 23.9 dB); the margin
+    # leaves room for other BLAS kernels (the noise draws are seeded)
     assert psnr["camera"] > psnr["estimate"] + 0.5, psnr
 
 
-def test_the_app_and_the_cli_take_one_estimate_without_a_black_level(tmp_path):
+def test_the_app_and_the_cli_take_one_estimate_without_a_black_level(bench, tmp_path):
+    """The app took the 1st percentile (152 on the bench's frame) and ``--dark auto`` the corner
+    patch (330): one frame, two dark levels. A measurement's estimate is now the percentile in
+    both (a PSF's stays the corner patch, unlit around its caustic)."""
     import tifffile
 
-    from recon.checks import MeasurementWarning
+    from recon.readers import load_psf
 
-    rng = np.random.default_rng(0)
-    pixels = (100 + 900 * rng.random((40, 48))).astype(np.uint16)
+    pixels = np.asarray(bench[2].pixels)
     p = tmp_path / "plain.tif"
     tifffile.imwrite(p, pixels)
     app_level = frame_dark_level(pixels, None, None)
-    with pytest.warns(MeasurementWarning):  # half the frame below the estimate
-        cli = load_measurement(p, dark="auto", normalise=None)
+    assert 140.0 < app_level < 160.0  # the bench's black level is 100: scene light on top
+    cli = load_measurement(p, dark="auto", normalise=None)
     np.testing.assert_allclose(cli[0], np.clip(pixels.astype(np.float32) - app_level, 0, None),
                                rtol=0, atol=1e-3)
-    with pytest.raises(ValueError, match="smaller than the 15x15 corner"):
-        frame_dark_level(pixels[:10, :10], None, None)
+    # erased pixels (0 in the file, outside the mask) do not pull the estimate to 0
+    erased = pixels.copy()
+    erased[:, : pixels.shape[1] // 4] = 0
+    mask = np.ones(pixels.shape, np.float32)
+    mask[:, : pixels.shape[1] // 4] = 0
+    tifffile.imwrite(tmp_path / "erased.tif", erased)
+    got = load_measurement(tmp_path / "erased.tif", dark="auto", normalise=None, measured=mask)
+    assert float(got[0][mask > 0].min()) == 0.0 and float(got[0].max()) < float(pixels.max())
+    from recon.preprocess import measurement_dark_level
+
+    level = float(measurement_dark_level(erased, mask).item())
+    assert level > 100.0  # of the measured pixels, not the erased zeros
+    # a PSF's auto is its corner patch, as the DiffuserCam tutorial's
+    psf = np.round(50 + 5 * np.random.default_rng(2).standard_normal((40, 48))).astype(np.uint16)
+    psf[20, 24] = 4000
+    tifffile.imwrite(tmp_path / "psf.tif", psf)
+    corner = float(psf[5:15, 5:15].astype(np.float64).mean())
+    from recon.psfcheck import PsfWarning
+
+    with pytest.warns(PsfWarning, match="noise around 0"):  # its floor's noise, clipped
+        got = load_psf(tmp_path / "psf.tif", dark="auto", normalise=None)
+    assert float(got[0, 20, 24]) == pytest.approx(4000 - corner, abs=1e-3)  # not 4000 - 38
 
 
 def test_frame_keywords_hand_the_level_to_the_preview(bench):
@@ -122,19 +145,14 @@ def test_dark_auto_on_a_saved_frame_takes_the_recorded_level(bench, tmp_path):
     auto = load_measurement(tif, dark="auto", normalise=None)
     typed = load_measurement(tif, dark=100.0, normalise=None)
     np.testing.assert_array_equal(auto, typed)
-    # a plain image of the same pixels (no metadata) still gets the corner estimate
+    # a plain image of the same pixels (no metadata) gets the estimate from its pixels
     import tifffile
 
     plain = tmp_path / "plain.tif"
     tifffile.imwrite(plain, np.asarray(frame.pixels))
     assert recorded_black_level(plain) is None
-    corner = float(np.asarray(frame.pixels)[5:15, 5:15].astype(np.float64).mean())
-    assert corner > 100.5  # the corner of a lensless frame holds light
-    from recon.checks import MeasurementWarning
-
-    with pytest.warns(MeasurementWarning, match="dark level is likely above"):
-        est = load_measurement(plain, dark="auto", normalise=None)
-    assert not np.array_equal(est, typed)
+    est = load_measurement(plain, dark="auto", normalise=None)
+    assert not np.array_equal(est, typed)  # 152: the darkest pixels of a lensless frame
 
 
 def test_a_damaged_recorded_level_is_not_used(bench, tmp_path):

@@ -43,7 +43,8 @@ def field_value(value: str | None) -> Any:
 
 def add_dark_arguments(p: Any, dark_help: str = "dark level: a number, a dark-frame file or "
                        "'auto' (the black level a frame saved by lenslesscam records, else the "
-                       "mean of the corner patch [5:15, 5:15])") -> None:
+                       "measurement's 1st percentile; the PSF's: the mean of its corner patch "
+                       "[5:15, 5:15])") -> None:
     """``--dark`` and ``--psf-dark``: one wording in every command the problem loader serves."""
     p.add_argument("--dark", help=dark_help)
     p.add_argument("--psf-dark", help="dark level of the PSF: a number, 'auto' or a dark-frame "

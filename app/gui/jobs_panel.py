@@ -83,7 +83,7 @@ class Measurement:
     """What a new job (or a trade) starts from: the newest frame and the preview's PSF.
 
     ``dark``: the preview's dark level (None: auto, the camera's black level or the frame's
-    corner estimate: ``preview_engine.frame_dark_level``).
+    1st percentile: ``preview_engine.frame_dark_level``).
     """
 
     frame: Any

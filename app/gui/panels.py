@@ -486,8 +486,7 @@ class PreviewControls(QGroupBox):
         self.dark.setSpecialValueText("auto")
         self.dark.setKeyboardTracking(False)
         self.dark.setToolTip("Dark level in camera codes (auto: the camera's black level where "
-                             "it reports one, else the mean of the frame's corner patch "
-                             "[5:15, 5:15], as --dark auto)")
+                             "it reports one, else the frame's 1st percentile, as --dark auto)")
         self.bins = SpinBox()
         self.bins.setRange(*(int(v) for v in RANGES["video_bins"]))
         self.bins.setKeyboardTracking(False)

@@ -3,8 +3,8 @@
 :class:`PreviewEngine` turns one camera frame into a quick FISTA-TV estimate:
 
 1. the frame's pixels minus a dark level (a number, or ``auto``: the camera's black level
-   where the frame carries one, else the mean of its corner patch, as ``--dark auto``),
-   clipped at 0;
+   where the frame carries one, else its 1st percentile, as ``--dark auto`` on a
+   measurement), clipped at 0;
 2. when the frame is a region of the sensor (``frame.roi`` smaller than the PSF), it is placed
    into a sensor-sized array and the pixels outside the ROI are masked out of the data term, so
    the model stays exact (a ROI is an erasure mask, not a smaller PSF); when the frame says
@@ -166,24 +166,22 @@ def frame_dark_level(pixels: npt.ArrayLike, dark: float | None,
                      black_level: float | None = None) -> float:
     """The dark level of a frame for the app: ``dark``, else (None: auto) the camera's.
 
-    Auto is ``--dark auto``'s rule (:func:`recon.readers.load_measurement`): the frame's
-    ``black_level`` (:attr:`drivers.camera.Frame.black_level`, the code an unlit pixel reads,
-    where the camera reports it), else the mean of the corner patch ``[5:15, 5:15]``
-    (:func:`recon.preprocess.auto_dark_level`). An estimate from the frame errs high on a
-    lensless frame, whose every pixel sees scene light: on the simulated bench (black level
-    100) the corner reads 330 and the 1st percentile, the app's estimate before, 152, which
-    cost the preview 1.1 dB at a fixed tau and 2.5 dB with the automatic tau
-    (``tests/test_camera_black_level.py``). The one rule of the preview, the jobs launched
-    from it and the trade panel. Raises ValueError for a frame under 15x15 pixels with no
-    black level.
+    Auto is ``--dark auto``'s rule for a measurement (:func:`recon.readers.load_measurement`):
+    the frame's ``black_level`` (:attr:`drivers.camera.Frame.black_level`, the code an unlit
+    pixel reads, where the camera reports it), else the frame's 1st percentile
+    (:func:`recon.preprocess.measurement_dark_level`). An estimate from the frame errs high on
+    a lensless frame, whose every pixel sees scene light: on the simulated bench (black level
+    100) the percentile reads 152, which cost the preview 1.1 dB at a fixed tau and 2.5 dB
+    with the automatic tau (``tests/test_camera_black_level.py``), and the corner patch 330.
+    The one rule of the preview, the jobs launched from it and the trade panel.
     """
     if dark is not None:
         return float(dark)
     if black_level is not None:
         return float(black_level)
-    from recon.preprocess import auto_dark_level
+    from recon.preprocess import measurement_dark_level
 
-    return float(np.asarray(auto_dark_level(np.asarray(pixels))).item())
+    return float(np.asarray(measurement_dark_level(np.asarray(pixels))).reshape(-1)[0])
 
 
 class PreviewError(ValueError):
@@ -701,7 +699,7 @@ class PreviewEngine:
             dark=dark,
             dark_note=("" if s.dark is not None else
                        f"dark {dark:g} (camera)" if black_level is not None else
-                       f"dark {dark:g} (corner estimate)"),
+                       f"dark {dark:g} (1st percentile)"),
         )
 
     # -- tau auto ------------------------------------------------------------------------------
@@ -851,10 +849,7 @@ class PreviewEngine:
         black_level: float | None,
     ) -> tuple[F32, float]:
         f = frame.astype(np.float32)
-        try:
-            dark = frame_dark_level(f, s.dark, black_level)
-        except ValueError as exc:  # a frame too small for the corner estimate
-            raise PreviewError(f"{exc}: set the dark level") from None
+        dark = frame_dark_level(f, s.dark, black_level)
         f -= np.float32(dark)
         np.maximum(f, np.float32(0.0), out=f)
         if roi is not None:
