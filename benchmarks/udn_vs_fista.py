@@ -77,7 +77,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    f"{', '.join(map(str, FISTA_CHECKPOINTS))} below it and at the last")
     p.add_argument("--threads", type=POSITIVE_INT, default=None,
                    help="torch threads per process (default: the global --threads, else the "
-                   "thread policy, recon.threads, chosen once here for every process)")
+                   "thread policy's count, recon.threads, divided among the --jobs processes)")
     jobs = min(2, os.cpu_count() or 1)
     p.add_argument("--jobs", type=POSITIVE_INT, default=jobs,
                    help=f"UDN runs in parallel processes (default min(2, CPU count): {jobs} here)")
@@ -249,7 +249,11 @@ def run(args: argparse.Namespace) -> int:
     if not 0 < args.holdout < 1:
         raise ValueError(f"--holdout must be in (0, 1) (the held-out choice needs held-out "
                          f"pixels), got {args.holdout}")
+    chosen_here = args.threads is None and getattr(args, "thread_choice", None) is None
     choice = bench_threads(args)  # one count, passed to every worker process
+    if chosen_here and args.jobs > 1:  # the policy's count is for one process: shared by
+        # --jobs of them (2 x 2 threads on 2 cores is oversubscribed, up to 50x slower)
+        args.threads = max(1, choice.threads // args.jobs)
     t_all = time.perf_counter()
     psf, sims = make_data(args.scale, args.scenes, args.erasure, args.noise)
     fista = run_fista(psf, sims, args.fista_iters)

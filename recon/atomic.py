@@ -308,7 +308,11 @@ def _claim(tmp: Path, target: Path) -> bool:
         except FileExistsError:
             return False
         os.close(fd)
-        os.replace(tmp, target)
+        try:
+            os.replace(tmp, target)
+        except BaseException:
+            target.unlink(missing_ok=True)  # our empty placeholder, not a file of anyone's
+            raise
         return True
     tmp.unlink()
     return True
@@ -328,6 +332,9 @@ def write_new(save: Callable[[Path], Any], folder: Path, stem: str, suffix: str)
     tmp = Path(name)
     try:
         save(tmp)
+        os.chmod(tmp, _umask_mode())  # as a plain open() would make it (mkstemp: 0600)
+        with open(tmp, "rb") as fh:  # on disk before it has its name
+            os.fsync(fh.fileno())
         n = 1
         while True:
             target = folder / (f"{stem}{suffix}" if n == 1 else f"{stem}-{n}{suffix}")

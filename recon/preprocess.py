@@ -115,8 +115,8 @@ def subtract_dark(a: Array, dark: float | Array | Literal["auto"]) -> Array:
     """Subtract a dark level: a scalar, a dark frame, or ``'auto'`` (:func:`auto_dark_level`).
 
     A dark frame must have the shape of ``a`` or of its trailing axes (it is broadcast over
-    the leading ones). Returns a float array (float32 for integer input); values may become
-    negative (see :func:`clip_nonneg`).
+    the leading ones). Returns a float array (as :func:`_as_float`: float32 for integers of up
+    to 16 bits, float64 for wider ones); values may become negative (see :func:`clip_nonneg`).
     """
     arr = _as_float(a)
     if isinstance(dark, str):
@@ -156,8 +156,8 @@ def clip_nonneg(a: Array) -> Array:
 def box_downsample(a: Array, factor: int) -> Array:
     """Mean over ``factor x factor`` blocks of the last two axes; a remainder is dropped.
 
-    Integer input gives float32; float input keeps its dtype. ``factor=1`` returns a float
-    copy.
+    Integer input gives float32 (float64 for 32- and 64-bit integers, :func:`_as_float`);
+    float input keeps its dtype. ``factor=1`` returns a float copy.
     """
     if isinstance(factor, bool) or not isinstance(factor, int | np.integer) or factor < 1:
         raise ValueError(f"downsample factor must be a positive integer, got {factor!r}")
@@ -321,7 +321,7 @@ def to_gray(a: Array, weights: Sequence[float] = LUMA_WEIGHTS) -> Array:
     """Channel-first colour ``(C, ...)`` to gray ``(1, ...)`` with the Rec. 601 luma weights.
 
     ``C = 1`` is returned unchanged, ``C = 4`` (RGBA) drops alpha. The weights are normalised
-    to sum 1, so a gray image keeps its level. Float output (float32 for integer input).
+    to sum 1, so a gray image keeps its level. Float output (as :func:`_as_float`).
     """
     arr = _as_float(a)
     if arr.ndim < 1:

@@ -256,6 +256,33 @@ def test_the_global_threads_option_reaches_a_benchmark():
         assert args.threads is None, name  # a local default no longer overrides the global
 
 
+def test_udn_vs_fistas_processes_share_the_policys_threads(monkeypatch):
+    """(diff review) Each of its --jobs processes took the policy's whole count: 2 x 2
+    threads on 2 cores. The policy's count is shared among them; a given count is kept."""
+    import benchmarks.udn_vs_fista as uvf
+    import recon.threads as rt
+
+    monkeypatch.setattr(rt, "apply_threads", lambda n=None: rt.ThreadChoice(
+        4 if n is None else int(n), 4, 0.0, "auto" if n is None else "requested"))
+
+    class Stop(Exception):
+        pass
+
+    seen: list[int] = []
+
+    def stop(*_a, **_k):
+        seen.append(args.threads)
+        raise Stop
+
+    monkeypatch.setattr(uvf, "make_data", stop)
+    for argv, want in ((["bench", "udn-vs-fista", "--jobs", "2"], 2),
+                       (["bench", "udn-vs-fista", "--jobs", "2", "--threads", "3"], 3)):
+        args = build_parser().parse_args(argv)
+        with pytest.raises(Stop):
+            uvf.run(args)
+        assert seen[-1] == want, argv
+
+
 def test_a_table_never_mixes_thread_counts(tmp_path, capsys):
     results = _write(tmp_path / "r.jsonl", [_rp_row(erasure=0.5, threads=1),
                                             _rp_row(erasure=0.9, threads=2)])
@@ -354,7 +381,7 @@ def test_percent_in_a_description_is_shown_once():
                  if isinstance(a, argparse._SubParsersAction))
     for p in bench.choices.values():
         assert "%%" not in p.format_help()
-    assert "hours on a 2-core CPU" in bench.choices["real-pairs"].format_help()
+    assert "long on a 2-core CPU" in bench.choices["real-pairs"].format_help()
 
 
 def test_missing_shared_data_is_a_bench_error_naming_the_variable(monkeypatch, capsys):

@@ -794,7 +794,8 @@ class MainWindow(QMainWindow):
 
     def _show_frame(self, frame: Any) -> None:
         prev, self.last_frame = self.last_frame, frame
-        if prev is None or (prev.camera_id, prev.shape) != (frame.camera_id, frame.shape):
+        if prev is None or ((prev.backend, prev.camera_id, prev.shape)
+                            != (frame.backend, frame.camera_id, frame.shape)):
             self.trade_panel.notice_source()  # a trade measured on the other no longer holds
         self.raw_panel.set_image(frame.pixels)
         now = time.time()
@@ -1094,7 +1095,8 @@ class MainWindow(QMainWindow):
             planes = psf.shape[0] if psf.ndim == 3 and psf.shape[0] > 1 else 0
             if planes:
                 raise ValueError(_stack_message(planes))
-            frame = self.last_frame
+            # the running camera's (a frame of a camera since disconnected refused a PSF)
+            frame = self.last_frame if self.camera_state is CameraState.LIVE else None
             sensor = getattr(frame, "sensor", None) if frame is not None else None
             if sensor is not None:
                 roi = frame.roi

@@ -811,8 +811,9 @@ class PreviewEngine:
             k = m_k.shape[0]
             asked = f" ({geo.video_bins} asked)" if k != geo.video_bins else ""
             model_note = f"{k} bins of {factor} lines{asked}"
-            if m_k.shape[0] > 1 and np.allclose(m_k, m_k[:1]):
-                model_note += (": every bin sees the same rows (a global shutter), so they "
+            # every row integrates each bin alike (its times do not depend on the row)
+            if m_k.shape[0] > 1 and np.allclose(m_k, m_k[:, :1]):
+                model_note += (": every row sees the bins alike (a global shutter), so they "
                                "are not told apart; use the 2D model")
             recipe: tuple[str, dict[str, Any]] = (
                 "video", {"psf": psf_d, "shutter": m_k.astype(np.float32), "mask": mask})

@@ -71,7 +71,16 @@ done
 wait
 echo "runs ended after $(elapsed) s"
 mkdir -p "$W/all-images"
-cat "$W"/rp-*.jsonl > "$W/all.jsonl" 2>/dev/null
+# one file of all the processes' records; a torn last line of a process cut off by the
+# timeout is dropped (cat put it in the middle of the file, which the table refuses)
+$PY - "$W" <<'EOF'
+import json, sys
+from pathlib import Path
+from benchmarks._cli import read_jsonl
+w = Path(sys.argv[1])
+rows = [r for f in sorted(w.glob("rp-*.jsonl")) for r in read_jsonl(f, "--results")]
+(w / "all.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+EOF
 cp "$W"/rp-*-images/*.npz "$W/all-images/" 2>/dev/null
 # shellcheck disable=SC2086
 $TABLE --table-only ${TABLE_EXTRA:-} --results "$W/all.jsonl" --figure "$W/real-pairs-gpu.png" \

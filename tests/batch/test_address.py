@@ -87,11 +87,24 @@ def test_an_address_that_does_not_answer_times_out(monkeypatch: pytest.MonkeyPat
                                        r"answer from .*:6379 within 2\.5 s; check"):
         check_reachable("head.lab:6379", 2.5)
     assert seen["timeout"] == 2.5
-    # `auto` is what Ray finds on this machine: none here, said before anything is written
-    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    # `auto` is what Ray finds on this machine (Ray's own reading, stood in for here: a Ray
+    # of another test may run on this machine): none, said before anything is written
+    services = pytest.importorskip("ray._private.services")
+
+    def none_here(address):
+        raise ConnectionError("Could not find any running Ray instance. Please specify the one "
+                              "to connect to by setting `--address` flag or `RAY_ADDRESS`")
+
+    monkeypatch.setattr(services, "canonicalize_bootstrap_address", none_here)
     with pytest.raises(CliError, match=r"^cannot join the Ray cluster at auto: Could not find "
-                                       r"any running Ray instance"):
+                                       r"any running Ray instance; start one"):
         check_reachable("auto", 2.5)
+    # one found: probed as HOST:PORT is
+    monkeypatch.setattr(services, "canonicalize_bootstrap_address", lambda a: "head.lab:6379")
+    seen.clear()
+    with pytest.raises(CliError, match=r"^cannot reach the Ray cluster at auto: no answer"):
+        check_reachable("auto", 2.5)
+    assert seen["timeout"] == 2.5
 
 
 def test_a_bad_address_is_refused_before_anything_is_written(tmp_path: Path, capsys) -> None:

@@ -138,6 +138,18 @@ def test_write_new_claims_a_free_name_with_or_without_hard_links(
     assert (tmp_path / "psf-1-2.tif").read_bytes() == (tmp_path / "psf-1-3.tif").read_bytes()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["psf-1-2.tif", "psf-1-3.tif",
                                                           "psf-1.tif"]  # no temporary left
+    # (diff review) the file has a plain open()'s permissions, not mkstemp's 0600
+    old = os.umask(0o022)
+    try:
+        made = write_new(save, tmp_path, "perm", ".tif")
+    finally:
+        os.umask(old)
+    assert made.stat().st_mode & 0o777 == 0o644
+    # a failed move in the no-link fallback leaves no empty file under the final name
+    monkeypatch.setattr(os, "replace", lambda a, b: (_ for _ in ()).throw(OSError("disk")))
+    with pytest.raises(OSError, match="disk"):
+        write_new(save, tmp_path, "gone", ".tif")
+    assert not (tmp_path / "gone.tif").exists()
 
 
 # 3 -------------------------------------------------------------------------------------------

@@ -583,6 +583,12 @@ def test_a_psf_of_another_sensor_is_refused_and_the_last_sessions_is_said(
     np.save(tmp_path / "good.npy", good)
     assert w._load_psf(str(tmp_path / "good.npy"))
     assert not w.banner.isVisible()  # the refusal was of the other file
+    # with the camera disconnected there is no sensor to hold it to (its last frame was
+    # kept, and refused the PSF of the camera about to be connected)
+    w.disconnect_camera()
+    qtbot.waitUntil(lambda: w.camera_state != "live", timeout=10_000)
+    assert w._load_psf(str(tmp_path / "other.npy"))
+    assert w._load_psf(str(tmp_path / "good.npy"))
     # the last session's PSF is gone: said, and the bench's PSF is used
     w2 = make_window(AppSettings(frame_rate_hz=10.0, connect_light=False,
                                  psf_path=str(tmp_path / "moved-away.npy")))

@@ -147,6 +147,11 @@ def test_video_bins_are_said_and_checked(psf: np.ndarray) -> None:
     r = eng.process(frame, timing=SensorTiming(rows=48, line_time_us=10.0, exposure_lines=20,
                                                pattern="global"))
     assert "global shutter" in r.model_note and "2D model" in r.model_note
+    # an exposure the bins do not divide (the last bin partial) is said alike
+    eng = PreviewEngine(psf, _settings(model="video", video_bins=4, downsample=1))
+    r = eng.process(frame, timing=SensorTiming(rows=48, line_time_us=10.0, exposure_lines=22,
+                                               pattern="global"))
+    assert "global shutter" in r.model_note, r.model_note
     r2 = PreviewEngine(psf, _settings()).process(frame)
     assert r2.model_note == ""
 
