@@ -133,6 +133,10 @@ def read_table(path: str | os.PathLike[str], fmt: str, version: int, what: str,
                               f"this lenslesscam reads ({version}); update lenslesscam to "
                               "read it")
     reader = csv.DictReader(io.StringIO(text[pos:], newline=""))
-    fieldnames = list(reader.fieldnames or [])
-    rows = [(line + reader.line_num, rec) for rec in reader]
+    try:  # csv.Error is no ValueError: a field over csv's limit escaped every caller's guard
+        fieldnames = list(reader.fieldnames or [])
+        rows = [(line + reader.line_num, rec) for rec in reader]
+    except csv.Error as exc:
+        raise FormatError(f"{path}: not a readable {what} (line {line + reader.line_num}: "
+                          f"{exc})") from None
     return Table(file_version, meta, fieldnames, rows)

@@ -295,3 +295,23 @@ def test_a_trade_that_measured_nothing_leaves_nothing(pair, small_grid, tmp_path
                            tmp_path / "mine")
     assert code == 0, err
     assert (tmp_path / "mine" / "trade.csv").is_file()
+
+
+def test_a_csv_field_over_csvs_limit_is_a_format_error(tmp_path, capsys):
+    """(GUI review) A trade.csv with a field over csv's 128 KiB limit raised csv.Error, no
+    ValueError: every guard let it through (the app's New UDN job did nothing, a traceback on
+    stderr; Load trade.csv… kept the previous file's error); a batch manifest likewise."""
+    from recon.formats import FormatError
+    from recon.suggest import find_suggestions  # noqa: F401  (its guard catches ValueError)
+    from recon.trade import read_trade_csv
+
+    big = tmp_path / "trade.csv"
+    big.write_text("case,setting\nim65,\"" + "x" * 200_000 + "\"\n")
+    with pytest.raises(FormatError, match=r"trade\.csv: not a readable trade\.csv \(line \d+: "
+                                          r"field larger than field limit"):
+        read_trade_csv(big)
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("measurement,psf,method\n\"" + "x" * 200_000 + "\",p.npy,fista\n")
+    code, _, err = run_cli(capsys, "batch", "run", manifest, "--out", tmp_path / "b")
+    assert code == 2 and "not readable as CSV (field larger than field limit" in err, err
+    assert "Traceback" not in err and not (tmp_path / "b").exists()

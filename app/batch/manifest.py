@@ -193,7 +193,7 @@ def _read_rows(path: Path) -> list[tuple[str, dict[str, Any], frozenset[str]]]:
     text = read_utf8(path, hint="; save the manifest as UTF-8")
     suffix = path.suffix.lower()
     if suffix == ".csv":
-        reader = csv.DictReader(io.StringIO(text))
+        reader = _CheckedCsv(csv.DictReader(io.StringIO(text)), path)
         if not reader.fieldnames:
             raise ValueError(f"{path}: empty CSV manifest (the header names the columns, e.g. "
                              "measurement,psf,method)")
@@ -552,3 +552,32 @@ def item_hash(item: Item, hashes: dict[str, str | None] | None = None) -> str:
     doc = {"method": item.method, "argv": list(item.argv), "spec_data": item.spec_data,
            "truth": item.truth, "inputs": hashes}
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
+
+
+class _CheckedCsv:
+    """A ``csv.DictReader`` whose ``csv.Error`` is a one-line ValueError (manifest and line).
+
+    ``csv.Error`` (a field over csv's size limit) is no ValueError: it was a traceback.
+    """
+
+    def __init__(self, reader: Any, path: Path) -> None:
+        self._reader, self._path = reader, path
+
+    def _error(self, exc: Exception) -> ValueError:
+        return ValueError(f"{self._path}:{self._reader.line_num}: not readable as CSV ({exc})")
+
+    @property
+    def fieldnames(self) -> Any:
+        try:
+            return self._reader.fieldnames
+        except csv.Error as exc:
+            raise self._error(exc) from None
+
+    def __iter__(self) -> Any:
+        return self
+
+    def __next__(self) -> Any:
+        try:
+            return next(self._reader)
+        except csv.Error as exc:
+            raise self._error(exc) from None

@@ -398,3 +398,16 @@ def test_a_trade_is_saved_under_a_csv_name_only(panel_for: Any, qtbot: Any,
     assert panel.save(tmp_path / "results.md") is None
     assert "saved as a .csv file" in panel.suggestion.text()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_trade_csv_over_csvs_field_limit_is_said_for_that_file(panel_for: Any,
+                                                                 tmp_path: Any) -> None:
+    """(GUI review) Load trade.csv… printed a traceback and kept the previous file's error."""
+    panel, _fake, _, _ = panel_for(_frame(_scene()))
+    (tmp_path / "bad.csv").write_text("not,a,trade\n")
+    panel.load_csv(tmp_path / "bad.csv")
+    big = tmp_path / "big.csv"
+    big.write_text("case,setting\nim65,\"" + "x" * 200_000 + "\"\n")
+    panel.load_csv(big)
+    assert panel.suggestion.text().startswith(f"cannot load {big}: ")
+    assert "field larger than field limit" in panel.suggestion.text()
