@@ -249,6 +249,7 @@ class MainWindow(QMainWindow):
         self.devices.on_camera_change(self.camera_state_changed.emit)
         self.devices.on_light_change(self.light_state_changed.emit)
         self.last_frame: Any = None
+        self._live_before_reconfigure = False  # the camera's state before a queued change
         self.frames_shown = 0
         self.previews_shown = 0
         self._preview_held = False  # by the trade panel while it measures (its timings)
@@ -749,7 +750,13 @@ class MainWindow(QMainWindow):
         cam = self.bench.camera
         if cam is None:
             return
-        was_live = self.camera_state is CameraState.LIVE
+        if self.camera_state is CameraState.RECONFIGURING:
+            # a second click while the first change runs: live as before the first (it read
+            # "not live" and left the camera stopped with a green status line)
+            was_live = self._live_before_reconfigure
+        else:
+            was_live = self.camera_state is CameraState.LIVE
+            self._live_before_reconfigure = was_live
         self._set_camera_state("reconfiguring", f"setting {what}…", "busy")
 
         def work() -> tuple[dict[str, Any], dict[str, Any]]:

@@ -597,3 +597,25 @@ def test_a_psf_of_another_sensor_is_refused_and_the_last_sessions_is_said(
     qtbot.waitUntil(lambda: w2.camera_state == "live", timeout=20_000)
     qtbot.waitUntil(lambda: w2.engine.has_psf, timeout=10_000)
     assert "simulated bench" in w2.psf_source
+
+
+def test_two_quick_roi_changes_keep_the_camera_live(live_window: Any, qtbot: Any) -> None:
+    """(GUI review) Set camera ROI clicked twice (or ROI then Full sensor) while the first
+    change ran read the camera as not live: it stayed stopped under a green status line."""
+    w = live_window
+    cc = w.camera_controls
+    cc.show_roi.setChecked(True)
+    qtbot.wait(200)
+    w.raw_panel.roi.setPos((10, 8))
+    w.raw_panel.roi.setSize((40, 32))
+    cc.roi_apply.click()
+    cc.roi_apply.click()
+    qtbot.waitUntil(lambda: w.camera_state == "live" and not w.camera_queue.busy,
+                    timeout=15_000)
+    cc.roi_apply.click()
+    cc.roi_reset.click()
+    qtbot.waitUntil(lambda: w.camera_state == "live" and not w.camera_queue.busy,
+                    timeout=15_000)
+    n = w.frames_shown
+    qtbot.waitUntil(lambda: w.frames_shown > n + 2, timeout=10_000)  # frames flow again
+    assert cc.live.isChecked()
