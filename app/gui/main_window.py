@@ -1218,8 +1218,13 @@ class MainWindow(QMainWindow):
 
         return Path(self.settings.save_dir or default_snaps_dir())
 
-    def snap_and_save(self, path: str | Path | None = None) -> None:
-        """Save the newest frame (live) or snap one (stopped), with its metadata."""
+    def snap_and_save(self, path: str | Path | None = None, *,
+                      remember: Path | None = None) -> None:
+        """Save the newest frame (live) or snap one (stopped), with its metadata.
+
+        ``remember``: the folder that becomes the save folder once the save worked (a failed
+        Save as… moved it first, and every later Snap & save failed, after a restart too).
+        """
         target = Path(path) if path else self.save_dir()
         extra = {"camera_spec": self.bench.camera_spec,
                  "scene": self.settings.sim_scene if self.bench.is_simulated else None}
@@ -1237,14 +1242,18 @@ class MainWindow(QMainWindow):
             return save_frame(f, target, extra)
 
         def done(paths: list[Path]) -> None:
+            if remember is not None:
+                self.settings.save_dir = str(remember)
             self.last_saved = paths[0]
             self.camera_controls.save_info.setText(f"saved {paths[0]}")
             self._status(f"saved {paths[0]}")
             self.clear_error("snap")  # a save that works ends the last one's error
 
-        self.camera_queue.submit(work, name="snap", on_done=done,
-                                 on_error=lambda e: self.show_error(f"Snap: {_describe(e)}",
-                                                                    "snap"))
+        def failed(exc: BaseException) -> None:
+            self.camera_controls.save_info.setText("not saved")  # not the last file's "saved"
+            self.show_error(f"Snap: {_describe(exc)}", "snap")
+
+        self.camera_queue.submit(work, name="snap", on_done=done, on_error=failed)
 
     last_saved: Path | None = None
     last_saved_frame: Any = None
@@ -1253,12 +1262,15 @@ class MainWindow(QMainWindow):
         path, _ = QFileDialog.getSaveFileName(self, "Save frame", str(self.save_dir()),
                                               "TIFF (*.tif)")
         if path:
+            if Path(path).is_dir():  # a folder chosen: the frame's own name in it (it was
+                # written as '<folder>.tif' beside it)
+                self.snap_and_save(path, remember=Path(path))
+                return
             if Path(path).suffix.lower() not in {".tif", ".tiff", *_OTHER_FILE_TYPES}:
                 # the dialog's TIFF filter: 'name' made a folder 'name/', 'exp_2.5ms' was
                 # refused as a '.5ms' file; another file type (.png) is still said to be one
                 path += ".tif"
-            self.settings.save_dir = str(Path(path).parent)
-            self.snap_and_save(path)
+            self.snap_and_save(path, remember=Path(path).parent)
 
     # -- settings and closing ------------------------------------------------------------------
 

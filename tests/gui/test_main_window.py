@@ -102,6 +102,21 @@ def test_a_save_that_works_ends_the_last_ones_error_and_a_name_gets_tif(
     w._save_as()
     qtbot.waitUntil(lambda: Path(w.last_saved).name == "exp_2.5ms.tif", timeout=10_000)
     assert not w.banner.isVisible()
+    # (GUI review) a failed save does not move the save folder; a folder chosen gets the frame
+    # in it under its own name (it was written as '<folder>.tif' beside it)
+    assert w.settings.save_dir == str(tmp_path)
+    (tmp_path / "afile").write_text("x")
+    picked[0] = str(tmp_path / "afile" / "x.tif")
+    w._save_as()
+    qtbot.waitUntil(lambda: w.banner.isVisible(), timeout=10_000)
+    assert w.settings.save_dir == str(tmp_path)
+    assert w.camera_controls.save_info.text() == "not saved"
+    (tmp_path / "frames").mkdir()
+    picked[0] = str(tmp_path / "frames")
+    w._save_as()
+    qtbot.waitUntil(lambda: Path(w.last_saved).parent == tmp_path / "frames", timeout=10_000)
+    assert not (tmp_path / "frames.tif").exists()
+    assert w.settings.save_dir == str(tmp_path / "frames")
 
 
 def test_snap_and_save_writes_tiff_with_metadata(live_window: Any, qtbot: Any,
