@@ -21,6 +21,7 @@ import pyqtgraph as pg
 from PySide6.QtCore import QEvent, QItemSelectionModel, Qt, QTimer, QUrl, Signal
 from PySide6.QtGui import QAction, QDesktopServices
 from PySide6.QtWidgets import (
+    QApplication,
     QCheckBox,
     QComboBox,
     QDialog,
@@ -598,7 +599,13 @@ class ResultDialog(QDialog):
         from recon.io import read_reconstruction
 
         self.setWindowTitle(f"Result: {view.name}")
-        self.resize(1100, 600)
+        # within the screen's free area (1100 px ran 80 px off a 1024 px screen)
+        screen = (parent.screen() if parent is not None else None) or QApplication.primaryScreen()
+        avail = screen.availableGeometry() if screen is not None else None
+        w, h = 1100, 600
+        if avail is not None and avail.width() > 0:
+            w, h = min(w, avail.width() - 20), min(h, avail.height() - 60)
+        self.resize(w, h)
         outer = QVBoxLayout(self)
         lay = QHBoxLayout()
         outer.addLayout(lay, 1)
@@ -689,6 +696,7 @@ class JobsPanel(QWidget):
         #: the settings of the last job queued (NewJobDialog.remembered), offered by the next
         #: dialog; the main window keeps them in the app's settings between sessions
         self.last_job: dict[str, Any] = {}
+        self.dialog: NewJobDialog | None = None  # the open New job dialog, if any
 
         self.new_button = QPushButton("New job from current measurement…")
         self.cancel_button = QPushButton("Cancel")
@@ -1058,7 +1066,15 @@ class JobsPanel(QWidget):
     # -- actions -------------------------------------------------------------------------------
 
     def new_job_dialog(self) -> NewJobDialog | None:
-        """Ask for the settings of a job on the newest frame and the preview's PSF."""
+        """Ask for the settings of a job on the newest frame and the preview's PSF.
+
+        One dialog at a time: while one is open it is brought to the front (two clicks opened
+        two, and each could queue a job).
+        """
+        if self.dialog is not None and self.dialog.isVisible():
+            self.dialog.raise_()
+            self.dialog.activateWindow()
+            return self.dialog
         m = self._current()
         frame = None if m is None else m.frame
         psf = None if m is None else m.psf
