@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import gc
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -134,6 +135,7 @@ class ImagePanel(QWidget):
         self.footer.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         self.footer.setWordWrap(True)  # readouts wrap at " · " instead of being cut
         never_wider(self.footer)
+        self._message_until = 0.0  # a save's message outlives the frames that follow it
         self.message = QLabel("")
         self.message.setWordWrap(True)
         never_wider(self.message)
@@ -189,7 +191,8 @@ class ImagePanel(QWidget):
                 self.roi.setSize([w // 2, h // 2])
         if self._with_saturation:
             self._update_saturation(image)
-        self.set_message("")
+        if time.monotonic() >= self._message_until:
+            self.set_message("")
 
     def clear_image(self) -> None:
         """Show no image (the next :meth:`set_image` is taken as a first one)."""
@@ -223,8 +226,13 @@ class ImagePanel(QWidget):
         hi = float(np.max(self._image))
         self.set_levels(lo, hi)
 
-    def set_message(self, text: str) -> None:
-        """Show (or clear) a message under the image (errors)."""
+    def set_message(self, text: str, hold_s: float = 0.0) -> None:
+        """Show (or clear) a message under the image (errors).
+
+        ``hold_s``: new images do not clear it for that long (a save's outcome: the next
+        frame, 50 ms later, cleared it before anyone could read it).
+        """
+        self._message_until = time.monotonic() + hold_s if hold_s > 0 else 0.0
         if text == self.message.text() and bool(text) == self.message.isVisible():
             return
         self.message.setText(text)
@@ -298,19 +306,29 @@ class ImagePanel(QWidget):
     def _ask_export_view(self) -> None:
         path, _ = QFileDialog.getSaveFileName(self, "Export view", "view.png", "PNG (*.png)")
         if path:
-            try:
-                self.export_view(path)
-            except OSError as exc:
-                self.set_message(str(exc))
+            self._save_said(self.export_view, path, ".png")
 
     def _ask_save_data(self) -> None:
         path, _ = QFileDialog.getSaveFileName(self, "Save image data", "image.tif",
                                               "TIFF (*.tif)")
         if path:
-            try:
-                self.save_data(path)
-            except (OSError, ValueError) as exc:
-                self.set_message(str(exc))
+            self._save_said(self.save_data, path, ".tif")
+
+    def _save_said(self, save: Any, path: str, suffix: str) -> None:
+        """``save(path)``, the dialog's suffix added to a bare name; the outcome is said.
+
+        Under the image, held there a while (success was not said, a failure vanished at once).
+        """
+        target = Path(path)
+        if not target.suffix:
+            target = target.with_suffix(suffix)
+        try:
+            written = save(target)
+        except (OSError, ValueError) as exc:
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            self.set_message(f"not saved: {target}: {why}", hold_s=15.0)
+            return
+        self.set_message(f"saved {written or target}", hold_s=8.0)
 
     # -- ROI -----------------------------------------------------------------------------------
 

@@ -155,6 +155,25 @@ def test_cursor_readout_auto_levels_and_image_menu(live_window: Any, qtbot: Any,
     with tifffile.TiffFile(tif) as t:
         assert t.asarray().shape == panel.image.shape
         assert '"format": "lenslesscam-view"' in t.pages[0].description
+    # (GUI review) what the menu's saves say outlives the next frames (a failure was cleared
+    # by the next frame, 50 ms later; a success said nothing); a bare name gets the suffix
+    from PySide6.QtWidgets import QFileDialog
+
+    answers = iter([str(tmp_path / "afile" / "v.png"), str(tmp_path / "bare")])
+    (tmp_path / "afile").write_text("x")
+    orig = QFileDialog.getSaveFileName
+    QFileDialog.getSaveFileName = staticmethod(lambda *a, **k: (next(answers), ""))
+    try:
+        panel._ask_export_view()
+        n = w.frames_shown
+        qtbot.waitUntil(lambda: w.frames_shown > n + 2, timeout=10_000)
+        assert panel.message.text().startswith(f"not saved: {tmp_path / 'afile' / 'v.png'}: ")
+        panel._ask_save_data()
+        qtbot.waitUntil(lambda: w.frames_shown > n + 4, timeout=10_000)
+        assert panel.message.text() == f"saved {tmp_path / 'bare.tif'}"
+        assert (tmp_path / "bare.tif").is_file()
+    finally:
+        QFileDialog.getSaveFileName = orig
 
 
 def test_device_list_real_first_demo_only_on_request(monkeypatch: pytest.MonkeyPatch) -> None:
