@@ -782,6 +782,14 @@ def load_measurement(
     return np.ascontiguousarray(arr, dtype=np.float32)
 
 
+def _natural_key(path: Path) -> tuple[Any, ...]:
+    """Sort key of a file name with its numbers by value (``psf2`` before ``psf10``)."""
+    import re
+
+    return tuple(int(part) if part.isdigit() else part.lower()
+                 for part in re.split(r"(\d+)", path.name))
+
+
 def load_psf_stack(
     paths: PathLike | Sequence[PathLike],
     *,
@@ -793,10 +801,12 @@ def load_psf_stack(
     """Load a depth PSF stack as float32 ``(K, H, W)`` (grayscale).
 
     ``paths`` is a sequence of single-plane files (one per depth, in order), a folder (its
-    image files in sorted name order), or one file holding the whole stack (multi-page TIFF,
-    or a 3-axis ``.npy``/``.npz``/``.mat`` array ``(K, H, W)``). Each plane: dark ->
-    downsample -> clip at 0; then one normalisation for the whole stack (default ``'max'``,
-    the convention of the DiffuserCam 3D data), which keeps the planes' relative energies.
+    image files in natural name order, numbers by value: ``psf2`` before ``psf10``; plain
+    sorting put 10 after 1 and silently swapped planes), or one file holding the whole stack
+    (multi-page TIFF, or a 3-axis ``.npy``/``.npz``/``.mat`` array ``(K, H, W)``). Each
+    plane: dark -> downsample -> clip at 0; then one normalisation for the whole stack
+    (default ``'max'``, the convention of the DiffuserCam 3D data), which keeps the planes'
+    relative energies.
     """
     planes: list[Array] = []
     names: list[Path] = []
@@ -805,8 +815,9 @@ def load_psf_stack(
         if p.is_dir():
             exts = (*_TIFF_EXT, *_CV_EXT, ".npy")
             files = sorted(
-                f for f in p.iterdir() if f.suffix.lower() in exts and not f.name.startswith(".")
-            )
+                (f for f in p.iterdir()
+                 if f.suffix.lower() in exts and not f.name.startswith(".")),
+                key=_natural_key)
             if not files:
                 raise ValueError(f"{p}: folder contains no image files")
             return load_psf_stack(

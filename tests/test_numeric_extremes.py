@@ -104,3 +104,16 @@ def test_admm_names_tau_when_tau_is_out_of_range(case):
     with pytest.raises(ValueError, match=r"^tau 1e\+300 over ADMM's penalty .* give a tau of "
                                          r"at most 1"):
         Admm(m, meas, tau=1e300, max_iter=2)
+
+
+def test_a_stack_folder_is_read_in_the_order_of_its_numbers(tmp_path):
+    """(spectral/depth review) psf0 ... psf10 in a folder loaded as 0, 1, 10, 2, ...: planes
+    swapped with no word (PSNR 20.6 -> 18.8 dB on a lit-plane case)."""
+    from recon.readers import load_psf_stack
+
+    for k in range(12):
+        plane = np.zeros((16, 16), np.float32)
+        plane[k, k] = 1.0 + k  # plane k lit at (k, k)
+        np.save(tmp_path / f"psf{k}.npy", plane)
+    stack = load_psf_stack(tmp_path, normalise=None)
+    assert [int(np.argmax(stack[k].max(axis=1))) for k in range(12)] == list(range(12))
