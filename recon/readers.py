@@ -569,6 +569,8 @@ def _prepare(
     measured: Array | None = None,
 ) -> tuple[F32, Path]:
     p = Path(path)
+    if what == "PSF":
+        _refuse_a_stack(p)
     raw = _load_image(p, key=key, prefer=prefer)
     _validate_raw(raw, p, what)
     chw = _select_channels(_to_chw(raw, p, what), channels, p, what, order, shared_gray)
@@ -780,6 +782,20 @@ def load_measurement(
             raise ValueError(f"measurement file {p} is all zero; cannot normalise it")
         arr = _normalise_fn(arr, normalise)
     return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def _refuse_a_stack(p: Path) -> None:
+    """A PSF stack of ours (``calibrate depth``) given as one PSF is refused, naming --psf-stack.
+
+    Its planes were read as colour channels and mixed into one PSF, with a warning whose advice
+    ("give one file per frame") did not fit.
+    """
+    from recon.calibfile import PSF_STACK_FORMAT
+
+    meta = _our_metadata(p)
+    if meta is not None and meta.get("format") == PSF_STACK_FORMAT:
+        raise ValueError(f"PSF file {p} is a stack of PSFs (a depth calibration): give it as "
+                         "--psf-stack (the depth model), or one of its planes as --psf")
 
 
 def _natural_key(path: Path) -> tuple[Any, ...]:

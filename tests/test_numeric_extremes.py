@@ -117,3 +117,19 @@ def test_a_stack_folder_is_read_in_the_order_of_its_numbers(tmp_path):
         np.save(tmp_path / f"psf{k}.npy", plane)
     stack = load_psf_stack(tmp_path, normalise=None)
     assert [int(np.argmax(stack[k].max(axis=1))) for k in range(12)] == list(range(12))
+
+
+def test_a_psf_stack_of_ours_given_as_one_psf_is_refused(tmp_path):
+    """(spectral/depth review) calibrate depth's 3-plane file given to --psf was mixed into one
+    PSF as R, G, B with a warning to "give one file per frame"."""
+    import json
+
+    from recon.calibfile import PSF_STACK_FORMAT
+    from recon.readers import load_psf
+
+    stack = np.random.default_rng(0).random((3, 16, 16)).astype(np.float32)
+    tifffile.imwrite(tmp_path / "stack.tif", stack, photometric="minisblack",
+                     description=json.dumps({"format": PSF_STACK_FORMAT, "format_version": 1}))
+    with pytest.raises(ValueError, match=r"stack\.tif is a stack of PSFs \(a depth "
+                                         r"calibration\): give it as --psf-stack"):
+        load_psf(tmp_path / "stack.tif")
