@@ -366,9 +366,6 @@ class Plan:
                 if n is not None and v[1] > n:
                     raise ValueError(f"plan field 'planes' {v!r} reaches past the {n}-plane "
                                      "stack")
-        if "k" in changes and (changes.get("model") or self.model) == "2d":
-            raise ValueError("k applies to a video or depth plan; a 2d plan has k = 1 "
-                             "(set model=video with it)")
         new: dict[str, Any] = {}
         for key, v in changes.items():
             if key in ("field",) and v is not None:
@@ -394,6 +391,11 @@ class Plan:
         planes_why = self._stack_planes(changes, new, merged)
         model = merged["model"]
         if model == "2d":
+            # after the planes chose the model: planes=[0,3] with k=3 is a depth plan (it was
+            # refused as a 2d one, "set model=video")
+            if "k" in changes and changes["k"] is not None and int(changes["k"]) != 1:
+                raise ValueError("k applies to a video or depth plan; a 2d plan has k = 1 "
+                                 "(set model=video, or planes=[first,last] for depth, with it)")
             merged["k"] = 1
             merged["bin_factor"] = None
         elif model == "video":

@@ -122,3 +122,18 @@ def test_recon_auto_runs_the_planes_set(tmp_path, capsys):
     assert (summary["model"], summary["k"]) == ("depth", 7)
     x, meta = read_reconstruction(out)
     assert x.shape[1] == 7 and meta["plan"]["planes"] == [0, 7]
+
+
+def test_k_set_with_the_planes_it_agrees_with_is_a_depth_plan():
+    """(spectral/depth review) planes=[0,3] with k=3 on a 2d plan was refused as "a 2d plan
+    has k = 1 (set model=video with it)", against docs/plan.md; k alone on a 2d plan names
+    depth too."""
+    p = _stack_plan().override(planes=[0, 3], k=3)
+    assert (p.model, p.k, p.planes) == ("depth", 3, (0, 3))
+    with pytest.raises(ValueError, match=r"does not match planes"):
+        _stack_plan().override(planes=[0, 3], k=2)
+    with pytest.raises(ValueError, match=r"a 2d plan has k = 1 \(set model=video, or "
+                                         r"planes=\[first,last\] for depth"):
+        _stack_plan().override(k=3)
+    with pytest.raises(ValueError, match=r"a 2d plan has k = 1"):
+        _stack_plan().override(planes=[2, 3], k=3)  # one plane: 2d
