@@ -133,7 +133,9 @@ def register(sub: Any) -> None:
     fc.add_argument("--layout", choices=("auto", "khw", "hwk"), default="auto",
                     help="axis order of the cube: auto, khw or hwk")
     fc.add_argument("--normalise", choices=("max", "none"), default="max",
-                    help="scale each filter to max 1, or keep the values (none)")
+                    help="scale the whole cube by one factor so its largest transmission is 1 "
+                    "(max; the bands keep their ratios), or keep the values, which must be in "
+                    "[0, 1] (none)")
     fc.add_argument("--downsample", type=POSITIVE_INT, default=1,
                     help="box downsampling factor of the cube (default 1)")
     fc.add_argument("--out", required=True, help="filter-cube file (.tif)")
