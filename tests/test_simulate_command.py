@@ -373,3 +373,24 @@ def test_atomic_files_checks_before_the_first_rename(tmp_path):
     with pytest.raises(RuntimeError), atomic_files(deep) as tmp:
         raise RuntimeError("boom")
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("bands", [3, 5])
+def test_a_spectral_scene_with_its_bands_last_keeps_them(tmp_path, capsys, bands):
+    """(spectral/depth review) An (H, W, K) spectral scene with 3 or 4 bands was made gray and
+    copied into every band (truth.npy with K equal bands); with 5 it failed as "has 32
+    frames"."""
+    np.save(tmp_path / "psf.npy", synthetic_psf((32, 40), seed=1))
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "f.npy", rng.random((bands, 32, 40)).astype(np.float32))
+    scene = np.zeros((32, 40, bands), np.float32)
+    for k in range(bands):
+        scene[4 + 5 * k : 8 + 5 * k, 5:35, k] = 1.0
+    np.save(tmp_path / "s.npy", scene)
+    code, _, err = _run(capsys, "simulate", "--model", "spectral", "--psf", tmp_path / "psf.npy",
+                        "--filters", tmp_path / "f.npy", "--scene", tmp_path / "s.npy",
+                        "--out", tmp_path / "sim")
+    assert code == 0, err
+    assert f"its last axis read as the model's K = {bands}" in err
+    truth = np.load(tmp_path / "sim" / "truth.npy")
+    np.testing.assert_array_equal(truth[0], np.moveaxis(scene, -1, 0))

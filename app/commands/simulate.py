@@ -131,7 +131,13 @@ def load_scene(spec: str, shape: tuple[int, int], k: int = 1) -> Scene:
             raw = raw[0]
         if raw.ndim == 3 and raw.shape[0] == 1:
             raw = raw[0]
-        if raw.ndim == 3 and raw.shape[-1] not in (3, 4):
+        if raw.ndim == 3 and k > 1 and raw.shape[-1] == k and raw.shape[0] != k:
+            # (H, W, K): the bands (or frames) last, as a filter cube may be stored; 3 or 4 of
+            # them were made gray and copied into every band, others "has H frames"
+            frames = np.moveaxis(raw, -1, 0)
+            notes.append(f"scene {spec} is (H, W, K) = {raw.shape}: its last axis read as the "
+                         f"model's K = {k}")
+        elif raw.ndim == 3 and raw.shape[-1] not in (3, 4):
             frames = raw  # a (K, H, W) stack
         elif raw.ndim in (2, 3):
             frames = to_gray(to_channel_first(raw))
