@@ -444,7 +444,8 @@ def run_depth(args: argparse.Namespace) -> int:
         result = _drive(wf, "depth")
     for pos, plane in zip(result.positions, result.planes, strict=True):
         _warn(plane.warnings, f"position {pos}: ")
-    print(f"wrote {result.path} ({len(positions)} planes)")
+    n = len(positions)
+    print(f"wrote {result.path} ({n} plane{'' if n == 1 else 's'})")
     for pos, plane in zip(result.positions, result.planes, strict=True):
         print(f"  {pos}: exposure {plane.exposure_us:g} us; {plane.quality.summary()}")
     return 0
