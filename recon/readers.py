@@ -134,17 +134,26 @@ def recorded_black_level(path: PathLike) -> float | None:
     """The camera's black level a saved frame records (``Frame.black_level``), else None.
 
     What ``dark='auto'`` subtracts from such a frame instead of estimating a level from its
-    corner: the code an unlit pixel reads, as the camera reported it. None for any other file,
-    a frame saved before the level was recorded, or a camera that does not report one.
+    pixels: the code an unlit pixel reads, as the camera reported it. None for any other file,
+    a frame saved before the level was recorded, or a camera that does not report one; a
+    recorded value that is not a number >= 0 (a damaged file) is None with a warning naming it.
     """
     meta = _our_metadata(Path(path))
     if not meta or meta.get("format") != FRAME_FORMAT:
         return None
     value = meta.get("black_level")
-    if isinstance(value, bool) or not isinstance(value, int | float):
+    if value is None:
         return None
-    level = float(value)
-    return level if np.isfinite(level) and level >= 0 else None
+    level = (float(value) if isinstance(value, int | float) and not isinstance(value, bool)
+             else float("nan"))
+    if np.isfinite(level) and level >= 0:
+        return level
+    from recon.checks import MeasurementWarning
+
+    warn_input(f"frame file {path} records black_level {value!r}, not a number >= 0: not used "
+               "(the dark level is estimated from the pixels; give --dark N)",
+               MeasurementWarning, stacklevel=4)
+    return None
 
 
 def _our_metadata(p: Path) -> dict[str, Any] | None:

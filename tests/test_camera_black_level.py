@@ -160,13 +160,19 @@ def test_a_damaged_recorded_level_is_not_used(bench, tmp_path):
 
     import tifffile
 
+    from recon.checks import MeasurementWarning
+
     meta = bench[2].metadata()
     for bad in (-5, "100", None, float("nan")):
         meta["black_level"] = bad
         p = tmp_path / f"bad-{bad}.tif"
         tifffile.imwrite(p, np.asarray(bench[2].pixels),
                          description=json.dumps(meta, default=str))
-        assert recorded_black_level(p) is None
+        if bad is None:  # not recorded: nothing to say
+            assert recorded_black_level(p) is None
+            continue
+        with pytest.warns(MeasurementWarning, match=r"records black_level .* not used"):
+            assert recorded_black_level(p) is None
     p = tmp_path / "neg.tif"
     meta["black_level"] = -5
     tifffile.imwrite(p, np.asarray(bench[2].pixels), description=json.dumps(meta))
