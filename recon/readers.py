@@ -597,12 +597,13 @@ def _prepare(
             _check_black_level(raw, p)
         if unmasked:
             _check_unmasked_zeros(chw, p)
+    # float64 for data float32 cannot hold until the dark level is off (a 0..200 signal on a
+    # 1e9 pedestal kept 4 levels when the pedestal was subtracted after the cast to float32)
+    arr = _as_float(chw)
     d = _dark_for(dark, key, chw, channels, what, p, order, measured)
-    if d is not None:  # in float64 for data float32 cannot hold (a 0..200 signal on a 1e9
-        # pedestal kept 4 levels when the pedestal was subtracted after the cast)
-        arr = _subtract_dark(_as_float(chw), d, p, what)
-    else:
-        arr = _as_float(chw).astype(np.float32, copy=False)
+    if d is not None:
+        arr = _subtract_dark(arr, d, p, what)  # into float32
+    arr = arr.astype(np.float32, copy=False)
     _check_negative(arr, p, dark, measured, what)
     out = clip_nonneg(box_downsample(arr, downsample)).astype(np.float32, copy=False)
     return out, p
@@ -765,10 +766,13 @@ def load_measurement(
 ) -> F32:
     """Load a measurement as float32 ``(C, H, W)``: dark -> downsample -> clip -> normalise.
 
-    Same arguments as :func:`load_psf`; by default the result is scaled to maximum 1
+    Same arguments as :func:`load_psf`, but ``dark='auto'`` is the recorded black level, else
+    :func:`recon.preprocess.measurement_dark_level` (the 1st percentile of the measured pixels,
+    not a PSF's corner patch); by default the result is scaled to maximum 1
     (``normalise=None`` keeps the counts). ``unmasked``: it is read without an erasure mask
     (a file that is 0 on many pixels is warned about). ``measured``: its erasure mask (H, W)
-    in the file's layout (nonzero = measured), for the check of negative pixels. A measurement
+    in the file's layout (nonzero = measured), for the automatic dark level and the check of
+    negative pixels. A measurement
     negative in many measured pixels after its dark level is warned about
     (:func:`recon.checks.negative_measurement`: a dark level above the black level) before they
     are clipped to 0. Raises for NaN/inf values, a bad dtype or shape, and an all-zero
