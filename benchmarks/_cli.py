@@ -91,9 +91,14 @@ def append_jsonl(path: str | os.PathLike[str] | None, row: dict[str, Any]) -> No
 
 def _cut_torn_tail(p: Path) -> None:
     """Cut a torn last line off ``p`` (see :func:`read_jsonl`); a whole last line is kept."""
+    with open(p, "rb") as f:  # the last byte first: a whole file is not read at every append
+        f.seek(0, os.SEEK_END)
+        if f.tell() == 0:
+            return
+        f.seek(-1, os.SEEK_END)
+        if f.read(1) == b"\n":
+            return
     data = p.read_bytes()
-    if not data or data.endswith(b"\n"):
-        return
     start = data.rfind(b"\n") + 1
     try:
         json.loads(data[start:])
