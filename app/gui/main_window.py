@@ -74,7 +74,7 @@ from app.gui.preview_engine import (
     saturation_verdict,
 )
 from app.gui.settings import AppSettings, default_jobs_dir, save_settings
-from app.gui.trade_panel import TradePanel
+from app.gui.trade_panel import TradePanel, frame_source
 from app.gui.widgets import never_wider
 from app.gui.workers import PreviewWorker, TaskQueue
 
@@ -801,8 +801,7 @@ class MainWindow(QMainWindow):
 
     def _show_frame(self, frame: Any) -> None:
         prev, self.last_frame = self.last_frame, frame
-        if prev is None or ((prev.backend, prev.camera_id, prev.shape)
-                            != (frame.backend, frame.camera_id, frame.shape)):
+        if prev is None or frame_source(prev) != frame_source(frame):
             self.trade_panel.notice_source()  # a trade measured on the other no longer holds
         self.raw_panel.set_image(frame.pixels)
         now = time.time()

@@ -84,13 +84,20 @@ class _TradeWorker(QObject):
         self._stop.set()
 
 
-def _source_of(m: Measurement | None) -> tuple[Any, ...] | None:
-    """What a measured trade holds for: the camera and the frame's size (None: no frame)."""
-    frame = None if m is None else m.frame
+def frame_source(frame: Any) -> tuple[Any, ...] | None:
+    """What a measured trade holds for: the frame's camera and size (None: no frame).
+
+    The one rule of the panel's stale check and of the window's notice of a change.
+    """
     if frame is None:
         return None
     shape = tuple(np.shape(getattr(frame, "pixels", frame)))
     return (getattr(frame, "backend", None), getattr(frame, "camera_id", None), shape)
+
+
+def _source_of(m: Measurement | None) -> tuple[Any, ...] | None:
+    """:func:`frame_source` of a measurement's frame."""
+    return frame_source(None if m is None else m.frame)
 
 
 def _describe(source: tuple[Any, ...]) -> str:
